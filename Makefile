@@ -1,0 +1,65 @@
+# fftune: top-level targets. `make demo` and `make test` need nothing else on a fresh
+# Debian machine with python3 (+ python3-venv) and a C compiler.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(CURDIR)/$(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+FW     := $(MAKE) --no-print-directory -C firmware_sim PYTHON=$(PY)
+
+.PHONY: help setup firmware demo test bench cross fuzz system-deps clean
+
+help:
+	@echo "make setup        venv (.venv) with pinned deps + firmware_sim build (other targets do it)"
+	@echo "make demo         the main job on the simulated drive (writes out/demo/)"
+	@echo "make test         every test, C and Python"
+	@echo "make bench        benchmarks, printing their figures"
+	@echo "make cross        deployable C for Cortex-M4F (arm-none-eabi-gcc), with sizes"
+	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils"
+	@echo "make clean"
+
+setup: $(STAMP) firmware
+
+$(STAMP): pyproject.toml requirements.lock
+	@$(PYTHON) -c 'import ensurepip, venv' 2>/dev/null || { echo "make setup: python3 venv support missing: apt-get install python3-venv" >&2; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install -q --disable-pip-version-check -r requirements.lock
+	$(VENV)/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+	@touch $@
+
+firmware: $(STAMP)
+	@$(FW) all
+
+demo: setup
+	@$(VENV)/bin/fftune demo
+
+test: setup
+	@$(FW) test
+	$(VENV)/bin/python -m pytest -q -ra tests
+
+bench: setup
+	@$(FW) bench
+	@set -e; for b in tests/bench/bench_*.py; do [ -e "$$b" ] || continue; echo "== $$b"; $(VENV)/bin/python "$$b"; done
+
+cross:
+	@command -v arm-none-eabi-gcc >/dev/null 2>&1 || { echo "make cross: arm-none-eabi-gcc not found (install: sudo make system-deps, package gcc-arm-none-eabi)" >&2; exit 1; }
+	@$(MAKE) --no-print-directory -C firmware_sim cross PYTHON=$(PYTHON)
+
+fuzz: setup
+	@$(FW) fuzz
+
+system-deps:
+	@[ "$$(id -u)" = 0 ] || { echo "make system-deps: must run as root (uses apt-get)" >&2; exit 1; }
+	@command -v apt-get >/dev/null || { echo "make system-deps: needs a Debian/Ubuntu system (apt-get)" >&2; exit 1; }
+	apt-get update -qq
+	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+	    python3-venv gcc make gcc-arm-none-eabi libnewlib-arm-none-eabi \
+	    qemu-system-x86 linux-image-amd64 busybox-static cpio kmod \
+	    can-utils clang llvm libclang-rt-14-dev valgrind >/dev/null
+
+clean:
+	@$(MAKE) --no-print-directory -C firmware_sim clean
+	rm -rf $(VENV) out .pytest_cache *.egg-info
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +

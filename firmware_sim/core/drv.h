@@ -1,0 +1,116 @@
+/*
+ * drv.h - the drive aggregate: the one API the CANopen layer and the host port call.
+ *
+ * Deployable: no OS call, no heap, no plant. One state struct (drv_t) passed explicitly.
+ * Parameters are addressed by id (drv_param_id_t, generated from configs/od.yaml into
+ * od_params.h) so that the object dictionary, the EDS and the drive agree by construction.
+ *
+ * CONTRACT between firmware_sim/core (implements) and firmware_sim/canopen + port (call).
+ * Change it only together with both sides.
+ */
+#ifndef DRV_H
+#define DRV_H
+
+#include <stdbool.h>
+#include <stdint.h>
+#include <stddef.h>
+
+#include "od_params.h" /* generated: drv_param_id_t, DRV_PARAM_COUNT, type/limits table */
+
+/* Result of a parameter access or a command; the CANopen layer maps each to an SDO abort. */
+typedef enum {
+    DRV_OK = 0,
+    DRV_E_NO_PARAM,      /* unknown id                          -> 0x06020000 */
+    DRV_E_READ_ONLY,     /* write to a read-only parameter      -> 0x06010002 */
+    DRV_E_NOT_FINITE,    /* NaN or inf                          -> 0x06090030 */
+    DRV_E_RANGE_HIGH,    /* above the limit                     -> 0x06090031 */
+    DRV_E_RANGE_LOW,     /* below the limit                     -> 0x06090032 */
+    DRV_E_STATE,         /* not allowed in the present state    -> 0x08000022 */
+    DRV_E_NO_FIT,        /* run would not fit the recorder      -> 0x08000022 (last error tells) */
+    DRV_E_LENGTH,        /* bad data length / offset            -> 0x06070010 */
+    DRV_E_GENERAL        /*                                     -> 0x08000000 */
+} drv_status_t;
+
+/* Run states (RUN_STATE parameter). */
+typedef enum {
+    DRV_RUN_IDLE = 0,
+    DRV_RUN_SETTLING = 1,
+    DRV_RUN_RECORDING = 2,
+    DRV_RUN_DONE = 3,
+    DRV_RUN_ABORTED = 4,
+    DRV_RUN_FAULT = 5
+} drv_run_state_t;
+
+/* Why a run ended other than DONE (RUN_LAST_ERROR parameter). */
+typedef enum {
+    DRV_STOP_NONE = 0,
+    DRV_STOP_ABORT_CMD = 1,      /* host asked */
+    DRV_STOP_HEARTBEAT = 2,      /* host heartbeat lost (CANopen layer calls drv_safe_stop) */
+    DRV_STOP_DISABLED = 3,       /* CiA 402 left OPERATION ENABLED */
+    DRV_STOP_NO_FIT = 4,         /* refused: recorder too small */
+    DRV_STOP_BAD_CONFIG = 5,     /* refused: excitation parameters inconsistent */
+    DRV_STOP_NMT = 6             /* NMT left OPERATIONAL */
+} drv_stop_reason_t;
+
+/* Excitation kinds (EXC_KIND) and injection points (EXC_INJECT). */
+enum { DRV_EXC_NONE = 0, DRV_EXC_SINE = 1, DRV_EXC_TABLE = 2, DRV_EXC_MULTISINE = 3 };
+enum { DRV_INJECT_REFERENCE = 0, DRV_INJECT_PLANT_INPUT = 1 };
+
+/* Recorder signal bits (REC_SIGNALS); recorded per sample in this bit order. */
+enum {
+    DRV_SIG_REFERENCE = 1u << 0,   /* theta_r [rad] */
+    DRV_SIG_PLANT_INPUT = 1u << 1, /* u [V], after saturation */
+    DRV_SIG_MOTOR_ANGLE = 1u << 2, /* theta_1 [rad] measured */
+    DRV_SIG_LOAD_ANGLE = 1u << 3,  /* theta_2 [rad] measured */
+    DRV_SIG_ERROR = 1u << 4        /* theta_r - theta_1 [rad] */
+};
+
+/* Measurements handed to one control step. */
+typedef struct {
+    float motor_angle_rad;
+    float load_angle_rad;
+} drv_meas_t;
+
+/* Storage the integrator provides (fixed, static in the port; no heap). */
+typedef struct {
+    float *rec_buf;            /* recorder RAM */
+    uint32_t rec_capacity;     /* in float values */
+    float *table_buf;          /* waveform table / on-drive multisine period */
+    uint32_t table_capacity;   /* in samples, <= 8192 */
+    float fs_hz;               /* controller rate */
+} drv_storage_t;
+
+#include "drv_state.h" /* drv_t: the module states (core's business) */
+
+drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage);
+
+/* One controller step at fs: returns the plant input [V] (saturated). */
+float drv_step(drv_t *drv, const drv_meas_t *meas);
+
+/* Parameters: typed by od_params.h (f32 or u32). Range-checked; old value kept on error. */
+drv_status_t drv_get_f32(const drv_t *drv, drv_param_id_t id, float *value);
+drv_status_t drv_set_f32(drv_t *drv, drv_param_id_t id, float value);
+drv_status_t drv_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value);
+drv_status_t drv_set_u32(drv_t *drv, drv_param_id_t id, uint32_t value);
+
+/* Run control. start: DRV_E_STATE unless enabled and idle/done/aborted; DRV_E_NO_FIT etc. */
+drv_status_t drv_run_start(drv_t *drv);
+void drv_run_abort(drv_t *drv, drv_stop_reason_t reason);
+/* Safe stop (heartbeat loss, disable): excitation off, controller holds the present position. */
+void drv_safe_stop(drv_t *drv, drv_stop_reason_t reason);
+/* Power stage enable from CiA 402 (OPERATION ENABLED <-> not). Disabling aborts a run. */
+void drv_enable(drv_t *drv, bool enabled);
+
+/* Recorder data as a byte stream: float32 little-endian, per sample the selected signals
+ * in bit order. Size is valid after DONE (or partial after abort). */
+uint32_t drv_rec_size_bytes(const drv_t *drv);
+drv_status_t drv_rec_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
+
+/* Waveform table download: bytes of float32 LE samples; commit sets TABLE_LENGTH.
+ * Refused (DRV_E_STATE) while a run is active. */
+drv_status_t drv_table_write(drv_t *drv, uint32_t offset, const uint8_t *src, uint32_t len);
+drv_status_t drv_table_commit(drv_t *drv, uint32_t total_len_bytes);
+uint32_t drv_table_size_bytes(const drv_t *drv);
+drv_status_t drv_table_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
+
+#endif /* DRV_H */

@@ -1,0 +1,7 @@
+"""fftune.host: drives a CANopen motion drive (simulated or real) through the
+detect -> quantify -> tune experiments, stores captures, writes reports.
+
+Depends on :mod:`analysis`; never the other way round.
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,50 @@
+"""The ``fftune`` command line: one entry point, subcommands registered by modules.
+
+Each module in ``SUBCOMMAND_MODULES`` has ``add_parser(subparsers)`` which adds its
+subcommand(s) and sets ``func`` (called with the parsed args, returns an exit code).
+User errors (:class:`analysis.errors.FftuneError`) are printed as one line, exit code 2.
+"""
+import argparse
+import importlib
+import sys
+
+from analysis.errors import FftuneError
+
+from host import __version__
+
+# Order = order in --help.
+SUBCOMMAND_MODULES = [
+    "host.demo",
+]
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(
+        prog="fftune",
+        description="Measure how nonlinear a motion system is and tune its friction feed-forward.",
+    )
+    parser.add_argument("--version", action="version", version=f"fftune {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in SUBCOMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    return parser
+
+
+def main(argv=None):
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except FftuneError as exc:
+        print(f"fftune: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("fftune: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
