@@ -1,0 +1,500 @@
+"""The drive client: one CANopen drive reached through any python-can interface.
+
+:class:`DriveClient` connects with python-can's own option names (``interface``,
+``channel``, ``bitrate``; ``host``/``port`` for socketcand), imports the drive's EDS into a
+python-canopen :class:`canopen.BaseNode402`, brings the drive to OPERATION ENABLED, sets
+parameters by name, starts excitation runs, waits for them with a progress bar, uploads the
+recording by SDO block transfer and checks its sample count. Heartbeats run both ways: the
+drive watches the host's (object 0x1016), the client watches the drive's and its boot-up.
+
+Every failure a user can cause or meet (unreachable bus, wrong node id, SDO abort, timeout,
+run stopped by the drive) is raised as one :class:`analysis.errors.FftuneError` line.
+"""
+import logging
+import socket
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from analysis.errors import FftuneError
+from host.odmap import (DEFAULT_EDS, PARAMS, RUN_STATES, SIGNAL_BITS, STOP_REASONS)
+
+DEFAULT_SOCKETCAND_HOST = "127.0.0.1"
+DEFAULT_SOCKETCAND_PORT = 29536
+DEFAULT_SOCKETCAND_CHANNEL = "can0"
+CONNECT_DEADLINE_S = 4.5
+
+logger = logging.getLogger(__name__)
+
+
+def quiet_can_loggers():
+    """python-can's socketcand client logs every partial TCP read and every refused
+    connection attempt as a warning; keep the user's terminal readable."""
+    logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
+    logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+    # python-canopen logs SDO retries and aborts itself; we report them as errors.
+    logging.getLogger("canopen").setLevel(logging.CRITICAL)
+
+
+def add_bus_arguments(parser):
+    """python-can's option names (as in ``python -m can.logger``) plus the drive's."""
+    g = parser.add_argument_group("CAN bus (python-can options)")
+    g.add_argument("-i", "--interface", default="socketcand",
+                   help="python-can interface: socketcand (default), socketcan, pcan, kvaser, virtual, ...")
+    g.add_argument("-c", "--channel", default=None,
+                   help="channel (socketcand: the bus name served, default can0; socketcan: vcan0 ...)")
+    g.add_argument("-b", "--bitrate", type=int, default=None, help="bit rate in bit/s")
+    g.add_argument("--host", default=DEFAULT_SOCKETCAND_HOST,
+                   help=f"socketcand server (default {DEFAULT_SOCKETCAND_HOST}, the simulated drive)")
+    g.add_argument("--port", type=int, default=DEFAULT_SOCKETCAND_PORT,
+                   help=f"socketcand TCP port (default {DEFAULT_SOCKETCAND_PORT})")
+    g.add_argument("--node-id", type=int, default=None, help="drive node id (default: config, else 1)")
+    g.add_argument("--eds", default=None, help="the drive's EDS (default: config, else the firmware_sim build's)")
+
+
+@dataclass
+class BusOptions:
+    """Where the drive is: python-can interface options plus node id and EDS."""
+
+    interface: str = "socketcand"
+    channel: str = None
+    bitrate: int = None
+    host: str = DEFAULT_SOCKETCAND_HOST
+    port: int = DEFAULT_SOCKETCAND_PORT
+    node_id: int = 1
+    eds: str = None
+
+    @classmethod
+    def from_args(cls, args, cfg_drive=None):
+        cfg_drive = cfg_drive or {}
+        return cls(interface=args.interface, channel=args.channel, bitrate=args.bitrate,
+                   host=args.host, port=args.port,
+                   node_id=args.node_id if args.node_id is not None else cfg_drive.get("node_id", 1),
+                   eds=args.eds or cfg_drive.get("eds") or DEFAULT_EDS)
+
+    def bus_kwargs(self):
+        kw = {"interface": self.interface}
+        if self.interface == "socketcand":
+            kw.update(channel=self.channel or DEFAULT_SOCKETCAND_CHANNEL, host=self.host, port=self.port)
+        elif self.channel is not None:
+            kw["channel"] = self.channel
+        if self.bitrate is not None:
+            kw["bitrate"] = self.bitrate
+        return kw
+
+    def describe(self):
+        if self.interface == "socketcand":
+            return (f"interface socketcand, channel {self.channel or DEFAULT_SOCKETCAND_CHANNEL} "
+                    f"at {self.host}:{self.port}")
+        return f"interface {self.interface}, channel {self.channel}"
+
+
+@dataclass
+class RunRecord:
+    """One completed run: the recorded signals and what the drive was set to."""
+
+    signals: dict                 # name -> float64 array, length record_periods * N
+    parameters: dict              # alias -> value read back from the drive after the run
+    fs_hz: float
+    period_samples: int
+    settle_periods: int
+    record_periods: int
+    run_counter: int
+    t_start: float                # POSIX time
+    t_end: float
+    meta: dict = field(default_factory=dict)
+
+
+def sdo_abort_text(exc):
+    """``0x06090031 (Value of parameter written too high)`` from an SdoAbortedError."""
+    from canopen.sdo.exceptions import SdoAbortedError
+    code = exc.code
+    meaning = SdoAbortedError.CODES.get(code, "unknown abort code")
+    return f"SDO abort 0x{code:08X} ({meaning})"
+
+
+def _open_bus(opts, deadline_s=CONNECT_DEADLINE_S):
+    """A python-can bus, or an FftuneError naming interface and channel within the deadline."""
+    import can
+
+    quiet_can_loggers()
+    t0 = time.monotonic()
+    if opts.interface == "socketcand":
+        # python-can's client retries a refused connection for 10 s; find out first.
+        try:
+            with socket.create_connection((opts.host, opts.port), timeout=min(2.0, deadline_s)):
+                pass
+        except OSError as exc:
+            reason = exc.strerror or type(exc).__name__
+            raise FftuneError(f"drive not reachable: {opts.describe()}: {reason}"
+                              " (is the drive running? `fftune sim` starts the simulated one)") from None
+    result = {}
+
+    def worker():
+        try:
+            result["bus"] = can.Bus(**opts.bus_kwargs())
+        except Exception as exc:  # any interface's own error type
+            result["error"] = exc
+
+    th = threading.Thread(target=worker, daemon=True, name="fftune-bus-open")
+    th.start()
+    th.join(max(0.1, deadline_s - (time.monotonic() - t0)))
+    if th.is_alive():
+        raise FftuneError(f"drive not reachable: {opts.describe()}: no answer within {deadline_s:.0f} s")
+    if "error" in result:
+        exc = result["error"]
+        raise FftuneError(f"cannot open CAN bus: {opts.describe()}: {type(exc).__name__}: {exc}") from None
+    return result["bus"]
+
+
+class DriveClient:
+    """A connected drive. Use as a context manager, or call :meth:`close`.
+
+    Parameters
+    ----------
+    opts : BusOptions
+        Interface, channel, node id and EDS.
+    sdo_timeout_s : float
+        Response timeout of one SDO request.
+    sdo_retries : int
+        Attempts per SDO request (python-canopen's ``MAX_RETRIES``).
+    heartbeat_ms : int
+        Producer time of the drive's heartbeat and of the host's; the drive's consumer
+        watches the host with 4x this time. 0 switches both off.
+    host_node_id : int
+        Node id under which the host produces its heartbeat.
+    """
+
+    def __init__(self, opts, *, sdo_timeout_s=2.0, sdo_retries=2, heartbeat_ms=100,
+                 host_node_id=0x7F, run_timeout_s=120.0, progress=True):
+        import canopen
+
+        self.opts = opts
+        self.sdo_timeout_s = sdo_timeout_s
+        self.sdo_retries = sdo_retries
+        self.heartbeat_ms = heartbeat_ms
+        self.host_node_id = host_node_id
+        self.run_timeout_s = run_timeout_s
+        self.progress = progress
+        self._hb_task = None
+        self._bootups = 0
+        self._last_hb = None
+        self.network = None
+        try:
+            self.node = canopen.BaseNode402(opts.node_id, opts.eds)
+        except FileNotFoundError:
+            raise FftuneError(f"EDS not found: {opts.eds} (build it with `make firmware`, or pass --eds)") from None
+        except Exception as exc:
+            raise FftuneError(f"EDS {opts.eds}: cannot import: {exc}") from None
+
+    # ---- connection -------------------------------------------------------------------
+    def connect(self):
+        import canopen
+
+        bus = _open_bus(self.opts)
+        self.network = canopen.Network(bus)
+        self.network.add_node(self.node)
+        self.network.connect()
+        self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
+        self.node.sdo.MAX_RETRIES = max(1, self.sdo_retries)
+        self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
+        self._probe()
+        self._start_heartbeats()
+        return self
+
+    def _on_heartbeat(self, state):
+        self._last_hb = time.monotonic()
+        if state == 0:
+            self._bootups += 1
+
+    def _probe(self):
+        """First contact: one short SDO read of the device type, a named error if silent."""
+        from canopen.sdo.exceptions import SdoCommunicationError
+
+        sdo = self.node.sdo
+        saved = sdo.RESPONSE_TIMEOUT, sdo.MAX_RETRIES
+        sdo.RESPONSE_TIMEOUT, sdo.MAX_RETRIES = min(0.5, self.sdo_timeout_s), 2
+        try:
+            sdo.upload(0x1000, 0)
+        except SdoCommunicationError:
+            seen = self._scan_nodes()
+            hint = (f"; nodes answering on this bus: {', '.join(map(str, seen))}" if seen
+                    else "; no node answered on this bus")
+            self.close()
+            raise FftuneError(f"no SDO answer from node {self.opts.node_id} on {self.opts.describe()}"
+                              f" (wrong node id?){hint}") from None
+        finally:
+            sdo.RESPONSE_TIMEOUT, sdo.MAX_RETRIES = saved
+
+    def _scan_nodes(self, wait_s=0.3):
+        """Node ids that answer an SDO read of 0x1000 (python-canopen's NodeScanner)."""
+        try:
+            scanner = self.network.scanner
+            scanner.reset()
+            scanner.search(limit=127)
+            time.sleep(wait_s)
+            return sorted(set(scanner.nodes))
+        except Exception:
+            return []
+
+    def _start_heartbeats(self):
+        if not self.heartbeat_ms:
+            return
+        period = self.heartbeat_ms / 1000.0
+        # Host heartbeat (state 0x05 operational) on 0x700 + host id.
+        self._hb_task = self.network.send_periodic(0x700 + self.host_node_id, [0x05], period)
+        self.write(0x1017, 0, self.heartbeat_ms)
+        consumer = (self.host_node_id << 16) | min(0xFFFF, 4 * self.heartbeat_ms)
+        self.write(0x1016, 1, consumer)
+
+    def close(self):
+        if self.network is None:
+            return
+        try:
+            if self._hb_task is not None:
+                try:
+                    # Tell the drive to stop watching before the host heartbeat ends.
+                    self.node.sdo.RESPONSE_TIMEOUT = 0.3
+                    self.node.sdo.MAX_RETRIES = 1
+                    self.node.sdo.download(0x1016, 1, struct.pack("<L", 0))
+                except Exception:
+                    pass
+                self._hb_task.stop()
+                self._hb_task = None
+            self.network.disconnect()
+        except Exception:
+            pass
+        self.network = None
+
+    def __enter__(self):
+        if self.network is None:
+            self.connect()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ---- SDO access -------------------------------------------------------------------
+    def _describe_obj(self, index, sub):
+        try:
+            obj = self.node.object_dictionary[index]
+            name = obj.name
+            if sub or hasattr(obj, "subindices"):
+                name = f"{name}.{obj[sub].name}"
+        except KeyError:
+            name = "?"
+        return f"0x{index:04X}:{sub:02X} '{name}'"
+
+    def _sdo_call(self, what, index, sub, fn):
+        from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+        try:
+            return fn()
+        except SdoAbortedError as exc:
+            raise FftuneError(f"{what} {self._describe_obj(index, sub)} on node {self.opts.node_id}: "
+                              f"{sdo_abort_text(exc)}") from None
+        except SdoCommunicationError as exc:
+            raise FftuneError(f"{what} {self._describe_obj(index, sub)} on node {self.opts.node_id}: "
+                              f"{exc} after {self.node.sdo.MAX_RETRIES} attempt(s) of "
+                              f"{self.node.sdo.RESPONSE_TIMEOUT:g} s ({self.opts.describe()})") from None
+        except (ValueError, TypeError, KeyError) as exc:
+            raise FftuneError(f"{what} {self._describe_obj(index, sub)}: {exc}") from None
+
+    def _var(self, index, sub):
+        obj = self.node.sdo[index]
+        return obj[sub] if hasattr(obj, "__getitem__") and sub is not None and \
+            not hasattr(obj, "raw") else obj
+
+    def resolve(self, name):
+        """(index, sub-index) for an alias (``kfc``), an EDS name
+        (``Controller.Coulomb feed-forward K_fc``) or ``0x2000:4``."""
+        if name in PARAMS:
+            e = PARAMS[name]
+            return e.index, e.subindex
+        if isinstance(name, str) and name.lower().startswith("0x"):
+            idx, _, sub = name.partition(":")
+            return int(idx, 16), int(sub, 0) if sub else 0
+        od = self.node.object_dictionary
+        rec, _, sub = name.partition(".")
+        try:
+            obj = od[rec]
+            if sub:
+                var = obj[sub]
+                return obj.index, var.subindex
+            return obj.index, 0
+        except KeyError:
+            raise FftuneError(f"no object named '{name}' in the EDS {self.opts.eds}") from None
+
+    def read(self, index, sub=0):
+        var = self._var(index, sub)
+        return self._sdo_call("reading", index, sub, lambda: var.raw)
+
+    def write(self, index, sub, value):
+        var = self._var(index, sub)
+
+        def do():
+            var.raw = value
+        self._sdo_call(f"writing {value!r} to", index, sub, do)
+
+    def get(self, name):
+        """A parameter's value by alias or EDS name."""
+        return self.read(*self.resolve(name))
+
+    def set(self, name, value):
+        """Write a parameter by alias or EDS name (SDO; the drive range-checks it)."""
+        index, sub = self.resolve(name)
+        self.write(index, sub, value)
+
+    def set_parameters(self, values):
+        for name, value in values.items():
+            self.set(name, value)
+
+    def read_parameters(self):
+        """Every manufacturer parameter the EDS has, by alias (the run's metadata)."""
+        out = {}
+        for alias, e in PARAMS.items():
+            if alias.startswith("sim_") or alias.startswith("meas_"):
+                continue
+            try:
+                self.node.object_dictionary[e.index][e.subindex] if e.subindex else \
+                    self.node.object_dictionary[e.index]
+            except KeyError:
+                continue
+            out[alias] = self.read(e.index, e.subindex)
+        return out
+
+    def identity(self):
+        """Identity object 0x1018, firmware 0x100A and device name 0x1008."""
+        ident = {}
+        for key, (index, sub) in {"vendor_id": (0x1018, 1), "product_code": (0x1018, 2),
+                                  "revision": (0x1018, 3), "serial": (0x1018, 4)}.items():
+            ident[key] = int(self.read(index, sub))
+        ident["firmware_version"] = str(self.read(0x100A, 0))
+        ident["device_name"] = str(self.read(0x1008, 0))
+        ident["node_id"] = self.opts.node_id
+        ident["bus"] = self.opts.describe()
+        return ident
+
+    def plant_truth(self):
+        """The simulated plant's true friction (0x2100, simulation build only), or None."""
+        if 0x2100 not in self.node.object_dictionary:
+            return None
+        out = {}
+        for alias in ("sim_fc_volt", "sim_fv_volt", "sim_fs_volt", "sim_noise_std", "sim_fc_torque"):
+            if alias in PARAMS:
+                out[alias] = float(self.get(alias))
+        return out
+
+    # ---- state machines ---------------------------------------------------------------
+    def enable(self):
+        """NMT OPERATIONAL and CiA 402 OPERATION ENABLED in the excitation-run mode."""
+        node = self.node
+        try:
+            node.nmt.state = "PRE-OPERATIONAL"
+            node.setup_402_state_machine(read_pdos=True)
+            node.nmt.state = "OPERATIONAL"
+            time.sleep(0.05)
+            if 0x6060 in node.object_dictionary:
+                self.write(0x6060, 0, -1)
+            if node.state != "OPERATION ENABLED":
+                node.state = "OPERATION ENABLED"
+        except FftuneError:
+            raise
+        except Exception as exc:
+            from canopen.sdo.exceptions import SdoAbortedError
+            if isinstance(exc, SdoAbortedError):
+                raise FftuneError(f"enabling node {self.opts.node_id}: {sdo_abort_text(exc)}") from None
+            raise FftuneError(f"enabling node {self.opts.node_id} (CiA 402 OPERATION ENABLED): "
+                              f"{type(exc).__name__}: {exc}") from None
+
+    # ---- runs -------------------------------------------------------------------------
+    def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"),
+            desc="run"):
+        """Set ``parameters``, start a run, wait for it, upload and check the recording.
+
+        Parameters
+        ----------
+        parameters : dict
+            Alias (or EDS name) -> value, written before the start in this order.
+        signals : sequence of str
+            Recorder signals (``host.odmap.SIGNAL_BITS``).
+        desc : str
+            Progress bar label.
+
+        Returns
+        -------
+        RunRecord
+        """
+        from tqdm import tqdm
+
+        mask = 0
+        for name in signals:
+            mask |= 1 << SIGNAL_BITS[name]
+        order = [n for n, b in sorted(SIGNAL_BITS.items(), key=lambda kv: kv[1]) if mask >> b & 1]
+        self.set_parameters(dict(parameters, rec_signals=mask))
+        counter0 = int(self.get("run_counter"))
+        boots0 = self._bootups
+        t_start = time.time()
+        self.set("run_command", 1)
+        total = int(self.get("run_total"))
+        deadline = time.monotonic() + self.run_timeout_s
+        bar = tqdm(total=total, desc=desc, unit="sample", unit_scale=True, leave=False,
+                   disable=not self.progress, dynamic_ncols=True)
+        try:
+            while True:
+                state = int(self.get("run_state"))
+                progress = int(self.get("run_progress"))
+                bar.update(max(0, min(progress, total) - bar.n))
+                if self._bootups != boots0:
+                    raise FftuneError(f"node {self.opts.node_id} rebooted during the run (boot-up seen)")
+                if state == 3 and int(self.get("run_counter")) != counter0:
+                    break
+                if state in (4, 5):
+                    reason = int(self.get("run_last_error"))
+                    raise FftuneError(f"run stopped by the drive: state {RUN_STATES[state]}, reason "
+                                      f"{reason} ({STOP_REASONS.get(reason, 'unknown')})")
+                if time.monotonic() > deadline:
+                    self.set("run_command", 2)
+                    raise FftuneError(f"run did not finish within {self.run_timeout_s:g} s "
+                                      f"(progress {progress}/{total} samples); aborted it")
+                self._check_heartbeat()
+                time.sleep(0.02)
+        finally:
+            bar.close()
+        t_end = time.time()
+        params = self.read_parameters()
+        n = int(params["exc_period"])
+        rec_periods = int(params["exc_record_periods"])
+        data = self.upload_recording()
+        expected_samples = rec_periods * n
+        nsig = len(order)
+        if len(data) != expected_samples * nsig * 4:
+            raise FftuneError(f"recording from node {self.opts.node_id}: {len(data)} bytes, expected "
+                              f"{expected_samples} samples x {nsig} signals x 4 bytes = "
+                              f"{expected_samples * nsig * 4}")
+        arr = np.frombuffer(data, dtype="<f4").reshape(expected_samples, nsig)
+        sig = {name: arr[:, i].astype(np.float64) for i, name in enumerate(order)}
+        return RunRecord(signals=sig, parameters=params, fs_hz=float(params["fs"]),
+                         period_samples=n, settle_periods=int(params["exc_settle_periods"]),
+                         record_periods=rec_periods, run_counter=int(self.get("run_counter")),
+                         t_start=t_start, t_end=t_end)
+
+    def _check_heartbeat(self):
+        if not self.heartbeat_ms or self._last_hb is None:
+            return
+        silent = time.monotonic() - self._last_hb
+        if silent > max(1.0, 10 * self.heartbeat_ms / 1000.0):
+            raise FftuneError(f"heartbeat of node {self.opts.node_id} lost ({silent:.1f} s silent) on "
+                              f"{self.opts.describe()}")
+
+    def upload_recording(self):
+        """The recorder data (0x2021) by SDO block upload (CRC checked by python-canopen)."""
+        index, sub = 0x2021, 0
+
+        def do():
+            with self.node.sdo[index].open("rb", block_transfer=True) as fh:
+                return fh.read()
+        return self._sdo_call("block upload of", index, sub, do)
