@@ -1,0 +1,189 @@
+"""Higher Order Sinusoidal Input Describing Functions (HOSIDF) from sine experiments.
+
+For an input w(t) = beta sin(2 pi f0 t) and output y (paper eq. 4-5):
+
+    |H_k| = |Y(k f0)| / |U(f0)|,    angle H_k = angle Y(k f0) - k angle U(f0),
+
+i.e. H_k = Y(k f0) exp(-j k angle U(f0)) / |U(f0)|, k = 1 .. K, from the DFT over an
+integer number of periods of the sine (leakage free). Repeated experiments give the mean
+and the standard deviation of H_k.
+
+Data layout: arrays shaped ``(..., R, P, N)``: any leading axes (e.g. amplitude x
+frequency), R repeats, P blocks of N samples. Each block holds an integer number of sine
+periods, so the P blocks are averaged in the time domain before one DFT of N samples
+(identical to the DFT of the whole record at the harmonic bins, and P times cheaper).
+A single record is ``x.reshape(1, 1, -1)``.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+
+from analysis.errors import InputError
+
+__all__ = ["HosidfResult", "hosidf"]
+
+
+@dataclass
+class HosidfResult:
+    """HOSIDFs of a set of sine experiments.
+
+    Attributes
+    ----------
+    harmonics : ndarray of int, shape (K,)
+        k = 1 .. K.
+    f0 : ndarray, shape (...)
+        Sine frequency (Hz) of each experiment.
+    bin : ndarray of int, shape (...)
+        Its DFT bin in a block of N samples.
+    amplitude : ndarray, shape (...)
+        Sine amplitude beta (input unit, peak), mean over repeats.
+    H : ndarray of complex, shape (..., K)
+        Mean over repeats of H_k (output unit / input unit).
+    H_std : ndarray, shape (..., K)
+        Standard deviation over repeats of the complex H_k,
+        sqrt(sum_r |H_k,r - H_k|^2 / (R - 1)); NaN when R = 1.
+    H_repeats : ndarray of complex, shape (..., R, K)
+        H_k of every repeat.
+    fs : float
+        Sample rate (Hz).
+    """
+
+    harmonics: np.ndarray
+    f0: np.ndarray
+    bin: np.ndarray
+    amplitude: np.ndarray
+    H: np.ndarray
+    H_std: np.ndarray
+    H_repeats: np.ndarray
+    fs: float
+
+    @property
+    def magnitude(self):
+        """|H_k| of the mean, shape (..., K)."""
+        return np.abs(self.H)
+
+    @property
+    def phase_deg(self):
+        """angle H_k of the mean in degrees, shape (..., K)."""
+        return np.degrees(np.angle(self.H))
+
+
+def _check_layout(name, x):
+    x = np.asarray(x)
+    if x.ndim < 3:
+        raise InputError(f"{name}: expected an array shaped (..., repeats R, blocks P, "
+                         f"samples N), got shape {x.shape}")
+    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+        raise InputError(f"{name}: expected real numbers, got dtype {x.dtype}")
+    return x
+
+
+def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
+    """HOSIDFs H_1 .. H_K from sine experiments, mean and std over repeats.
+
+    Parameters
+    ----------
+    u, y : array_like, shape (..., R, P, N)
+        Input (the sine) and output; R repeats of P blocks of N samples, each block an
+        integer number of sine periods, in steady state.
+    fs : float
+        Sample rate (Hz).
+    n_harmonics : int
+        K, the highest harmonic (K f0 must stay below fs / 2).
+    f0 : float or array_like, optional
+        Sine frequency (Hz), broadcast over the leading axes. Checked to lie on a DFT
+        line of the N-sample block. Found from the input spectrum if omitted.
+    leakage_tol : float
+        When f0 is found from the data: a record whose largest input line has
+        neighbours above ``leakage_tol`` times its magnitude is rejected as a sine off
+        the DFT grid (a sine off by d bins gives about d / (1 - d)).
+
+    Returns
+    -------
+    HosidfResult
+
+    Raises
+    ------
+    InputError
+        Bad layout, NaN/inf, zero input, sine off the DFT grid, repeats at different
+        frequencies, harmonics beyond Nyquist.
+    """
+    u = _check_layout("input u", u)
+    y = _check_layout("output y", y)
+    if u.shape != y.shape:
+        raise InputError(f"output y: shape {y.shape} differs from input u {u.shape}")
+    if not np.isfinite(fs) or fs <= 0:
+        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    n_harmonics = int(n_harmonics)
+    if n_harmonics < 1:
+        raise InputError(f"harmonics K must be >= 1, got {n_harmonics}")
+    n = u.shape[-1]
+    n_blocks = u.shape[-2]
+    n_lines = n // 2 + 1
+    # periods averaged in the time domain (exact at the sine's harmonics), then one rfft
+    U = scipy.fft.rfft(u.sum(axis=-2), axis=-1)
+    if not np.isfinite(U).all():
+        raise InputError("input u: contains NaN or inf")
+    lead = U.shape[:-1]                       # (..., R)
+
+    if f0 is None:
+        mag = np.abs(U[..., 1:n_lines - 1])
+        if mag.shape[-1] == 0:
+            raise InputError(f"input u: N = {n} samples per block is too short")
+        k0 = np.argmax(mag, axis=-1) + 1
+        peak = np.take_along_axis(np.abs(U), k0[..., None], axis=-1)[..., 0]
+        if np.any(peak == 0):
+            raise InputError("input u: zero input (no sine found)")
+        left = np.take_along_axis(np.abs(U), (k0 - 1)[..., None], axis=-1)[..., 0]
+        right = np.take_along_axis(np.abs(U), np.minimum(k0 + 1, n_lines - 1)[..., None],
+                                   axis=-1)[..., 0]
+        leak = np.maximum(left, right) / peak
+        bad = np.argwhere(leak > leakage_tol)
+        if bad.size:
+            idx = tuple(int(i) for i in bad[0])
+            raise InputError(
+                f"input u: record {idx} has its sine off the DFT grid (neighbouring lines at "
+                f"{leak[idx]:.2g} of the peak near {k0[idx] * fs / n:g} Hz): record an integer "
+                f"number of sine periods per block of N = {n} samples")
+    else:
+        f0_arr = np.broadcast_to(np.asarray(f0, dtype=float)[..., None], lead)
+        exact = f0_arr * n / fs
+        k0 = np.rint(exact).astype(np.int64)
+        off = np.abs(exact - k0)
+        if np.any(off > 1e-6 * np.maximum(exact, 1.0)) or np.any(k0 < 1):
+            idx = tuple(int(i) for i in np.argwhere(
+                (off > 1e-6 * np.maximum(exact, 1.0)) | (k0 < 1))[0])
+            raise InputError(
+                f"input u: the sine at {f0_arr[idx]:g} Hz (record {idx}) is not on a DFT "
+                f"line: f0 N / fs = {exact[idx]:.6g} is not an integer (N = {n}, fs = {fs:g} Hz)")
+    if k0.ndim and np.any(k0 != k0[..., :1]):
+        raise InputError("input u: the repeats of one experiment have sines at different "
+                         "frequencies")
+    if np.any(k0 * n_harmonics >= n / 2):
+        worst = int(k0.max())
+        raise InputError(f"harmonic K = {n_harmonics} of the sine at {worst * fs / n:g} Hz lies "
+                         f"at or above fs/2 = {fs / 2:g} Hz: lower --harmonics")
+
+    harmonics = np.arange(1, n_harmonics + 1)
+    U1 = np.take_along_axis(U, k0[..., None], axis=-1)[..., 0]
+    if np.any(U1 == 0):
+        raise InputError("input u: zero power at the sine frequency")
+    del U
+    Y = scipy.fft.rfft(y.sum(axis=-2), axis=-1)
+    Yk = np.take_along_axis(Y, k0[..., None] * harmonics, axis=-1)
+    del Y
+    if not np.isfinite(Yk).all():
+        raise InputError("output y: contains NaN or inf")
+    H_rep = Yk * np.exp(-1j * harmonics * np.angle(U1)[..., None]) / np.abs(U1)[..., None]
+    H = H_rep.mean(axis=-2)
+    n_rep = H_rep.shape[-2]
+    if n_rep > 1:
+        d = H_rep - H[..., None, :]
+        H_std = np.sqrt(np.sum(d.real ** 2 + d.imag ** 2, axis=-2) / (n_rep - 1))
+    else:
+        H_std = np.full(H.shape, np.nan)
+    amplitude = (2.0 * np.abs(U1) / (n * n_blocks)).mean(axis=-1)
+    bins = k0[..., 0]
+    return HosidfResult(harmonics=harmonics, f0=bins * fs / n, bin=bins, amplitude=amplitude,
+                        H=H, H_std=H_std, H_repeats=H_rep, fs=float(fs))
