@@ -255,7 +255,7 @@ def validate(raw, path="<config>"):
     _number(cfg, path, "tune.period_samples", low=16, high=8192, integer=True)
     _number(cfg, path, "tune.periods", low=1, high=1000, integer=True)
     _number(cfg, path, "tune.settle_periods", low=0, high=1000, integer=True)
-    _number(cfg, path, "tune.harmonics", low=3, high=50, integer=True)
+    _number(cfg, path, "tune.harmonics", low=7, high=50, integer=True)
     _number(cfg, path, "tune.sweep.k_fc_max", low=0, high=100, low_inclusive=False)
     _number(cfg, path, "tune.sweep.points", low=3, high=200, integer=True)
     _choice(cfg, path, "tune.search.method", ("root", "brent"))

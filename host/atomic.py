@@ -1,0 +1,27 @@
+"""Write files whole or not at all: a temporary file in the same directory, then rename."""
+import os
+import tempfile
+
+
+def write_atomic(path, data, *, overwrite=True):
+    """Write ``data`` (bytes or str) to ``path`` via a temporary file and :func:`os.replace`.
+
+    With ``overwrite=False`` an existing ``path`` is never replaced (:func:`os.link` of the
+    finished temporary file fails instead), and :class:`FileExistsError` is raised.
+    """
+    d = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix="-" + os.path.basename(path), dir=d)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data.encode("utf-8") if isinstance(data, str) else data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)
+            os.remove(tmp)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise

@@ -1,0 +1,115 @@
+"""Subcommands ``fftune detect | quantify | tune | run | import-canlog | export``."""
+import os
+import sys
+
+from analysis.errors import FftuneError
+from host.config import check_output_dir, load_config
+from host.drive import BusOptions, DriveClient, add_bus_arguments
+from host.odmap import REPO_ROOT
+
+DEFAULT_CONFIG = os.path.join(REPO_ROOT, "configs", "demo.yaml")
+
+_HELP = {
+    "detect": "random odd multisines at several levels: BLA, nonlinear and noise levels, odd/even verdict",
+    "quantify": "HOSIDFs vs frequency and amplitude from sine experiments",
+    "tune": "tune the Coulomb feed-forward K_fc (sweep + automated search), then K_v",
+    "run": "detect, quantify and tune in order",
+}
+
+
+def _common(p):
+    p.add_argument("--config", default=DEFAULT_CONFIG,
+                   help="experiment configuration YAML (default: configs/demo.yaml)")
+    p.add_argument("--out", default=None, help="output directory (default: the configuration's 'output')")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+
+
+def add_parser(sub):
+    for name in ("detect", "quantify", "tune", "run"):
+        p = sub.add_parser(name, help=_HELP[name], description=_HELP[name] + ".")
+        _common(p)
+        add_bus_arguments(p)
+        p.set_defaults(func=_experiment, steps=("detect", "quantify", "tune") if name == "run" else (name,))
+
+    p = sub.add_parser("import-canlog", help="analyse a CAN log of a session with the drive",
+                       description="Decode a CAN traffic log (python-can formats: candump .log, "
+                                   ".asc, .blf, .trc, ...), reassemble the SDO transfers of parameter "
+                                   "writes and recorder uploads into run records, write them as "
+                                   "captures and analyse them as the live session did.")
+    p.add_argument("file", help="CAN log file")
+    p.add_argument("--eds", default=None, help="the drive's EDS (default: the firmware_sim build's)")
+    p.add_argument("--node-id", type=int, default=None, help="drive node id (default: config, else 1)")
+    p.add_argument("--steps", default="detect,quantify,tune",
+                   help="experiments the session ran (comma separated; default all)")
+    _common(p)
+    p.set_defaults(func=_import_canlog)
+
+    p = sub.add_parser("export", help="export capture files to .mat or CSV",
+                       description="Write each capture (HDF5) of a directory as MATLAB .mat "
+                                   "or CSV (one file per run, signals as columns).")
+    p.add_argument("captures", help="a capture file or a directory of them")
+    p.add_argument("--format", choices=("mat", "csv"), default="mat")
+    p.add_argument("--to", default=None, help="output directory (default: beside the captures)")
+    p.set_defaults(func=_export)
+
+
+def _prepare(args):
+    cfg = load_config(args.config)
+    out = check_output_dir(args.out or cfg["output"])
+    return cfg, out
+
+
+def _experiment(args):
+    from host.pipeline import run_pipeline, summary_lines
+
+    cfg, out = _prepare(args)
+    opts = BusOptions.from_args(args, cfg["drive"])
+    d = cfg["drive"]
+    client = DriveClient(opts, sdo_timeout_s=d["sdo_timeout_s"], sdo_retries=d["sdo_retries"],
+                         heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],
+                         run_timeout_s=d["run_timeout_s"], progress=not args.no_progress)
+    with client:
+        client.enable()
+        results = run_pipeline(client, cfg, out, steps=args.steps, figures=not args.no_figures,
+                               log=lambda s: print(s, flush=True))
+    print("\n".join(summary_lines(results, out)))
+    return 0
+
+
+def _import_canlog(args):
+    from host.canlog import ReplayDrive, read_transfers, session_from_transfers
+    from host.odmap import DEFAULT_EDS
+    from host.pipeline import run_pipeline, summary_lines
+
+    cfg, out = _prepare(args)
+    node_id = args.node_id or cfg["drive"]["node_id"]
+    eds = args.eds or cfg["drive"]["eds"] or DEFAULT_EDS
+    transfers = read_transfers(args.file, node_id)
+    sess = session_from_transfers(transfers, eds, node_id)
+    if not sess.runs:
+        raise FftuneError(f"{args.file}: no complete run (start command + recorder upload) of node "
+                          f"{node_id} in the log ({len(transfers)} SDO transfers)")
+    print(f"{args.file}: {len(transfers)} SDO transfers, {len(sess.runs)} runs of node {node_id}")
+    steps = tuple(s.strip() for s in args.steps.split(",") if s.strip())
+    bad = [s for s in steps if s not in ("detect", "quantify", "tune")]
+    if bad:
+        raise FftuneError(f"--steps: unknown experiment {bad[0]!r} (detect, quantify, tune)")
+    results = run_pipeline(ReplayDrive(sess, args.file), cfg, out, steps=steps,
+                           figures=not args.no_figures, log=lambda s: print(s, flush=True))
+    results_note = f"analysed from CAN log {args.file}"
+    print(results_note)
+    print("\n".join(summary_lines(results, out)))
+    return 0
+
+
+def _export(args):
+    from host.captures import export_captures
+    files = export_captures(args.captures, args.format, args.to)
+    for f in files:
+        print(f)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(0)
