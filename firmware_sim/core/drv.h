@@ -49,7 +49,8 @@ typedef enum {
     DRV_STOP_DISABLED = 3,       /* CiA 402 left OPERATION ENABLED */
     DRV_STOP_NO_FIT = 4,         /* refused: recorder too small */
     DRV_STOP_BAD_CONFIG = 5,     /* refused: excitation parameters inconsistent */
-    DRV_STOP_NMT = 6             /* NMT left OPERATIONAL */
+    DRV_STOP_NMT = 6,            /* NMT left OPERATIONAL */
+    DRV_STOP_MEAS_FAULT = 7      /* (added by core) non-finite measurement: FAULT, output 0 */
 } drv_stop_reason_t;
 
 /* Excitation kinds (EXC_KIND) and injection points (EXC_INJECT). */
@@ -112,5 +113,30 @@ drv_status_t drv_table_write(drv_t *drv, uint32_t offset, const uint8_t *src, ui
 drv_status_t drv_table_commit(drv_t *drv, uint32_t total_len_bytes);
 uint32_t drv_table_size_bytes(const drv_t *drv);
 drv_status_t drv_table_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
+
+/* ---- Additions by core (backward compatible; nothing above changed meaning) ---- */
+
+/* Position set-point of the hold / cyclic synchronous position mode (0x607A) [rad]; the
+ * excitation (at the reference) is added to it during a run. Enabling the drive sets it to
+ * the present motor angle (no jump). DRV_E_NOT_FINITE for NaN/inf. */
+drv_status_t drv_set_target(drv_t *drv, float target_rad);
+
+/* Live values for CiA 402 objects and status PDOs (0x6062, 0x6064, 0x606C, 0x60F4). */
+typedef struct {
+    float target_rad;            /* set-point */
+    float reference_rad;         /* theta_r of the last step (set-point + excitation) */
+    float motor_angle_rad;       /* last measured theta_1 */
+    float load_angle_rad;        /* last measured theta_2 */
+    float motor_velocity_rad_s;  /* backward difference of theta_1, filtered with tau_d */
+    float following_error_rad;   /* theta_r - theta_1 */
+    float plant_input_v;         /* last output (saturated) */
+    bool enabled;
+    bool fault;                  /* latched until drv_enable(drv, true) */
+} drv_monitor_t;
+void drv_get_monitor(const drv_t *drv, drv_monitor_t *mon);
+
+/* Latched measurement fault (non-finite measurement): output 0, run FAULT, reason
+ * DRV_STOP_MEAS_FAULT. Cleared by drv_enable(drv, true) (CiA 402 fault reset + enable). */
+bool drv_fault(const drv_t *drv);
 
 #endif /* DRV_H */

@@ -1,0 +1,540 @@
+/*
+ * drv.c - the drive aggregate (see drv.h): parameter dispatch on the generated DRV_P_* ids,
+ * run start/stop, one control step. Generic checks (type, access, finite, od.yaml limits)
+ * come from DRV_PARAM_INFO so configs/od.yaml stays the one source of truth; the module
+ * setters then apply the physical checks. Deployable: no OS call, no heap.
+ */
+#include "drv.h"
+
+#include <math.h>
+
+#include "ms.h"
+
+#define DRV_FS_MAX_HZ 1.0e6f
+#define DRV_TABLE_MAX 8192u
+
+/* ---- helpers ---- */
+
+static drv_status_t drv_from_ctl(ctl_status_t st)
+{
+    switch (st) {
+    case CTL_OK:
+        return DRV_OK;
+    case CTL_E_NOT_FINITE:
+        return DRV_E_NOT_FINITE;
+    case CTL_E_RANGE_LOW:
+        return DRV_E_RANGE_LOW;
+    default:
+        return DRV_E_RANGE_HIGH;
+    }
+}
+
+static void drv_update_vel_pole(drv_t *drv)
+{
+    float ts = 1.0f / drv->fs_hz;
+    drv->vel_pole = drv->ctl.tau_d / (drv->ctl.tau_d + ts);
+}
+
+/* Generic checks shared by get/set: known drive parameter of the right type. */
+static drv_status_t drv_check_id(drv_param_id_t id, drv_param_type_t type)
+{
+    if ((uint32_t)id >= (uint32_t)DRV_PARAM_COUNT) {
+        return DRV_E_NO_PARAM;
+    }
+    if (DRV_PARAM_INFO[id].sim_only) {
+        return DRV_E_NO_PARAM; /* the simulated plant's, see sim_get_f32 */
+    }
+    if (DRV_PARAM_INFO[id].type != type) {
+        return DRV_E_LENGTH; /* type mismatch: CiA 301 0x06070010 */
+    }
+    return DRV_OK;
+}
+
+/* ---- init ---- */
+
+drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
+{
+    if (drv == NULL || storage == NULL) {
+        return DRV_E_GENERAL;
+    }
+    if (!isfinite(storage->fs_hz)) {
+        return DRV_E_NOT_FINITE;
+    }
+    if (!(storage->fs_hz > 0.0f)) {
+        return DRV_E_RANGE_LOW;
+    }
+    if (storage->fs_hz > DRV_FS_MAX_HZ || storage->table_capacity > DRV_TABLE_MAX) {
+        return DRV_E_RANGE_HIGH;
+    }
+    if ((storage->rec_buf == NULL && storage->rec_capacity != 0u) ||
+        (storage->table_buf == NULL && storage->table_capacity != 0u)) {
+        return DRV_E_GENERAL;
+    }
+    drv->fs_hz = storage->fs_hz;
+    drv->table_buf = storage->table_buf;
+    drv->table_capacity = storage->table_capacity;
+    drv->table_length = 0u;
+    (void)ctl_init(&drv->ctl, storage->fs_hz);
+    gen_init(&drv->gen);
+    run_init(&drv->run);
+    (void)rec_init(&drv->rec, storage->rec_buf, storage->rec_capacity);
+    drv->exc_kind = DRV_EXC_NONE;
+    drv->exc_inject = DRV_INJECT_REFERENCE;
+    drv->run_inject = DRV_INJECT_REFERENCE;
+    drv->enabled = false;
+    drv->fault = false;
+    drv->vel_primed = false;
+    drv->target = 0.0f;
+    drv->reference = 0.0f;
+    drv->error = 0.0f;
+    drv->u = 0.0f;
+    drv->motor = 0.0f;
+    drv->load = 0.0f;
+    drv->motor_prev = 0.0f;
+    drv->velocity = 0.0f;
+    /* defaults of every writable drive parameter from od.yaml, through the checked path */
+    for (uint32_t i = 0u; i < (uint32_t)DRV_PARAM_COUNT; i++) {
+        const drv_param_info_t *info = &DRV_PARAM_INFO[i];
+        if (!info->writable || info->sim_only || i == (uint32_t)DRV_P_RUN_COMMAND) {
+            continue;
+        }
+        drv_status_t st = (info->type == DRV_PT_F32)
+                              ? drv_set_f32(drv, (drv_param_id_t)i, info->default_f32)
+                              : drv_set_u32(drv, (drv_param_id_t)i, info->default_u32);
+        if (st != DRV_OK) {
+            return DRV_E_GENERAL; /* od.yaml default outside its own limits */
+        }
+    }
+    drv_update_vel_pole(drv);
+    return DRV_OK;
+}
+
+/* ---- parameters ---- */
+
+drv_status_t drv_get_f32(const drv_t *drv, drv_param_id_t id, float *value)
+{
+    drv_status_t st = drv_check_id(id, DRV_PT_F32);
+    if (st != DRV_OK) {
+        return st;
+    }
+    if (value == NULL) {
+        return DRV_E_GENERAL;
+    }
+    float v;
+    switch (id) {
+    case DRV_P_KP: v = drv->ctl.kp; break;
+    case DRV_P_KD: v = drv->ctl.kd; break;
+    case DRV_P_TAU_D: v = drv->ctl.tau_d; break;
+    case DRV_P_KFC: v = drv->ctl.kfc; break;
+    case DRV_P_KV: v = drv->ctl.kv; break;
+    case DRV_P_FC_SMOOTH: v = drv->ctl.fc_smooth; break;
+    case DRV_P_U_MAX: v = drv->ctl.u_max; break;
+    case DRV_P_FS: v = drv->fs_hz; break;
+    case DRV_P_EXC_AMPLITUDE: v = drv->exc_amplitude; break;
+    case DRV_P_EXC_OFFSET: v = drv->exc_offset; break;
+    case DRV_P_MEAS_MOTOR_ANGLE: v = drv->motor; break;
+    case DRV_P_MEAS_LOAD_ANGLE: v = drv->load; break;
+    case DRV_P_MEAS_REFERENCE: v = drv->reference; break;
+    case DRV_P_MEAS_PLANT_INPUT: v = drv->u; break;
+    default: return DRV_E_NO_PARAM; /* an F32 id added to od.yaml but not to the drive */
+    }
+    *value = v;
+    return DRV_OK;
+}
+
+static bool drv_exc_param(drv_param_id_t id)
+{
+    switch (id) {
+    case DRV_P_EXC_KIND: case DRV_P_EXC_INJECT: case DRV_P_EXC_AMPLITUDE: case DRV_P_EXC_OFFSET:
+    case DRV_P_EXC_PERIOD: case DRV_P_EXC_SINE_CYCLES: case DRV_P_EXC_SETTLE_PERIODS:
+    case DRV_P_EXC_RECORD_PERIODS: case DRV_P_MS_K_MIN: case DRV_P_MS_K_MAX: case DRV_P_MS_GROUP:
+    case DRV_P_MS_SEED: case DRV_P_MS_REALIZATION: case DRV_P_REC_SIGNALS:
+        return true;
+    default:
+        return false;
+    }
+}
+
+drv_status_t drv_set_f32(drv_t *drv, drv_param_id_t id, float value)
+{
+    drv_status_t st = drv_check_id(id, DRV_PT_F32);
+    if (st != DRV_OK) {
+        return st;
+    }
+    const drv_param_info_t *info = &DRV_PARAM_INFO[id];
+    if (!info->writable) {
+        return DRV_E_READ_ONLY;
+    }
+    if (!isfinite(value)) {
+        return DRV_E_NOT_FINITE;
+    }
+    if (info->has_low && value < info->low_f32) {
+        return DRV_E_RANGE_LOW;
+    }
+    if (info->has_high && value > info->high_f32) {
+        return DRV_E_RANGE_HIGH;
+    }
+    if (drv_exc_param(id) && run_active(&drv->run)) {
+        return DRV_E_STATE;
+    }
+    switch (id) {
+    case DRV_P_KP: return drv_from_ctl(ctl_set_kp(&drv->ctl, value));
+    case DRV_P_KD: return drv_from_ctl(ctl_set_kd(&drv->ctl, value));
+    case DRV_P_TAU_D:
+        st = drv_from_ctl(ctl_set_tau_d(&drv->ctl, value));
+        if (st == DRV_OK) {
+            drv_update_vel_pole(drv);
+        }
+        return st;
+    case DRV_P_KFC: return drv_from_ctl(ctl_set_kfc(&drv->ctl, value));
+    case DRV_P_KV: return drv_from_ctl(ctl_set_kv(&drv->ctl, value));
+    case DRV_P_FC_SMOOTH: return drv_from_ctl(ctl_set_fc_smooth(&drv->ctl, value));
+    case DRV_P_U_MAX: return drv_from_ctl(ctl_set_u_max(&drv->ctl, value));
+    case DRV_P_EXC_AMPLITUDE: drv->exc_amplitude = value; return DRV_OK;
+    case DRV_P_EXC_OFFSET: drv->exc_offset = value; return DRV_OK;
+    default: return DRV_E_NO_PARAM;
+    }
+}
+
+drv_status_t drv_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value)
+{
+    drv_status_t st = drv_check_id(id, DRV_PT_U32);
+    if (st != DRV_OK) {
+        return st;
+    }
+    if (value == NULL) {
+        return DRV_E_GENERAL;
+    }
+    uint32_t v;
+    switch (id) {
+    case DRV_P_EXC_KIND: v = drv->exc_kind; break;
+    case DRV_P_EXC_INJECT: v = drv->exc_inject; break;
+    case DRV_P_EXC_PERIOD: v = drv->exc_period; break;
+    case DRV_P_EXC_SINE_CYCLES: v = drv->exc_sine_cycles; break;
+    case DRV_P_EXC_SETTLE_PERIODS: v = drv->exc_settle_periods; break;
+    case DRV_P_EXC_RECORD_PERIODS: v = drv->exc_record_periods; break;
+    case DRV_P_MS_K_MIN: v = drv->ms_k_min; break;
+    case DRV_P_MS_K_MAX: v = drv->ms_k_max; break;
+    case DRV_P_MS_GROUP: v = drv->ms_group; break;
+    case DRV_P_MS_SEED: v = drv->ms_seed; break;
+    case DRV_P_MS_REALIZATION: v = drv->ms_realization; break;
+    case DRV_P_TABLE_LENGTH: v = drv->table_length; break;
+    case DRV_P_RUN_COMMAND: v = 0u; break;
+    case DRV_P_RUN_STATE: v = drv->run.state; break;
+    case DRV_P_RUN_PROGRESS: v = drv->run.progress; break;
+    case DRV_P_RUN_COUNTER: v = drv->run.counter; break;
+    case DRV_P_RUN_LAST_ERROR: v = drv->run.last_error; break;
+    case DRV_P_RUN_TOTAL: v = drv->run.total; break;
+    case DRV_P_REC_SIGNALS: v = drv->rec.signals; break;
+    case DRV_P_REC_CAPACITY: v = drv->rec.capacity; break;
+    case DRV_P_REC_SAMPLES: v = drv->rec.samples; break;
+    case DRV_P_REC_BYTES: v = rec_size_bytes(&drv->rec); break;
+    default: return DRV_E_NO_PARAM;
+    }
+    *value = v;
+    return DRV_OK;
+}
+
+drv_status_t drv_set_u32(drv_t *drv, drv_param_id_t id, uint32_t value)
+{
+    drv_status_t st = drv_check_id(id, DRV_PT_U32);
+    if (st != DRV_OK) {
+        return st;
+    }
+    const drv_param_info_t *info = &DRV_PARAM_INFO[id];
+    if (!info->writable) {
+        return DRV_E_READ_ONLY;
+    }
+    if (info->has_low && value < info->low_u32) {
+        return DRV_E_RANGE_LOW;
+    }
+    if (info->has_high && value > info->high_u32) {
+        return DRV_E_RANGE_HIGH;
+    }
+    if (drv_exc_param(id) && run_active(&drv->run)) {
+        return DRV_E_STATE;
+    }
+    switch (id) {
+    case DRV_P_EXC_KIND: drv->exc_kind = value; return DRV_OK;
+    case DRV_P_EXC_INJECT: drv->exc_inject = value; return DRV_OK;
+    case DRV_P_EXC_PERIOD: drv->exc_period = value; return DRV_OK;
+    case DRV_P_EXC_SINE_CYCLES: drv->exc_sine_cycles = value; return DRV_OK;
+    case DRV_P_EXC_SETTLE_PERIODS: drv->exc_settle_periods = value; return DRV_OK;
+    case DRV_P_EXC_RECORD_PERIODS: drv->exc_record_periods = value; return DRV_OK;
+    case DRV_P_MS_K_MIN: drv->ms_k_min = value; return DRV_OK;
+    case DRV_P_MS_K_MAX: drv->ms_k_max = value; return DRV_OK;
+    case DRV_P_MS_GROUP:
+        if (value == 1u) {
+            return DRV_E_RANGE_LOW; /* valid: 0 (none) or 2 .. 16 */
+        }
+        drv->ms_group = value;
+        return DRV_OK;
+    case DRV_P_MS_SEED: drv->ms_seed = value; return DRV_OK;
+    case DRV_P_MS_REALIZATION: drv->ms_realization = value; return DRV_OK;
+    case DRV_P_REC_SIGNALS:
+        return rec_set_signals(&drv->rec, value) == 0 ? DRV_OK : DRV_E_RANGE_HIGH;
+    case DRV_P_RUN_COMMAND:
+        if (value == 1u) {
+            return drv_run_start(drv);
+        }
+        if (value == 2u) {
+            drv_run_abort(drv, DRV_STOP_ABORT_CMD);
+        }
+        return DRV_OK;
+    default:
+        return DRV_E_NO_PARAM;
+    }
+}
+
+/* ---- run control ---- */
+
+static drv_status_t drv_refuse(drv_t *drv, drv_stop_reason_t reason, drv_status_t st)
+{
+    run_refuse(&drv->run, (uint32_t)reason);
+    return st;
+}
+
+drv_status_t drv_run_start(drv_t *drv)
+{
+    if (!drv->enabled || drv->fault || run_active(&drv->run)) {
+        return DRV_E_STATE;
+    }
+    uint32_t n = drv->exc_period;
+    ms_design_t ms = {n, drv->ms_k_min, drv->ms_k_max, drv->ms_group, drv->ms_seed, drv->ms_realization};
+    switch (drv->exc_kind) {
+    case DRV_EXC_NONE:
+        break;
+    case DRV_EXC_SINE:
+        if (n < 4u || drv->exc_sine_cycles < 1u || 2u * drv->exc_sine_cycles >= n) {
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+        }
+        break;
+    case DRV_EXC_TABLE:
+        if (drv->table_length < 2u || drv->table_length != n) {
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+        }
+        break;
+    case DRV_EXC_MULTISINE:
+        if (ms_check(&ms) != MS_OK || n > drv->table_capacity) {
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+        }
+        break;
+    default:
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+    }
+    uint64_t settle = (uint64_t)drv->exc_settle_periods * n;
+    uint64_t record = (uint64_t)drv->exc_record_periods * n;
+    if (record == 0u || settle + record > UINT32_MAX) {
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+    }
+    if (!rec_fits(&drv->rec, (uint32_t)record)) {
+        return drv_refuse(drv, DRV_STOP_NO_FIT, DRV_E_NO_FIT);
+    }
+    int gst = 0;
+    switch (drv->exc_kind) {
+    case DRV_EXC_SINE:
+        gst = gen_start_sine(&drv->gen, n, drv->exc_sine_cycles, drv->exc_amplitude, drv->exc_offset, drv->fs_hz);
+        break;
+    case DRV_EXC_TABLE:
+        gst = gen_start_table(&drv->gen, drv->table_buf, n, drv->exc_amplitude, drv->exc_offset, drv->fs_hz);
+        break;
+    case DRV_EXC_MULTISINE:
+        /* one unit-rms period, scaled by the amplitude (= rms) at play time; it replaces
+         * the table (readable back through drv_table_read) */
+        if (ms_build(&ms, 1.0f, drv->table_buf, drv->table_capacity) != MS_OK) {
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+        }
+        drv->table_length = n;
+        gst = gen_start_table(&drv->gen, drv->table_buf, n, drv->exc_amplitude, drv->exc_offset, drv->fs_hz);
+        break;
+    default:
+        gen_stop(&drv->gen);
+        break;
+    }
+    if (gst != 0) {
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+    }
+    rec_clear(&drv->rec);
+    drv->run_inject = drv->exc_inject;
+    (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);
+    return DRV_OK;
+}
+
+void drv_run_abort(drv_t *drv, drv_stop_reason_t reason)
+{
+    if (run_active(&drv->run)) {
+        run_stop(&drv->run, RUN_ABORTED, (uint32_t)reason);
+        gen_stop(&drv->gen);
+    }
+}
+
+void drv_safe_stop(drv_t *drv, drv_stop_reason_t reason)
+{
+    drv_run_abort(drv, reason);
+    drv->target = drv->motor;
+    ctl_reset(&drv->ctl);
+}
+
+void drv_enable(drv_t *drv, bool enabled)
+{
+    if (enabled) {
+        if (!drv->enabled || drv->fault) {
+            drv->fault = false;
+            drv->enabled = true;
+            drv->target = drv->motor;
+            ctl_reset(&drv->ctl);
+        }
+        return;
+    }
+    drv_run_abort(drv, DRV_STOP_DISABLED);
+    drv->enabled = false;
+    drv->u = 0.0f;
+}
+
+drv_status_t drv_set_target(drv_t *drv, float target_rad)
+{
+    if (!isfinite(target_rad)) {
+        return DRV_E_NOT_FINITE;
+    }
+    drv->target = target_rad;
+    return DRV_OK;
+}
+
+void drv_get_monitor(const drv_t *drv, drv_monitor_t *mon)
+{
+    mon->target_rad = drv->target;
+    mon->reference_rad = drv->reference;
+    mon->motor_angle_rad = drv->motor;
+    mon->load_angle_rad = drv->load;
+    mon->motor_velocity_rad_s = drv->velocity;
+    mon->following_error_rad = drv->error;
+    mon->plant_input_v = drv->u;
+    mon->enabled = drv->enabled;
+    mon->fault = drv->fault;
+}
+
+bool drv_fault(const drv_t *drv)
+{
+    return drv->fault;
+}
+
+/* ---- the control step ---- */
+
+float drv_step(drv_t *drv, const drv_meas_t *meas)
+{
+    if (meas == NULL || !isfinite(meas->motor_angle_rad) || !isfinite(meas->load_angle_rad)) {
+        run_stop(&drv->run, RUN_FAULT, DRV_STOP_MEAS_FAULT);
+        drv->run.state = RUN_FAULT;
+        drv->run.last_error = DRV_STOP_MEAS_FAULT;
+        gen_stop(&drv->gen);
+        drv->fault = true;
+        drv->u = 0.0f;
+        return 0.0f;
+    }
+    float motor = meas->motor_angle_rad;
+    drv->motor = motor;
+    drv->load = meas->load_angle_rad;
+    if (drv->vel_primed) {
+        float raw = (motor - drv->motor_prev) * drv->fs_hz;
+        drv->velocity = drv->vel_pole * drv->velocity + (1.0f - drv->vel_pole) * raw;
+    }
+    drv->motor_prev = motor;
+    drv->vel_primed = true;
+
+    float w = 0.0f, w_dot = 0.0f;
+    bool active = run_active(&drv->run);
+    if (active) {
+        gen_next(&drv->gen, &w, &w_dot);
+    }
+    float ref = drv->target, v_ref = 0.0f, u_add = 0.0f;
+    if (drv->run_inject == DRV_INJECT_REFERENCE) {
+        ref += w;
+        v_ref = w_dot;
+    } else {
+        u_add = w;
+    }
+    float e = ref - motor;
+    float u = 0.0f;
+    if (drv->enabled && !drv->fault) {
+        u = ctl_step(&drv->ctl, e, v_ref, u_add);
+    }
+    drv->reference = ref;
+    drv->error = e;
+    drv->u = u;
+    if (active) {
+        if (run_tick(&drv->run) == RUN_TICK_RECORD) {
+            const float sig[REC_NUM_SIGNALS] = {ref, u, motor, drv->load, e};
+            rec_push(&drv->rec, sig);
+        }
+        if (!run_active(&drv->run)) {
+            gen_stop(&drv->gen);
+        }
+    }
+    return u;
+}
+
+/* ---- recorder and table byte streams ---- */
+
+uint32_t drv_rec_size_bytes(const drv_t *drv)
+{
+    return rec_size_bytes(&drv->rec);
+}
+
+drv_status_t drv_rec_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    return rec_read(&drv->rec, offset, dst, len) == 0 ? DRV_OK : DRV_E_LENGTH;
+}
+
+drv_status_t drv_table_write(drv_t *drv, uint32_t offset, const uint8_t *src, uint32_t len)
+{
+    if (run_active(&drv->run)) {
+        return DRV_E_STATE;
+    }
+    uint32_t cap = drv->table_capacity * 4u;
+    if (offset > cap || len > cap - offset || (src == NULL && len != 0u)) {
+        return DRV_E_LENGTH;
+    }
+    drv->table_length = 0u; /* invalid until committed */
+    uint8_t *dst = (uint8_t *)drv->table_buf + offset;
+    for (uint32_t i = 0u; i < len; i++) {
+        dst[i] = src[i];
+    }
+    return DRV_OK;
+}
+
+drv_status_t drv_table_commit(drv_t *drv, uint32_t total_len_bytes)
+{
+    if (run_active(&drv->run)) {
+        return DRV_E_STATE;
+    }
+    uint32_t n = total_len_bytes / 4u;
+    if (total_len_bytes % 4u != 0u || n < 2u || n > drv->table_capacity) {
+        return DRV_E_LENGTH;
+    }
+    for (uint32_t i = 0u; i < n; i++) {
+        if (!isfinite(drv->table_buf[i])) {
+            drv->table_length = 0u;
+            return DRV_E_NOT_FINITE;
+        }
+    }
+    drv->table_length = n;
+    return DRV_OK;
+}
+
+uint32_t drv_table_size_bytes(const drv_t *drv)
+{
+    return drv->table_length * 4u;
+}
+
+drv_status_t drv_table_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    uint32_t size = drv->table_length * 4u;
+    if (offset > size || len > size - offset || (dst == NULL && len != 0u)) {
+        return DRV_E_LENGTH;
+    }
+    const uint8_t *src = (const uint8_t *)drv->table_buf + offset;
+    for (uint32_t i = 0u; i < len; i++) {
+        dst[i] = src[i];
+    }
+    return DRV_OK;
+}

@@ -1,0 +1,44 @@
+/*
+ * drv_state.h - drv_t, the drive aggregate's state (core's business; included by drv.h).
+ * Callers treat drv_t as opaque and only allocate it (static in the port).
+ */
+#ifndef DRV_STATE_H
+#define DRV_STATE_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#include "ctl.h"
+#include "gen.h"
+#include "rec.h"
+#include "run.h"
+
+typedef struct {
+    ctl_t ctl;
+    gen_t gen;
+    run_t run;
+    rec_t rec;
+
+    float fs_hz;
+    float *table_buf;
+    uint32_t table_capacity; /* samples */
+    uint32_t table_length;   /* committed samples (TABLE_LENGTH) */
+
+    /* excitation configuration (EXC_*, MS_*) */
+    uint32_t exc_kind, exc_inject, exc_period, exc_sine_cycles;
+    uint32_t exc_settle_periods, exc_record_periods;
+    float exc_amplitude, exc_offset;
+    uint32_t ms_k_min, ms_k_max, ms_group, ms_seed, ms_realization;
+    uint32_t run_inject;     /* injection point latched at run start */
+
+    /* live values */
+    bool enabled;
+    bool fault;
+    bool vel_primed;
+    float target, reference, error, u;
+    float motor, load;
+    float motor_prev, velocity;
+    float vel_pole;          /* tau/(tau+T) of the velocity estimate */
+} drv_t;
+
+#endif /* DRV_STATE_H */

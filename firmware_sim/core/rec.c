@@ -1,0 +1,80 @@
+/* rec.c - see rec.h. */
+#include "rec.h"
+
+#include <stddef.h>
+
+#if defined(__BYTE_ORDER__) && (__BYTE_ORDER__ != __ORDER_LITTLE_ENDIAN__)
+#error "rec.c streams the float buffer as little-endian bytes: little-endian targets only"
+#endif
+
+int rec_init(rec_t *rec, float *buf, uint32_t capacity)
+{
+    if (buf == NULL && capacity != 0u) {
+        return -1;
+    }
+    rec->buf = buf;
+    rec->capacity = capacity;
+    rec->wpos = 0u;
+    rec->samples = 0u;
+    rec->signals = 0u;
+    (void)rec_set_signals(rec, 0x07u);
+    return 0;
+}
+
+int rec_set_signals(rec_t *rec, uint32_t mask)
+{
+    if (mask == 0u || (mask & ~REC_SIGNAL_MASK) != 0u) {
+        return -1;
+    }
+    rec->signals = mask;
+    rec->nsel = 0u;
+    for (uint32_t b = 0u; b < REC_NUM_SIGNALS; b++) {
+        if (mask & (1u << b)) {
+            rec->sel[rec->nsel++] = (uint8_t)b;
+        }
+    }
+    return 0;
+}
+
+bool rec_fits(const rec_t *rec, uint32_t samples)
+{
+    uint64_t need = (uint64_t)samples * (uint64_t)rec->nsel;
+    return need <= (uint64_t)rec->capacity;
+}
+
+void rec_clear(rec_t *rec)
+{
+    rec->wpos = 0u;
+    rec->samples = 0u;
+}
+
+void rec_push(rec_t *rec, const float sig[REC_NUM_SIGNALS])
+{
+    if (rec->wpos + rec->nsel > rec->capacity) {
+        return;
+    }
+    float *dst = rec->buf + rec->wpos;
+    for (uint32_t i = 0u; i < rec->nsel; i++) {
+        dst[i] = sig[rec->sel[i]];
+    }
+    rec->wpos += rec->nsel;
+    rec->samples++;
+}
+
+uint32_t rec_size_bytes(const rec_t *rec)
+{
+    return rec->wpos * 4u;
+}
+
+int rec_read(const rec_t *rec, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    uint32_t size = rec_size_bytes(rec);
+    if (offset > size || len > size - offset || (dst == NULL && len != 0u)) {
+        return -1;
+    }
+    const uint8_t *src = (const uint8_t *)rec->buf + offset;
+    for (uint32_t i = 0u; i < len; i++) {
+        dst[i] = src[i];
+    }
+    return 0;
+}

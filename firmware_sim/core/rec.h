@@ -1,0 +1,39 @@
+/*
+ * rec.h - the run recorder (deployable): selected signals per sample into a fixed RAM
+ * buffer, read back as a byte stream (float32 little-endian, per sample the selected
+ * signals in bit order). Little-endian targets only (checked at compile time).
+ */
+#ifndef REC_H
+#define REC_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#define REC_NUM_SIGNALS 5u
+#define REC_SIGNAL_MASK 0x1Fu
+
+typedef struct {
+    float *buf;
+    uint32_t capacity;  /* float values */
+    uint32_t signals;   /* selection bit mask, 1 .. 0x1F */
+    uint32_t nsel;      /* popcount(signals) */
+    uint8_t sel[REC_NUM_SIGNALS]; /* selected signal numbers in bit order */
+    uint32_t wpos;      /* floats written */
+    uint32_t samples;   /* samples recorded */
+} rec_t;
+
+/* buf may be NULL only with capacity 0. Selection starts at 0x07. */
+int rec_init(rec_t *rec, float *buf, uint32_t capacity);
+/* 1 .. 0x1F; returns -1 (unchanged) otherwise. */
+int rec_set_signals(rec_t *rec, uint32_t mask);
+/* Would `samples` samples of the present selection fit? (no overflow) */
+bool rec_fits(const rec_t *rec, uint32_t samples);
+void rec_clear(rec_t *rec);
+/* Append one sample; sig[] holds all REC_NUM_SIGNALS signals in bit order.
+ * Silently drops when full (run control makes sure that never happens). */
+void rec_push(rec_t *rec, const float sig[REC_NUM_SIGNALS]);
+uint32_t rec_size_bytes(const rec_t *rec);
+/* -1 if [offset, offset+len) is not inside the recorded bytes. */
+int rec_read(const rec_t *rec, uint32_t offset, uint8_t *dst, uint32_t len);
+
+#endif /* REC_H */

@@ -1,0 +1,70 @@
+/*
+ * plant.h - simulated two-mass plant with friction (HOST SIMULATION ONLY, double).
+ *
+ * The paper's set-up II: motor inertia J1 driven by km * u [N m] (u the input voltage),
+ * torsional spring k and damper c to the load inertia J2:
+ *   J1 w1' = km u - k (th1 - th2) - c (w1 - w2) - F(w1)
+ *   J2 w2' =        k (th1 - th2) + c (w1 - w2) - b2 w2
+ * Motor friction while slipping in direction s = sign(w1):
+ *   F = s (Fc + (Fs - Fc) exp(-(w1/vs)^2)) + bv w1      (Stribeck term only if vs > 0)
+ * Stiction: while w1 = 0 the motor sticks (th1 fixed, w1 = 0 exactly: no creep) as long as
+ * |T| <= Fs, T = km u - k (th1 - th2) + c w2 the net non-friction torque on it.
+ *
+ * Integration: a fixed number of RK4 sub-steps per controller step (u held). Stick/slip
+ * switching is event-driven inside a sub-step: when w1 would change sign (slip) or |T|
+ * would exceed Fs (stick), the event time is located by bisection on the RK4 step length
+ * (50 halvings, to double precision), the state is advanced to it, the mode switched
+ * (stick if |T| <= Fs at w1 = 0, else slip in the direction of T) and the rest of the
+ * sub-step integrated in the new mode. So there is no chatter around w1 = 0 and no drift
+ * under static friction.
+ *
+ * Measurement: encoder quantisation to the nearest of counts_per_rev counts per rev
+ * (0 = none) plus seeded Gaussian noise (std, rad) on both angles.
+ */
+#ifndef PLANT_H
+#define PLANT_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+typedef struct {
+    double j1, j2;          /* kg m^2 */
+    double k, c;            /* N m/rad, N m s/rad */
+    double km;              /* N m/V: torque per input volt */
+    double coulomb;         /* Fc, N m */
+    double stat;            /* Fs >= Fc, N m (static / break-away) */
+    double stribeck_vel;    /* vs, rad/s; 0 = no Stribeck term */
+    double viscous;         /* bv, N m s/rad (motor side) */
+    double load_viscous;    /* b2, N m s/rad */
+    uint32_t substeps;      /* per controller step, >= 1 */
+    uint32_t counts_per_rev;/* encoder counts per revolution, 0 = no quantisation */
+    double noise_std;       /* rad, on both measured angles */
+    uint64_t seed;          /* noise seed */
+} plant_params_t;
+
+typedef struct {
+    plant_params_t p;
+    double x[4];            /* th1, w1, th2, w2 */
+    int mode;               /* -1 / +1 slipping, 0 sticking */
+    double t;               /* simulated time, s */
+    uint64_t events;        /* stick/slip switches so far */
+    uint64_t rng;
+    int has_spare;
+    double spare;
+} plant_t;
+
+/* 0 if physically valid, else -1 with the offending field named in err. */
+int plant_check_params(const plant_params_t *p, char *err, size_t errlen);
+/* At rest at the origin, sticking. Returns plant_check_params' result. */
+int plant_init(plant_t *pl, const plant_params_t *p, char *err, size_t errlen);
+void plant_set_state(plant_t *pl, double th1, double w1, double th2, double w2);
+void plant_get_state(const plant_t *pl, double x[4]);
+int plant_mode(const plant_t *pl);
+/* Advance by dt seconds with u [V] held (dt split into p.substeps sub-steps). */
+void plant_advance(plant_t *pl, double u, double dt);
+/* Measured angles (quantised + noise); advances the noise generator. */
+void plant_measure(plant_t *pl, double *th1_meas, double *th2_meas);
+/* Net non-friction torque on the motor [N m]. */
+double plant_net_torque(const plant_t *pl, double u);
+
+#endif /* PLANT_H */

@@ -1,0 +1,160 @@
+/* sim.c - see sim.h. Host only. */
+#include "sim.h"
+
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table_buf, char *err, size_t errlen)
+{
+    char msg[200];
+    memset(sim, 0, sizeof *sim);
+    sim->cfg = *cfg;
+    if (plant_init(&sim->plant, &cfg->plant, msg, sizeof msg) != 0) {
+        snprintf(err, errlen, "plant: %s", msg);
+        return -1;
+    }
+    sim->storage.rec_buf = rec_buf;
+    sim->storage.rec_capacity = cfg->rec_capacity;
+    sim->storage.table_buf = table_buf;
+    sim->storage.table_capacity = cfg->table_capacity;
+    sim->storage.fs_hz = (float)cfg->fs_hz;
+    drv_status_t st = drv_init(&sim->drv, &sim->storage);
+    if (st != DRV_OK) {
+        snprintf(err, errlen, "drive: drv_init refused the storage (fs_hz %g, table_capacity %u): status %d",
+                 cfg->fs_hz, (unsigned)cfg->table_capacity, (int)st);
+        return -1;
+    }
+    const struct {
+        const char *key;
+        drv_param_id_t id;
+        double v;
+    } ctl[] = {
+        {"kp", DRV_P_KP, cfg->kp}, {"kd", DRV_P_KD, cfg->kd}, {"tau_d", DRV_P_TAU_D, cfg->tau_d},
+        {"kfc", DRV_P_KFC, cfg->kfc}, {"kv", DRV_P_KV, cfg->kv}, {"fc_smooth", DRV_P_FC_SMOOTH, cfg->fc_smooth},
+        {"u_max", DRV_P_U_MAX, cfg->u_max},
+    };
+    for (size_t i = 0; i < sizeof ctl / sizeof ctl[0]; i++) {
+        st = drv_set_f32(&sim->drv, ctl[i].id, (float)ctl[i].v);
+        if (st != DRV_OK) {
+            snprintf(err, errlen, "controller.%s = %g: refused by the drive (status %d)", ctl[i].key, ctl[i].v, (int)st);
+            return -1;
+        }
+    }
+    sim->dt = 1.0 / (double)sim->storage.fs_hz;
+    /* prime the drive with the first measurement so that enabling holds the true position */
+    double m1, m2;
+    plant_measure(&sim->plant, &m1, &m2);
+    drv_meas_t meas = {(float)m1, (float)m2};
+    (void)drv_step(&sim->drv, &meas);
+    return 0;
+}
+
+sim_t *sim_new(const plant_config_t *cfg, char *err, size_t errlen)
+{
+    sim_t *sim = calloc(1, sizeof *sim);
+    float *rec = calloc(cfg->rec_capacity ? cfg->rec_capacity : 1u, sizeof(float));
+    float *tab = calloc(cfg->table_capacity ? cfg->table_capacity : 1u, sizeof(float));
+    if (sim == NULL || rec == NULL || tab == NULL) {
+        snprintf(err, errlen, "out of memory (rec_capacity %u floats)", (unsigned)cfg->rec_capacity);
+        free(sim);
+        free(rec);
+        free(tab);
+        return NULL;
+    }
+    if (sim_init(sim, cfg, rec, tab, err, errlen) != 0) {
+        free(sim);
+        free(rec);
+        free(tab);
+        return NULL;
+    }
+    sim->owned_rec = rec;
+    sim->owned_table = tab;
+    return sim;
+}
+
+sim_t *sim_new_from_file(const char *path, char *err, size_t errlen)
+{
+    plant_config_t cfg;
+    if (plant_config_load(path, &cfg, err, errlen) != 0) {
+        return NULL;
+    }
+    char msg[300];
+    sim_t *sim = sim_new(&cfg, msg, sizeof msg);
+    if (sim == NULL) {
+        snprintf(err, errlen, "%s: %s", path, msg);
+    }
+    return sim;
+}
+
+void sim_free(sim_t *sim)
+{
+    if (sim == NULL) {
+        return;
+    }
+    free(sim->owned_rec);
+    free(sim->owned_table);
+    free(sim);
+}
+
+drv_t *sim_drv(sim_t *sim)
+{
+    return &sim->drv;
+}
+
+plant_t *sim_plant(sim_t *sim)
+{
+    return &sim->plant;
+}
+
+float sim_step(sim_t *sim)
+{
+    double m1, m2;
+    plant_measure(&sim->plant, &m1, &m2);
+    drv_meas_t meas = {(float)m1, (float)m2};
+    float u = drv_step(&sim->drv, &meas);
+    plant_advance(&sim->plant, (double)u, sim->dt);
+    sim->steps++;
+    return u;
+}
+
+void sim_run(sim_t *sim, uint64_t steps)
+{
+    for (uint64_t i = 0; i < steps; i++) {
+        (void)sim_step(sim);
+    }
+}
+
+uint64_t sim_run_until_idle(sim_t *sim, uint64_t max_steps)
+{
+    uint64_t n = 0;
+    uint32_t state = 0;
+    while (n < max_steps) {
+        (void)drv_get_u32(&sim->drv, DRV_P_RUN_STATE, &state);
+        if (state != DRV_RUN_SETTLING && state != DRV_RUN_RECORDING) {
+            break;
+        }
+        (void)sim_step(sim);
+        n++;
+    }
+    return n;
+}
+
+drv_status_t sim_get_f32(const sim_t *sim, drv_param_id_t id, float *value)
+{
+    const plant_params_t *p = &sim->plant.p;
+    double v;
+    switch (id) {
+    case DRV_P_SIM_FC_VOLT: v = p->coulomb / p->km; break;
+    case DRV_P_SIM_FV_VOLT: v = p->viscous / p->km; break;
+    case DRV_P_SIM_FS_VOLT: v = p->stat / p->km; break;
+    case DRV_P_SIM_NOISE_STD: v = p->noise_std; break;
+    case DRV_P_SIM_FC_TORQUE: v = p->coulomb; break;
+    default: return DRV_E_NO_PARAM;
+    }
+    if (value == NULL) {
+        return DRV_E_GENERAL;
+    }
+    *value = (float)v;
+    return DRV_OK;
+}

@@ -1,0 +1,60 @@
+/*
+ * sim.h - host simulation: the simulated plant coupled to the drive core (HOST ONLY).
+ *
+ * One controller step (sim_step): measure the plant (quantised, noisy angles) ->
+ * drv_step (the deployable controller, excitation, recorder) -> advance the plant by
+ * 1/fs with the drive's output held. Used by port/main.c (drive_sim) and by the tests.
+ *
+ *   sim_t *sim = sim_new_from_file("configs/plant_twomass.yaml", err, sizeof err);
+ *   drv_t *drv = sim_drv(sim);           // the drive: drv_set_*, drv_run_start, ...
+ *   drv_enable(drv, true);
+ *   sim_run(sim, 2560);                  // or sim_step() per tick
+ *   sim_get_f32(sim, DRV_P_SIM_FC_VOLT, &fc_volt);   // the plant's truth (sim_only ids)
+ *   sim_free(sim);
+ */
+#ifndef SIM_H
+#define SIM_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "drv.h"
+#include "plant.h"
+#include "plant_config.h"
+
+typedef struct {
+    plant_config_t cfg;
+    plant_t plant;
+    drv_t drv;
+    drv_storage_t storage;
+    double dt;               /* 1/fs */
+    uint64_t steps;          /* controller steps so far */
+    float *owned_rec;        /* buffers allocated by sim_new (NULL with sim_init) */
+    float *owned_table;
+} sim_t;
+
+/* Caller-provided buffers: rec_buf of cfg->rec_capacity floats, table_buf of
+ * cfg->table_capacity floats. Applies the config's controller values through drv_set_f32.
+ * 0 on success, -1 with a message naming the key in err. */
+int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table_buf, char *err, size_t errlen);
+/* Heap-allocated sim (host): NULL with the message in err on failure. */
+sim_t *sim_new(const plant_config_t *cfg, char *err, size_t errlen);
+sim_t *sim_new_from_file(const char *path, char *err, size_t errlen);
+void sim_free(sim_t *sim);
+
+drv_t *sim_drv(sim_t *sim);
+plant_t *sim_plant(sim_t *sim);
+
+/* One controller step; returns the plant input [V]. */
+float sim_step(sim_t *sim);
+void sim_run(sim_t *sim, uint64_t steps);
+/* Steps until the run is no longer settling/recording (at most max_steps); returns steps taken. */
+uint64_t sim_run_until_idle(sim_t *sim, uint64_t max_steps);
+
+/* The simulated plant's truth for the sim_only ids of configs/od.yaml (DRV_P_SIM_*):
+ * Coulomb / viscous / static friction expressed as input voltage (torque / km), so they
+ * compare with K_fc and K_v directly; noise std [rad]; Coulomb torque [N m].
+ * DRV_E_NO_PARAM for any other id (those are the drive's: drv_get_f32). */
+drv_status_t sim_get_f32(const sim_t *sim, drv_param_id_t id, float *value);
+
+#endif /* SIM_H */

@@ -1,0 +1,152 @@
+/*
+ * bench_fw.c - firmware_sim benchmarks (run by `make bench` through the core-bench rule
+ * and by tests/bench/bench_firmware.py).
+ *   bench_fw rate CONFIG          closed-loop steps/s: plant + drive, free run, median of 5
+ *   bench_fw instr table LEN N    N drive steps (controller + generator + recorder, no
+ *   bench_fw instr sine N         plant) inside bench_fw_drive_steps, for callgrind
+ */
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+#include "drv.h"
+#include "sim.h"
+
+static double now_s(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+static int cmp_d(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static void setup_sine_run(drv_t *drv, uint32_t periods)
+{
+    drv_enable(drv, true);
+    (void)drv_set_u32(drv, DRV_P_EXC_KIND, DRV_EXC_SINE);
+    (void)drv_set_u32(drv, DRV_P_EXC_PERIOD, 2560u);
+    (void)drv_set_u32(drv, DRV_P_EXC_SINE_CYCLES, 1u);
+    (void)drv_set_f32(drv, DRV_P_EXC_AMPLITUDE, 0.5f);
+    (void)drv_set_u32(drv, DRV_P_EXC_SETTLE_PERIODS, periods);
+    (void)drv_set_u32(drv, DRV_P_EXC_RECORD_PERIODS, 1u);
+}
+
+static int bench_rate(const char *cfg_path)
+{
+    char err[300];
+    plant_config_t cfg;
+    if (plant_config_load(cfg_path, &cfg, err, sizeof err) != 0) {
+        fprintf(stderr, "bench_fw: %s\n", err);
+        return 2;
+    }
+    const uint64_t steps = 2000000u;
+    double rates[5];
+    for (int r = 0; r < 5; r++) {
+        sim_t *sim = sim_new(&cfg, err, sizeof err);
+        if (sim == NULL) {
+            fprintf(stderr, "bench_fw: %s\n", err);
+            return 2;
+        }
+        setup_sine_run(sim_drv(sim), 1000u);
+        if (drv_run_start(sim_drv(sim)) != DRV_OK) {
+            fprintf(stderr, "bench_fw: run refused\n");
+            return 2;
+        }
+        double t0 = now_s();
+        sim_run(sim, steps);
+        double t1 = now_s();
+        rates[r] = (double)steps / (t1 - t0);
+        if (r == 0) {
+            printf("plant events (stick/slip switches) in %llu steps: %llu\n",
+                   (unsigned long long)steps, (unsigned long long)sim_plant(sim)->events);
+        }
+        sim_free(sim);
+    }
+    qsort(rates, 5, sizeof rates[0], cmp_d);
+    printf("closed-loop steps/s (plant %u RK4 sub-steps + drive, %s): median %.3g (min %.3g, max %.3g) over 5 x %llu steps\n",
+           (unsigned)cfg.plant.substeps, cfg_path, rates[2], rates[0], rates[4], (unsigned long long)steps);
+    printf("RATE %.6g\n", rates[2]);
+    return 0;
+}
+
+static float rec_buf[1u << 20];
+static float tab_buf[8192];
+
+/* The measured region for callgrind (--toggle-collect=bench_fw_drive_steps). */
+__attribute__((noinline)) void bench_fw_drive_steps(drv_t *drv, uint32_t n);
+__attribute__((noinline)) void bench_fw_drive_steps(drv_t *drv, uint32_t n)
+{
+    drv_meas_t m = {0.001f, 0.002f};
+    for (uint32_t i = 0; i < n; i++) {
+        float u = drv_step(drv, &m);
+        m.motor_angle_rad += 1e-4f * u; /* keep the data moving, no plant */
+    }
+}
+
+static int bench_instr(int argc, char **argv)
+{
+    drv_t drv;
+    drv_storage_t st = {rec_buf, (uint32_t)(sizeof rec_buf / sizeof rec_buf[0]), tab_buf, 8192u, 2560.0f};
+    if (drv_init(&drv, &st) != DRV_OK) {
+        return 2;
+    }
+    uint32_t n, len = 0u;
+    int table = strcmp(argv[2], "table") == 0;
+    if (table && argc == 5) {
+        len = (uint32_t)strtoul(argv[3], NULL, 10);
+        n = (uint32_t)strtoul(argv[4], NULL, 10);
+    } else if (!table && strcmp(argv[2], "sine") == 0 && argc == 4) {
+        n = (uint32_t)strtoul(argv[3], NULL, 10);
+    } else {
+        fprintf(stderr, "usage: bench_fw instr table LEN N | bench_fw instr sine N\n");
+        return 2;
+    }
+    drv_enable(&drv, true);
+    (void)drv_set_f32(&drv, DRV_P_KFC, 0.1f);
+    (void)drv_set_f32(&drv, DRV_P_KV, 0.01f);
+    (void)drv_set_u32(&drv, DRV_P_REC_SIGNALS, 0x07u);
+    (void)drv_set_f32(&drv, DRV_P_EXC_AMPLITUDE, 0.5f);
+    uint32_t period = table ? len : 2048u;
+    if (table) {
+        for (uint32_t i = 0; i < len; i++) {
+            tab_buf[i] = (float)(i % 97u) * 0.01f - 0.4f;
+        }
+        if (drv_table_write(&drv, 0u, (const uint8_t *)tab_buf, len * 4u) != DRV_OK ||
+            drv_table_commit(&drv, len * 4u) != DRV_OK) {
+            fprintf(stderr, "bench_fw: bad table length %u\n", (unsigned)len);
+            return 2;
+        }
+    }
+    (void)drv_set_u32(&drv, DRV_P_EXC_KIND, table ? DRV_EXC_TABLE : DRV_EXC_SINE);
+    (void)drv_set_u32(&drv, DRV_P_EXC_PERIOD, period);
+    (void)drv_set_u32(&drv, DRV_P_EXC_SETTLE_PERIODS, 0u);
+    uint32_t rec_periods = (n + period - 1u) / period;
+    (void)drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, rec_periods);
+    if (drv_run_start(&drv) != DRV_OK) {
+        fprintf(stderr, "bench_fw: run refused (recorder %u floats)\n", (unsigned)st.rec_capacity);
+        return 2;
+    }
+    bench_fw_drive_steps(&drv, n);
+    uint32_t state;
+    (void)drv_get_u32(&drv, DRV_P_RUN_STATE, &state);
+    printf("steps %u, run state %u\n", (unsigned)n, (unsigned)state);
+    return 0;
+}
+
+int main(int argc, char **argv)
+{
+    if (argc >= 3 && strcmp(argv[1], "rate") == 0) {
+        return bench_rate(argv[2]);
+    }
+    if (argc >= 3 && strcmp(argv[1], "instr") == 0) {
+        return bench_instr(argc, argv);
+    }
+    fprintf(stderr, "usage: bench_fw rate CONFIG | bench_fw instr table LEN N | bench_fw instr sine N\n");
+    return 2;
+}

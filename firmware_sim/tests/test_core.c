@@ -1,0 +1,629 @@
+/* test_core.c - unit tests of the deployable drive core (firmware_sim/core). */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#include "ctl.h"
+#include "drv.h"
+#include "fft.h"
+#include "gen.h"
+#include "ms.h"
+#include "ms_vectors.h"
+#include "th.h"
+
+#define FS 2560.0f
+#define REC_CAP 20000u
+#define TAB_CAP 8192u
+
+static float rec_buf[REC_CAP];
+static float tab_buf[TAB_CAP];
+
+static drv_t make_drv(uint32_t rec_cap)
+{
+    drv_t d;
+    drv_storage_t st = {rec_buf, rec_cap, tab_buf, TAB_CAP, FS};
+    drv_status_t s = drv_init(&d, &st);
+    TH_EQ(s, DRV_OK);
+    return d;
+}
+
+static float step0(drv_t *d)
+{
+    drv_meas_t m = {0.0f, 0.0f};
+    return drv_step(d, &m);
+}
+
+/* ---------------- controller ---------------- */
+
+static void test_ctl_law_pd_filtered_derivative(void)
+{
+    ctl_t c;
+    TH_EQ(ctl_init(&c, FS), CTL_OK);
+    TH_EQ(ctl_set_kp(&c, 3.0f), CTL_OK);
+    TH_EQ(ctl_set_kd(&c, 0.2f), CTL_OK);
+    TH_EQ(ctl_set_tau_d(&c, 0.001f), CTL_OK);
+    TH_EQ(ctl_set_u_max(&c, 1000.0f), CTL_OK);
+    /* reference: backward-Euler filtered derivative in double */
+    double T = 1.0 / FS, tau = 0.001, D = 0.0, e_prev = 0.0;
+    for (int n = 0; n < 200; n++) {
+        double e = 0.3 * sin(0.05 * n) + 0.01 * n;
+        double de = n == 0 ? 0.0 : e - e_prev;
+        D = tau / (tau + T) * D + 0.2 / (tau + T) * de;
+        double u_ref = 3.0 * e + D;
+        float u = ctl_step(&c, (float)e, 0.0f, 0.0f);
+        TH_NEAR(u, u_ref, 1e-4 * (1.0 + fabs(u_ref)));
+        e_prev = e;
+    }
+    /* tau = 0: plain backward difference Kd (e[n] - e[n-1]) / T */
+    ctl_reset(&c);
+    TH_EQ(ctl_set_tau_d(&c, 0.0f), CTL_OK);
+    TH_EQ(ctl_set_kp(&c, 0.0f), CTL_OK);
+    (void)ctl_step(&c, 1.0f, 0.0f, 0.0f);
+    float u = ctl_step(&c, 1.5f, 0.0f, 0.0f);
+    TH_NEAR(u, 0.2 * 0.5 * FS, 1e-3);
+}
+
+static void test_ctl_feedforward_and_saturation(void)
+{
+    ctl_t c;
+    TH_EQ(ctl_init(&c, FS), CTL_OK);
+    TH_EQ(ctl_set_kfc(&c, 0.5f), CTL_OK);
+    TH_EQ(ctl_set_kv(&c, 0.1f), CTL_OK);
+    TH_EQ(ctl_set_u_max(&c, 2.0f), CTL_OK);
+    TH_NEAR(ctl_step(&c, 0.0f, 3.0f, 0.0f), 0.5 + 0.3, 1e-6);
+    TH_NEAR(ctl_step(&c, 0.0f, -3.0f, 0.0f), -0.5 - 0.3, 1e-6);
+    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, 0.0f), 0.0, 0.0); /* sign(0) = 0 */
+    TH_NEAR(ctl_step(&c, 0.0f, 1e-30f, 0.0f), 0.5, 1e-6); /* pure sign */
+    TH_NEAR(ctl_ff_sign(&c, -1e-30f), -1.0, 0.0);
+    /* smoothing width 2 rad/s: clamp(v / 2, -1, 1) */
+    TH_EQ(ctl_set_fc_smooth(&c, 2.0f), CTL_OK);
+    TH_NEAR(ctl_ff_sign(&c, 1.0f), 0.5, 1e-7);
+    TH_NEAR(ctl_ff_sign(&c, -5.0f), -1.0, 0.0);
+    /* saturation both ways, u_add added before it */
+    TH_EQ(ctl_set_kp(&c, 100.0f), CTL_OK);
+    TH_NEAR(ctl_step(&c, 1.0f, 0.0f, 0.0f), 2.0, 0.0);
+    TH_NEAR(ctl_step(&c, -1.0f, 0.0f, 0.0f), -2.0, 0.0);
+    TH_EQ(ctl_set_kp(&c, 0.0f), CTL_OK);
+    TH_EQ(ctl_set_kfc(&c, 0.0f), CTL_OK);
+    TH_EQ(ctl_set_kv(&c, 0.0f), CTL_OK);
+    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, 1.25f), 1.25, 0.0);
+    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, -7.0f), -2.0, 0.0);
+}
+
+static void test_ctl_setters_reject_and_keep(void)
+{
+    ctl_t c;
+    TH_EQ(ctl_init(&c, FS), CTL_OK);
+    ctl_status_t (*setters[])(ctl_t *, float) = {ctl_set_kp, ctl_set_kd, ctl_set_tau_d, ctl_set_kfc,
+                                                 ctl_set_kv, ctl_set_fc_smooth, ctl_set_u_max};
+    for (size_t i = 0; i < sizeof setters / sizeof setters[0]; i++) {
+        TH_EQ(setters[i](&c, 1.5f), CTL_OK);
+        ctl_t before = c;
+        TH_EQ(setters[i](&c, NAN), CTL_E_NOT_FINITE);
+        TH_EQ(setters[i](&c, INFINITY), CTL_E_NOT_FINITE);
+        TH_EQ(setters[i](&c, -INFINITY), CTL_E_NOT_FINITE);
+        TH_EQ(setters[i](&c, -0.001f), CTL_E_RANGE_LOW);
+        TH_ASSERT(memcmp(&before, &c, sizeof c) == 0);
+    }
+    TH_EQ(ctl_init(&c, 0.0f), CTL_E_RANGE_LOW);
+    TH_EQ(ctl_init(&c, NAN), CTL_E_NOT_FINITE);
+}
+
+/* ---------------- drive parameters ---------------- */
+
+static void test_drv_defaults_from_od(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    for (uint32_t i = 0; i < DRV_PARAM_COUNT; i++) {
+        const drv_param_info_t *p = &DRV_PARAM_INFO[i];
+        if (!p->writable || p->sim_only || i == DRV_P_RUN_COMMAND) {
+            continue;
+        }
+        if (p->type == DRV_PT_F32) {
+            float v = -1.0f;
+            TH_EQ(drv_get_f32(&d, (drv_param_id_t)i, &v), DRV_OK);
+            TH_NEAR(v, p->default_f32, 0.0);
+        } else {
+            uint32_t v = 12345u;
+            TH_EQ(drv_get_u32(&d, (drv_param_id_t)i, &v), DRV_OK);
+            TH_EQ(v, p->default_u32);
+        }
+    }
+    float fs = 0.0f;
+    TH_EQ(drv_get_f32(&d, DRV_P_FS, &fs), DRV_OK);
+    TH_NEAR(fs, FS, 0.0);
+    uint32_t cap = 0u;
+    TH_EQ(drv_get_u32(&d, DRV_P_REC_CAPACITY, &cap), DRV_OK);
+    TH_EQ(cap, REC_CAP);
+}
+
+static void test_drv_param_validation_keeps_old_value(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    int checked = 0;
+    for (uint32_t i = 0; i < DRV_PARAM_COUNT; i++) {
+        const drv_param_info_t *p = &DRV_PARAM_INFO[i];
+        drv_param_id_t id = (drv_param_id_t)i;
+        if (p->sim_only) {
+            float v;
+            TH_EQ(drv_get_f32(&d, id, &v), DRV_E_NO_PARAM);
+            TH_EQ(drv_set_f32(&d, id, 1.0f), DRV_E_NO_PARAM);
+            continue;
+        }
+        if (p->type == DRV_PT_F32) {
+            float before, after;
+            uint32_t dummy;
+            TH_EQ(drv_get_f32(&d, id, &before), DRV_OK);
+            TH_EQ(drv_get_u32(&d, id, &dummy), DRV_E_LENGTH); /* type mismatch */
+            if (!p->writable) {
+                TH_EQ(drv_set_f32(&d, id, 1.0f), DRV_E_READ_ONLY);
+                continue;
+            }
+            TH_EQ(drv_set_f32(&d, id, NAN), DRV_E_NOT_FINITE);
+            TH_EQ(drv_set_f32(&d, id, INFINITY), DRV_E_NOT_FINITE);
+            TH_EQ(drv_set_f32(&d, id, -INFINITY), DRV_E_NOT_FINITE);
+            if (p->has_low) {
+                TH_EQ(drv_set_f32(&d, id, p->low_f32 - 1.0f), DRV_E_RANGE_LOW);
+            }
+            if (p->has_high) {
+                TH_EQ(drv_set_f32(&d, id, p->high_f32 * 2.0f + 1.0f), DRV_E_RANGE_HIGH);
+            }
+            TH_EQ(drv_get_f32(&d, id, &after), DRV_OK);
+            TH_ASSERT(memcmp(&before, &after, sizeof before) == 0);
+            checked++;
+        } else {
+            uint32_t before, after;
+            float dummy;
+            TH_EQ(drv_get_u32(&d, id, &before), DRV_OK);
+            TH_EQ(drv_get_f32(&d, id, &dummy), DRV_E_LENGTH);
+            if (!p->writable) {
+                TH_EQ(drv_set_u32(&d, id, 1u), DRV_E_READ_ONLY);
+                continue;
+            }
+            if (p->has_low && p->low_u32 > 0u) {
+                TH_EQ(drv_set_u32(&d, id, p->low_u32 - 1u), DRV_E_RANGE_LOW);
+            }
+            if (p->has_high && p->high_u32 < UINT32_MAX) {
+                TH_EQ(drv_set_u32(&d, id, p->high_u32 + 1u), DRV_E_RANGE_HIGH);
+            }
+            TH_EQ(drv_get_u32(&d, id, &after), DRV_OK);
+            TH_EQ(after, before);
+            checked++;
+        }
+    }
+    TH_ASSERT(checked >= 20);
+    /* physical checks beyond od.yaml limits */
+    uint32_t g;
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_GROUP, 1u), DRV_E_RANGE_LOW);
+    TH_EQ(drv_get_u32(&d, DRV_P_MS_GROUP, &g), DRV_OK);
+    TH_EQ(g, 5u);
+    float v;
+    TH_EQ(drv_get_f32(&d, DRV_PARAM_COUNT, &v), DRV_E_NO_PARAM);
+    TH_EQ(drv_set_u32(&d, (drv_param_id_t)1000, 0u), DRV_E_NO_PARAM);
+    TH_EQ(drv_set_target(&d, NAN), DRV_E_NOT_FINITE);
+    /* bad storage */
+    drv_t d2;
+    drv_storage_t bad = {rec_buf, REC_CAP, tab_buf, 9000u, FS};
+    TH_EQ(drv_init(&d2, &bad), DRV_E_RANGE_HIGH);
+    bad.table_capacity = TAB_CAP;
+    bad.fs_hz = NAN;
+    TH_EQ(drv_init(&d2, &bad), DRV_E_NOT_FINITE);
+    bad.fs_hz = -1.0f;
+    TH_EQ(drv_init(&d2, &bad), DRV_E_RANGE_LOW);
+}
+
+/* ---------------- generator ---------------- */
+
+static void test_sine_exactly_periodic(void)
+{
+    const uint32_t n = 1000u, cycles = 7u; /* N not a power of two on purpose */
+    gen_t g;
+    TH_EQ(gen_start_sine(&g, n, cycles, 0.8f, 0.1f, FS), 0);
+    static float w[3000], wd[3000];
+    for (uint32_t i = 0; i < 3u * n; i++) {
+        gen_next(&g, &w[i], &wd[i]);
+    }
+    TH_ASSERT(memcmp(w, w + n, n * sizeof(float)) == 0);
+    TH_ASSERT(memcmp(w, w + 2u * n, n * sizeof(float)) == 0);
+    TH_ASSERT(memcmp(wd, wd + n, n * sizeof(float)) == 0);
+    double wmax = 0.0, dmax = 0.0;
+    double om = 2.0 * M_PI * cycles / n;
+    for (uint32_t i = 0; i < n; i++) {
+        wmax = fmax(wmax, fabs(w[i] - (0.1 + 0.8 * sin(om * i))));
+        dmax = fmax(dmax, fabs(wd[i] - 0.8 * om * FS * cos(om * i)));
+    }
+    TH_NEAR(wmax, 0.0, 2e-6);
+    TH_NEAR(dmax, 0.0, 2e-6 * 0.8 * om * FS);
+    TH_EQ(gen_start_sine(&g, 8u, 4u, 1.0f, 0.0f, FS), -1); /* at Nyquist */
+}
+
+static void test_table_playback_bit_exact(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    const uint32_t n = 37u;
+    float t[37];
+    for (uint32_t i = 0; i < n; i++) {
+        t[i] = (float)(0.3 + sin(1.7 * i) * 1e-3 * (i + 1)); /* arbitrary, no -0 */
+    }
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t, 20u), DRV_OK); /* two segments, odd split */
+    TH_EQ(drv_table_write(&d, 20u, (const uint8_t *)t + 20, n * 4u - 20u), DRV_OK);
+    TH_EQ(drv_table_commit(&d, n * 4u), DRV_OK);
+    TH_EQ(drv_table_size_bytes(&d), n * 4u);
+    uint8_t back[37 * 4];
+    TH_EQ(drv_table_read(&d, 0u, back, n * 4u), DRV_OK);
+    TH_ASSERT(memcmp(back, t, sizeof back) == 0);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_TABLE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, n), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 1.0f), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_SETTLE_PERIODS, 1u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_RECORD_PERIODS, 3u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_REC_SIGNALS, DRV_SIG_REFERENCE), DRV_OK);
+    drv_enable(&d, true);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    for (uint32_t i = 0; i < 4u * n; i++) {
+        (void)step0(&d);
+    }
+    uint32_t state;
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &state), DRV_OK);
+    TH_EQ(state, DRV_RUN_DONE);
+    TH_EQ(drv_rec_size_bytes(&d), 3u * n * 4u);
+    static uint8_t rec[3 * 37 * 4];
+    TH_EQ(drv_rec_read(&d, 0u, rec, sizeof rec), DRV_OK);
+    for (uint32_t p = 0; p < 3u; p++) {
+        TH_ASSERT(memcmp(rec + p * n * 4u, t, n * 4u) == 0);
+    }
+    TH_EQ(drv_rec_read(&d, 1u, rec, sizeof rec), DRV_E_LENGTH);
+}
+
+static void test_table_write_checks(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    float t[8] = {0, 1, 2, 3, 4, 5, 6, 7};
+    TH_EQ(drv_table_write(&d, TAB_CAP * 4u - 4u, (const uint8_t *)t, 8u), DRV_E_LENGTH);
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t, sizeof t), DRV_OK);
+    TH_EQ(drv_table_commit(&d, 30u), DRV_E_LENGTH);        /* not a multiple of 4 */
+    TH_EQ(drv_table_commit(&d, 4u), DRV_E_LENGTH);         /* one sample */
+    TH_EQ(drv_table_commit(&d, TAB_CAP * 4u + 4u), DRV_E_LENGTH);
+    t[3] = NAN;
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t, sizeof t), DRV_OK);
+    TH_EQ(drv_table_commit(&d, sizeof t), DRV_E_NOT_FINITE);
+    TH_EQ(drv_table_size_bytes(&d), 0u);
+    t[3] = 3.0f;
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t, sizeof t), DRV_OK);
+    TH_EQ(drv_table_commit(&d, sizeof t), DRV_OK);
+    /* table length must equal the period */
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_TABLE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 16u), DRV_OK);
+    drv_enable(&d, true);
+    TH_EQ(drv_run_start(&d), DRV_E_STATE);
+    uint32_t why;
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &why), DRV_OK);
+    TH_EQ(why, DRV_STOP_BAD_CONFIG);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 8u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t, 4u), DRV_E_STATE); /* while running */
+    TH_EQ(drv_table_commit(&d, sizeof t), DRV_E_STATE);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 16u), DRV_E_STATE);
+    TH_EQ(drv_set_f32(&d, DRV_P_KFC, 0.25f), DRV_OK); /* controller tunable while running */
+}
+
+/* ---------------- run control ---------------- */
+
+static void test_run_exact_sample_counts(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    const uint32_t n = 16u, settle = 2u, record = 3u;
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, n), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_SINE_CYCLES, 3u), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 0.5f), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_SETTLE_PERIODS, settle), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_RECORD_PERIODS, record), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_REC_SIGNALS, 0x1Fu), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_E_STATE); /* not enabled */
+    drv_enable(&d, true);
+    TH_EQ(drv_set_u32(&d, DRV_P_RUN_COMMAND, 1u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_E_STATE); /* already running */
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_TOTAL, &v), DRV_OK);
+    TH_EQ(v, (settle + record) * n);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_COUNTER, &v), DRV_OK);
+    TH_EQ(v, 1u);
+    uint32_t counts[6] = {0};
+    for (uint32_t i = 0; i < 200u; i++) {
+        uint32_t s;
+        TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &s), DRV_OK);
+        counts[s]++;
+        (void)step0(&d);
+    }
+    TH_EQ(counts[DRV_RUN_SETTLING], settle * n);
+    TH_EQ(counts[DRV_RUN_RECORDING], record * n);
+    TH_EQ(counts[DRV_RUN_DONE], 200u - (settle + record) * n);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_PROGRESS, &v), DRV_OK);
+    TH_EQ(v, (settle + record) * n);
+    TH_EQ(drv_get_u32(&d, DRV_P_REC_SAMPLES, &v), DRV_OK);
+    TH_EQ(v, record * n);
+    TH_EQ(drv_get_u32(&d, DRV_P_REC_BYTES, &v), DRV_OK);
+    TH_EQ(v, record * n * 5u * 4u);
+    /* the recorded reference starts at phase 0 of the period, error = ref - motor */
+    float first[5];
+    TH_EQ(drv_rec_read(&d, 0u, (uint8_t *)first, sizeof first), DRV_OK);
+    TH_NEAR(first[0], 0.0, 0.0);
+    TH_NEAR(first[4], first[0] - first[2], 0.0);
+    /* after the run the excitation is off: reference back at the set-point */
+    float ref;
+    TH_EQ(drv_get_f32(&d, DRV_P_MEAS_REFERENCE, &ref), DRV_OK);
+    TH_NEAR(ref, 0.0, 0.0);
+    /* second run: counter 2, abort mid-way keeps the partial record */
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    for (uint32_t i = 0; i < settle * n + 5u; i++) {
+        (void)step0(&d);
+    }
+    TH_EQ(drv_set_u32(&d, DRV_P_RUN_COMMAND, 2u), DRV_OK);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_ABORTED);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_ABORT_CMD);
+    TH_EQ(drv_get_u32(&d, DRV_P_REC_SAMPLES, &v), DRV_OK);
+    TH_EQ(v, 5u);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_COUNTER, &v), DRV_OK);
+    TH_EQ(v, 2u);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_COMMAND, &v), DRV_OK);
+    TH_EQ(v, 0u);
+    /* zero settle periods: recording from the first step */
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_SETTLE_PERIODS, 0u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_RECORDING);
+}
+
+static void test_run_refusals(void)
+{
+    /* recorder capacity: 3 signals x 64 samples = 192 floats; 191 refuse, 192 fit */
+    drv_t d = make_drv(191u);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 64u), DRV_OK);
+    drv_enable(&d, true);
+    TH_EQ(drv_run_start(&d), DRV_E_NO_FIT);
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_NO_FIT);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_IDLE);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_COUNTER, &v), DRV_OK);
+    TH_EQ(v, 0u);
+    TH_EQ(drv_set_u32(&d, DRV_P_REC_SIGNALS, 0x03u), DRV_OK); /* 2 signals: 128 fit */
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    drv_t d2 = make_drv(192u);
+    TH_EQ(drv_set_u32(&d2, DRV_P_EXC_PERIOD, 64u), DRV_OK);
+    drv_enable(&d2, true);
+    TH_EQ(drv_run_start(&d2), DRV_OK); /* exact fit, kind none */
+    /* inconsistent excitation configs */
+    drv_t d3 = make_drv(REC_CAP);
+    drv_enable(&d3, true);
+    TH_EQ(drv_set_u32(&d3, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d3, DRV_P_EXC_PERIOD, 64u), DRV_OK);
+    TH_EQ(drv_set_u32(&d3, DRV_P_EXC_SINE_CYCLES, 32u), DRV_OK);
+    TH_EQ(drv_run_start(&d3), DRV_E_STATE);
+    TH_EQ(drv_get_u32(&d3, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_BAD_CONFIG);
+    TH_EQ(drv_set_u32(&d3, DRV_P_EXC_KIND, DRV_EXC_MULTISINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d3, DRV_P_EXC_PERIOD, 100u), DRV_OK); /* not a power of two */
+    TH_EQ(drv_run_start(&d3), DRV_E_STATE);
+    TH_EQ(drv_set_u32(&d3, DRV_P_EXC_PERIOD, 128u), DRV_OK);
+    TH_EQ(drv_set_u32(&d3, DRV_P_MS_K_MAX, 64u), DRV_OK); /* k_max >= N/2 */
+    TH_EQ(drv_run_start(&d3), DRV_E_STATE);
+    TH_EQ(drv_set_u32(&d3, DRV_P_MS_K_MAX, 63u), DRV_OK);
+    TH_EQ(drv_run_start(&d3), DRV_OK);
+    TH_EQ(drv_get_u32(&d3, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_NONE);
+}
+
+static void test_enable_safe_stop_fault(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    drv_meas_t m = {0.7f, 0.6f};
+    TH_NEAR(drv_step(&d, &m), 0.0, 0.0); /* disabled: no output */
+    drv_enable(&d, true);
+    drv_monitor_t mon;
+    drv_get_monitor(&d, &mon);
+    TH_NEAR(mon.target_rad, 0.7, 1e-7); /* holds where it is: no jump */
+    TH_NEAR(drv_step(&d, &m), 0.0, 1e-6);
+    TH_EQ(drv_set_target(&d, 0.8f), DRV_OK);
+    /* Kp 20 V/rad on 0.1 rad plus the derivative kick Kd/(tau+T) * 0.1, saturated at 10 V */
+    TH_NEAR(drv_step(&d, &m), 10.0, 1e-6);
+    TH_EQ(drv_set_f32(&d, DRV_P_KD, 0.0f), DRV_OK);
+    TH_EQ(drv_set_target(&d, 0.7f), DRV_OK);
+    for (int i = 0; i < 100; i++) {
+        (void)drv_step(&d, &m); /* the old derivative state decays */
+    }
+    TH_EQ(drv_set_target(&d, 0.8f), DRV_OK);
+    TH_NEAR(drv_step(&d, &m), 20.0 * 0.1, 1e-4);
+    /* start a run, then lose the host: aborted, hold present position */
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 0.1f), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    for (int i = 0; i < 10; i++) {
+        (void)drv_step(&d, &m);
+    }
+    m.motor_angle_rad = 0.75f;
+    (void)drv_step(&d, &m);
+    drv_safe_stop(&d, DRV_STOP_HEARTBEAT);
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_ABORTED);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_HEARTBEAT);
+    TH_NEAR(drv_step(&d, &m), 0.0, 1e-6); /* target = 0.75 = measured */
+    /* disabling aborts a run */
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    drv_enable(&d, false);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_DISABLED);
+    /* non-finite measurement: fault, output 0, latched until re-enable */
+    drv_enable(&d, true);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    drv_meas_t bad = {NAN, 0.0f};
+    TH_NEAR(drv_step(&d, &bad), 0.0, 0.0);
+    TH_ASSERT(drv_fault(&d));
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_FAULT);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_MEAS_FAULT);
+    m.motor_angle_rad = 0.0f;
+    TH_NEAR(drv_step(&d, &m), 0.0, 0.0);
+    TH_EQ(drv_run_start(&d), DRV_E_STATE);
+    drv_enable(&d, true);
+    TH_ASSERT(!drv_fault(&d));
+    TH_EQ(drv_run_start(&d), DRV_OK);
+}
+
+static void test_plant_input_injection(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    TH_EQ(drv_set_f32(&d, DRV_P_KP, 0.0f), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KD, 0.0f), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_INJECT, DRV_INJECT_PLANT_INPUT), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 64u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_SETTLE_PERIODS, 0u), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 2.0f), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_OFFSET, 0.5f), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KFC, 1.0f), DRV_OK); /* no reference velocity: no FF */
+    TH_EQ(drv_set_u32(&d, DRV_P_REC_SIGNALS, DRV_SIG_REFERENCE | DRV_SIG_PLANT_INPUT), DRV_OK);
+    drv_enable(&d, true);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    for (uint32_t i = 0; i < 64u; i++) {
+        float u = step0(&d);
+        TH_NEAR(u, 0.5 + 2.0 * sin(2.0 * M_PI * i / 64.0), 2e-6);
+    }
+    float r[2];
+    TH_EQ(drv_rec_read(&d, 8u * 16u, (uint8_t *)r, 8u), DRV_OK); /* sample 16 */
+    TH_NEAR(r[0], 0.0, 0.0);       /* reference untouched */
+    TH_NEAR(r[1], 2.5, 2e-6);      /* u = offset + amp at a quarter period */
+}
+
+/* ---------------- multisine ---------------- */
+
+static void test_ms_prng_vectors(void)
+{
+    for (size_t i = 0; i < MSV_N_FMIX; i++) {
+        TH_EQ(ms_fmix32(MSV_FMIX[i].in), MSV_FMIX[i].out);
+    }
+    for (size_t i = 0; i < MSV_N_PRNG; i++) {
+        const msv_prng_t *p = &MSV_PRNG[i];
+        uint32_t x = ms_stream_init(p->seed, p->stream);
+        TH_EQ(x, p->init);
+        for (int k = 0; k < 8; k++) {
+            TH_EQ(ms_next(&x), p->outputs[k]);
+        }
+    }
+    TH_NEAR(ms_uniform01(0xFFFFFFFFu), 1.0 - 1.0 / 16777216.0, 0.0);
+    TH_EQ(ms_index(0xFFFFFFFFu, 5u), 4u);
+}
+
+static void test_ms_lines_and_period_vectors(void)
+{
+    static float buf[8192];
+    for (size_t i = 0; i < MSV_N_DESIGNS; i++) {
+        const msv_design_t *v = &MSV_DESIGNS[i];
+        ms_design_t d = {v->n, v->k_min, v->k_max, v->g, v->seed, v->m};
+        TH_EQ(ms_check(&d), MS_OK);
+        TH_EQ(ms_excited_count(&d), v->n_excited);
+        ms_lines_t it;
+        ms_lines_begin(&it, &d);
+        uint32_t bin, ne = 0, nr = 0;
+        bool exc;
+        while (ms_lines_next(&it, &bin, &exc)) {
+            if (exc) {
+                TH_ASSERT(ne < v->n_excited && v->excited[ne] == bin);
+                ne++;
+            } else {
+                TH_ASSERT(nr < v->n_removed && v->removed[nr] == bin);
+                nr++;
+            }
+        }
+        TH_EQ(ne, v->n_excited);
+        TH_EQ(nr, v->n_removed);
+        TH_EQ(ms_build(&d, (float)v->rms, buf, 8192u), MS_OK);
+        double peak = 0.0, err = 0.0;
+        for (uint32_t k = 0; k < v->n; k++) {
+            peak = fmax(peak, fabs(v->period[k]));
+            err = fmax(err, fabs(buf[k] - v->period[k]));
+        }
+        TH_ASSERT(err <= 1e-5 * peak);
+        if (!(err <= 1e-5 * peak)) {
+            fprintf(stderr, "  design %zu: max err %.3g, peak %.3g\n", i, err, peak);
+        }
+    }
+}
+
+static void test_ms_through_drive(void)
+{
+    /* the drive builds the period at run start; recorded reference = rms * unit period */
+    const msv_design_t *v = &MSV_DESIGNS[2];
+    drv_t d = make_drv(REC_CAP);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_MULTISINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, v->n), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_K_MIN, v->k_min), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_K_MAX, v->k_max), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_GROUP, v->g), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_SEED, v->seed), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_REALIZATION, v->m), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, (float)v->rms), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_SETTLE_PERIODS, 1u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_RECORD_PERIODS, 2u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_REC_SIGNALS, DRV_SIG_REFERENCE), DRV_OK);
+    drv_enable(&d, true);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    uint32_t len;
+    TH_EQ(drv_get_u32(&d, DRV_P_TABLE_LENGTH, &len), DRV_OK);
+    TH_EQ(len, v->n);
+    for (uint32_t i = 0; i < 3u * v->n; i++) {
+        (void)step0(&d);
+    }
+    static float r[512];
+    TH_EQ(drv_rec_read(&d, 0u, (uint8_t *)r, 2u * v->n * 4u), DRV_OK);
+    double peak = 0.0, err = 0.0;
+    for (uint32_t k = 0; k < 2u * v->n; k++) {
+        double ref = v->period[k % v->n];
+        peak = fmax(peak, fabs(ref));
+        err = fmax(err, fabs(r[k] - ref));
+    }
+    TH_ASSERT(err <= 1e-5 * peak);
+}
+
+static void test_fft_inverse_complex_small(void)
+{
+    /* a single bin k=3 of M=8: a[m] = exp(+j 2 pi 3 m / 8) */
+    float a[16] = {0};
+    a[6] = 1.0f;
+    TH_ASSERT(fft_inverse_complex(a, 8u));
+    for (int m = 0; m < 8; m++) {
+        TH_NEAR(a[2 * m], cos(2 * M_PI * 3 * m / 8.0), 1e-6);
+        TH_NEAR(a[2 * m + 1], sin(2 * M_PI * 3 * m / 8.0), 1e-6);
+    }
+    TH_ASSERT(!fft_inverse_complex(a, 6u));
+    TH_ASSERT(!fft_inverse_real(a, 12u));
+}
+
+int main(void)
+{
+    TH_RUN(test_ctl_law_pd_filtered_derivative);
+    TH_RUN(test_ctl_feedforward_and_saturation);
+    TH_RUN(test_ctl_setters_reject_and_keep);
+    TH_RUN(test_drv_defaults_from_od);
+    TH_RUN(test_drv_param_validation_keeps_old_value);
+    TH_RUN(test_sine_exactly_periodic);
+    TH_RUN(test_table_playback_bit_exact);
+    TH_RUN(test_table_write_checks);
+    TH_RUN(test_run_exact_sample_counts);
+    TH_RUN(test_run_refusals);
+    TH_RUN(test_enable_safe_stop_fault);
+    TH_RUN(test_plant_input_injection);
+    TH_RUN(test_ms_prng_vectors);
+    TH_RUN(test_ms_lines_and_period_vectors);
+    TH_RUN(test_ms_through_drive);
+    TH_RUN(test_fft_inverse_complex_small);
+    return th_finish();
+}
