@@ -14,3 +14,7 @@ class FftuneError(Exception):
 
 class InputError(FftuneError, ValueError):
     """Measured data or analysis options that cannot be used as given."""
+
+
+class OutputExistsError(FftuneError, FileExistsError):
+    """An output file (e.g. a capture) already exists and is never overwritten."""

@@ -1,0 +1,255 @@
+"""Load measured signals for the offline analysis: CSV, NPZ, MAT and capture files.
+
+Every loader returns :class:`LoadedSignals`: named 1-D float64 signals (multi-dimensional
+arrays are flattened in C order, i.e. row after row) plus what the file says about the
+layout (sample rate, samples per period ...). Errors name the file, and for CSV the line
+and column.
+"""
+import csv
+import io as _io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from analysis.errors import InputError
+
+__all__ = ["LoadedSignals", "load_signals", "load_csv", "load_npz", "load_mat",
+           "load_capture", "load_lines"]
+
+
+@dataclass
+class LoadedSignals:
+    """Signals read from one file.
+
+    Attributes
+    ----------
+    path : Path
+    signals : dict of str -> ndarray (float64, 1-D)
+    fs_hz : float or None
+        Sample rate if the file states it (capture files; a scalar ``fs`` or ``fs_hz``
+        in NPZ/MAT; the metadata comment of an exported CSV).
+    layout : dict
+        n_period, settle_periods, record_periods, realizations if the file states them.
+    """
+
+    path: Path
+    signals: dict
+    fs_hz: float = None
+    layout: dict = field(default_factory=dict)
+
+
+def _finite_or_raise(path, name, arr):
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise InputError(f"{path}: signal {name!r} has NaN or inf at sample {int(bad[0])}")
+
+
+def _numeric(path, name, value):
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"{path}: variable {name!r} is not real numeric (dtype {arr.dtype})")
+    return arr.astype(np.float64).reshape(-1)
+
+
+def _layout_from_meta(meta):
+    layout = {}
+    for key in ("n_period", "settle_periods", "record_periods", "realizations"):
+        if key in meta:
+            layout[key] = int(meta[key])
+    return layout
+
+
+def _is_number(text):
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def load_csv(path):
+    """CSV with a header line of column names; lines starting with '#' are skipped.
+
+    A first comment ``# fftune capture: {...}`` (written by
+    :func:`analysis.capture.export_csv`) provides fs_hz and the layout.
+    """
+    path = Path(path)
+    meta = {}
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text (CSV) file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    lines = text.splitlines()
+    header_index = None
+    for i, line in enumerate(lines):
+        if line.startswith("# fftune capture:"):
+            try:
+                meta = json.loads(line.split(":", 1)[1])
+            except ValueError:
+                raise InputError(f"{path} line {i + 1}: bad fftune metadata comment") from None
+        if line.strip() and not line.lstrip().startswith("#"):
+            header_index = i
+            break
+    if header_index is None:
+        raise InputError(f"{path}: empty CSV (no header line)")
+    header = [h.strip() for h in next(csv.reader([lines[header_index]]))]
+    if any(not h for h in header) or len(set(header)) != len(header):
+        raise InputError(f"{path} line {header_index + 1}: header needs distinct, non-empty "
+                         f"column names, got {header}")
+    if all(_is_number(h) for h in header):
+        raise InputError(f"{path} line {header_index + 1}: the first line must be a header of "
+                         f"column names, got numbers")
+    ncol = len(header)
+    table = None
+    try:                                   # fast path; the slow one below locates errors
+        table = np.loadtxt(_io.StringIO("\n".join(lines[header_index + 1:])), delimiter=",",
+                           comments="#", ndmin=2, dtype=np.float64)
+        if table.shape[1] != ncol or table.shape[0] == 0:
+            table = None
+    except ValueError:
+        table = None
+    if table is None:
+        table = _parse_rows(path, lines, header_index, header)
+    bad = np.argwhere(~np.isfinite(table))
+    if bad.size:
+        row, col = bad[0]
+        # map the data row back to its line number
+        data_lines = [k for k in range(header_index + 1, len(lines))
+                      if lines[k].strip() and not lines[k].lstrip().startswith("#")]
+        raise InputError(f"{path} line {data_lines[row] + 1}, column {header[col]!r}: "
+                         f"NaN or inf")
+    signals = {name: table[:, j].copy() for j, name in enumerate(header)}
+    fs = meta.get("fs_hz")
+    return LoadedSignals(path=path, signals=signals, fs_hz=None if fs is None else float(fs),
+                         layout=_layout_from_meta(meta))
+
+
+def _parse_rows(path, lines, header_index, header):
+    ncol = len(header)
+    rows = []
+    for lineno in range(header_index + 1, len(lines)):
+        line = lines[lineno]
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        fields = line.split(",")
+        if len(fields) != ncol:
+            raise InputError(f"{path} line {lineno + 1}: {len(fields)} fields, the header has "
+                             f"{ncol}")
+        try:
+            rows.append([float(x) for x in fields])
+        except ValueError:
+            for j, x in enumerate(fields):
+                try:
+                    float(x)
+                except ValueError:
+                    raise InputError(f"{path} line {lineno + 1}, column {header[j]!r}: "
+                                     f"{x.strip()!r} is not a number") from None
+    if not rows:
+        raise InputError(f"{path}: no data rows after the header")
+    return np.array(rows, dtype=np.float64)
+
+
+def _from_mapping(path, items):
+    signals, fs, layout = {}, None, {}
+    for name, value in items:
+        arr = np.asarray(value)
+        if arr.dtype.kind in "US":
+            continue                              # strings: metadata we do not need
+        if arr.size == 1 and arr.dtype.kind in "biuf":
+            scalar = float(arr.reshape(-1)[0])
+            if name in ("fs", "fs_hz"):
+                fs = scalar
+            elif name in ("n_period", "settle_periods", "record_periods", "realizations"):
+                layout[name] = int(scalar)
+            continue
+        signals[name] = _numeric(path, name, arr)
+        _finite_or_raise(path, name, signals[name])
+    if not signals:
+        raise InputError(f"{path}: holds no numeric signal")
+    if fs is not None and not (np.isfinite(fs) and fs > 0):
+        raise InputError(f"{path}: fs = {fs} is not a positive sample rate")
+    return LoadedSignals(path=Path(path), signals=signals, fs_hz=fs, layout=layout)
+
+
+def load_npz(path):
+    """NumPy .npz: every array is a signal (flattened); scalars fs/fs_hz, n_period ... are layout."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            items = [(k, z[k]) for k in z.files]
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({exc})") from None
+    return _from_mapping(path, items)
+
+
+def load_mat(path):
+    """MATLAB .mat (scipy.io.loadmat, v5/v7): numeric variables are signals, scalars layout."""
+    import scipy.io
+
+    try:
+        content = scipy.io.loadmat(path)
+    except (OSError, ValueError, NotImplementedError, TypeError) as exc:
+        raise InputError(f"{path}: not a readable .mat file ({exc})") from None
+    return _from_mapping(path, [(k, v) for k, v in content.items() if not k.startswith("__")])
+
+
+def load_capture(path):
+    """An fftune capture file (analysis.capture)."""
+    from analysis.capture import read_run
+
+    run = read_run(path)
+    layout = {k: run.meta[k] for k in ("n_period", "settle_periods", "record_periods")}
+    layout["realizations"] = 1
+    return LoadedSignals(path=Path(path),
+                         signals={k: v.astype(np.float64) for k, v in run.signals.items()},
+                         fs_hz=run.meta["fs_hz"], layout=layout)
+
+
+_LOADERS = {".csv": load_csv, ".txt": load_csv, ".npz": load_npz, ".mat": load_mat,
+            ".h5": load_capture, ".hdf5": load_capture}
+
+
+def load_signals(path):
+    """Load a measurement file by its extension (.csv/.txt, .npz, .mat, .h5/.hdf5).
+
+    Returns
+    -------
+    LoadedSignals
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    loader = _LOADERS.get(path.suffix.lower())
+    if loader is None:
+        raise InputError(f"{path}: unknown file type {path.suffix!r} (use .csv, .npz, .mat, .h5)")
+    return loader(path)
+
+
+def load_lines(path):
+    """Excited lines from a text file: integer DFT bins separated by spaces, commas or
+    new lines; '#' starts a comment.
+
+    Returns
+    -------
+    ndarray of int
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file (excited lines)")
+    bins = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        for token in line.split("#", 1)[0].replace(",", " ").split():
+            try:
+                value = int(token)
+            except ValueError:
+                raise InputError(f"{path} line {lineno}: {token!r} is not an integer DFT bin") \
+                    from None
+            if value < 1:
+                raise InputError(f"{path} line {lineno}: bin {value} must be >= 1")
+            bins.append(value)
+    if not bins:
+        raise InputError(f"{path}: no excited line listed")
+    return np.array(sorted(set(bins)), dtype=np.int64)
