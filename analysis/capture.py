@@ -36,6 +36,12 @@ def _now_iso():
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
+def _umask():
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path, write, *, overwrite=False, suffix=".tmp"):
     """Write ``path`` atomically: ``write(tmp_path)`` then rename into place.
 
@@ -64,6 +70,7 @@ def atomic_write(path, write, *, overwrite=False, suffix=".tmp"):
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())         # mkstemp makes 0600; give the usual mode
         if overwrite:
             os.replace(tmp, path)
         else:
