@@ -14,6 +14,7 @@ from host import __version__
 
 # Order = order in --help.
 SUBCOMMAND_MODULES = [
+    "analysis.cli",
     "host.demo",
 ]
 
