@@ -1,0 +1,314 @@
+"""``fftune analyze bla|hosidf FILE``: offline analysis of measured data from any source.
+
+Registered in host/cli.py (SUBCOMMAND_MODULES). Signals are laid out realization after
+realization (repeat after repeat for ``hosidf``), each with T + P periods of N samples.
+Bad input raises :class:`analysis.errors.InputError` (one line, exit code 2); outputs are
+written atomically and only after the analysis succeeded.
+"""
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from analysis.errors import InputError
+
+__all__ = ["add_parser", "run_bla", "run_hosidf", "parse_columns", "bla_to_json",
+           "hosidf_to_json"]
+
+_CAPTURE_DEFAULTS = {"bla": {"u": "plant_input", "y": "motor_angle", "r": "reference"},
+                     "hosidf": {"u": "reference", "y": "motor_angle"}}
+
+
+def _positive_float(text):
+    import argparse
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+    return value
+
+
+def _int_at_least(minimum):
+    import argparse
+
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{value} must be >= {minimum}")
+        return value
+    return parse
+
+
+def add_parser(subparsers):
+    """Add ``analyze`` with its ``bla`` and ``hosidf`` subcommands."""
+    p = subparsers.add_parser(
+        "analyze", help="offline analysis of measured data (robust BLA, HOSIDF)",
+        description="Analyse measured data from a CSV (with header), NPZ, MAT or fftune "
+                    "capture (.h5) file. Signals are laid out realization after realization, "
+                    "each with T + P periods of N samples.")
+    sub = p.add_subparsers(dest="analysis", metavar="ANALYSIS", required=True)
+
+    def common(q, what):
+        q.add_argument("file", metavar="FILE", help="CSV (header), .npz, .mat or capture .h5")
+        q.add_argument("--fs", type=_positive_float, metavar="HZ",
+                       help="sample rate in Hz (default: from the file)")
+        q.add_argument("--period", type=_int_at_least(4), metavar="N",
+                       help="samples per period N (default: from the file)")
+        q.add_argument("--periods", type=_int_at_least(1), metavar="P",
+                       help="steady-state periods P per " + what +
+                            " (default: what the record holds after T)")
+        q.add_argument("--realizations", type=_int_at_least(1), metavar="M",
+                       help=what + "s M in the record (default: from the file, else 1)")
+        q.add_argument("--skip-periods", type=_int_at_least(0), metavar="T",
+                       help="settle periods T dropped at the start of each " + what +
+                            " (default: from the file, else 0)")
+        q.add_argument("--json", metavar="PATH", help="write the results as JSON")
+        q.add_argument("--plot", metavar="DIR", help="write figures (PNG) into DIR")
+
+    b = sub.add_parser("bla", help="robust BLA, noise and nonlinear variances, odd/even detection")
+    common(b, "realization")
+    b.add_argument("--columns", metavar="u=NAME,y=NAME[,r=NAME]",
+                   help="signals to use: input u, output y, reference r (closed loop, "
+                        "known-reference estimate). Default: u, y (and r if present); "
+                        "capture files: plant_input, motor_angle, reference")
+    b.add_argument("--lines", metavar="FILE",
+                   help="excited lines (integer DFT bins of one period) instead of detecting "
+                        "them from the u (or r) spectrum")
+    b.set_defaults(func=run_bla)
+
+    h = sub.add_parser("hosidf", help="HOSIDF H_1..H_K of a sine experiment, mean/std over repeats")
+    common(h, "repeat")
+    h.add_argument("--columns", metavar="u=NAME,y=NAME",
+                   help="input u (the sine) and output y. Default: u, y; capture files: "
+                        "reference, motor_angle")
+    h.add_argument("--harmonics", type=_int_at_least(1), default=7, metavar="K",
+                   help="highest harmonic K (default 7)")
+    h.set_defaults(func=run_hosidf)
+
+
+def parse_columns(text, allowed):
+    """Parse ``u=NAME,y=NAME[,r=NAME]`` into a dict; InputError on bad syntax."""
+    out = {}
+    for item in text.split(","):
+        key, sep, name = item.partition("=")
+        key, name = key.strip(), name.strip()
+        if not sep or not name:
+            raise InputError(f"--columns: {item!r} is not ROLE=NAME (e.g. u=current,y=angle)")
+        if key not in allowed:
+            raise InputError(f"--columns: unknown role {key!r} (use {', '.join(allowed)})")
+        if key in out:
+            raise InputError(f"--columns: role {key!r} given twice")
+        out[key] = name
+    for key in ("u", "y"):
+        if key not in out:
+            raise InputError(f"--columns: role {key!r} missing (need u=NAME,y=NAME)")
+    return out
+
+
+def _select(loaded, args, kind):
+    from analysis.capture import STANDARD_SIGNALS
+
+    allowed = ("u", "y", "r") if kind == "bla" else ("u", "y")
+    names = loaded.signals
+    if args.columns:
+        columns = parse_columns(args.columns, allowed)
+    elif set(STANDARD_SIGNALS) & set(names) and "u" not in names:
+        columns = {k: v for k, v in _CAPTURE_DEFAULTS[kind].items() if k in ("u", "y") or v in names}
+    else:
+        columns = {"u": "u", "y": "y"}
+        if kind == "bla" and "r" in names:
+            columns["r"] = "r"
+    for role, name in columns.items():
+        if name not in names:
+            raise InputError(f"{loaded.path}: no column/signal {name!r} for {role} "
+                             f"(available: {', '.join(names)}); use --columns")
+    lengths = {names[c].size for c in columns.values()}
+    if len(lengths) != 1:
+        raise InputError(f"{loaded.path}: signals {', '.join(columns.values())} have different "
+                         f"lengths {sorted(lengths)}")
+    return {role: names[name] for role, name in columns.items()}, columns
+
+
+def _layout(loaded, args, n_samples, kind):
+    fs = args.fs if args.fs is not None else loaded.fs_hz
+    if fs is None:
+        raise InputError(f"{loaded.path}: sample rate unknown: give --fs HZ")
+    lay = loaded.layout
+    m = args.realizations or lay.get("realizations") or 1
+    t = args.skip_periods if args.skip_periods is not None else lay.get("settle_periods", 0)
+    n = args.period or lay.get("n_period")
+    p = args.periods
+    if p is None and n is not None and "record_periods" in lay and lay.get("n_period") == n \
+            and args.skip_periods is None:
+        p = lay["record_periods"]
+    if n is None:
+        if kind == "bla":
+            raise InputError(f"{loaded.path}: samples per period unknown: give --period N")
+        blocks = (t + (p or 1))
+        if n_samples % (m * blocks):
+            raise InputError(f"{loaded.path}: {n_samples} samples per signal cannot be split into "
+                             f"M = {m} x {blocks} periods")
+        n = n_samples // (m * blocks)
+        p = p or 1
+    if p is None:
+        if n_samples % (m * n):
+            raise InputError(f"{loaded.path}: the period N = {n} does not divide the record: "
+                             f"{n_samples} samples per signal is not a multiple of M x N = "
+                             f"{m} x {n}")
+        p = n_samples // (m * n) - t
+        if p < 1:
+            raise InputError(f"{loaded.path}: {n_samples} samples hold {n_samples // (m * n)} "
+                             f"periods per realization, none left after skipping T = {t}")
+    if m * (t + p) * n != n_samples:
+        raise InputError(f"{loaded.path}: wrong length: {n_samples} samples per signal, expected "
+                         f"M x (T+P) x N = {m} x ({t}+{p}) x {n} = {m * (t + p) * n}")
+    return float(fs), m, t, p, n
+
+
+def _clean(values):
+    """Array -> JSON list with NaN/inf as null; None stays None."""
+    if values is None:
+        return None
+    arr = np.asarray(values, dtype=float)
+    return [None if not np.isfinite(v) else float(v) for v in arr.reshape(-1)]
+
+
+def _complex_pairs(values):
+    arr = np.asarray(values).reshape(-1)
+    return [[float(v.real), float(v.imag)] for v in arr]
+
+
+def bla_to_json(res):
+    """The ``fftune analyze bla --json`` document of a :class:`analysis.bla.BLAResult`."""
+    summary = dict(res.summary)
+    summary.update({
+        "fs_hz": res.fs, "n_period": res.n_period, "realizations": res.n_realizations,
+        "periods": res.n_periods, "settle_periods": res.settle_periods,
+        "known_reference": res.known_reference, "excited_lines": int(res.bins.size),
+        "transient_suspect": bool(res.transient.suspect), "notes": list(res.notes),
+    })
+    summary = {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+               for k, v in summary.items()}
+    return {
+        "freq": _clean(res.freq),
+        "G": _complex_pairs(res.G),
+        "var_total": _clean(res.var_total),
+        "var_noise": _clean(res.var_noise),
+        "var_nl": _clean(res.var_nl),
+        "odd_nonexcited": {"freq": _clean(res.odd_freq), "level_db": _clean(res.odd_db),
+                           "noise_db": _clean(res.odd_noise_db)},
+        "even_nonexcited": {"freq": _clean(res.even_freq), "level_db": _clean(res.even_db),
+                            "noise_db": _clean(res.even_noise_db)},
+        "summary": summary,
+    }
+
+
+def hosidf_to_json(res):
+    """The ``fftune analyze hosidf --json`` document of one experiment's HosidfResult."""
+    return {
+        "f0": float(np.asarray(res.f0).reshape(-1)[0]),
+        "amplitude": float(np.asarray(res.amplitude).reshape(-1)[0]),
+        "H": _complex_pairs(res.H),
+        "H_std": _clean(res.H_std),
+    }
+
+
+def _write_json(path, document):
+    from analysis.capture import atomic_write
+
+    text = json.dumps(document, indent=1, allow_nan=False) + "\n"
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text), overwrite=True, suffix=".json")
+
+
+def _plot_dir(path):
+    d = Path(path)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--plot {d}: cannot create the directory ({exc.strerror})") from None
+    return d
+
+
+def _fmt_db(value):
+    return "n/a" if value is None else f"{value:+.1f} dB"
+
+
+def run_bla(args):
+    """``fftune analyze bla``."""
+    from analysis.bla import robust_bla
+    from analysis.io import load_lines, load_signals
+
+    loaded = load_signals(args.file)
+    sig, columns = _select(loaded, args, "bla")
+    fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "bla")
+    lines = load_lines(args.lines) if args.lines else None
+    shaped = {k: v.reshape(m, t + p, n) for k, v in sig.items()}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = robust_bla(shaped["u"], shaped["y"], shaped.get("r"), fs=fs, settle_periods=t,
+                         excited_bins=lines)
+    document = bla_to_json(res)
+    plot_dir = _plot_dir(args.plot) if args.plot else None
+    if args.json:
+        _write_json(args.json, document)
+    if plot_dir:
+        from analysis import plots
+        plots.plot_output_spectrum(res, plot_dir / "bla_output_spectrum.png")
+        plots.plot_bla(res, plot_dir / "bla_frf.png")
+    for w in caught:
+        print(f"fftune: warning: {w.message}", file=sys.stderr)
+    s = res.summary
+    how = "known reference r" if res.known_reference else "known input u"
+    print(f"BLA of {columns['y']} / {columns['u']} ({how}): M = {m}, P = {p}, T = {t}, N = {n}, "
+          f"fs = {fs:g} Hz, {res.bins.size} excited lines "
+          f"{res.freq[0]:g} .. {res.freq[-1]:g} Hz")
+    print(f"  nonlinear level re BLA output : {_fmt_db(s['nl_re_output_db'])}")
+    print(f"  noise level re nonlinear level: {_fmt_db(s['noise_re_nl_db'])}")
+    print(f"  noise level re BLA output     : {_fmt_db(s['noise_re_output_db'])}")
+    print(f"  odd non-excited re noise      : {_fmt_db(s['odd_re_noise_db'])} "
+          f"({res.odd_bins.size} lines)")
+    print(f"  even non-excited re noise     : {_fmt_db(s['even_re_noise_db'])} "
+          f"({res.even_bins.size} lines)")
+    print(f"  odd re even                   : {_fmt_db(s['odd_re_even_db'])}")
+    for note in res.notes:
+        print(f"  note: {note}")
+    return 0
+
+
+def run_hosidf(args):
+    """``fftune analyze hosidf``."""
+    from analysis.hosidf import hosidf
+    from analysis.io import load_signals
+
+    loaded = load_signals(args.file)
+    sig, columns = _select(loaded, args, "hosidf")
+    fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "hosidf")
+    u = sig["u"].reshape(m, t + p, n)[:, t:, :]
+    y = sig["y"].reshape(m, t + p, n)[:, t:, :]
+    res = hosidf(u, y, fs=fs, n_harmonics=args.harmonics)
+    document = hosidf_to_json(res)
+    plot_dir = _plot_dir(args.plot) if args.plot else None
+    if args.json:
+        _write_json(args.json, document)
+    if plot_dir:
+        from analysis import plots
+        plots.plot_hosidf_harmonics(res, plot_dir / "hosidf_harmonics.png")
+    print(f"HOSIDF of {columns['y']} / {columns['u']}: f0 = {document['f0']:g} Hz, "
+          f"amplitude = {document['amplitude']:.4g}, {m} repeat(s) of {p} period(s)")
+    h1 = abs(res.H[0])
+    for k in res.harmonics:
+        hk = res.H[k - 1]
+        std = res.H_std[k - 1]
+        std_text = "" if not np.isfinite(std) else f"  std {std:.3g}"
+        print(f"  H_{k}: |H| = {abs(hk):.4g} ({20 * np.log10(max(abs(hk), 1e-300) / h1):+.1f} dB re "
+              f"H_1), phase {np.degrees(np.angle(hk)):+.1f} deg{std_text}")
+    if m == 1:
+        print("  note: 1 repeat: no standard deviation (null in the JSON)")
+    return 0
