@@ -58,60 +58,74 @@ class CaptureStore:
         if not os.path.exists(path):
             return None
         run = _capture.read_run(path)
-        meta = run.meta
-        if not _same_request(meta.get("request", {}), _jsonable(request)):
+        if not _same_request(run.meta.get("metadata", {}).get("request", {}), _jsonable(request)):
             raise FftuneError(f"{path}: captured with other parameters than this session asks "
                               f"for (another configuration?); use another --out or remove the file")
         return record_from_capture(run)
 
-    def save(self, key, rec, *, experiment, request, config, identity):
+    def save(self, key, rec, *, experiment, request, config, identity, level_index=0,
+             realization=0):
+        ident_text = json.dumps({k: identity.get(k) for k in
+                                 ("vendor_id", "product_code", "revision", "serial", "device_name")},
+                                sort_keys=True)
         meta = {
-            "fftune_version": __version__,
             "experiment": experiment,
-            "key": key,
-            "request": _jsonable(request),
-            "drive_parameters": _jsonable(rec.parameters),
-            "identity": _jsonable(identity),
-            "firmware_version": identity.get("firmware_version"),
-            "config": _jsonable({k: v for k, v in config.items() if k != "_source"}),
-            "config_file": config.get("_source"),
-            "t_start": datetime.datetime.fromtimestamp(rec.t_start).isoformat(timespec="milliseconds"),
-            "t_end": datetime.datetime.fromtimestamp(rec.t_end).isoformat(timespec="milliseconds"),
-            "run_counter": int(rec.run_counter),
             "fs_hz": float(rec.fs_hz),
-            "period_samples": int(rec.period_samples),
-            "settle_periods": int(rec.settle_periods),
+            "n_period": int(rec.period_samples),
+            # The drive records only the record periods; its settle periods are in
+            # parameters['exc_settle_periods'].
+            "settle_periods": 0,
             "record_periods": int(rec.record_periods),
-            "signals": list(rec.signals),
-            "layout": LAYOUT,
+            "level_index": int(level_index),
+            "realization": int(realization),
+            "parameters": _jsonable(rec.parameters),
+            "firmware_version": str(identity.get("firmware_version", "")),
+            "eds_identity": ident_text,
+            "started_at": _iso(rec.t_start),
+            "finished_at": _iso(rec.t_end),
+            "metadata": {
+                "fftune_version": __version__,
+                "key": key,
+                "request": _jsonable(request),
+                "identity": _jsonable(identity),
+                "run_counter": int(rec.run_counter),
+                "drive_settle_periods": int(rec.settle_periods),
+                "config": _jsonable({k: v for k, v in config.items() if k != "_source"}),
+                "config_file": config.get("_source"),
+                "layout": LAYOUT,
+            },
         }
         try:
-            _capture.write_run(self.path(key), rec.signals, fs=rec.fs_hz, meta=meta)
+            _capture.write_run(self.path(key), rec.signals, meta)
         except FileExistsError:
             raise FftuneError(f"{self.path(key)}: exists; captures are never overwritten") from None
 
 
+def _iso(t):
+    return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).isoformat(timespec="milliseconds")
+
+
 def record_from_capture(run):
-    """A :class:`host.drive.RunRecord` from a capture read by :func:`analysis.capture.read_run`."""
+    """A :class:`host.drive.RunRecord` from a :class:`analysis.capture.CaptureRun`."""
     meta = run.meta
+    extra = meta.get("metadata", {})
 
     def ts(s):
-        return datetime.datetime.fromisoformat(s).timestamp()
+        return datetime.datetime.fromisoformat(s).timestamp() if s else 0.0
     return RunRecord(signals={k: np.asarray(v, dtype=np.float64) for k, v in run.signals.items()},
-                     parameters=meta.get("drive_parameters", {}), fs_hz=float(meta["fs_hz"]),
-                     period_samples=int(meta["period_samples"]),
-                     settle_periods=int(meta["settle_periods"]),
-                     record_periods=int(meta["record_periods"]), run_counter=int(meta["run_counter"]),
-                     t_start=ts(meta["t_start"]), t_end=ts(meta["t_end"]), meta=meta)
+                     parameters=meta.get("parameters", {}), fs_hz=float(meta["fs_hz"]),
+                     period_samples=int(meta["n_period"]),
+                     settle_periods=int(extra.get("drive_settle_periods", 0)),
+                     record_periods=int(meta["record_periods"]),
+                     run_counter=int(extra.get("run_counter", 0)),
+                     t_start=ts(meta.get("started_at")), t_end=ts(meta.get("finished_at")), meta=meta)
 
 
 def export_captures(source, fmt, to_dir=None):
-    """Export capture file(s) to ``.mat`` (scipy.io) or ``.csv``; returns the files written."""
-    import scipy.io
-    from host.atomic import write_atomic
-
+    """Export capture file(s) with :func:`analysis.capture.export_mat` / ``export_csv``
+    (one file per run, never overwriting); returns the files written."""
     if os.path.isdir(source):
-        files = sorted(glob.glob(os.path.join(source, "*.h5")))
+        files = [str(p) for p in _capture.list_runs(source)]
         if not files:
             raise FftuneError(f"{source}: no capture files (*.h5)")
     elif os.path.exists(source):
@@ -120,27 +134,16 @@ def export_captures(source, fmt, to_dir=None):
         raise FftuneError(f"{source}: no such capture file or directory")
     out = []
     for f in files:
-        run = _capture.read_run(f)
         base = os.path.splitext(os.path.basename(f))[0]
         d = to_dir or os.path.dirname(os.path.abspath(f))
         os.makedirs(d, exist_ok=True)
-        names = list(run.signals)
-        if fmt == "mat":
-            target = os.path.join(d, base + ".mat")
-            tmp = os.path.join(d, f".tmp-{base}.mat")
-            mdict = {n: np.asarray(run.signals[n]) for n in names}
-            mdict["fs_hz"] = float(run.meta.get("fs_hz", np.nan))
-            mdict["metadata_json"] = json.dumps(run.meta)
-            scipy.io.savemat(tmp, mdict, do_compression=True)
-            os.replace(tmp, target)
-        else:
-            target = os.path.join(d, base + ".csv")
-            fs = float(run.meta.get("fs_hz", 1.0))
-            n = len(run.signals[names[0]])
-            cols = [np.arange(n) / fs] + [np.asarray(run.signals[k]) for k in names]
-            lines = ["time_s," + ",".join(names)]
-            arr = np.column_stack(cols)
-            lines += [",".join(f"{v:.9g}" for v in row) for row in arr]
-            write_atomic(target, "\n".join(lines) + "\n")
-        out.append(target)
+        target = os.path.join(d, f"{base}.{fmt}")
+        try:
+            if fmt == "mat":
+                _capture.export_mat(f, target)
+            else:
+                _capture.export_csv(f, target)
+        except FileExistsError:
+            raise FftuneError(f"{target}: exists; exports are never overwritten") from None
+        out.append(str(target))
     return out

@@ -14,6 +14,8 @@ from host import __version__
 
 # Order = order in --help.
 SUBCOMMAND_MODULES = [
+    "host.commands",
+    "host.sim",
     "analysis.cli",
     "host.demo",
 ]

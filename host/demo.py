@@ -1,19 +1,54 @@
-"""``fftune demo``: the main job on the simulated drive (``make demo``)."""
+"""``fftune demo`` (``make demo``): the whole pipeline against the simulated drive.
+
+Starts ``drive_sim`` on a free loopback socketcand port, runs detect -> quantify -> tune
+with ``configs/demo.yaml`` through the CANopen client exactly as ``fftune run`` does, stops
+the drive (also on an error or Ctrl-C) and leaves everything in ``out/demo/``.
+"""
 import os
-import subprocess
-import sys
+import time
+
+from host.commands import DEFAULT_CONFIG
+from host.config import check_output_dir, load_config
+from host.drive import BusOptions, DriveClient
+from host.sim import DEFAULT_PLANT, start_drive_sim
 
 
 def add_parser(sub):
-    p = sub.add_parser("demo", help="run the main job on the simulated drive")
+    p = sub.add_parser("demo", help="run detect, quantify and tune on the simulated drive (make demo)",
+                       description="Start drive_sim on a free loopback port, run the pipeline "
+                                   "(`fftune run`) against it, stop it, and leave results.yaml, "
+                                   "captures, figures and report.html in the output directory.")
+    p.add_argument("--config", default=DEFAULT_CONFIG, help="configuration (default configs/demo.yaml)")
+    p.add_argument("--plant", default=DEFAULT_PLANT, help="plant of the simulated drive (default %(default)s)")
+    p.add_argument("--out", default=None, help="output directory (default: the configuration's)")
+    p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
 
 def run(args):
-    here = os.path.dirname(os.path.abspath(__file__))
-    eds = os.path.join(here, "..", "firmware_sim", "build", "gen", "od_params.h")
-    print("fftune demo: the pipeline is being assembled; present pieces:")
-    print(f"  object dictionary generated: {os.path.exists(eds)}")
-    print(f"  python {sys.version.split()[0]}, fftune CLI ready")
-    subprocess.run([sys.executable, "-c", "import analysis, host"], check=True)
+    from host.pipeline import run_pipeline, summary_lines
+
+    t0 = time.monotonic()
+    cfg = load_config(args.config)
+    out = check_output_dir(args.out or cfg["output"])
+    d = cfg["drive"]
+    sim = start_drive_sim(args.plant, node_id=d["node_id"], log_path=os.path.join(out, "drive_sim.log"))
+    try:
+        print(f"fftune demo: drive_sim ({os.path.relpath(args.plant)}) listening on "
+              f"127.0.0.1:{sim.port}", flush=True)
+        opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
+                          node_id=d["node_id"], eds=d["eds"] or None)
+        if opts.eds is None:
+            from host.odmap import DEFAULT_EDS
+            opts.eds = DEFAULT_EDS
+        client = DriveClient(opts, sdo_timeout_s=d["sdo_timeout_s"], sdo_retries=d["sdo_retries"],
+                             heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],
+                             run_timeout_s=d["run_timeout_s"], progress=not args.no_progress)
+        with client:
+            client.enable()
+            results = run_pipeline(client, cfg, out, log=lambda s: print(s, flush=True))
+    finally:
+        sim.stop()
+    print("\n".join(summary_lines(results, out)))
+    print(f"fftune demo: done in {time.monotonic() - t0:.1f} s; open {os.path.relpath(out)}/report.html")
     return 0

@@ -356,7 +356,7 @@ class DriveClient:
         """Every manufacturer parameter the EDS has, by alias (the run's metadata)."""
         out = {}
         for alias, e in PARAMS.items():
-            if alias.startswith("sim_") or alias.startswith("meas_"):
+            if alias.startswith(("sim_", "meas_")) or e.access == "wo":
                 continue
             try:
                 self.node.object_dictionary[e.index][e.subindex] if e.subindex else \

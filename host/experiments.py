@@ -60,7 +60,7 @@ class Session:
         ctl = {k: v for k, v in cfg["drive"]["controller"].items() if v is not None}
         self.controller = {"tau_d" if k == "tau_d" else k: v for k, v in ctl.items()}
 
-    def run(self, experiment, key, request):
+    def run(self, experiment, key, request, level_index=0, realization=0):
         """The run ``key`` of ``experiment`` with drive parameters ``request``, measured or
         loaded from an earlier capture with the same request."""
         request = dict(self.controller, **request)
@@ -70,7 +70,7 @@ class Session:
             return rec
         rec = self.drive.run(request, desc=key)
         self.store.save(key, rec, experiment=experiment, request=request, config=self.cfg,
-                        identity=self.identity)
+                        identity=self.identity, level_index=level_index, realization=realization)
         self.counts["measured"] += 1
         return rec
 
@@ -130,7 +130,7 @@ def detect(session):
                    "exc_settle_periods": c["settle_periods"], "exc_record_periods": c["periods"],
                    "ms_k_min": k_min, "ms_k_max": k_max, "ms_group": c["group"],
                    "ms_seed": c["seed"], "ms_realization": m, "kfc": c["k_fc"], "kv": c["k_v"]}
-            rec = session.run("detect", f"detect-L{li:02d}-M{m:02d}", req)
+            rec = session.run("detect", f"detect-L{li:02d}-M{m:02d}", req, level_index=li, realization=m)
             u_m.append(_blocks(rec.signals["plant_input"], n))
             y_m.append(_blocks(rec.signals["motor_angle"], n))
             if c["inject"] == "reference":
@@ -196,7 +196,8 @@ def quantify(session):
                 req = sine_request(inject=c["inject"], amplitude_peak=rms * math.sqrt(2), n=n,
                                    cycles=cyc, settle=c["settle_periods"], periods=c["periods"],
                                    kfc=c["k_fc"], kv=c["k_v"])
-                rec = session.run("quantify", f"quantify-A{ai:02d}-F{fi:03d}-R{rep:02d}", req)
+                rec = session.run("quantify", f"quantify-A{ai:02d}-F{fi:03d}-R{rep:02d}", req,
+                                  level_index=ai, realization=rep)
                 U[ai, fi, rep] = _blocks(rec.signals[in_name], n)
                 Y[ai, fi, rep] = _blocks(rec.signals["motor_angle"], n)
     f0 = np.broadcast_to(np.asarray(c["frequencies_hz"])[None, :], U.shape[:2])

@@ -13,6 +13,7 @@ import os
 import socket
 import subprocess
 import time
+import zlib
 
 import numpy as np
 
@@ -35,7 +36,7 @@ class FakeDriveForTests:
         self.fstat = fc_volt if fs_volt is None else fs_volt
         self.j, self.noise = inertia_v, noise_std
         self.substeps = substeps
-        self.rng = np.random.default_rng(seed)
+        self.seed = seed
         self.params = {a: 0 for a in PARAMS}
         self.params.update(kp=20.0, kd=0.4, tau_d=0.0005, kfc=0.0, kv=0.0, fc_smooth=0.0, u_max=10.0,
                            fs=fs_hz, exc_kind=0, exc_inject=0, exc_amplitude=0.0, exc_offset=0.0,
@@ -123,7 +124,10 @@ class FakeDriveForTests:
         e_prev, dstate = 0.0, 0.0
         j, fc, fv, fst = self.j, self.fc, self.fv, self.fstat
         out = np.zeros((n_total, 5))
-        noise = (self.rng.normal(0.0, self.noise, n_total) if self.noise else np.zeros(n_total)).tolist()
+        # Noise seeded by the run's parameters: the same request gives the same record.
+        seed_items = sorted((k, v) for k, v in p.items() if k != "run_counter")
+        rng = np.random.default_rng([self.seed, zlib.crc32(repr(seed_items).encode())])
+        noise = (rng.normal(0.0, self.noise, n_total) if self.noise else np.zeros(n_total)).tolist()
         for i in range(n_total):
             r = exc[i] if inject_ref else 0.0
             vr = exc_v[i] if inject_ref else 0.0
