@@ -1,0 +1,98 @@
+"""Benchmarks of the analysis package (figures printed; `make bench`).
+
+* Robust BLA on the paper's size (M = 10, P = 10, N = 8192): time vs np.fft.rfft over the
+  same u and y arrays (target <= 2x), tracemalloc peak vs the input bytes (target <= 4x).
+* HOSIDF of 60 frequencies x 10 repeats x 10 periods x 2048 samples: time vs np.fft.rfft
+  over the same u and y records (target <= 1.5x).
+
+Medians of several repeats, the reference and the function timed alternately in the
+same run.
+"""
+import time
+import tracemalloc
+
+import numpy as np
+
+from analysis.bla import robust_bla
+from analysis.hosidf import hosidf
+from analysis.multisine import multisine_realizations
+
+
+def alternate_medians(funcs, repeats=15):
+    times = {name: [] for name in funcs}
+    for _ in range(repeats):
+        for name, f in funcs.items():
+            t0 = time.perf_counter()
+            f()
+            times[name].append(time.perf_counter() - t0)
+    return {name: float(np.median(v)) for name, v in times.items()}
+
+
+def peak_bytes(f):
+    tracemalloc.start()
+    try:
+        f()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def bench_bla():
+    m, p, n, fs = 10, 10, 8192, 2560.0
+    designs = multisine_realizations(m, fs, n, f_min=1.0, f_max=1000.0, seed=1)
+    u = np.repeat(np.stack([d.period for d in designs])[:, None, :], p, axis=1)
+    rng = np.random.default_rng(0)
+    y = u + 0.1 * u ** 3 + 0.01 * rng.standard_normal(u.shape)
+    r = u
+    med = alternate_medians({
+        "rfft u, y": lambda: (np.fft.rfft(u, axis=-1), np.fft.rfft(y, axis=-1)),
+        "robust_bla (known input, lines detected)": lambda: robust_bla(u, y, fs=fs),
+        "robust_bla (known input, lines given)": lambda: robust_bla(
+            u, y, fs=fs, excited_bins=designs[0].excited),
+        "robust_bla (known reference r, u, y)": lambda: robust_bla(u, y, r, fs=fs),
+    })
+    ref = med["rfft u, y"]
+    print(f"robust BLA, M={m} P={p} N={n} (float64, {u.nbytes / 1e6:.1f} MB per signal), "
+          f"{designs[0].excited.size} excited lines")
+    for name, t in med.items():
+        print(f"  {name:45s} {1e3 * t:8.2f} ms   {t / ref:5.2f} x rfft(u, y)   "
+              + ("(target <= 2x)" if "known input, lines detected" in name else ""))
+    peak = peak_bytes(lambda: robust_bla(u, y, fs=fs))
+    peak_rfft = peak_bytes(lambda: (np.fft.rfft(u, axis=-1), np.fft.rfft(y, axis=-1)))
+    inp = u.nbytes + y.nbytes
+    print(f"  tracemalloc peak robust_bla: {peak / 1e6:.1f} MB = {peak / inp:.2f} x input "
+          f"({inp / 1e6:.1f} MB u + y; target <= 4x); rfft(u), rfft(y) kept: "
+          f"{peak_rfft / inp:.2f} x input")
+    u32, y32 = u.astype(np.float32), y.astype(np.float32)
+    peak32 = peak_bytes(lambda: robust_bla(u32, y32, fs=fs))
+    print(f"  float32 input: tracemalloc peak {peak32 / (u32.nbytes + y32.nbytes):.2f} x input")
+
+
+def bench_hosidf():
+    n_f, reps, p, n, fs = 60, 10, 10, 2048, 5120.0
+    bins = np.arange(1, n_f + 1) * 2                   # 5 Hz steps at fs/N = 2.5 Hz
+    t = np.arange(p * n)
+    rng = np.random.default_rng(0)
+    u = np.empty((n_f, reps, p * n))
+    for i, k in enumerate(bins):
+        u[i] = np.sin(2 * np.pi * k * t / n + rng.uniform(0, 6, (reps, 1)))
+    y = np.tanh(2 * u) + 1e-3 * rng.standard_normal(u.shape)
+    u4 = u.reshape(n_f, reps, p, n)
+    y4 = y.reshape(n_f, reps, p, n)
+    f0 = bins * fs / n
+    med = alternate_medians({
+        "rfft u, y (whole records)": lambda: (np.fft.rfft(u, axis=-1), np.fft.rfft(y, axis=-1)),
+        "hosidf (f0 found)": lambda: hosidf(u4, y4, fs=fs, n_harmonics=7),
+        "hosidf (f0 given)": lambda: hosidf(u4, y4, fs=fs, n_harmonics=7, f0=f0),
+    }, repeats=7)
+    ref = med["rfft u, y (whole records)"]
+    print(f"HOSIDF, {n_f} freqs x {reps} repeats x {p} periods x {n} samples "
+          f"({u.nbytes / 1e6:.0f} MB per signal), K = 7")
+    for name, tm in med.items():
+        print(f"  {name:45s} {1e3 * tm:8.2f} ms   {tm / ref:5.2f} x rfft(u, y)   "
+              + ("(target <= 1.5x)" if "found" in name else ""))
+
+
+if __name__ == "__main__":
+    bench_bla()
+    bench_hosidf()
