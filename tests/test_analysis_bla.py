@@ -205,3 +205,23 @@ def test_real_motorbench_odd_odd_record(motorbench):
 
 PINNED_G13_DB = -36.0        # |G_BLA| at 13 Hz, rad/A, measured here
 PINNED_REL_NOISE_DB = -48.3  # median var_noise / |G|^2, measured here
+
+
+def test_known_reference_variances_match_monte_carlo_spread():
+    """var_total and var_noise of the closed-loop estimator equal the spread of G over seeds."""
+    m, p, n, kp = 6, 4, 256, 4.0
+    designs, one, r = multisine_table(m, n, p, 60, seed=9)
+    den = A + kp * np.concatenate([B, np.zeros(A.size - B.size)])
+    y_r, u_r = periodic_filter(r, kp * B, den), periodic_filter(r, kp * A, den)
+    estimates, var_total, var_noise = [], [], []
+    for seed in range(150):
+        v = 0.05 * np.random.default_rng(seed).standard_normal(r.shape)
+        res = robust_bla(u_r - periodic_filter(v, kp * A, den), y_r + periodic_filter(v, A, den),
+                         r, excited_bins=designs[0].excited)
+        estimates.append(res.G)
+        var_total.append(res.var_total)
+        var_noise.append(res.var_noise)
+    estimates = np.array(estimates)
+    spread = np.mean(np.abs(estimates - estimates.mean(axis=0)) ** 2, axis=0)
+    assert np.mean(spread / np.mean(var_total, axis=0)) == pytest.approx(1.0, abs=0.1)
+    assert np.mean(spread / np.mean(var_noise, axis=0)) == pytest.approx(1.0, abs=0.1)
