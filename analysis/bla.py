@@ -235,7 +235,11 @@ def _spectral_lines(x, lines):
     """
     out = np.empty(x.shape[:-1] + (lines.size,), dtype=np.complex128)
     for m in range(x.shape[0]):
-        out[m] = np.take(scipy.fft.rfft(x[m], axis=-1), lines, axis=-1)
+        spectrum = scipy.fft.rfft(x[m], axis=-1)
+        if spectrum.dtype == out.dtype:
+            np.take(spectrum, lines, axis=-1, out=out[m])
+        else:                                   # float32 input: complex64 spectrum
+            out[m] = np.take(spectrum, lines, axis=-1)
     return out
 
 
@@ -372,14 +376,11 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     if r is None:
         with np.errstate(divide="ignore", invalid="ignore"):
             G_mp = Y / U
-        G_m = G_mp.mean(axis=1)
+        G_m, ss = _spread(G_mp) if n_per >= 2 else (G_mp.mean(axis=1), None)
+        del G_mp
         check_finite(G_m)
         G = G_m.mean(axis=0)
-        s2n_m = None
-        if n_per >= 2:
-            _, ss = _spread(G_mp)
-            s2n_m = ss / (n_per * (n_per - 1))
-        del G_mp
+        s2n_m = None if ss is None else ss / (n_per * (n_per - 1))
         var_total = var_noise = None
         if n_real >= 2:
             var_total = _abs2_sum((G_m - G)[:, None, :], axis=0)[0] / (n_real * (n_real - 1))

@@ -5,8 +5,8 @@
 * HOSIDF of 60 frequencies x 10 repeats x 10 periods x 2048 samples: time vs np.fft.rfft
   over the same u and y records (target <= 1.5x).
 
-Medians of several repeats, the reference and the function timed alternately in the
-same run.
+Medians of several rounds; in each round the reference and the functions run once, in
+random order, in the same process.
 """
 import time
 import tracemalloc
@@ -19,9 +19,16 @@ from analysis.multisine import multisine_realizations
 
 
 def alternate_medians(funcs, repeats=15):
+    """Median wall time of each function; in every round all run once, in random order
+    (so no function always follows the same one and inherits its memory state)."""
     times = {name: [] for name in funcs}
+    rng = np.random.default_rng(0)
+    names = list(funcs)
+    for name in names:
+        funcs[name]()                                      # warm-up
     for _ in range(repeats):
-        for name, f in funcs.items():
+        for i in rng.permutation(len(names)):
+            name, f = names[i], funcs[names[i]]
             t0 = time.perf_counter()
             f()
             times[name].append(time.perf_counter() - t0)
