@@ -68,9 +68,12 @@ class TransientCheck:
         Noise reference: the median level of the kept periods after the first
         (None when P < 3, where the check is not made).
     suspect : bool
-        The first kept period differs from the steady state (per-line median of the
-        kept periods) 10 dB more than the later periods do (needs P >= 3; the settle
-        periods' levels are reported in ``level_db`` for information).
+        The first kept period differs from the steady state 10 dB more than the
+        later periods do (needs P >= 3): a transient inside the kept periods.
+    settle_differs : bool or None
+        The last settle period differs from the steady state 10 dB more than the later
+        periods do (expected after a start from rest; False means the settle periods
+        could have been used). None without settle periods or with P < 3.
     message : str
     """
 
@@ -78,6 +81,7 @@ class TransientCheck:
     expected_db: np.ndarray = None
     suspect: bool = False
     message: str = ""
+    settle_differs: bool = None
 
 
 @dataclass
@@ -281,6 +285,9 @@ def _transient(Y_exc, settle, n_periods):
     if n_periods >= 3:
         noise = float(np.median(level[settle + 1:]))
         check.expected_db = to_db(np.full(d.shape, noise))
+        if settle > 0:
+            last_settle = level[settle - 1]
+            check.settle_differs = bool(last_settle > 10 * noise and last_settle > 1e-8)
         first = level[settle]
         if first > 10 * noise and first > 1e-8:
             check.suspect = True

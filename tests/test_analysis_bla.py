@@ -118,13 +118,16 @@ def test_transient_in_kept_periods_warns():
     y = signal.lfilter(b, a, u.reshape(2, -1), axis=-1).reshape(u.shape)
     with pytest.warns(TransientWarning, match="transient"):
         res = robust_bla(u, y, settle_periods=0)
-    assert res.transient.suspect
+    assert res.transient.suspect and res.transient.settle_differs is None
+    skipped = robust_bla(u, y, settle_periods=2, warn_transient=False)
+    assert skipped.transient.settle_differs is True
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         y_steady = np.repeat(periodic_filter(one, b, a)[:, None, :], p, axis=1)
         ok = robust_bla(u, y_steady + 1e-6 * np.random.default_rng(1).standard_normal(u.shape),
                         settle_periods=1)
     assert not ok.transient.suspect and ok.transient.level_db.shape == (p,)
+    assert ok.transient.settle_differs is False
 
 
 def test_detect_excited_lines_on_odd_odd_grid_and_bad_input():
