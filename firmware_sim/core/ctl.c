@@ -71,37 +71,3 @@ CTL_SETTER(ctl_set_kv, kv)
 CTL_SETTER(ctl_set_fc_smooth, fc_smooth)
 CTL_SETTER(ctl_set_u_max, u_max)
 
-float ctl_ff_sign(const ctl_t *ctl, float v_ref)
-{
-    if (ctl->inv_smooth > 0.0f) {
-        float s = v_ref * ctl->inv_smooth;
-        if (s > 1.0f) {
-            s = 1.0f;
-        } else if (s < -1.0f) {
-            s = -1.0f;
-        }
-        return s;
-    }
-    if (v_ref > 0.0f) {
-        return 1.0f;
-    }
-    if (v_ref < 0.0f) {
-        return -1.0f;
-    }
-    return 0.0f;
-}
-
-float ctl_step(ctl_t *ctl, float e, float v_ref, float u_add)
-{
-    float de = ctl->primed ? (e - ctl->e_prev) : 0.0f;
-    ctl->e_prev = e;
-    ctl->primed = true;
-    ctl->d_state = ctl->d_pole * ctl->d_state + ctl->d_gain * de;
-    float u = ctl->kp * e + ctl->d_state + ctl->kfc * ctl_ff_sign(ctl, v_ref) + ctl->kv * v_ref + u_add;
-    if (u > ctl->u_max) {
-        u = ctl->u_max;
-    } else if (u < -ctl->u_max) {
-        u = -ctl->u_max;
-    }
-    return u;
-}

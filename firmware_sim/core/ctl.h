@@ -46,6 +46,46 @@ typedef struct {
 ctl_status_t ctl_init(ctl_t *ctl, float fs_hz);
 void ctl_reset(ctl_t *ctl); /* forget the derivative state (bumpless re-enable) */
 
+/* ---- per-sample hot path, inline (controller step budget) ---- */
+
+/* sgn as used by the feed-forward. */
+static inline float ctl_ff_sign(const ctl_t *ctl, float v_ref)
+{
+    if (ctl->inv_smooth > 0.0f) {
+        float s = v_ref * ctl->inv_smooth;
+        if (s > 1.0f) {
+            s = 1.0f;
+        } else if (s < -1.0f) {
+            s = -1.0f;
+        }
+        return s;
+    }
+    if (v_ref > 0.0f) {
+        return 1.0f;
+    }
+    if (v_ref < 0.0f) {
+        return -1.0f;
+    }
+    return 0.0f;
+}
+
+/* One step: error e [rad], reference velocity [rad/s], u_add [V] added before saturation
+ * (disturbance injection). Returns the saturated plant input [V]. */
+static inline float ctl_step(ctl_t *ctl, float e, float v_ref, float u_add)
+{
+    float de = ctl->primed ? (e - ctl->e_prev) : 0.0f;
+    ctl->e_prev = e;
+    ctl->primed = true;
+    ctl->d_state = ctl->d_pole * ctl->d_state + ctl->d_gain * de;
+    float u = ctl->kp * e + ctl->d_state + ctl->kfc * ctl_ff_sign(ctl, v_ref) + ctl->kv * v_ref + u_add;
+    if (u > ctl->u_max) {
+        u = ctl->u_max;
+    } else if (u < -ctl->u_max) {
+        u = -ctl->u_max;
+    }
+    return u;
+}
+
 ctl_status_t ctl_set_kp(ctl_t *ctl, float kp_v_per_rad);
 ctl_status_t ctl_set_kd(ctl_t *ctl, float kd_vs_per_rad);
 ctl_status_t ctl_set_tau_d(ctl_t *ctl, float tau_s);
@@ -53,12 +93,5 @@ ctl_status_t ctl_set_kfc(ctl_t *ctl, float kfc_v);
 ctl_status_t ctl_set_kv(ctl_t *ctl, float kv_vs_per_rad);
 ctl_status_t ctl_set_fc_smooth(ctl_t *ctl, float width_rad_s);
 ctl_status_t ctl_set_u_max(ctl_t *ctl, float u_max_v);
-
-/* sgn as used by the feed-forward (exposed for tests). */
-float ctl_ff_sign(const ctl_t *ctl, float v_ref);
-
-/* One step: error e [rad], reference velocity [rad/s], u_add [V] added before saturation
- * (disturbance injection). Returns the saturated plant input [V]. */
-float ctl_step(ctl_t *ctl, float e_rad, float v_ref_rad_s, float u_add_v);
 
 #endif /* CTL_H */

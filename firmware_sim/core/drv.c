@@ -29,12 +29,6 @@ static drv_status_t drv_from_ctl(ctl_status_t st)
     }
 }
 
-static void drv_update_vel_pole(drv_t *drv)
-{
-    float ts = 1.0f / drv->fs_hz;
-    drv->vel_pole = drv->ctl.tau_d / (drv->ctl.tau_d + ts);
-}
-
 /* Generic checks shared by get/set: known drive parameter of the right type. */
 static drv_status_t drv_check_id(drv_param_id_t id, drv_param_type_t type)
 {
@@ -83,7 +77,6 @@ drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
     drv->run_inject = DRV_INJECT_REFERENCE;
     drv->enabled = false;
     drv->fault = false;
-    drv->vel_primed = false;
     drv->target = 0.0f;
     drv->reference = 0.0f;
     drv->error = 0.0f;
@@ -91,7 +84,6 @@ drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
     drv->motor = 0.0f;
     drv->load = 0.0f;
     drv->motor_prev = 0.0f;
-    drv->velocity = 0.0f;
     /* defaults of every writable drive parameter from od.yaml, through the checked path */
     for (uint32_t i = 0u; i < (uint32_t)DRV_PARAM_COUNT; i++) {
         const drv_param_info_t *info = &DRV_PARAM_INFO[i];
@@ -105,7 +97,6 @@ drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
             return DRV_E_GENERAL; /* od.yaml default outside its own limits */
         }
     }
-    drv_update_vel_pole(drv);
     return DRV_OK;
 }
 
@@ -180,12 +171,7 @@ drv_status_t drv_set_f32(drv_t *drv, drv_param_id_t id, float value)
     switch (id) {
     case DRV_P_KP: return drv_from_ctl(ctl_set_kp(&drv->ctl, value));
     case DRV_P_KD: return drv_from_ctl(ctl_set_kd(&drv->ctl, value));
-    case DRV_P_TAU_D:
-        st = drv_from_ctl(ctl_set_tau_d(&drv->ctl, value));
-        if (st == DRV_OK) {
-            drv_update_vel_pole(drv);
-        }
-        return st;
+    case DRV_P_TAU_D: return drv_from_ctl(ctl_set_tau_d(&drv->ctl, value));
     case DRV_P_KFC: return drv_from_ctl(ctl_set_kfc(&drv->ctl, value));
     case DRV_P_KV: return drv_from_ctl(ctl_set_kv(&drv->ctl, value));
     case DRV_P_FC_SMOOTH: return drv_from_ctl(ctl_set_fc_smooth(&drv->ctl, value));
@@ -406,7 +392,7 @@ void drv_get_monitor(const drv_t *drv, drv_monitor_t *mon)
     mon->reference_rad = drv->reference;
     mon->motor_angle_rad = drv->motor;
     mon->load_angle_rad = drv->load;
-    mon->motor_velocity_rad_s = drv->velocity;
+    mon->motor_velocity_rad_s = (drv->motor - drv->motor_prev) * drv->fs_hz;
     mon->following_error_rad = drv->error;
     mon->plant_input_v = drv->u;
     mon->enabled = drv->enabled;
@@ -432,14 +418,9 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
         return 0.0f;
     }
     float motor = meas->motor_angle_rad;
+    drv->motor_prev = drv->motor;
     drv->motor = motor;
     drv->load = meas->load_angle_rad;
-    if (drv->vel_primed) {
-        float raw = (motor - drv->motor_prev) * drv->fs_hz;
-        drv->velocity = drv->vel_pole * drv->velocity + (1.0f - drv->vel_pole) * raw;
-    }
-    drv->motor_prev = motor;
-    drv->vel_primed = true;
 
     float w = 0.0f, w_dot = 0.0f;
     bool active = run_active(&drv->run);

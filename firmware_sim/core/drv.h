@@ -127,7 +127,7 @@ typedef struct {
     float reference_rad;         /* theta_r of the last step (set-point + excitation) */
     float motor_angle_rad;       /* last measured theta_1 */
     float load_angle_rad;        /* last measured theta_2 */
-    float motor_velocity_rad_s;  /* backward difference of theta_1, filtered with tau_d */
+    float motor_velocity_rad_s;  /* backward difference of the last two theta_1 samples */
     float following_error_rad;   /* theta_r - theta_1 */
     float plant_input_v;         /* last output (saturated) */
     bool enabled;

@@ -34,11 +34,9 @@ typedef struct {
     /* live values */
     bool enabled;
     bool fault;
-    bool vel_primed;
     float target, reference, error, u;
     float motor, load;
-    float motor_prev, velocity;
-    float vel_pole;          /* tau/(tau+T) of the velocity estimate */
+    float motor_prev;        /* previous measurement (velocity by backward difference) */
 } drv_t;
 
 #endif /* DRV_STATE_H */

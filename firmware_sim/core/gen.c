@@ -15,7 +15,7 @@ void gen_init(gen_t *gen)
     gen->cycles = 0u;
     gen->amp = 0.0f;
     gen->offset = 0.0f;
-    gen->sine_step = 0.0f;
+    gen->quarter_step = 0.0f;
     gen->vel_gain = 0.0f;
     gen->table = NULL;
 }
@@ -40,7 +40,7 @@ int gen_start_sine(gen_t *gen, uint32_t n, uint32_t cycles, float amp, float off
     gen->cycles = cycles;
     gen->amp = amp;
     gen->offset = offset;
-    gen->sine_step = GEN_TWO_PI / (float)n;
+    gen->quarter_step = 0.25f * GEN_TWO_PI / (float)n;
     gen->vel_gain = amp * GEN_TWO_PI * (float)cycles * fs_hz / (float)n;
     return 0;
 }
@@ -66,36 +66,3 @@ void gen_stop(gen_t *gen)
     gen_init(gen);
 }
 
-void gen_next(gen_t *gen, float *w, float *w_dot)
-{
-    switch (gen->kind) {
-    case GEN_SINE: {
-        /* angle in [-pi, pi): small arguments keep sinf/cosf at full precision */
-        int32_t p = (int32_t)gen->phase;
-        if (2u * gen->phase >= gen->n) {
-            p -= (int32_t)gen->n;
-        }
-        float ang = (float)p * gen->sine_step;
-        *w = gen->offset + gen->amp * sinf(ang);
-        *w_dot = gen->vel_gain * cosf(ang);
-        gen->phase += gen->cycles;
-        if (gen->phase >= gen->n) {
-            gen->phase -= gen->n;
-        }
-        break;
-    }
-    case GEN_TABLE: {
-        uint32_t i = gen->idx;
-        uint32_t prev = (i == 0u) ? gen->n - 1u : i - 1u;
-        uint32_t next = (i + 1u == gen->n) ? 0u : i + 1u;
-        *w = gen->offset + gen->amp * gen->table[i];
-        *w_dot = gen->vel_gain * (gen->table[next] - gen->table[prev]);
-        gen->idx = next;
-        break;
-    }
-    default:
-        *w = 0.0f;
-        *w_dot = 0.0f;
-        break;
-    }
-}

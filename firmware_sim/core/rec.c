@@ -48,19 +48,6 @@ void rec_clear(rec_t *rec)
     rec->samples = 0u;
 }
 
-void rec_push(rec_t *rec, const float sig[REC_NUM_SIGNALS])
-{
-    if (rec->wpos + rec->nsel > rec->capacity) {
-        return;
-    }
-    float *dst = rec->buf + rec->wpos;
-    for (uint32_t i = 0u; i < rec->nsel; i++) {
-        dst[i] = sig[rec->sel[i]];
-    }
-    rec->wpos += rec->nsel;
-    rec->samples++;
-}
-
 uint32_t rec_size_bytes(const rec_t *rec)
 {
     return rec->wpos * 4u;

@@ -29,9 +29,24 @@ int rec_set_signals(rec_t *rec, uint32_t mask);
 /* Would `samples` samples of the present selection fit? (no overflow) */
 bool rec_fits(const rec_t *rec, uint32_t samples);
 void rec_clear(rec_t *rec);
+
+/* ---- per-sample hot path, inline (controller step budget) ---- */
+
 /* Append one sample; sig[] holds all REC_NUM_SIGNALS signals in bit order.
  * Silently drops when full (run control makes sure that never happens). */
-void rec_push(rec_t *rec, const float sig[REC_NUM_SIGNALS]);
+static inline void rec_push(rec_t *rec, const float sig[REC_NUM_SIGNALS])
+{
+    if (rec->wpos + rec->nsel > rec->capacity) {
+        return;
+    }
+    float *dst = rec->buf + rec->wpos;
+    for (uint32_t i = 0u; i < rec->nsel; i++) {
+        dst[i] = sig[rec->sel[i]];
+    }
+    rec->wpos += rec->nsel;
+    rec->samples++;
+}
+
 uint32_t rec_size_bytes(const rec_t *rec);
 /* -1 if [offset, offset+len) is not inside the recorded bytes. */
 int rec_read(const rec_t *rec, uint32_t offset, uint8_t *dst, uint32_t len);

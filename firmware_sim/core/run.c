@@ -11,11 +11,6 @@ void run_init(run_t *run)
     run->last_error = 0u;
 }
 
-bool run_active(const run_t *run)
-{
-    return run->state == RUN_SETTLING || run->state == RUN_RECORDING;
-}
-
 int run_begin(run_t *run, uint32_t settle_samples, uint32_t record_samples)
 {
     if (record_samples == 0u || settle_samples > UINT32_MAX - record_samples) {
@@ -28,25 +23,6 @@ int run_begin(run_t *run, uint32_t settle_samples, uint32_t record_samples)
     run->last_error = 0u;
     run->state = settle_samples > 0u ? RUN_SETTLING : RUN_RECORDING;
     return 0;
-}
-
-run_tick_t run_tick(run_t *run)
-{
-    run_tick_t what;
-    if (run->state == RUN_SETTLING) {
-        what = RUN_TICK_SETTLE;
-    } else if (run->state == RUN_RECORDING) {
-        what = RUN_TICK_RECORD;
-    } else {
-        return RUN_TICK_NONE;
-    }
-    run->progress++;
-    if (run->progress == run->total) {
-        run->state = RUN_DONE;
-    } else if (run->progress == run->settle_total) {
-        run->state = RUN_RECORDING;
-    }
-    return what;
 }
 
 void run_stop(run_t *run, uint32_t state, uint32_t reason)

@@ -24,12 +24,37 @@ typedef struct {
 } run_t;
 
 void run_init(run_t *run);
-bool run_active(const run_t *run);
+
+/* ---- per-sample hot path, inline (controller step budget) ---- */
+
+static inline bool run_active(const run_t *run)
+{
+    return run->state == RUN_SETTLING || run->state == RUN_RECORDING;
+}
+
+/* Classifies the present sample and advances; call once per controller step. */
+static inline run_tick_t run_tick(run_t *run)
+{
+    run_tick_t what;
+    if (run->state == RUN_SETTLING) {
+        what = RUN_TICK_SETTLE;
+    } else if (run->state == RUN_RECORDING) {
+        what = RUN_TICK_RECORD;
+    } else {
+        return RUN_TICK_NONE;
+    }
+    run->progress++;
+    if (run->progress == run->total) {
+        run->state = RUN_DONE;
+    } else if (run->progress == run->settle_total) {
+        run->state = RUN_RECORDING;
+    }
+    return what;
+}
+
 /* Start (caller has checked the state and the configuration). record_samples >= 1;
  * returns -1 if settle + record overflows 32 bits. */
 int run_begin(run_t *run, uint32_t settle_samples, uint32_t record_samples);
-/* Classifies the present sample and advances; call once per controller step. */
-run_tick_t run_tick(run_t *run);
 /* End an active run in `state` (RUN_ABORTED or RUN_FAULT) with reason; no-op if idle. */
 void run_stop(run_t *run, uint32_t state, uint32_t reason);
 void run_refuse(run_t *run, uint32_t reason);

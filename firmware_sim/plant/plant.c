@@ -46,6 +46,8 @@ int plant_init(plant_t *pl, const plant_params_t *p, char *err, size_t errlen)
     plant_set_state(pl, 0.0, 0.0, 0.0, 0.0);
     pl->t = 0.0;
     pl->events = 0u;
+    pl->slow_steps = 0u;
+    pl->fast_dt = 0.0;
     pl->rng = p->seed;
     pl->has_spare = 0;
     pl->spare = 0.0;
@@ -204,8 +206,154 @@ static void plant_substep(plant_t *pl, double u, double h)
     }
 }
 
+/* e^a for an n x n matrix (n <= 5), row-major: scaling and squaring with a Taylor series
+ * (terms until they no longer change the sum; ||a / 2^s|| <= 0.5). */
+static void plant_expm(int n, const double a[5][5], double e[5][5])
+{
+    double norm = 0.0;
+    for (int i = 0; i < n; i++) {
+        double row = 0.0;
+        for (int j = 0; j < n; j++) {
+            row += fabs(a[i][j]);
+        }
+        norm = fmax(norm, row);
+    }
+    int s = 0;
+    while (norm > 0.5) {
+        norm *= 0.5;
+        s++;
+    }
+    double sc = ldexp(1.0, -s), as[5][5], term[5][5], tmp[5][5];
+    for (int i = 0; i < n; i++) {
+        for (int j = 0; j < n; j++) {
+            as[i][j] = a[i][j] * sc;
+            term[i][j] = (i == j) ? 1.0 : 0.0;
+            e[i][j] = term[i][j];
+        }
+    }
+    for (int k = 1; k <= 30; k++) {
+        for (int i = 0; i < n; i++) {
+            for (int j = 0; j < n; j++) {
+                double acc = 0.0;
+                for (int l = 0; l < n; l++) {
+                    acc += term[i][l] * as[l][j];
+                }
+                tmp[i][j] = acc / (double)k;
+            }
+        }
+        for (int i = 0; i < n; i++) {
+            for (int j = 0; j < n; j++) {
+                term[i][j] = tmp[i][j];
+                e[i][j] += term[i][j];
+            }
+        }
+    }
+    for (int q = 0; q < s; q++) {
+        for (int i = 0; i < n; i++) {
+            for (int j = 0; j < n; j++) {
+                double acc = 0.0;
+                for (int l = 0; l < n; l++) {
+                    acc += e[i][l] * e[l][j];
+                }
+                tmp[i][j] = acc;
+            }
+        }
+        for (int i = 0; i < n; i++) {
+            for (int j = 0; j < n; j++) {
+                e[i][j] = tmp[i][j];
+            }
+        }
+    }
+}
+
+/* Zero-order-hold discretisation of both modes for step length dt (augmented exponential). */
+static void plant_discretise(plant_t *pl, double dt)
+{
+    const plant_params_t *p = &pl->p;
+    double m[5][5] = {{0}}, e[5][5];
+    m[0][1] = 1.0;
+    m[1][0] = -p->k / p->j1;
+    m[1][1] = -(p->c + p->viscous) / p->j1;
+    m[1][2] = p->k / p->j1;
+    m[1][3] = p->c / p->j1;
+    m[1][4] = 1.0 / p->j1; /* input v = km u - s Fc */
+    m[2][3] = 1.0;
+    m[3][0] = p->k / p->j2;
+    m[3][1] = p->c / p->j2;
+    m[3][2] = -p->k / p->j2;
+    m[3][3] = -(p->c + p->load_viscous) / p->j2;
+    for (int i = 0; i < 5; i++) {
+        for (int j = 0; j < 5; j++) {
+            m[i][j] *= dt;
+        }
+    }
+    plant_expm(5, m, e);
+    for (int i = 0; i < 4; i++) {
+        for (int j = 0; j < 4; j++) {
+            pl->phi[i][j] = e[i][j];
+        }
+        pl->gam[i] = e[i][4];
+    }
+    double ms[5][5] = {{0}}, es[5][5];
+    ms[0][1] = dt;
+    ms[1][0] = -p->k / p->j2 * dt;
+    ms[1][1] = -(p->c + p->load_viscous) / p->j2 * dt;
+    ms[1][2] = p->k / p->j2 * dt; /* input th1 (held while stuck) */
+    plant_expm(3, ms, es);
+    for (int i = 0; i < 2; i++) {
+        for (int j = 0; j < 2; j++) {
+            pl->phis[i][j] = es[i][j];
+        }
+        pl->gams[i] = es[i][2];
+    }
+    pl->fast_dt = dt;
+}
+
+/* One exact step if no event happens in it; 0 (state untouched) otherwise. */
+static int plant_fast_step(plant_t *pl, double u)
+{
+    const plant_params_t *p = &pl->p;
+    double *x = pl->x;
+    if (pl->mode != 0) {
+        double v = p->km * u - (double)pl->mode * p->coulomb, y[4];
+        for (int i = 0; i < 4; i++) {
+            y[i] = pl->phi[i][0] * x[0] + pl->phi[i][1] * x[1] + pl->phi[i][2] * x[2] +
+                   pl->phi[i][3] * x[3] + pl->gam[i] * v;
+        }
+        if ((double)pl->mode * y[1] <= 0.0) {
+            return 0;
+        }
+        for (int i = 0; i < 4; i++) {
+            x[i] = y[i];
+        }
+        return 1;
+    }
+    if (fabs(plant_net_torque_x(p, x, u)) > p->stat) {
+        return 0;
+    }
+    double th2 = pl->phis[0][0] * x[2] + pl->phis[0][1] * x[3] + pl->gams[0] * x[0];
+    double w2 = pl->phis[1][0] * x[2] + pl->phis[1][1] * x[3] + pl->gams[1] * x[0];
+    double y[4] = {x[0], 0.0, th2, w2};
+    if (fabs(plant_net_torque_x(p, y, u)) > p->stat) {
+        return 0;
+    }
+    x[2] = th2;
+    x[3] = w2;
+    return 1;
+}
+
 void plant_advance(plant_t *pl, double u, double dt)
 {
+    if (pl->p.stribeck_vel == 0.0) {
+        if (dt != pl->fast_dt) {
+            plant_discretise(pl, dt);
+        }
+        if (plant_fast_step(pl, u)) {
+            pl->t += dt;
+            return;
+        }
+    }
+    pl->slow_steps++;
     uint32_t n = pl->p.substeps;
     double h = dt / (double)n;
     for (uint32_t i = 0u; i < n; i++) {
@@ -237,13 +385,22 @@ static double plant_gauss(plant_t *pl)
     return r * cos(phi);
 }
 
+/* nearest count: q floor(th / q + 1/2), the floor by integer conversion (no libm call on
+ * the per-step path); beyond +-2^62 counts it saturates, far outside any simulation */
 static double plant_quantise(const plant_params_t *p, double th)
 {
     if (p->counts_per_rev == 0u) {
         return th;
     }
-    double q = PLANT_TWO_PI / (double)p->counts_per_rev;
-    return q * floor(th / q + 0.5);
+    double t = th * ((double)p->counts_per_rev / PLANT_TWO_PI) + 0.5;
+    if (!(fabs(t) < 4.0e18)) {
+        return th;
+    }
+    int64_t i = (int64_t)t;
+    if ((double)i > t) {
+        i--;
+    }
+    return (double)i * (PLANT_TWO_PI / (double)p->counts_per_rev);
 }
 
 void plant_measure(plant_t *pl, double *th1_meas, double *th2_meas)

@@ -10,7 +10,17 @@
  * Stiction: while w1 = 0 the motor sticks (th1 fixed, w1 = 0 exactly: no creep) as long as
  * |T| <= Fs, T = km u - k (th1 - th2) + c w2 the net non-friction torque on it.
  *
- * Integration: a fixed number of RK4 sub-steps per controller step (u held). Stick/slip
+ * Fast path (no Stribeck term): between stick/slip events the plant is LINEAR (friction sign
+ * fixed, u held), so a controller step is propagated exactly by the zero-order-hold
+ * discretisation x+ = Phi x + Gamma (km u - s Fc) (slip) or of the load-side dynamics with
+ * th1 fixed (stick), Phi and Gamma from a matrix exponential (scaling and squaring, Taylor)
+ * computed once per step length. A step whose end shows an event (w1 changed sign while
+ * slipping, |T| > Fs while sticking) is recomputed from its start on the sub-step path.
+ * Assumption of the fast path: at most one such event inside one controller step (w1 does
+ * not reverse twice within 1/fs), true when the plant's modes are well below fs/2.
+ *
+ * Sub-step path (events; Stribeck): a fixed number of RK4 sub-steps per controller step
+ * (u held). Stick/slip
  * switching is event-driven inside a sub-step: when w1 would change sign (slip) or |T|
  * would exceed Fs (stick), the event time is located by bisection on the RK4 step length
  * (50 halvings, to double precision), the state is advanced to it, the mode switched
@@ -48,6 +58,10 @@ typedef struct {
     int mode;               /* -1 / +1 slipping, 0 sticking */
     double t;               /* simulated time, s */
     uint64_t events;        /* stick/slip switches so far */
+    uint64_t slow_steps;    /* controller steps integrated on the sub-step path */
+    double fast_dt;         /* step length Phi/Gamma belong to (0 = none) */
+    double phi[4][4], gam[4];   /* slip: x+ = phi x + gam (km u - s Fc) */
+    double phis[2][2], gams[2]; /* stick: (th2, w2)+ = phis (th2, w2) + gams th1 */
     uint64_t rng;
     int has_spare;
     double spare;

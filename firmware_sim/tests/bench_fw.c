@@ -63,14 +63,16 @@ static int bench_rate(const char *cfg_path)
         double t1 = now_s();
         rates[r] = (double)steps / (t1 - t0);
         if (r == 0) {
-            printf("plant events (stick/slip switches) in %llu steps: %llu\n",
-                   (unsigned long long)steps, (unsigned long long)sim_plant(sim)->events);
+            printf("plant: %llu stick/slip events in %llu steps; %llu steps on the RK4 sub-step path "
+                   "(%u sub-steps), the rest exact ZOH steps\n",
+                   (unsigned long long)sim_plant(sim)->events, (unsigned long long)steps,
+                   (unsigned long long)sim_plant(sim)->slow_steps, (unsigned)cfg.plant.substeps);
         }
         sim_free(sim);
     }
     qsort(rates, 5, sizeof rates[0], cmp_d);
-    printf("closed-loop steps/s (plant %u RK4 sub-steps + drive, %s): median %.3g (min %.3g, max %.3g) over 5 x %llu steps\n",
-           (unsigned)cfg.plant.substeps, cfg_path, rates[2], rates[0], rates[4], (unsigned long long)steps);
+    printf("closed-loop steps/s (plant + drive, sine reference, %s): median %.3g (min %.3g, max %.3g) over 5 x %llu steps\n",
+           cfg_path, rates[2], rates[0], rates[4], (unsigned long long)steps);
     printf("RATE %.6g\n", rates[2]);
     return 0;
 }
@@ -126,8 +128,12 @@ static int bench_instr(int argc, char **argv)
     (void)drv_set_u32(&drv, DRV_P_EXC_KIND, table ? DRV_EXC_TABLE : DRV_EXC_SINE);
     (void)drv_set_u32(&drv, DRV_P_EXC_PERIOD, period);
     (void)drv_set_u32(&drv, DRV_P_EXC_SETTLE_PERIODS, 0u);
-    uint32_t rec_periods = (n + period - 1u) / period;
-    (void)drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, rec_periods);
+    uint32_t rec_periods = (n + period - 1u) / period + 1u;
+    if (drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, rec_periods) != DRV_OK) {
+        fprintf(stderr, "bench_fw: %u steps need %u periods of %u: more than EXC_RECORD_PERIODS allows\n",
+                (unsigned)n, (unsigned)rec_periods, (unsigned)period);
+        return 2;
+    }
     if (drv_run_start(&drv) != DRV_OK) {
         fprintf(stderr, "bench_fw: run refused (recorder %u floats)\n", (unsigned)st.rec_capacity);
         return 2;
@@ -136,6 +142,10 @@ static int bench_instr(int argc, char **argv)
     uint32_t state;
     (void)drv_get_u32(&drv, DRV_P_RUN_STATE, &state);
     printf("steps %u, run state %u\n", (unsigned)n, (unsigned)state);
+    if (state != DRV_RUN_RECORDING) {
+        fprintf(stderr, "bench_fw: the run was not recording through all measured steps\n");
+        return 2;
+    }
     return 0;
 }
 
