@@ -140,6 +140,12 @@ def _validate_meta(meta, where):
         out[key] = value
     if not out["experiment"]:
         raise InputError(f"{where}: experiment (kind) must not be empty")
+    for key in ("started_at", "finished_at"):
+        if out[key]:
+            try:
+                _dt.datetime.fromisoformat(out[key])
+            except ValueError:
+                raise InputError(f"{where}: {key} {out[key]!r} is not an ISO 8601 time") from None
     for key in _JSON_META:
         value = meta.get(key, {})
         try:

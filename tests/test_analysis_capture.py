@@ -65,6 +65,8 @@ def test_refuses_to_overwrite_and_leaves_nothing_half_written(tmp_path):
     with pytest.raises(InputError, match="missing metadata fs_hz"):
         capture.write_run(tmp_path / "m.h5", signals(), {k: v for k, v in meta().items()
                                                           if k != "fs_hz"})
+    with pytest.raises(InputError, match="started_at 'yesterday' is not an ISO 8601"):
+        capture.write_run(tmp_path / "m.h5", signals(), meta(started_at="yesterday"))
     with pytest.raises(InputError, match="unknown metadata"):
         capture.write_run(tmp_path / "m.h5", signals(), meta(colour="red"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.h5"]
