@@ -228,3 +228,15 @@ def test_known_reference_variances_match_monte_carlo_spread():
     spread = np.mean(np.abs(estimates - estimates.mean(axis=0)) ** 2, axis=0)
     assert np.mean(spread / np.mean(var_total, axis=0)) == pytest.approx(1.0, abs=0.1)
     assert np.mean(spread / np.mean(var_noise, axis=0)) == pytest.approx(1.0, abs=0.1)
+
+
+def test_real_motorbench_full_grid_record_lines_found(motorbench):
+    """Record A (Schroeder, full grid 11..250): the lines are found, no detection lines."""
+    u = motorbench["A_iq"][None].astype(float)
+    np.testing.assert_array_equal(detect_excited_lines(u, settle_periods=1),
+                                  motorbench["A_excited_lines"])
+    res = robust_bla(u, motorbench["A_theta_motor"][None].astype(float), fs=2500.0,
+                     settle_periods=1)
+    assert res.odd_bins.size == 0 and res.even_bins.size == 0
+    assert res.summary["odd_re_even_db"] is None
+    assert res.summary["noise_re_output_db"] == pytest.approx(-52.8, abs=1.0)
