@@ -51,12 +51,14 @@ def add_parser(subparsers):
     p = subparsers.add_parser(
         "analyze", help="offline analysis of measured data (robust BLA, HOSIDF)",
         description="Analyse measured data from a CSV (with header), NPZ, MAT or fftune "
-                    "capture (.h5) file. Signals are laid out realization after realization, "
-                    "each with T + P periods of N samples.")
+                    "capture (.h5) file, or a directory of capture runs. Signals are laid out "
+                    "realization after realization, each with T + P periods of N samples.")
     sub = p.add_subparsers(dest="analysis", metavar="ANALYSIS", required=True)
 
     def common(q, what):
-        q.add_argument("file", metavar="FILE", help="CSV (header), .npz, .mat or capture .h5")
+        q.add_argument("file", metavar="FILE",
+                       help="CSV (header), .npz, .mat, capture .h5, or a directory of "
+                            "capture runs (one experiment and level; realizations by index)")
         q.add_argument("--fs", type=_positive_float, metavar="HZ",
                        help="sample rate in Hz (default: from the file)")
         q.add_argument("--period", type=_int_at_least(4), metavar="N",

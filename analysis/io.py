@@ -16,7 +16,7 @@ import numpy as np
 from analysis.errors import InputError
 
 __all__ = ["LoadedSignals", "load_signals", "load_csv", "load_npz", "load_mat",
-           "load_capture", "load_lines"]
+           "load_capture", "load_capture_directory", "load_lines"]
 
 
 @dataclass
@@ -212,14 +212,31 @@ _LOADERS = {".csv": load_csv, ".txt": load_csv, ".npz": load_npz, ".mat": load_m
             ".h5": load_capture, ".hdf5": load_capture}
 
 
+def load_capture_directory(path):
+    """A directory of capture runs of one experiment and level (analysis.capture)."""
+    from analysis.capture import load_experiment
+
+    exp = load_experiment(path)
+    m = len(exp.runs)
+    return LoadedSignals(path=Path(path),
+                         signals={k: v.astype(np.float64).reshape(-1)
+                                  for k, v in exp.signals.items()},
+                         fs_hz=exp.fs_hz,
+                         layout={"n_period": exp.n_period, "settle_periods": exp.settle_periods,
+                                 "record_periods": exp.record_periods, "realizations": m})
+
+
 def load_signals(path):
-    """Load a measurement file by its extension (.csv/.txt, .npz, .mat, .h5/.hdf5).
+    """Load a measurement file by its extension (.csv/.txt, .npz, .mat, .h5/.hdf5), or a
+    directory of capture runs (realizations in the order of their index).
 
     Returns
     -------
     LoadedSignals
     """
     path = Path(path)
+    if path.is_dir():
+        return load_capture_directory(path)
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     loader = _LOADERS.get(path.suffix.lower())

@@ -124,6 +124,29 @@ def test_bla_from_capture_file(tmp_path, capsys):
     assert doc["summary"]["known_reference"] is True and doc["summary"]["periods"] == 3
 
 
+def test_bla_from_capture_directory(tmp_path, capsys):
+    u, y = wiener_data(m=M, t=T, p=P)
+    u, y = u.reshape(M, -1), y.reshape(M, -1)
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    for m in range(M):
+        capture.write_run(runs / f"detect-M{m:02d}.h5", {"plant_input": u[m], "motor_angle": y[m]},
+                          {"fs_hz": FS, "n_period": N, "settle_periods": T, "record_periods": P,
+                           "experiment": "multisine", "realization": m})
+    out_json = tmp_path / "r.json"
+    code, out, err = cli(capsys, "bla", runs, "--json", out_json)
+    assert code == 0, err
+    doc = json.loads(out_json.read_text())
+    s = doc["summary"]
+    assert (s["realizations"], s["periods"], s["settle_periods"]) == (M, P, T)
+    assert s["known_reference"] is False and len(doc["var_nl"]) == len(doc["freq"])
+    capture.write_run(runs / "other.h5", {"plant_input": u[0], "motor_angle": y[0]},
+                      {"fs_hz": FS, "n_period": N, "settle_periods": T, "record_periods": P,
+                       "experiment": "multisine", "realization": 0, "level_index": 1})
+    code, out, err = cli(capsys, "bla", runs)
+    assert code == 2 and "several levels" in err
+
+
 def sine_data(repeats=3, p=4, n=512, k0=8, amplitude=1.5):
     t = np.arange(repeats * p * n)
     u = amplitude * np.sin(2 * np.pi * k0 * t / n)
