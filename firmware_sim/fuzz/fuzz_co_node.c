@@ -1,0 +1,271 @@
+/*
+ * fuzz_co_node.c - libFuzzer target: the CANopen node (canopen/co_*.c) with the real drive
+ * core and the simulated plant behind it (plant/sim.h), driven by a sequence of operations
+ * decoded from the fuzz input: received frames of every kind (NMT, SDO, heartbeat, PDO, any
+ * id and length), timer ticks (co_node_process), controller steps and CAN driver
+ * back-pressure. Built with -fsanitize=fuzzer,address,undefined (reliability.mk).
+ *
+ * Besides the sanitizers, these properties are checked after every operation (a violation
+ * calls __builtin_trap, which libFuzzer reports as a crash):
+ *   - every transmitted frame has len <= 8 and a COB-ID this node may send on;
+ *   - after controller steps the plant input is finite and |u| <= u_max (the controller
+ *     output stays saturated, whatever parameters were written);
+ *   - when the host's heartbeat times out, no run is active afterwards (safe stop).
+ *
+ * Input format: a stream of records, each an opcode byte followed by its operands (a
+ * record cut short by the end of the input is ignored); fuzz/gen_seeds.py writes seeds:
+ *   0 SDO request      8 data bytes                 -> id 0x600 + node, len 8
+ *   1 any frame        id lo, id hi, len, 8 bytes    -> id & 0x7FF, len & 0x0F (may be > 8)
+ *   2 NMT              command, node id              -> id 0x000, len 2
+ *   3 heartbeat        node, state                   -> id 0x700 + (node & 0x7F), len 1
+ *   4 time             lo, hi                        -> now += (lo | hi << 8) * 16 us; process
+ *   5 steps            lo, hi                        -> (lo | hi << 8) controller steps (at
+ *                                                       most 4 when no run is active; 512
+ *                                                       per input); process
+ *   6 back-pressure    flag                          -> the transmit hook refuses frames
+ *   7 RPDO             which, len, 8 bytes           -> id 0x200 + 0x100 * (which & 3) + node
+ * Opcodes are taken modulo 8.
+ *
+ * FUZZ_TRACE=1 in the environment prints every frame in and out (to check the seeds).
+ */
+#include <math.h>
+#include <stdbool.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "co_node.h"
+#include "plant_config.h"
+#include "sim.h"
+
+#define FZ_NODE_ID 1u
+#define FZ_REC_CAPACITY 16384u  /* float values: small, so that runs end quickly */
+#define FZ_TABLE_CAPACITY 256u  /* samples */
+#define FZ_MAX_STEPS 512u       /* controller steps per input (keeps executions fast) */
+
+static float g_rec[FZ_REC_CAPACITY];
+static float g_table[FZ_TABLE_CAPACITY];
+static sim_t g_sim;
+static co_node_t g_node;
+static plant_config_t g_cfg;
+static bool g_tx_full;
+static bool g_trace;
+static uint32_t g_now;
+
+static void fz_check(bool ok, const char *what)
+{
+    if (!ok) {
+        fprintf(stderr, "fuzz_co_node: property violated: %s\n", what);
+        __builtin_trap();
+    }
+}
+
+static void trace_frame(const char *dir, const co_frame_t *f)
+{
+    if (!g_trace) {
+        return;
+    }
+    fprintf(stderr, "%10u %s %03X [%u]", (unsigned)g_now, dir, (unsigned)f->id, (unsigned)f->len);
+    for (unsigned i = 0; i < f->len && i < 8u; i++) {
+        fprintf(stderr, " %02X", f->data[i]);
+    }
+    fprintf(stderr, "\n");
+}
+
+static bool tx_hook(void *ctx, const co_frame_t *f)
+{
+    (void)ctx;
+    fz_check(f->len <= 8u, "transmitted frame longer than 8 bytes");
+    uint16_t id = f->id;
+    /* CiA 301 restricted COB-IDs: only the node's own EMCY / SDO response / heartbeat may
+     * appear there; TPDOs can be configured onto any other id */
+    bool restricted = id <= 0x07Fu || (id >= 0x101u && id <= 0x180u) || (id >= 0x581u && id <= 0x5FFu) ||
+                      (id >= 0x601u && id <= 0x67Fu) || (id >= 0x6E0u && id <= 0x6FFu) || id >= 0x701u;
+    fz_check(id <= 0x7FFu, "11-bit identifier");
+    fz_check(!restricted || id == 0x080u + FZ_NODE_ID || id == 0x580u + FZ_NODE_ID || id == 0x700u + FZ_NODE_ID,
+             "frame sent on a restricted COB-ID this node does not own");
+    if (g_tx_full) {
+        return false;
+    }
+    trace_frame("tx", f);
+    return true;
+}
+
+static bool sim_hook(void *ctx, drv_param_id_t id, float *value)
+{
+    (void)ctx;
+    return sim_get_f32(&g_sim, id, value) == DRV_OK;
+}
+
+static void reset_hook(void *ctx)
+{
+    (void)ctx;
+    char err[256];
+    fz_check(sim_init(&g_sim, &g_cfg, g_rec, g_table, err, sizeof err) == 0, "sim_init on reset node");
+}
+
+/* After controller steps: the output of the last step respects the limit in force. (Right
+ * after a write to u_max the monitor still shows the previous step's output.) */
+static void check_output(void)
+{
+    drv_monitor_t mon;
+    float u_max = 0.0f;
+    drv_get_monitor(sim_drv(&g_sim), &mon);
+    fz_check(drv_get_f32(sim_drv(&g_sim), DRV_P_U_MAX, &u_max) == DRV_OK, "u_max readable");
+    fz_check(isfinite(mon.plant_input_v), "plant input finite");
+    fz_check(fabsf(mon.plant_input_v) <= u_max * (1.0f + 1e-6f) + 1e-6f, "plant input saturated at u_max");
+}
+
+/* co_node_process, with the safe-stop property of the heartbeat consumer. */
+static void process(void)
+{
+    bool was_timed_out[CO_NUM_HB_CONSUMERS];
+    for (unsigned i = 0; i < CO_NUM_HB_CONSUMERS; i++) {
+        was_timed_out[i] = g_node.hbc[i].timed_out;
+    }
+    co_node_process(&g_node, g_now);
+    for (unsigned i = 0; i < CO_NUM_HB_CONSUMERS; i++) {
+        if (!was_timed_out[i] && g_node.hbc[i].timed_out) {
+            fz_check(!co_node_run_active(&g_node), "run still active after heartbeat loss");
+            uint32_t reason = 0;
+            (void)drv_get_u32(sim_drv(&g_sim), DRV_P_RUN_LAST_ERROR, &reason);
+            (void)reason;
+        }
+    }
+}
+
+static void rx(uint16_t id, uint8_t len, const uint8_t *data)
+{
+    co_frame_t f;
+    f.id = id;
+    f.len = len;
+    memcpy(f.data, data, 8u);
+    trace_frame("rx", &f);
+    co_node_rx(&g_node, &f);
+}
+
+int LLVMFuzzerInitialize(int *argc, char ***argv)
+{
+    (void)argc;
+    (void)argv;
+    const char *t = getenv("FUZZ_TRACE");
+    g_trace = t != NULL && t[0] == '1';
+    plant_config_defaults(&g_cfg);
+    g_cfg.rec_capacity = FZ_REC_CAPACITY;
+    g_cfg.table_capacity = FZ_TABLE_CAPACITY;
+    return 0;
+}
+
+int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
+{
+    char err[256];
+    fz_check(sim_init(&g_sim, &g_cfg, g_rec, g_table, err, sizeof err) == 0, "sim_init");
+    co_cfg_t cc;
+    memset(&cc, 0, sizeof cc);
+    cc.node_id = FZ_NODE_ID;
+    cc.tx = tx_hook;
+    cc.sim_get = sim_hook;
+    cc.reset_app = reset_hook;
+    cc.sdo_timeout_us = 500000u;
+    cc.table_capacity_bytes = FZ_TABLE_CAPACITY * 4u;
+    g_tx_full = false;
+    g_now = 0xFFF00000u; /* wraps around during long inputs: the timers must not care */
+    co_node_init(&g_node, &cc, sim_drv(&g_sim), g_now);
+
+    uint32_t steps_left = FZ_MAX_STEPS;
+    size_t p = 0;
+    while (p < size) {
+        uint8_t op = data[p++] & 7u;
+        uint8_t d[8] = {0};
+        switch (op) {
+        case 0:
+            if (size - p < 8) {
+                return 0;
+            }
+            memcpy(d, &data[p], 8);
+            p += 8;
+            rx((uint16_t)(0x600u + FZ_NODE_ID), 8u, d);
+            break;
+        case 1: {
+            if (size - p < 11) {
+                return 0;
+            }
+            uint16_t id = (uint16_t)((data[p] | (data[p + 1] << 8)) & 0x7FFu);
+            uint8_t len = data[p + 2] & 0x0Fu;
+            memcpy(d, &data[p + 3], 8);
+            p += 11;
+            rx(id, len, d);
+            break;
+        }
+        case 2:
+            if (size - p < 2) {
+                return 0;
+            }
+            d[0] = data[p];
+            d[1] = data[p + 1];
+            p += 2;
+            rx(0x000u, 2u, d);
+            break;
+        case 3:
+            if (size - p < 2) {
+                return 0;
+            }
+            d[0] = data[p + 1];
+            rx((uint16_t)(0x700u + (data[p] & 0x7Fu)), 1u, d);
+            p += 2;
+            break;
+        case 4:
+            if (size - p < 2) {
+                return 0;
+            }
+            g_now += (uint32_t)(data[p] | (data[p + 1] << 8)) * 16u;
+            p += 2;
+            process();
+            break;
+        case 5: {
+            if (size - p < 2) {
+                return 0;
+            }
+            /* controller steps: the run's steps, or (idle) a few holding steps as the
+             * --realtime loop makes */
+            uint32_t n = (uint32_t)(data[p] | (data[p + 1] << 8));
+            p += 2;
+            if (!co_node_run_active(&g_node) && n > 4u) {
+                n = 4u;
+            }
+            bool stepped = false;
+            while (n > 0 && steps_left > 0) {
+                (void)sim_step(&g_sim);
+                stepped = true;
+                n--;
+                steps_left--;
+            }
+            if (stepped) {
+                check_output();
+            }
+            process();
+            break;
+        }
+        case 6:
+            if (size - p < 1) {
+                return 0;
+            }
+            g_tx_full = (data[p++] & 1u) != 0u;
+            process();
+            break;
+        default: {
+            if (size - p < 10) {
+                return 0;
+            }
+            uint16_t id = (uint16_t)(0x200u + 0x100u * (data[p] & 3u) + FZ_NODE_ID);
+            uint8_t len = data[p + 1] & 0x0Fu;
+            memcpy(d, &data[p + 2], 8);
+            p += 10;
+            rx(id, len, d);
+            break;
+        }
+        }
+    }
+    return 0;
+}
