@@ -286,7 +286,8 @@ def design_multisine(fs, n_period, *, f_min=None, f_max=None, k_min=None, k_max=
     n_period : int
         Samples per period N; frequency resolution f0 = fs / N (Hz).
     f_min, f_max : float, optional
-        Band (Hz), inclusive; converted to bins ceil(f_min/f0) .. floor(f_max/f0).
+        Band (Hz), inclusive; converted to bins ceil(f_min/f0) .. floor(f_max/f0),
+        clipped to 1 .. ceil(N/2) - 1 (f_min = 0, f_max = fs/2 mean "all").
     k_min, k_max : int, optional
         Band directly in DFT bins (instead of f_min, f_max). Default 1 .. N/2 - 1.
     kind : {'random_odd', 'odd', 'full'}
@@ -323,10 +324,11 @@ def design_multisine(fs, n_period, *, f_min=None, f_max=None, k_min=None, k_max=
     if (f_min is not None or f_max is not None) and (k_min is not None or k_max is not None):
         raise InputError("multisine: give the band either in Hz (f_min, f_max) or in bins "
                          "(k_min, k_max), not both")
+    # a band in Hz is clipped to the usable bins 1 .. ceil(N/2) - 1 (no DC, no Nyquist)
     if f_min is not None:
-        k_min = int(np.ceil(f_min / f0 - 1e-9))
+        k_min = max(int(np.ceil(f_min / f0 - 1e-9)), 1)
     if f_max is not None:
-        k_max = int(np.floor(f_max / f0 + 1e-9))
+        k_max = min(int(np.floor(f_max / f0 + 1e-9)), (n_period - 1) // 2)
     k_min = 1 if k_min is None else int(k_min)
     k_max = (n_period - 1) // 2 if k_max is None else int(k_max)
     _check_band(n_period, k_min, k_max)

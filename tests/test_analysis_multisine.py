@@ -93,6 +93,12 @@ def test_odd_and_full_kinds_and_user_spectrum():
     assert shaped.rms == pytest.approx(1.0)
 
 
+def test_band_in_hz_is_clipped_to_usable_bins():
+    d = design_multisine(100.0, 64, f_min=0.0, f_max=50.0, kind="full")
+    np.testing.assert_array_equal(d.excited, np.arange(1, 32))
+    np.testing.assert_allclose(d.freq_excited, np.arange(1, 32) * 100.0 / 64)
+
+
 def test_crest_factor_reduction_keeps_lines_and_amplitudes():
     plain = design_multisine(1000.0, 2048, k_min=1, k_max=400, seed=3, kind="full")
     reduced = design_multisine(1000.0, 2048, k_min=1, k_max=400, seed=3, kind="full",
