@@ -1,15 +1,23 @@
 #!/usr/bin/env python3
-"""Generate C sources (and the EDS) from configs/od.yaml, the one source of truth.
+"""Generate C sources and the EDS from configs/od.yaml, the one source of truth.
 
-Usage: odgen.py OD_YAML OUTDIR
+Usage: odgen.py OD_YAML OUTDIR [--doc DOC_MD]
 
-Writes OUTDIR/od_params.h: the drive parameter ids (DRV_P_<param>) with their type,
-access and limits, used by firmware_sim/core. Further outputs (od_table.[ch], the EDS)
-are added by the CANopen layer. Files are written via a temp file and renamed, and only
-when their content changes (so make does not rebuild needlessly).
+Writes into OUTDIR:
+  od_params.h        drive parameter ids (DRV_P_<param>) with type, access and limits
+                     (used by firmware_sim/core)
+  od_table.h / .c    the CANopen object dictionary: co_od_ram_t (values the CANopen layer
+                     holds) and CO_OD[] (one descriptor per entry, sorted), used by
+                     firmware_sim/canopen
+  fftune_drive.eds   the CiA 306 electronic data sheet (python-canopen's import_od reads it)
+With --doc, also the object table of docs/object-dictionary.md.
+Files are written via a temp file and renamed, and only when their content changes (so
+make does not rebuild needlessly).
 """
 import math
 import os
+import re
+import struct
 import sys
 
 import yaml
@@ -33,7 +41,7 @@ def load_od(path):
 
 
 def iter_entries(od):
-    """Yield (index, subindex, entry, parent) for every VAR-like entry."""
+    """Yield (index, subindex, entry, parent) for every VAR-like entry of `objects`."""
     for obj in od["objects"]:
         if obj["type"] in ("RECORD", "ARRAY"):
             for sub in obj["sub"]:
@@ -113,6 +121,382 @@ def gen_params_h(od):
     return "\n".join(out)
 
 
+
+# ---------------------------------------------------------------------------------------
+# CANopen layer: full object list (with PDO objects and sub-index 0 entries), C table, EDS
+# ---------------------------------------------------------------------------------------
+TYPE_CODES = {"BOOLEAN": 0x01, "INTEGER8": 0x02, "INTEGER16": 0x03, "INTEGER32": 0x04,
+              "UNSIGNED8": 0x05, "UNSIGNED16": 0x06, "UNSIGNED32": 0x07, "REAL32": 0x08,
+              "VISIBLE_STRING": 0x09, "DOMAIN": 0x0F}
+TYPE_SIZES = {"BOOLEAN": 1, "INTEGER8": 1, "INTEGER16": 2, "INTEGER32": 4, "UNSIGNED8": 1,
+              "UNSIGNED16": 2, "UNSIGNED32": 4, "REAL32": 4}
+TYPE_RANGES = {"BOOLEAN": (0, 1), "INTEGER8": (-2**7, 2**7 - 1), "INTEGER16": (-2**15, 2**15 - 1),
+               "INTEGER32": (-2**31, 2**31 - 1), "UNSIGNED8": (0, 2**8 - 1),
+               "UNSIGNED16": (0, 2**16 - 1), "UNSIGNED32": (0, 2**32 - 1)}
+C_TYPES = {"BOOLEAN": "uint8_t", "INTEGER8": "int8_t", "INTEGER16": "int16_t",
+           "INTEGER32": "int32_t", "UNSIGNED8": "uint8_t", "UNSIGNED16": "uint16_t",
+           "UNSIGNED32": "uint32_t", "REAL32": "float"}
+ACCESS = {"ro": 1, "const": 1, "wo": 2, "rw": 3}
+NODEID_RE = re.compile(r"^\s*\$NODEID\s*\+\s*(0x[0-9A-Fa-f]+|\d+)\s*$")
+
+
+def parse_default(value, typ, where):
+    """Return (int raw value or str, nodeid_relative)."""
+    if typ == "VISIBLE_STRING":
+        return str(value), False
+    if typ == "DOMAIN":
+        return 0, False
+    if isinstance(value, str):
+        m = NODEID_RE.match(value)
+        if m:
+            return int(m.group(1), 0), True
+        try:
+            value = int(value, 0) if typ != "REAL32" else float(value)
+        except ValueError:
+            raise OdError(f"od.yaml {where}: bad default {value!r}") from None
+    if typ == "REAL32":
+        v = float(value)
+        if not math.isfinite(v):
+            raise OdError(f"od.yaml {where}: non-finite default")
+        return struct.unpack("<I", struct.pack("<f", v))[0], False
+    v = int(value)
+    lo, hi = TYPE_RANGES[typ]
+    if not lo <= v <= hi:
+        raise OdError(f"od.yaml {where}: default {v} outside {typ}")
+    return v, False
+
+
+def _entry(index, sub, name, typ, access, **kw):
+    e = dict(index=index, sub=sub, name=name, type=typ, access=access)
+    e.update(kw)
+    return e
+
+
+def pdo_objects(od):
+    """Expand the `pdos:` section into standard communication / mapping objects."""
+    objs = []
+    pdos = od.get("pdos") or {}
+    for kind, com_base, map_base in (("rpdo", 0x1400, 0x1600), ("tpdo", 0x1800, 0x1A00)):
+        lst = pdos.get(kind) or []
+        if len(lst) > 4:
+            raise OdError(f"od.yaml pdos.{kind}: at most 4 supported")
+        for n, p in enumerate(lst):
+            label = "RPDO" if kind == "rpdo" else "TPDO"
+            num = n + 1
+            ramc = f"{kind}_comm[{n}]"
+            ramm = f"{kind}_map[{n}]"
+            subs = [dict(sub=1, name=f"COB-ID used by {label}", type="UNSIGNED32", access="rw",
+                         default=p["cob_id"], ram=f"{ramc}.cob_id"),
+                    dict(sub=2, name="Transmission type", type="UNSIGNED8", access="rw",
+                         default=p.get("trans", 255), ram=f"{ramc}.trans_type",
+                         low=254, high=255)]
+            if kind == "tpdo":
+                subs.append(dict(sub=3, name="Inhibit time", type="UNSIGNED16", access="rw",
+                                 default=p.get("inhibit_100us", 0), ram=f"{ramc}.inhibit_100us",
+                                 unit="100 us"))
+                subs.append(dict(sub=5, name="Event timer", type="UNSIGNED16", access="rw",
+                                 default=p.get("event_ms", 0), ram=f"{ramc}.event_ms", unit="ms"))
+            objs.append(dict(index=com_base + n, name=f"{label}{num} communication parameter",
+                             type="RECORD", sub=subs, pdo_kind=kind))
+            mapping = p.get("map") or []
+            if len(mapping) > 8:
+                raise OdError(f"od.yaml pdos.{kind}[{n}]: more than 8 mapped objects")
+            msubs = [dict(sub=0, name="Number of mapped objects", type="UNSIGNED8", access="rw",
+                          default=len(mapping), ram=f"{ramm}.count", low=0, high=8)]
+            for k in range(8):
+                msubs.append(dict(sub=k + 1, name=f"Mapped object {k + 1}", type="UNSIGNED32",
+                                  access="rw", default=0, ram=f"{ramm}.entry[{k}]",
+                                  map_ref=mapping[k] if k < len(mapping) else None))
+            objs.append(dict(index=map_base + n, name=f"{label}{num} mapping parameter",
+                             type="RECORD", sub=msubs, pdo_kind=kind))
+    return objs
+
+
+def all_objects(od):
+    """Every object (od.yaml `objects` + expanded PDOs), sorted by index, each with a full
+    sub list (sub-index 0 added to RECORD / ARRAY)."""
+    objs = [dict(o) for o in od["objects"]] + pdo_objects(od)
+    seen = set()
+    for o in objs:
+        if o["index"] in seen:
+            raise OdError(f"od.yaml 0x{o['index']:04X}: index declared twice")
+        seen.add(o["index"])
+        if o["type"] in ("RECORD", "ARRAY"):
+            subs = [dict(s) for s in o["sub"]]
+            if not any(s["sub"] == 0 for s in subs):
+                subs.insert(0, dict(sub=0, name="Highest sub-index supported", type="UNSIGNED8",
+                                    access="const", default=max(s["sub"] for s in subs)))
+            o["sub"] = sorted(subs, key=lambda s: s["sub"])
+    objs.sort(key=lambda o: o["index"])
+    # resolve PDO map references into mapping values
+    flat = {}
+    for o in objs:
+        for s in (o["sub"] if o["type"] in ("RECORD", "ARRAY") else [o]):
+            flat[(o["index"], s.get("sub", 0))] = s
+    for o in objs:
+        if "pdo_kind" not in o or not o["index"] & 0x0200:
+            continue
+        bits = 0
+        for s in o["sub"]:
+            ref = s.get("map_ref")
+            if not ref:
+                continue
+            try:
+                ix, sx = (int(x, 0) for x in ref.split(":"))
+            except ValueError:
+                raise OdError(f"od.yaml pdos 0x{o['index']:04X}: bad map entry {ref!r}") from None
+            tgt = flat.get((ix, sx))
+            if tgt is None or not tgt.get("pdo"):
+                raise OdError(f"od.yaml pdos 0x{o['index']:04X}: 0x{ix:04X}:{sx} is not a "
+                              "PDO-mappable object")
+            size = TYPE_SIZES[tgt["type"]] * 8
+            bits += size
+            s["default"] = (ix << 16) | (sx << 8) | size
+        if bits > 64:
+            raise OdError(f"od.yaml pdos 0x{o['index']:04X}: mapping exceeds 64 bits")
+    return objs
+
+
+def iter_all(objs):
+    for o in objs:
+        if o["type"] in ("RECORD", "ARRAY"):
+            for s in o["sub"]:
+                yield o, s
+        else:
+            yield o, o
+
+
+def _is_sim(o, s):
+    return bool(o.get("sim_only") or s.get("sim_only"))
+
+
+def c_string(s):
+    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def ram_fields(objs):
+    """Scalar RAM fields (name -> C type) outside the PDO arrays, arrays sized by use."""
+    fields = {}
+    for o, s in iter_all(objs):
+        ram = s.get("ram")
+        if not ram or ram.startswith(("rpdo_", "tpdo_")):
+            continue
+        m = re.match(r"^([A-Za-z_][A-Za-z0-9_]*)(?:\[(\d+)\])?$", ram)
+        if not m:
+            raise OdError(f"od.yaml 0x{o['index']:04X}:{s.get('sub', 0)}: bad ram name {ram!r}")
+        name, idx = m.group(1), m.group(2)
+        ctype = C_TYPES.get(s["type"])
+        if ctype is None:
+            raise OdError(f"od.yaml 0x{o['index']:04X}: ram entries must be numeric")
+        n = int(idx) + 1 if idx is not None else 0
+        prev = fields.get(name)
+        if prev and (prev[0] != ctype or (prev[1] == 0) != (n == 0)):
+            raise OdError(f"od.yaml: ram field {name} declared with two types")
+        fields[name] = (ctype, max(n, prev[1] if prev else 0))
+    return fields
+
+
+def gen_table(od):
+    objs = all_objects(od)
+    pdos = od.get("pdos") or {}
+    n_rpdo, n_tpdo = len(pdos.get("rpdo") or []), len(pdos.get("tpdo") or [])
+    fields = ram_fields(objs)
+    h = ["/* GENERATED by firmware_sim/tools/odgen.py from configs/od.yaml. Do not edit. */",
+         "#ifndef OD_TABLE_H", "#define OD_TABLE_H", "", '#include "co_od.h"', "",
+         f"#define CO_NUM_RPDO {n_rpdo}", f"#define CO_NUM_TPDO {n_tpdo}",
+         f"#define CO_NUM_HB_CONSUMERS {fields.get('hb_consumer', ('', 0))[1]}",
+         f"#define CO_DEVICE_TYPE 0x{od['device']['device_type']:08X}u", "",
+         "/* Values the CANopen layer holds (fields named by od.yaml `ram:`). */",
+         "typedef struct {"]
+    if n_rpdo:
+        h += [f"    co_pdo_comm_t rpdo_comm[{n_rpdo}];", f"    co_pdo_map_t rpdo_map[{n_rpdo}];"]
+    if n_tpdo:
+        h += [f"    co_pdo_comm_t tpdo_comm[{n_tpdo}];", f"    co_pdo_map_t tpdo_map[{n_tpdo}];"]
+    for name, (ctype, n) in fields.items():
+        h.append(f"    {ctype} {name}{f'[{n}]' if n else ''};")
+    h += ["} co_od_ram_t;", "",
+          "/* Sorted by index, sub-index. Simulation-only rows exist when CO_SIM_BUILD is defined. */",
+          "extern const co_od_entry_t CO_OD[];", "extern const uint16_t CO_OD_COUNT;", "",
+          "#endif /* OD_TABLE_H */", ""]
+    c = ["/* GENERATED by firmware_sim/tools/odgen.py from configs/od.yaml. Do not edit. */",
+         "#include <stddef.h>", '#include "od_table.h"', '#include "od_params.h"', "",
+         "const co_od_entry_t CO_OD[] = {"]
+    for o, s in iter_all(objs):
+        index, sub = o["index"], s.get("sub", 0)
+        where = f"0x{index:04X}:{sub}"
+        typ = s["type"]
+        if typ not in TYPE_CODES:
+            raise OdError(f"od.yaml {where}: unsupported type {typ}")
+        access = s.get("access")
+        if access not in ACCESS:
+            raise OdError(f"od.yaml {where}: access must be one of {sorted(ACCESS)}")
+        flags = []
+        if s.get("pdo"):
+            if typ not in TYPE_SIZES:
+                raise OdError(f"od.yaml {where}: only fixed-size objects are PDO-mappable")
+            flags.append("CO_F_PDO")
+        if s.get("refresh"):
+            flags.append("CO_F_REFRESH")
+        default, rel = parse_default(s.get("default", 0), typ, where)
+        if rel:
+            flags.append("CO_F_NODEID")
+        low, high = s.get("low"), s.get("high")
+        lim = ("0", "0")
+        if typ in TYPE_RANGES and (low is not None or high is not None):
+            tlo, thi = TYPE_RANGES[typ]
+            lo_v = int(low) if low is not None else tlo
+            hi_v = int(high) if high is not None else thi
+            lim = (f"{lo_v}LL", f"{hi_v}LL")
+            flags.append("CO_F_LIMITS")
+        strv = "NULL"
+        size = TYPE_SIZES.get(typ, 0)
+        if typ == "DOMAIN":
+            src = "CO_SRC_DOMAIN"
+            dom = {0x2002: "CO_DOMAIN_TABLE", 0x2021: "CO_DOMAIN_RECORDER"}.get(index)
+            if dom is None:
+                raise OdError(f"od.yaml {where}: DOMAIN object without a handler in the "
+                              "CANopen layer (known: 0x2002 table, 0x2021 recorder)")
+            ref = dom
+        elif "param" in s:
+            src = "CO_SRC_SIM" if _is_sim(o, s) else "CO_SRC_PARAM"
+            ref = f"DRV_P_{s['param']}"
+        elif "ram" in s:
+            src = "CO_SRC_RAM"
+            ref = f"(uint16_t)offsetof(co_od_ram_t, {s['ram']})"
+        else:
+            if access not in ("ro", "const"):
+                raise OdError(f"od.yaml {where}: writable object needs param, ram or DOMAIN")
+            src = "CO_SRC_CONST"
+            ref = "0"
+            if typ == "VISIBLE_STRING":
+                strv = c_string(default)
+                size = len(default.encode("ascii"))
+                default = 0
+        acc = {"ro": "CO_ACC_R", "const": "CO_ACC_R", "wo": "CO_ACC_W",
+               "rw": "CO_ACC_R | CO_ACC_W"}[access]
+        row = (f"    {{0x{index:04X}, {sub}, 0x{TYPE_CODES[typ]:02X}, {acc}, {src}, "
+               f"{' | '.join(flags) or '0'}, {size}, {ref}, {lim[0]}, {lim[1]}, "
+               f"0x{default & 0xFFFFFFFF:08X}u, {strv}}}, /* {s['name']} */")
+        if _is_sim(o, s):
+            c += ["#ifdef CO_SIM_BUILD", row, "#endif"]
+        else:
+            c.append(row)
+    c += ["};", "const uint16_t CO_OD_COUNT = (uint16_t)(sizeof CO_OD / sizeof CO_OD[0]);", ""]
+    return "\n".join(h), "\n".join(c)
+
+
+def _eds_value(typ, value, rel):
+    if typ == "VISIBLE_STRING":
+        return value
+    if typ == "REAL32":
+        return repr(struct.unpack("<f", struct.pack("<I", value))[0])
+    if rel:
+        return f"$NODEID+0x{value:X}"
+    if typ.startswith("INTEGER"):
+        return str(value)
+    return f"0x{value:0{TYPE_SIZES[typ] * 2}X}"
+
+
+def _eds_text(text):
+    # ';' starts an inline comment for python-canopen's parser; newlines end the value
+    return " ".join(str(text).replace(";", ",").split())
+
+
+def gen_eds(od):
+    objs = all_objects(od)
+    dev = od["device"]
+    pdos = od.get("pdos") or {}
+    out = ["; GENERATED by firmware_sim/tools/odgen.py from configs/od.yaml. Do not edit.",
+           "[FileInfo]", "FileName=fftune_drive.eds", "FileVersion=1", "FileRevision=0",
+           "EDSVersion=4.0", "Description=fftune simulated drive (CiA 301 + CiA 402 basics)",
+           "CreationTime=12:00AM", "CreationDate=01-01-2026", "CreatedBy=fftune odgen.py",
+           "ModificationTime=12:00AM", "ModificationDate=01-01-2026", "ModifiedBy=fftune odgen.py",
+           "", "[DeviceInfo]", f"VendorName={dev['vendor_name']}",
+           f"VendorNumber=0x{dev['vendor_id']:08X}", f"ProductName={dev['product_name']}",
+           f"ProductNumber=0x{dev['product_code']:08X}", f"RevisionNumber=0x{dev['revision']:08X}",
+           "OrderCode=fftune-drive-sim"]
+    for rate in (10, 20, 50, 125, 250, 500, 800, 1000):
+        out.append(f"BaudRate_{rate}={1 if rate in (125, 250, 500, 1000) else 0}")
+    out += ["SimpleBootUpMaster=0", "SimpleBootUpSlave=1", "Granularity=8",
+            "DynamicChannelsSupported=0", "GroupMessaging=0",
+            f"NrOfRXPDO={len(pdos.get('rpdo') or [])}", f"NrOfTXPDO={len(pdos.get('tpdo') or [])}",
+            "LSS_Supported=0", "", "[DummyUsage]"]
+    out += [f"Dummy000{i}=0" for i in range(1, 8)]
+    out += ["", "[Comments]", "Lines=1",
+            "Line1=Simulation build: 0x2100 (plant truth) is absent on a real drive.", ""]
+    mandatory = [o["index"] for o in objs if o["index"] in (0x1000, 0x1001, 0x1018)]
+    optional = [o["index"] for o in objs if 0x1000 <= o["index"] < 0x2000 and o["index"] not in mandatory
+                or o["index"] >= 0x6000]
+    manuf = [o["index"] for o in objs if 0x2000 <= o["index"] < 0x6000]
+    for title, lst in (("MandatoryObjects", mandatory), ("OptionalObjects", optional),
+                       ("ManufacturerObjects", manuf)):
+        out.append(f"[{title}]")
+        out.append(f"SupportedObjects={len(lst)}")
+        out += [f"{i + 1}=0x{ix:04X}" for i, ix in enumerate(lst)]
+        out.append("")
+
+    def var_lines(s, where):
+        typ = s["type"]
+        lines = [f"ParameterName={_eds_text(s['name'])}", "ObjectType=0x7",
+                 f"DataType=0x{TYPE_CODES[typ]:04X}", f"AccessType={s['access']}"]
+        if typ != "DOMAIN":
+            default, rel = parse_default(s.get("default", 0), typ, where)
+            lines.append(f"DefaultValue={_eds_value(typ, default, rel)}")
+        if typ in TYPE_RANGES or typ == "REAL32":
+            for key, name in (("low", "LowLimit"), ("high", "HighLimit")):
+                if s.get(key) is not None:
+                    v = s[key]
+                    lines.append(f"{name}={float(v)!r}" if typ == "REAL32" else f"{name}={int(v)}")
+        lines.append(f"PDOMapping={1 if s.get('pdo') else 0}")
+        if s.get("unit"):
+            lines.append(f"Unit={_eds_text(s['unit'])}")
+        if s.get("doc"):
+            lines.append(f"Description={_eds_text(s['doc'])}")
+        return lines
+
+    for o in objs:
+        ix = o["index"]
+        if o["type"] in ("RECORD", "ARRAY"):
+            out += [f"[{ix:04X}]", f"ParameterName={_eds_text(o['name'])}",
+                    f"ObjectType=0x{9 if o['type'] == 'RECORD' else 8}",
+                    f"SubNumber={len(o['sub'])}", ""]
+            for s in o["sub"]:
+                out.append(f"[{ix:04X}sub{s['sub']:X}]")
+                out += var_lines(s, f"0x{ix:04X}:{s['sub']}")
+                out.append("")
+        else:
+            out.append(f"[{ix:04X}]")
+            out += var_lines(o, f"0x{ix:04X}")
+            out.append("")
+    return "\n".join(out)
+
+
+def gen_doc_table(od):
+    objs = all_objects(od)
+    rows = ["| index:sub | name | type | access | default | range | unit | PDO | notes |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for o, s in iter_all(objs):
+        sub = s.get("sub", 0)
+        typ = s["type"]
+        if typ == "DOMAIN":
+            dflt = ""
+        else:
+            d, rel = parse_default(s.get("default", 0), typ, "")
+            dflt = _eds_value(typ, d, rel)
+        rng = ""
+        if s.get("low") is not None or s.get("high") is not None:
+            rng = f"{s.get('low', '')} .. {s.get('high', '')}"
+        notes = _eds_text(s.get("doc", ""))
+        if _is_sim(o, s):
+            notes = ("simulation only. " + notes).strip()
+        if "param" in s:
+            notes = (f"drive parameter {s['param']}. " + notes).strip()
+        name = s["name"] if o is s else f"{o['name']}: {s['name']}"
+        rows.append(f"| 0x{o['index']:04X}:{sub} | {name} | {typ} | {s['access']} | {dflt} | "
+                    f"{rng} | {s.get('unit', '')} | {'yes' if s.get('pdo') else ''} | {notes} |")
+    return "\n".join(rows) + "\n"
+
+
 def write_if_changed(path, text):
     try:
         with open(path, encoding="utf-8") as f:
@@ -126,14 +510,51 @@ def write_if_changed(path, text):
     os.replace(tmp, path)
 
 
+DOC_BEGIN = "<!-- BEGIN GENERATED OBJECT TABLE (odgen.py) -->"
+DOC_END = "<!-- END GENERATED OBJECT TABLE -->"
+
+
+def write_doc(path, table):
+    """Replace the generated table between the markers of an existing markdown file."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except OSError as exc:
+        raise OdError(f"{path}: cannot read: {exc}") from None
+    a, b = text.find(DOC_BEGIN), text.find(DOC_END)
+    if a < 0 or b < a:
+        raise OdError(f"{path}: markers {DOC_BEGIN} / {DOC_END} not found")
+    write_if_changed(path, text[:a + len(DOC_BEGIN)] + "\n" + table + text[b:])
+
+
 def main(argv):
-    if len(argv) != 3:
-        print("usage: odgen.py OD_YAML OUTDIR", file=sys.stderr)
+    args = list(argv[1:])
+    doc = None
+    if "--doc" in args:
+        i = args.index("--doc")
+        if i + 1 >= len(args):
+            print("usage: odgen.py OD_YAML OUTDIR [--doc DOC_MD]", file=sys.stderr)
+            return 2
+        doc = args[i + 1]
+        del args[i:i + 2]
+    if len(args) != 2:
+        print("usage: odgen.py OD_YAML OUTDIR [--doc DOC_MD]", file=sys.stderr)
         return 2
     try:
-        od = load_od(argv[1])
-        os.makedirs(argv[2], exist_ok=True)
-        write_if_changed(os.path.join(argv[2], "od_params.h"), gen_params_h(od))
+        od = load_od(args[0])
+        os.makedirs(args[1], exist_ok=True)
+        try:
+            params_h = gen_params_h(od)
+            table_h, table_c = gen_table(od)
+            eds = gen_eds(od)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise OdError(f"{args[0]}: malformed entry ({type(exc).__name__}: {exc})") from None
+        write_if_changed(os.path.join(args[1], "od_params.h"), params_h)
+        write_if_changed(os.path.join(args[1], "od_table.h"), table_h)
+        write_if_changed(os.path.join(args[1], "od_table.c"), table_c)
+        write_if_changed(os.path.join(args[1], "fftune_drive.eds"), eds)
+        if doc is not None:
+            write_doc(doc, gen_doc_table(od))
     except OdError as exc:
         print(f"odgen: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,184 @@
+/*
+ * co_402.c - CiA 402 basics: power state machine (controlword 0x6040 -> statusword 0x6041),
+ * modes of operation 0x6060 / 0x6061, position / velocity / following-error objects.
+ * The power stage is the drive's enable (drv_enable): on in OPERATION ENABLED and
+ * QUICK STOP ACTIVE (the controller holds position), off otherwise.
+ */
+#include "co_node.h"
+
+#define CO402_MODE_CSP 8
+#define CO402_MODE_EXCITATION (-1)
+
+static uint16_t statusword_of(co402_state_t s)
+{
+    switch (s) {
+    case CO402_SWITCH_ON_DISABLED:
+        return 0x0040u;
+    case CO402_READY_TO_SWITCH_ON:
+        return 0x0031u; /* ready, quick stop off (bit 5 = 1), voltage enabled */
+    case CO402_SWITCHED_ON:
+        return 0x0033u;
+    case CO402_OPERATION_ENABLED:
+        return 0x0037u;
+    case CO402_QUICK_STOP_ACTIVE:
+        return 0x0017u;
+    case CO402_FAULT_REACTION_ACTIVE:
+        return 0x000Fu;
+    case CO402_FAULT:
+        return 0x0008u;
+    default:
+        return 0x0000u;
+    }
+}
+
+static void update_statusword(co_node_t *n)
+{
+    uint16_t sw = statusword_of(n->s402);
+    sw |= 0x0200u; /* remote: controlled over CANopen */
+    if (n->ram.error_register != 0u) {
+        sw |= 0x0080u; /* warning */
+    }
+    n->ram.statusword = sw;
+}
+
+static bool enabled_in(co402_state_t s)
+{
+    return s == CO402_OPERATION_ENABLED || s == CO402_QUICK_STOP_ACTIVE;
+}
+
+static void set_state(co_node_t *n, co402_state_t s)
+{
+    co402_state_t old = n->s402;
+    if (s == old) {
+        return;
+    }
+    n->s402 = s;
+    if (s == CO402_QUICK_STOP_ACTIVE && co_node_run_active(n)) {
+        drv_safe_stop(n->drv, DRV_STOP_DISABLED); /* stop the excitation, hold position */
+    }
+    if (enabled_in(old) != enabled_in(s)) {
+        drv_enable(n->drv, enabled_in(s)); /* disabling aborts a run in the drive */
+    }
+    update_statusword(n);
+}
+
+void co_402_init(co_node_t *n)
+{
+    if (enabled_in(n->s402)) {
+        drv_enable(n->drv, false);
+    }
+    n->s402 = CO402_SWITCH_ON_DISABLED; /* NOT READY is passed through at once */
+    n->cw_fault_reset_prev = false;
+    n->fault_prev = drv_fault(n->drv);
+    update_statusword(n);
+}
+
+uint32_t co_402_check_mode(int8_t mode)
+{
+    return (mode == CO402_MODE_CSP || mode == CO402_MODE_EXCITATION) ? 0u : CO_SDO_AB_INVALID_VALUE;
+}
+
+void co_402_controlword(co_node_t *n, uint16_t cw)
+{
+    bool fault_reset = (cw & 0x0080u) != 0u;
+    bool edge = fault_reset && !n->cw_fault_reset_prev;
+    n->cw_fault_reset_prev = fault_reset;
+    co402_state_t s = n->s402;
+    if (s == CO402_FAULT) {
+        if (edge) {
+            set_state(n, CO402_SWITCH_ON_DISABLED);
+        }
+        return;
+    }
+    if (s == CO402_FAULT_REACTION_ACTIVE || s == CO402_NOT_READY) {
+        return;
+    }
+    /* decode the command (CiA 402 controlword bits 0..3) */
+    if (!(cw & 0x0002u)) { /* disable voltage */
+        set_state(n, CO402_SWITCH_ON_DISABLED);
+        return;
+    }
+    if (!(cw & 0x0004u)) { /* quick stop */
+        set_state(n, s == CO402_OPERATION_ENABLED || s == CO402_QUICK_STOP_ACTIVE
+                         ? CO402_QUICK_STOP_ACTIVE : CO402_SWITCH_ON_DISABLED);
+        return;
+    }
+    if (!(cw & 0x0001u)) { /* shutdown */
+        if (s != CO402_QUICK_STOP_ACTIVE) {
+            set_state(n, CO402_READY_TO_SWITCH_ON);
+        }
+        return;
+    }
+    bool enable_op = (cw & 0x0008u) != 0u;
+    switch (s) {
+    case CO402_READY_TO_SWITCH_ON: /* switch on (3), with enable operation also (4) */
+        set_state(n, enable_op ? CO402_OPERATION_ENABLED : CO402_SWITCHED_ON);
+        break;
+    case CO402_SWITCHED_ON:
+        if (enable_op) {
+            set_state(n, CO402_OPERATION_ENABLED);
+        }
+        break;
+    case CO402_OPERATION_ENABLED:
+        if (!enable_op) {
+            set_state(n, CO402_SWITCHED_ON); /* disable operation (5) */
+        }
+        break;
+    case CO402_QUICK_STOP_ACTIVE:
+        if (enable_op) {
+            set_state(n, CO402_OPERATION_ENABLED); /* (16) */
+        }
+        break;
+    default:
+        break;
+    }
+}
+
+void co_402_fault(co_node_t *n)
+{
+    if (n->s402 == CO402_FAULT) {
+        return;
+    }
+    set_state(n, CO402_FAULT);
+    co_emcy_send(n, CO_EMCY_RUN_FAULT, CO_ERR_REG_MANUFACTURER | CO_ERR_REG_GENERIC, 0u, NULL);
+    update_statusword(n);
+}
+
+void co_402_process(co_node_t *n)
+{
+    /* a drive fault (latched in the drive, e.g. a non-finite measurement) -> FAULT */
+    bool fault = drv_fault(n->drv);
+    if (fault && !n->fault_prev) {
+        co_402_fault(n);
+    }
+    n->fault_prev = fault;
+    if (n->s402 != CO402_FAULT && (n->ram.error_register & CO_ERR_REG_MANUFACTURER) && !fault) {
+        co_emcy_send(n, CO_EMCY_NO_ERROR, 0u, CO_ERR_REG_MANUFACTURER, NULL); /* reset */
+    }
+    update_statusword(n);
+}
+
+static int32_t to_micro(float v)
+{
+    float u = v * 1.0e6f;
+    if (!(u == u)) {
+        return 0;
+    }
+    if (u >= 2147483520.0f) {
+        return INT32_MAX;
+    }
+    if (u <= -2147483520.0f) {
+        return INT32_MIN;
+    }
+    return (int32_t)(u >= 0.0f ? u + 0.5f : u - 0.5f);
+}
+
+void co_402_refresh(co_node_t *n)
+{
+    drv_monitor_t mon;
+    drv_get_monitor(n->drv, &mon);
+    n->ram.position_actual = to_micro(mon.motor_angle_rad);
+    n->ram.position_demand = to_micro(mon.reference_rad);
+    n->ram.following_error = to_micro(mon.following_error_rad);
+    n->ram.velocity_actual = to_micro(mon.motor_velocity_rad_s);
+}

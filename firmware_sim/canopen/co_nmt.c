@@ -1,0 +1,149 @@
+/*
+ * co_nmt.c - NMT slave (boot-up, state machine, reset node / communication) and the
+ * heartbeat producer (0x1017) and consumer (0x1016).
+ */
+#include <string.h>
+
+#include "co_node.h"
+
+void co_nmt_boot(co_node_t *n)
+{
+    /* INITIALISING -> boot-up message -> PRE-OPERATIONAL (CiA 301 reset communication) */
+    n->nmt = CO_NMT_INITIALISING;
+    co_od_reset_ram(n, 0x1000u, 0x1FFFu);
+    co_sdo_init(&n->sdo);
+    co_pdo_init(n);
+    memset(n->hbc, 0, sizeof n->hbc);
+    n->ram.error_register = 0u;
+    uint8_t zero = 0u;
+    (void)co_node_send(n, (uint16_t)(0x700u + n->cfg.node_id), &zero, 1u);
+    n->hb_last_us = n->now_us;
+    n->nmt = CO_NMT_PRE_OPERATIONAL;
+}
+
+void co_nmt_set_state(co_node_t *n, co_nmt_state_t s)
+{
+    co_nmt_state_t old = n->nmt;
+    if (old == s) {
+        return;
+    }
+    if (old == CO_NMT_OPERATIONAL && co_node_run_active(n)) {
+        drv_safe_stop(n->drv, DRV_STOP_NMT);
+    }
+    if (s != CO_NMT_PRE_OPERATIONAL && s != CO_NMT_OPERATIONAL) {
+        co_sdo_init(&n->sdo); /* no SDO in STOPPED: drop a transfer in progress */
+    }
+    n->nmt = s;
+    if (s == CO_NMT_OPERATIONAL) {
+        co_pdo_on_operational(n);
+    }
+}
+
+void co_nmt_rx(co_node_t *n, const co_frame_t *f)
+{
+    if (f->len != 2u || (f->data[1] != 0u && f->data[1] != n->cfg.node_id)) {
+        return;
+    }
+    switch (f->data[0]) {
+    case 0x01u:
+        co_nmt_set_state(n, CO_NMT_OPERATIONAL);
+        break;
+    case 0x02u:
+        co_nmt_set_state(n, CO_NMT_STOPPED);
+        break;
+    case 0x80u:
+        co_nmt_set_state(n, CO_NMT_PRE_OPERATIONAL);
+        break;
+    case 0x81u: /* reset node: application and communication */
+        if (co_node_run_active(n)) {
+            drv_safe_stop(n->drv, DRV_STOP_NMT);
+        }
+        if (n->cfg.reset_app != NULL) {
+            n->cfg.reset_app(n->cfg.app_ctx);
+        }
+        co_od_reset_ram(n, 0x2000u, 0xFFFFu);
+        co_402_init(n);
+        co_nmt_boot(n);
+        break;
+    case 0x82u: /* reset communication */
+        if (co_node_run_active(n)) {
+            drv_safe_stop(n->drv, DRV_STOP_NMT);
+        }
+        co_nmt_boot(n);
+        break;
+    default:
+        break;
+    }
+}
+
+uint32_t co_hb_check_consumer(const co_node_t *n, uint32_t value)
+{
+    (void)n;
+    if ((value >> 24) != 0u) {
+        return CO_SDO_AB_INVALID_VALUE; /* reserved bits */
+    }
+    uint32_t node = (value >> 16) & 0xFFu;
+    if ((value & 0xFFFFu) != 0u && (node == 0u || node > 127u)) {
+        return CO_SDO_AB_INVALID_VALUE;
+    }
+    return 0u;
+}
+
+void co_hb_config_changed(co_node_t *n)
+{
+    n->hb_last_us = n->now_us;
+    for (uint32_t i = 0u; i < CO_NUM_HB_CONSUMERS; i++) {
+        n->hbc[i].active = false;
+        n->hbc[i].timed_out = false;
+    }
+}
+
+void co_hb_rx(co_node_t *n, const co_frame_t *f)
+{
+    if (f->len != 1u) {
+        return;
+    }
+    uint8_t node = (uint8_t)(f->id - 0x700u);
+    for (uint32_t i = 0u; i < CO_NUM_HB_CONSUMERS; i++) {
+        uint32_t cfg = n->ram.hb_consumer[i];
+        if ((cfg & 0xFFFFu) == 0u || ((cfg >> 16) & 0xFFu) != node) {
+            continue;
+        }
+        co_hb_consumer_t *c = &n->hbc[i];
+        c->last_us = n->now_us;
+        c->active = true;
+        if (c->timed_out) {
+            c->timed_out = false;
+            co_emcy_send(n, CO_EMCY_NO_ERROR, 0u, CO_ERR_REG_COMM, NULL);
+        }
+    }
+}
+
+void co_hb_process(co_node_t *n)
+{
+    uint16_t period_ms = n->ram.hb_producer_ms;
+    if (period_ms != 0u && (uint32_t)(n->now_us - n->hb_last_us) >= (uint32_t)period_ms * 1000u) {
+        uint8_t st = (uint8_t)n->nmt;
+        (void)co_node_send(n, (uint16_t)(0x700u + n->cfg.node_id), &st, 1u);
+        n->hb_last_us = n->now_us;
+    }
+    for (uint32_t i = 0u; i < CO_NUM_HB_CONSUMERS; i++) {
+        uint32_t cfg = n->ram.hb_consumer[i];
+        co_hb_consumer_t *c = &n->hbc[i];
+        uint32_t time_ms = cfg & 0xFFFFu;
+        if (time_ms == 0u || !c->active) {
+            continue;
+        }
+        if ((uint32_t)(n->now_us - c->last_us) > time_ms * 1000u) {
+            /* host lost: stop a run safely, report it; monitoring resumes with the next
+             * heartbeat of that node */
+            c->active = false;
+            c->timed_out = true;
+            if (co_node_run_active(n)) {
+                drv_safe_stop(n->drv, DRV_STOP_HEARTBEAT);
+            }
+            uint8_t mfr[5] = {(uint8_t)(cfg >> 16), 0, 0, 0, 0};
+            co_emcy_send(n, CO_EMCY_HEARTBEAT, CO_ERR_REG_COMM | CO_ERR_REG_GENERIC, 0u, mfr);
+        }
+    }
+}

@@ -1,0 +1,700 @@
+/*
+ * test_co.c - unit tests of the CANopen services against the drive test double.
+ * Prints "N passed, N failed"; exit status 1 on any failure.
+ */
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "co_node.h"
+#include "drv_double.h"
+
+static int g_pass, g_fail;
+#define CHECK(cond)                                                                   \
+    do {                                                                              \
+        if (cond) {                                                                   \
+            g_pass++;                                                                 \
+        } else {                                                                      \
+            g_fail++;                                                                 \
+            printf("FAIL %s:%d: %s\n", __FILE__, __LINE__, #cond);                    \
+        }                                                                             \
+    } while (0)
+
+#define MAXF 8192
+static co_frame_t g_tx[MAXF];
+static int g_ntx;
+static int g_tx_budget = -1; /* -1: unlimited; else frames accepted before "queue full" */
+static int g_resets;
+
+static bool tx_hook(void *ctx, const co_frame_t *f)
+{
+    (void)ctx;
+    if (g_tx_budget == 0) {
+        return false;
+    }
+    if (g_tx_budget > 0) {
+        g_tx_budget--;
+    }
+    if (g_ntx < MAXF) {
+        g_tx[g_ntx++] = *f;
+    }
+    return true;
+}
+
+static bool sim_hook(void *ctx, drv_param_id_t id, float *v)
+{
+    (void)ctx;
+    *v = (float)id * 0.5f;
+    return true;
+}
+
+static void reset_hook(void *ctx)
+{
+    (void)ctx;
+    g_resets++;
+}
+
+static drv_t g_drv;
+static co_node_t g_n;
+static uint32_t g_now;
+
+static void setup(void)
+{
+    drv_init(&g_drv, NULL);
+    co_cfg_t cfg = {0};
+    cfg.node_id = 5;
+    cfg.tx = tx_hook;
+    cfg.sim_get = sim_hook;
+    cfg.reset_app = reset_hook;
+    cfg.table_capacity_bytes = 32768u;
+    g_ntx = 0;
+    g_tx_budget = -1;
+    g_now = 1000u;
+    co_node_init(&g_n, &cfg, &g_drv, g_now);
+}
+
+static void rx(uint16_t id, const uint8_t *d, uint8_t len)
+{
+    co_frame_t f = {id, len, {0}};
+    memcpy(f.data, d, len);
+    co_node_rx(&g_n, &f);
+}
+
+static void advance_ms(uint32_t ms)
+{
+    for (uint32_t i = 0; i < ms; i++) {
+        g_now += 1000u;
+        co_node_process(&g_n, g_now);
+    }
+}
+
+static void nmt(uint8_t cs)
+{
+    uint8_t d[2] = {cs, 5};
+    rx(0x000, d, 2);
+}
+
+/* one SDO request; returns the last SDO response, or NULL */
+static const co_frame_t *sdo(const uint8_t req[8])
+{
+    g_ntx = 0;
+    rx(0x605, req, 8);
+    for (int i = g_ntx - 1; i >= 0; i--) {
+        if (g_tx[i].id == 0x585) {
+            return &g_tx[i];
+        }
+    }
+    return NULL;
+}
+
+static uint32_t abort_code(const co_frame_t *f)
+{
+    if (f == NULL || f->data[0] != 0x80) {
+        return 0;
+    }
+    return co_get_u32(&f->data[4]);
+}
+
+static uint32_t sdo_read_u32(uint16_t index, uint8_t sub, uint32_t *val)
+{
+    uint8_t r[8] = {0x40, (uint8_t)index, (uint8_t)(index >> 8), sub, 0, 0, 0, 0};
+    const co_frame_t *f = sdo(r);
+    if (f == NULL) {
+        return 0xFFFFFFFFu;
+    }
+    if (f->data[0] == 0x80) {
+        return abort_code(f);
+    }
+    *val = co_get_u32(&f->data[4]);
+    if ((f->data[0] & 0x03) == 0x03) {
+        uint32_t len = 4u - ((f->data[0] >> 2) & 3u);
+        *val &= len == 4u ? 0xFFFFFFFFu : ((1u << (8u * len)) - 1u);
+    }
+    return 0;
+}
+
+static uint32_t sdo_write(uint16_t index, uint8_t sub, uint32_t val, uint8_t len)
+{
+    uint8_t r[8] = {(uint8_t)(0x23 | ((4 - len) << 2)), (uint8_t)index, (uint8_t)(index >> 8), sub, 0, 0, 0, 0};
+    co_put_u32(&r[4], val);
+    const co_frame_t *f = sdo(r);
+    if (f == NULL) {
+        return 0xFFFFFFFFu;
+    }
+    return f->data[0] == 0x60 ? 0u : abort_code(f);
+}
+
+static uint32_t f2u(float f)
+{
+    uint32_t u;
+    memcpy(&u, &f, 4);
+    return u;
+}
+
+static int count_id(uint16_t id)
+{
+    int c = 0;
+    for (int i = 0; i < g_ntx; i++) {
+        c += g_tx[i].id == id;
+    }
+    return c;
+}
+
+static const co_frame_t *last_id(uint16_t id)
+{
+    for (int i = g_ntx - 1; i >= 0; i--) {
+        if (g_tx[i].id == id) {
+            return &g_tx[i];
+        }
+    }
+    return NULL;
+}
+
+static void enable_402(void)
+{
+    sdo_write(0x6040, 0, 0x06, 2);
+    sdo_write(0x6040, 0, 0x07, 2);
+    sdo_write(0x6040, 0, 0x0F, 2);
+}
+
+/* ------------------------------------------------------------------------------------ */
+
+static void test_boot_and_nmt(void)
+{
+    setup();
+    CHECK(g_ntx == 1 && g_tx[0].id == 0x705 && g_tx[0].len == 1 && g_tx[0].data[0] == 0);
+    CHECK(g_n.nmt == CO_NMT_PRE_OPERATIONAL);
+    nmt(0x01);
+    CHECK(g_n.nmt == CO_NMT_OPERATIONAL);
+    nmt(0x02);
+    CHECK(g_n.nmt == CO_NMT_STOPPED);
+    uint8_t r[8] = {0x40, 0x00, 0x10, 0, 0, 0, 0, 0};
+    CHECK(sdo(r) == NULL); /* no SDO in STOPPED */
+    nmt(0x80);
+    CHECK(g_n.nmt == CO_NMT_PRE_OPERATIONAL);
+    uint8_t other[2] = {0x01, 6};
+    rx(0x000, other, 2);
+    CHECK(g_n.nmt == CO_NMT_PRE_OPERATIONAL); /* for another node */
+    uint8_t all[2] = {0x01, 0};
+    rx(0x000, all, 2);
+    CHECK(g_n.nmt == CO_NMT_OPERATIONAL); /* broadcast */
+    CHECK(sdo_write(0x1017, 0, 250, 2) == 0);
+    g_ntx = 0;
+    nmt(0x82); /* reset communication: boot-up, 0x1017 back to default */
+    CHECK(last_id(0x705) != NULL && last_id(0x705)->data[0] == 0);
+    CHECK(g_n.nmt == CO_NMT_PRE_OPERATIONAL && g_n.ram.hb_producer_ms == 0);
+    CHECK(sdo_write(0x2000, 1, f2u(3.0f), 4) == 0);
+    g_ntx = 0;
+    nmt(0x81); /* reset node: the application hook runs */
+    CHECK(g_resets == 1 && count_id(0x705) == 1);
+}
+
+static void test_expedited_and_segmented(void)
+{
+    setup();
+    uint32_t v = 0;
+    CHECK(sdo_read_u32(0x1000, 0, &v) == 0 && v == CO_DEVICE_TYPE);
+    CHECK(sdo_read_u32(0x1018, 1, &v) == 0 && v == 0x0FF7);
+    CHECK(sdo_read_u32(0x1014, 0, &v) == 0 && v == 0x85); /* $NODEID+0x80 */
+    CHECK(sdo_read_u32(0x1800, 1, &v) == 0 && v == 0x185);
+    CHECK(sdo_read_u32(0x1018, 0, &v) == 0 && v == 4);
+    CHECK(sdo_write(0x2000, 1, f2u(42.5f), 4) == 0);
+    CHECK(g_drv.f[DRV_P_KP] == 42.5f);
+    CHECK(sdo_read_u32(0x2000, 1, &v) == 0 && v == f2u(42.5f));
+    CHECK(sdo_read_u32(0x2100, 1, &v) == 0 && v == f2u((float)DRV_P_SIM_FC_VOLT * 0.5f));
+    /* segmented upload of a string */
+    uint8_t r[8] = {0x40, 0x08, 0x10, 0, 0, 0, 0, 0};
+    const co_frame_t *f = sdo(r);
+    CHECK(f && f->data[0] == 0x41 && co_get_u32(&f->data[4]) == 16);
+    char name[32] = {0};
+    uint32_t got = 0;
+    uint8_t t = 0;
+    for (int k = 0; k < 4 && got < 16; k++) {
+        uint8_t s[8] = {(uint8_t)(0x60 | t), 0, 0, 0, 0, 0, 0, 0};
+        f = sdo(s);
+        CHECK(f && (f->data[0] & 0x10) == t);
+        uint32_t len = 7u - ((f->data[0] >> 1) & 7u);
+        memcpy(&name[got], &f->data[1], len);
+        got += len;
+        t ^= 0x10;
+        if (f->data[0] & 1) {
+            break;
+        }
+    }
+    CHECK(got == 16 && strcmp(name, "fftune drive_sim") == 0);
+    /* segmented download of a 4-byte value (as python-canopen's force_segment does) */
+    uint8_t init[8] = {0x21, 0x00, 0x20, 2, 4, 0, 0, 0};
+    f = sdo(init);
+    CHECK(f && f->data[0] == 0x60);
+    uint8_t seg[8] = {(uint8_t)(0x00 | (3 << 1) | 1), 0, 0, 0, 0, 0, 0, 0};
+    uint32_t kd = f2u(1.25f);
+    co_put_u32(&seg[1], kd);
+    f = sdo(seg);
+    CHECK(f && f->data[0] == 0x20);
+    CHECK(g_drv.f[DRV_P_KD] == 1.25f);
+    /* a repeated segment (lost answer) is answered again, not aborted */
+    f = sdo(init);
+    uint8_t s1[8] = {(uint8_t)(0x00 | (3 << 1)), 1, 2, 3, 4, 0, 0, 0};
+    s1[0] = 0x00 | (0 << 1); /* 7 bytes, toggle 0, not last */
+    f = sdo(s1);
+    CHECK(f && f->data[0] == 0x20);
+    f = sdo(s1);
+    CHECK(f && f->data[0] == 0x20 && g_n.sdo.state != 0); /* still in the transfer */
+}
+
+static void test_abort_codes(void)
+{
+    setup();
+    uint32_t v;
+    CHECK(sdo_read_u32(0x3000, 0, &v) == CO_SDO_AB_NO_OBJECT);
+    CHECK(sdo_read_u32(0x1018, 9, &v) == CO_SDO_AB_SUB_UNKNOWN);
+    CHECK(sdo_write(0x1000, 0, 1, 4) == CO_SDO_AB_READONLY);
+    CHECK(sdo_read_u32(0x2010, 1, &v) == CO_SDO_AB_WRITEONLY);
+    CHECK(sdo_write(0x1017, 0, 100, 4) == CO_SDO_AB_DATA_LONG);
+    CHECK(sdo_write(0x1017, 0, 100, 1) == CO_SDO_AB_DATA_SHORT);
+    CHECK(sdo_write(0x2000, 1, f2u(NAN), 4) == CO_SDO_AB_INVALID_VALUE);
+    CHECK(sdo_write(0x2000, 1, f2u(2e5f), 4) == CO_SDO_AB_VALUE_HIGH);
+    CHECK(sdo_write(0x2000, 1, f2u(-1.0f), 4) == CO_SDO_AB_VALUE_LOW);
+    CHECK(sdo_write(0x2001, 1, 9, 1) == CO_SDO_AB_VALUE_HIGH);      /* table limit 0..3 */
+    CHECK(sdo_write(0x2020, 1, 0, 4) == CO_SDO_AB_VALUE_LOW);       /* signals 1..0x1F */
+    CHECK(sdo_write(0x6060, 0, 3, 1) == CO_SDO_AB_INVALID_VALUE);   /* mode 3 unsupported */
+    CHECK(sdo_write(0x6060, 0, 9, 1) == CO_SDO_AB_VALUE_HIGH);
+    CHECK(sdo_write(0x6060, 0, 0xFE, 1) == CO_SDO_AB_VALUE_LOW);    /* -2 */
+    CHECK(sdo_write(0x6060, 0, 0xFF, 1) == 0 && g_n.ram.mode_display == -1);
+    uint8_t bad[8] = {0xE0, 0x00, 0x10, 0, 0, 0, 0, 0};
+    CHECK(abort_code(sdo(bad)) == CO_SDO_AB_CMD);
+    uint8_t seg_idle[8] = {0x60, 0, 0, 0, 0, 0, 0, 0};
+    CHECK(abort_code(sdo(seg_idle)) == CO_SDO_AB_CMD);
+    /* toggle */
+    uint8_t init[8] = {0x21, 0x00, 0x20, 2, 4, 0, 0, 0};
+    sdo(init);
+    uint8_t seg_t1[8] = {0x10 | (3 << 1) | 1, 0, 0, 0, 0, 0, 0, 0};
+    CHECK(abort_code(sdo(seg_t1)) == CO_SDO_AB_TOGGLE);
+    /* timeout */
+    sdo(init);
+    g_ntx = 0;
+    advance_ms(1100);
+    CHECK(abort_code(last_id(0x585)) == CO_SDO_AB_TIMEOUT);
+    /* device state: run start outside OPERATIONAL / OPERATION ENABLED */
+    CHECK(sdo_write(0x2010, 1, 1, 1) == CO_SDO_AB_DATA_DEV_STATE);
+    /* general error: data under a running upload changed size */
+    g_drv.rec_bytes = 100;
+    uint8_t up[8] = {0x40, 0x21, 0x20, 0, 0, 0, 0, 0};
+    CHECK(sdo(up)->data[0] == 0x41);
+    g_drv.rec_bytes = 3;
+    uint8_t s0[8] = {0x60, 0, 0, 0, 0, 0, 0, 0};
+    CHECK(abort_code(sdo(s0)) == CO_SDO_AB_GENERAL);
+    /* block sizes */
+    uint8_t bu[8] = {0xA4, 0x21, 0x20, 0, 0, 0, 0, 0};
+    CHECK(abort_code(sdo(bu)) == CO_SDO_AB_BLKSIZE);
+    bu[4] = 128;
+    CHECK(abort_code(sdo(bu)) == CO_SDO_AB_BLKSIZE);
+    /* table longer than the drive takes */
+    uint8_t bd[8] = {0xC6, 0x02, 0x20, 0, 0, 0, 0, 0};
+    co_put_u32(&bd[4], 32772);
+    CHECK(abort_code(sdo(bd)) == CO_SDO_AB_DATA_LONG);
+    /* PDO mapping of a non-mappable object */
+    CHECK(sdo_write(0x1A03, 0, 0, 1) == 0); /* TPDO4 is disabled by default */
+    CHECK(sdo_write(0x1A03, 1, 0x20000120, 4) == CO_SDO_AB_NO_MAP);
+}
+
+/* Run a block upload like python-canopen; optionally NAK the first sub-block at ack_short. */
+static uint32_t block_upload(uint16_t index, uint8_t *out, uint32_t cap, int ack_short, uint8_t blk,
+                             uint16_t *crc_out, uint32_t *size_out)
+{
+    uint8_t r[8] = {0xA4, (uint8_t)index, (uint8_t)(index >> 8), 0, blk, 0, 0, 0};
+    const co_frame_t *f = sdo(r);
+    if (f == NULL || f->data[0] != 0xC6) {
+        return abort_code(f);
+    }
+    uint32_t size = co_get_u32(&f->data[4]);
+    *size_out = size;
+    uint32_t got = 0;
+    uint8_t start[8] = {0xA3, 0, 0, 0, 0, 0, 0, 0};
+    g_ntx = 0;
+    rx(0x605, start, 8);
+    int first = 1;
+    for (;;) {
+        /* collect this sub-block's segments */
+        int nseg = 0, last = 0;
+        uint8_t seg_data[127][7];
+        for (int i = 0; i < g_ntx; i++) {
+            if (g_tx[i].id != 0x585) {
+                continue;
+            }
+            memcpy(seg_data[nseg], &g_tx[i].data[1], 7);
+            last = (g_tx[i].data[0] & 0x80) != 0;
+            if ((g_tx[i].data[0] & 0x7F) != nseg + 1) {
+                return 0xDEAD;
+            }
+            nseg++;
+        }
+        int acked = nseg;
+        if (first && ack_short >= 0 && ack_short < nseg) {
+            acked = ack_short;
+            last = 0;
+        }
+        first = 0;
+        for (int k = 0; k < acked; k++) {
+            uint32_t n = (size - got) < 7 ? size - got : 7;
+            if (got + n > cap) {
+                return 0xBEEF;
+            }
+            memcpy(&out[got], seg_data[k], n);
+            got += n;
+        }
+        uint8_t ack[8] = {0xA2, (uint8_t)acked, blk, 0, 0, 0, 0, 0};
+        g_ntx = 0;
+        rx(0x605, ack, 8);
+        if (last) {
+            break;
+        }
+    }
+    f = last_id(0x585);
+    if (f == NULL || (f->data[0] & 0xE3) != 0xC1) {
+        return 0xF00D;
+    }
+    *crc_out = co_get_u16(&f->data[1]);
+    uint8_t end[8] = {0xA1, 0, 0, 0, 0, 0, 0, 0};
+    rx(0x605, end, 8);
+    return got == size ? 0u : 0xCAFE;
+}
+
+static uint8_t g_buf[300000];
+
+static void test_block_upload(void)
+{
+    setup();
+    g_drv.rec_bytes = 250001; /* not a multiple of 7 */
+    uint16_t crc = 0;
+    uint32_t size = 0;
+    CHECK(block_upload(0x2021, g_buf, sizeof g_buf, -1, 127, &crc, &size) == 0);
+    CHECK(size == 250001);
+    int ok = 1;
+    for (uint32_t i = 0; i < size; i++) {
+        ok &= g_buf[i] == rec_byte(i);
+    }
+    CHECK(ok);
+    CHECK(crc == co_sdo_crc16(0, g_buf, size));
+    CHECK(g_n.sdo.state == 0);
+    /* the client confirms only 40 of the first 127 segments: the rest is sent again */
+    memset(g_buf, 0, sizeof g_buf);
+    CHECK(block_upload(0x2021, g_buf, sizeof g_buf, 40, 127, &crc, &size) == 0);
+    ok = 1;
+    for (uint32_t i = 0; i < size; i++) {
+        ok &= g_buf[i] == rec_byte(i);
+    }
+    CHECK(ok && crc == co_sdo_crc16(0, g_buf, size));
+    /* small block size, empty recorder */
+    g_drv.rec_bytes = 0;
+    CHECK(block_upload(0x2021, g_buf, sizeof g_buf, -1, 5, &crc, &size) == 0 && size == 0 && crc == 0);
+    /* CAN driver back-pressure: 10 frames at a time */
+    g_drv.rec_bytes = 2000;
+    uint8_t r[8] = {0xA4, 0x21, 0x20, 0, 127, 0, 0, 0};
+    sdo(r);
+    g_ntx = 0;
+    g_tx_budget = 10;
+    uint8_t start[8] = {0xA3, 0, 0, 0, 0, 0, 0, 0};
+    rx(0x605, start, 8);
+    CHECK(g_ntx == 10);
+    for (int k = 0; k < 40; k++) {
+        g_tx_budget = 10;
+        advance_ms(1);
+    }
+    CHECK(g_ntx == 127 && g_tx[g_ntx - 1].data[0] == 127); /* whole first sub-block */
+    uint8_t ack[8] = {0xA2, 127, 127, 0, 0, 0, 0, 0};
+    g_ntx = 0;
+    g_tx_budget = 10;
+    rx(0x605, ack, 8);
+    for (int k = 0; k < 40; k++) {
+        g_tx_budget = 10;
+        advance_ms(1);
+    }
+    CHECK(g_ntx == 127 && g_tx[g_ntx - 1].data[0] == 127);
+    g_ntx = 0;
+    g_tx_budget = -1;
+    rx(0x605, ack, 8);
+    CHECK(g_ntx == 286 - 254 && g_tx[g_ntx - 1].data[0] == (0x80 | 32)); /* ceil(2000/7) in all */
+    g_tx_budget = -1;
+    /* upload while a run records: device state */
+    setup();
+    nmt(0x01);
+    enable_402();
+    g_drv.rec_bytes = 100;
+    CHECK(sdo_write(0x2010, 1, 1, 1) == 0);
+    uint8_t bu[8] = {0xA4, 0x21, 0x20, 0, 127, 0, 0, 0};
+    CHECK(abort_code(sdo(bu)) == CO_SDO_AB_DATA_DEV_STATE);
+}
+
+/* Block download like python-canopen (optionally dropping segment `drop` once, bad CRC). */
+static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int bad_crc)
+{
+    uint8_t r[8] = {0xC6, 0x02, 0x20, 0, 0, 0, 0, 0};
+    co_put_u32(&r[4], size);
+    const co_frame_t *f = sdo(r);
+    if (f == NULL || (f->data[0] & 0xE0) != 0xA0) {
+        return abort_code(f);
+    }
+    uint8_t blk = f->data[4];
+    uint32_t pos = 0;
+    uint16_t crc = co_sdo_crc16(0, data, size);
+    uint8_t seq = 0;
+    uint32_t block_pos = 0;
+    int dropped = 0;
+    uint32_t last_len = 0;
+    for (;;) {
+        uint32_t n = size - pos < 7 ? size - pos : 7;
+        int end = pos + n >= size;
+        uint8_t seg[8] = {0};
+        seg[0] = (uint8_t)(++seq | (end ? 0x80 : 0));
+        memcpy(&seg[1], &data[pos], n);
+        pos += n;
+        last_len = n;
+        g_ntx = 0;
+        if (!(drop >= 0 && !dropped && (int)pos > drop * 7 && (int)pos <= drop * 7 + 7)) {
+            rx(0x605, seg, 8);
+        } else {
+            dropped = 1;
+        }
+        if (seq == blk || end) {
+            f = last_id(0x585);
+            if (f == NULL) {
+                return 0xDEAD;
+            }
+            if (f->data[0] == 0x80) {
+                return abort_code(f);
+            }
+            uint8_t ack = f->data[1];
+            blk = f->data[2];
+            if (ack != seq) { /* resend from ack */
+                pos = block_pos + 7u * ack;
+                seq = 0;
+                block_pos = pos;
+                continue;
+            }
+            seq = 0;
+            block_pos = pos;
+            if (end) {
+                break;
+            }
+        }
+    }
+    uint8_t e[8] = {(uint8_t)(0xC1 | ((7 - last_len) << 2)), 0, 0, 0, 0, 0, 0, 0};
+    co_put_u16(&e[1], bad_crc ? (uint16_t)(crc ^ 1) : crc);
+    f = sdo(e);
+    if (f == NULL) {
+        return 0xDEAD;
+    }
+    return f->data[0] == 0xA1 ? 0u : abort_code(f);
+}
+
+static void test_block_download(void)
+{
+    setup();
+    static uint8_t table[32768];
+    for (uint32_t i = 0; i < sizeof table; i++) {
+        table[i] = (uint8_t)(i * 13u + 1u);
+    }
+    CHECK(block_download(table, sizeof table, -1, 0) == 0);
+    CHECK(g_drv.table_bytes == 32768 && memcmp(g_drv.table, table, 32768) == 0);
+    uint32_t v;
+    CHECK(sdo_read_u32(0x2003, 0, &v) == 0 && v == 8192);
+    memset(g_drv.table, 0, sizeof g_drv.table);
+    CHECK(block_download(table, 4000, 200, 0) == 0); /* a lost segment is sent again */
+    CHECK(g_drv.table_bytes == 4000 && memcmp(g_drv.table, table, 4000) == 0);
+    CHECK(block_download(table, 4000, -1, 1) == CO_SDO_AB_CRC);
+    CHECK(block_download(table, 6, -1, 0) == CO_SDO_AB_TYPE_MISMATCH); /* not whole floats */
+    /* while a run is active: device state */
+    nmt(0x01);
+    enable_402();
+    CHECK(sdo_write(0x2010, 1, 1, 1) == 0);
+    CHECK(block_download(table, 64, -1, 0) == CO_SDO_AB_DATA_DEV_STATE);
+}
+
+static void test_heartbeat(void)
+{
+    setup();
+    CHECK(sdo_write(0x1017, 0, 100, 2) == 0);
+    g_ntx = 0;
+    advance_ms(1000);
+    CHECK(count_id(0x705) == 10 && last_id(0x705)->data[0] == 127);
+    CHECK(sdo_write(0x1016, 1, 0x01000000u | 100, 4) == CO_SDO_AB_INVALID_VALUE);
+    CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 200u, 4) == 0);
+    nmt(0x01);
+    enable_402();
+    CHECK(g_n.s402 == CO402_OPERATION_ENABLED && g_drv.enabled);
+    uint8_t hb = 5;
+    rx(0x77F, &hb, 1);
+    CHECK(sdo_write(0x2010, 1, 1, 1) == 0 && g_drv.run_state == DRV_RUN_SETTLING);
+    for (int k = 0; k < 5; k++) { /* host alive: nothing happens */
+        advance_ms(150);
+        rx(0x77F, &hb, 1);
+    }
+    CHECK(g_drv.run_state == DRV_RUN_SETTLING && g_drv.safe_stops == 0);
+    g_ntx = 0;
+    advance_ms(250);
+    CHECK(g_drv.run_state == DRV_RUN_ABORTED && g_drv.last_error == DRV_STOP_HEARTBEAT);
+    CHECK(g_drv.enabled); /* holds position */
+    const co_frame_t *e = last_id(0x85);
+    CHECK(e && co_get_u16(e->data) == CO_EMCY_HEARTBEAT && e->data[2] == 0x11 && e->data[3] == 0x7F);
+    CHECK(g_n.ram.error_register == 0x11);
+    g_ntx = 0;
+    rx(0x77F, &hb, 1); /* host back: error reset EMCY */
+    e = last_id(0x85);
+    CHECK(e && co_get_u16(e->data) == 0 && g_n.ram.error_register == 0);
+}
+
+static uint16_t sw(void)
+{
+    uint32_t v = 0;
+    sdo_read_u32(0x6041, 0, &v);
+    return (uint16_t)v;
+}
+
+static void test_402(void)
+{
+    setup();
+    CHECK((sw() & 0x4F) == 0x40);
+    CHECK(sdo_write(0x6040, 0, 0x06, 2) == 0 && (sw() & 0x6F) == 0x21);
+    CHECK(sdo_write(0x6040, 0, 0x07, 2) == 0 && (sw() & 0x6F) == 0x23);
+    CHECK(!g_drv.enabled);
+    CHECK(sdo_write(0x6040, 0, 0x0F, 2) == 0 && (sw() & 0x6F) == 0x27 && g_drv.enabled);
+    CHECK(sdo_write(0x6040, 0, 0x02, 2) == 0 && (sw() & 0x6F) == 0x07 && g_drv.enabled);
+    CHECK(sdo_write(0x6040, 0, 0x0F, 2) == 0 && (sw() & 0x6F) == 0x27);
+    CHECK(sdo_write(0x6040, 0, 0x07, 2) == 0 && (sw() & 0x6F) == 0x23 && !g_drv.enabled);
+    CHECK(sdo_write(0x6040, 0, 0x0F, 2) == 0 && (sw() & 0x6F) == 0x27);
+    CHECK(sdo_write(0x6040, 0, 0x00, 2) == 0 && (sw() & 0x4F) == 0x40 && !g_drv.enabled);
+    CHECK(sdo_write(0x6040, 0, 0x0F, 2) == 0 && (sw() & 0x4F) == 0x40); /* no jump */
+    enable_402();
+    g_drv.fault = true;
+    g_ntx = 0;
+    advance_ms(1);
+    CHECK(last_id(0x85) && co_get_u16(last_id(0x85)->data) == CO_EMCY_RUN_FAULT);
+    CHECK((sw() & 0x4F) == 0x08 && !g_drv.enabled);
+    CHECK(sdo_write(0x6040, 0, 0x0F, 2) == 0 && (sw() & 0x4F) == 0x08);
+    CHECK(sdo_write(0x6040, 0, 0x80, 2) == 0 && (sw() & 0x4F) == 0x40);
+    enable_402();
+    CHECK((sw() & 0x6F) == 0x27 && !g_drv.fault);
+    /* target position goes to the drive in rad */
+    CHECK(sdo_write(0x607A, 0, (uint32_t)(-250000), 4) == 0 && fabsf(g_drv.target_rad + 0.25f) < 1e-6f);
+    g_drv.motor_rad = 1.5f;
+    g_drv.reference_rad = 1.25f;
+    uint32_t v;
+    CHECK(sdo_read_u32(0x6064, 0, &v) == 0 && (int32_t)v == 1500000);
+    CHECK(sdo_read_u32(0x60F4, 0, &v) == 0 && (int32_t)v == -250000);
+}
+
+static void test_pdo(void)
+{
+    setup();
+    g_ntx = 0;
+    advance_ms(10);
+    CHECK(count_id(0x185) == 0); /* no PDO in PRE-OPERATIONAL */
+    nmt(0x01);
+    g_ntx = 0;
+    advance_ms(1);
+    const co_frame_t *t = last_id(0x185);
+    CHECK(t && t->len == 3 && (co_get_u16(t->data) & 0x4F) == 0x40 && t->data[2] == 8);
+    CHECK(last_id(0x285) && last_id(0x385) && !last_id(0x485));
+    /* RPDO1: controlword */
+    uint8_t cw[2] = {0x06, 0x00};
+    g_ntx = 0;
+    rx(0x205, cw, 2);
+    advance_ms(1);
+    t = last_id(0x185);
+    CHECK(t && (co_get_u16(t->data) & 0x6F) == 0x21); /* sent on change */
+    g_ntx = 0;
+    advance_ms(99);
+    CHECK(count_id(0x185) == 0);
+    advance_ms(2);
+    CHECK(count_id(0x185) == 1); /* event timer 100 ms */
+    /* RPDO too short: EMCY */
+    g_ntx = 0;
+    rx(0x205, cw, 1);
+    CHECK(last_id(0x85) && co_get_u16(last_id(0x85)->data) == CO_EMCY_PDO_LENGTH);
+    /* RPDO2: mode of operation; an invalid value is dropped */
+    uint8_t m = 0xFF;
+    rx(0x305, &m, 1);
+    CHECK(g_n.ram.mode == -1 && g_n.ram.mode_display == -1);
+    m = 3;
+    rx(0x305, &m, 1);
+    CHECK(g_n.ram.mode == -1);
+    /* TPDO2 inhibit time 50 ms with a fast-changing value */
+    cw[0] = 0x0F;
+    rx(0x205, cw, 2);
+    cw[0] = 0x07;
+    CHECK(sdo_write(0x2010, 1, 1, 1) == 0);
+    g_ntx = 0;
+    for (int k = 0; k < 200; k++) {
+        g_drv.run_counter++; /* mapped in TPDO3, no inhibit */
+        advance_ms(1);
+    }
+    CHECK(count_id(0x385) == 200);
+    /* mapping changes follow CiA 301 */
+    CHECK(sdo_write(0x1A01, 0, 1, 1) == CO_SDO_AB_UNSUPPORTED); /* PDO valid */
+    CHECK(sdo_write(0x1801, 1, 0x80000285u, 4) == 0);
+    CHECK(sdo_write(0x1A01, 1, 0x60410010u, 4) == CO_SDO_AB_UNSUPPORTED); /* count != 0 */
+    CHECK(sdo_write(0x1A01, 0, 0, 1) == 0);
+    CHECK(sdo_write(0x1A01, 1, 0x60400011u, 4) == CO_SDO_AB_NO_MAP);     /* wrong length */
+    CHECK(sdo_write(0x1A01, 1, 0x60640020u, 4) == 0);
+    CHECK(sdo_write(0x1A01, 2, 0x606C0020u, 4) == 0);
+    CHECK(sdo_write(0x1A01, 3, 0x60F40020u, 4) == 0);
+    CHECK(sdo_write(0x1A01, 0, 3, 1) == CO_SDO_AB_MAP_LEN);
+    CHECK(sdo_write(0x1A01, 0, 2, 1) == 0);
+    CHECK(sdo_write(0x1801, 1, 0x000002A6u, 4) == 0);
+    CHECK(sdo_write(0x1801, 1, 0x000002A7u, 4) == CO_SDO_AB_INVALID_VALUE); /* valid: no id change */
+    CHECK(sdo_write(0x1801, 1, 0x80000601u, 4) == 0);
+    CHECK(sdo_write(0x1801, 1, 0x00000601u, 4) == CO_SDO_AB_INVALID_VALUE); /* restricted id */
+    CHECK(sdo_write(0x1801, 2, 1, 1) == CO_SDO_AB_VALUE_LOW);              /* SYNC types */
+    CHECK(sdo_write(0x1801, 1, 0x000002A6u, 4) == 0);
+    g_drv.motor_rad = 0.001f;
+    g_ntx = 0;
+    advance_ms(1);
+    t = last_id(0x2A6);
+    CHECK(t && t->len == 8 && (int32_t)co_get_u32(t->data) == 1000);
+    /* leaving OPERATIONAL stops a run */
+    nmt(0x80);
+    CHECK(g_drv.run_state == DRV_RUN_ABORTED && g_drv.last_error == DRV_STOP_NMT);
+}
+
+static void test_crc(void)
+{
+    /* CRC-16 CCITT (XMODEM) check value */
+    const uint8_t s[] = "123456789";
+    CHECK(co_sdo_crc16(0, s, 9) == 0x31C3);
+}
+
+int main(void)
+{
+    test_crc();
+    test_boot_and_nmt();
+    test_expedited_and_segmented();
+    test_abort_codes();
+    test_block_upload();
+    test_block_download();
+    test_heartbeat();
+    test_402();
+    test_pdo();
+    printf("%d passed, %d failed\n", g_pass, g_fail);
+    return g_fail ? 1 : 0;
+}

@@ -1,0 +1,374 @@
+/*
+ * main.c - drive_sim: the simulated drive (plant + drive core, plant/sim.h) as a CANopen
+ * slave (canopen/co_node.h) on a socketcand TCP server or a SocketCAN interface.
+ *
+ *   drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N]
+ *             [--node-id N] [--config FILE] [--realtime] [--quiet]
+ *
+ * Timing. CANopen timers (heartbeat, SDO timeout, PDO inhibit / event) always run on
+ * CLOCK_MONOTONIC wall time.
+ *  - default (free-run): while a run is settling or recording, the simulation steps as
+ *    fast as the CPU allows (bus serviced about every millisecond); otherwise simulated
+ *    time holds (no steps). So the data of a sequence of runs does not depend on the
+ *    host's timing between them (reproducible, deterministic for a given seed), and an
+ *    idle drive costs no CPU.
+ *  - --realtime: one step per controller period against absolute CLOCK_MONOTONIC
+ *    deadlines (clock_nanosleep TIMER_ABSTIME); a step that starts more than one period
+ *    late counts as an overrun (printed at exit); more than 100 periods behind re-bases
+ *    the schedule instead of catching up.
+ * Readiness: one line on stdout, e.g.
+ *   drive_sim: listening on socketcand 127.0.0.1:29536, node 1
+ */
+#include <errno.h>
+#include <limits.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "co_node.h"
+#include "plant_config.h"
+#include "scd.h"
+#include "sim.h"
+#include "sockcan.h"
+
+typedef struct {
+    bool socketcan;
+    char host[64];
+    int port;
+    char ifname[32];
+    int node_id;
+    const char *config;
+    bool realtime;
+    bool quiet;
+} opts_t;
+
+typedef struct {
+    opts_t o;
+    plant_config_t cfg;
+    sim_t sim;
+    float *rec_buf;
+    float *table_buf;
+    co_node_t node;
+    scd_server_t *scd;
+    int can_fd;
+    uint64_t now_us;
+    uint64_t steps;
+    uint64_t overruns;
+} app_t;
+
+static volatile sig_atomic_t g_stop;
+
+static void on_signal(int sig)
+{
+    (void)sig;
+    g_stop = 1;
+}
+
+static uint64_t mono_us(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (uint64_t)ts.tv_sec * 1000000u + (uint64_t)ts.tv_nsec / 1000u;
+}
+
+static int usage_error(const char *msg, const char *arg)
+{
+    fprintf(stderr, "drive_sim: error: %s%s%s\n", msg, arg ? ": " : "", arg ? arg : "");
+    fprintf(stderr, "usage: drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N] "
+                    "[--node-id N] [--config FILE] [--realtime] [--quiet]\n");
+    return 2;
+}
+
+static bool parse_int(const char *s, long lo, long hi, int *out)
+{
+    char *end;
+    errno = 0;
+    long v = strtol(s, &end, 0);
+    if (errno != 0 || end == s || *end != '\0' || v < lo || v > hi) {
+        return false;
+    }
+    *out = (int)v;
+    return true;
+}
+
+static int parse_can(opts_t *o, const char *spec)
+{
+    if (strncmp(spec, "socketcand:", 11) == 0) {
+        const char *hp = spec + 11;
+        const char *colon = strrchr(hp, ':');
+        if (colon == NULL || colon == hp || (size_t)(colon - hp) >= sizeof o->host ||
+            !parse_int(colon + 1, 0, 65535, &o->port)) {
+            return usage_error("--can socketcand:HOST:PORT expected", spec);
+        }
+        memcpy(o->host, hp, (size_t)(colon - hp));
+        o->host[colon - hp] = '\0';
+        o->socketcan = false;
+        return 0;
+    }
+    if (strncmp(spec, "socketcan:", 10) == 0) {
+        const char *ifn = spec + 10;
+        if (*ifn == '\0' || strlen(ifn) >= sizeof o->ifname) {
+            return usage_error("--can socketcan:IFNAME expected", spec);
+        }
+        strcpy(o->ifname, ifn);
+        o->socketcan = true;
+        return 0;
+    }
+    return usage_error("unknown bus (socketcand:HOST:PORT or socketcan:IFNAME)", spec);
+}
+
+static int parse_args(opts_t *o, int argc, char **argv)
+{
+    memset(o, 0, sizeof *o);
+    strcpy(o->host, "127.0.0.1");
+    o->port = 29536;
+    o->node_id = 1;
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i];
+        const char *v = (i + 1 < argc) ? argv[i + 1] : NULL;
+        if (strcmp(a, "--can") == 0 && v) {
+            if (parse_can(o, v) != 0) {
+                return 2;
+            }
+            i++;
+        } else if (strcmp(a, "--port") == 0 && v) {
+            if (!parse_int(v, 0, 65535, &o->port)) {
+                return usage_error("--port must be 0..65535", v);
+            }
+            i++;
+        } else if (strcmp(a, "--node-id") == 0 && v) {
+            if (!parse_int(v, 1, 127, &o->node_id)) {
+                return usage_error("--node-id must be 1..127", v);
+            }
+            i++;
+        } else if (strcmp(a, "--config") == 0 && v) {
+            o->config = v;
+            i++;
+        } else if (strcmp(a, "--realtime") == 0) {
+            o->realtime = true;
+        } else if (strcmp(a, "--quiet") == 0) {
+            o->quiet = true;
+        } else if (strcmp(a, "--help") == 0 || strcmp(a, "-h") == 0) {
+            printf("usage: drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N] "
+                   "[--node-id N] [--config FILE] [--realtime] [--quiet]\n"
+                   "  --can      bus (default socketcand:127.0.0.1:29536; --port 0 picks a free port)\n"
+                   "  --node-id  CANopen node id 1..127 (default 1)\n"
+                   "  --config   plant / controller configuration (configs/plant_*.yaml; default: built-in twomass)\n"
+                   "  --realtime step at the controller rate on absolute deadlines (default: free-run)\n");
+            exit(0);
+        } else {
+            return usage_error("unknown or incomplete option", a);
+        }
+    }
+    return 0;
+}
+
+/* ---- CANopen hooks ---- */
+
+static bool tx_hook(void *ctx, const co_frame_t *f)
+{
+    app_t *app = ctx;
+    scd_frame_t sf = {f->id, false, f->len, {0}};
+    memcpy(sf.data, f->data, f->len);
+    if (app->o.socketcan) {
+        return sockcan_write(app->can_fd, &sf);
+    }
+    scd_broadcast(app->scd, &sf, -1, app->now_us);
+    return true;
+}
+
+static bool sim_hook(void *ctx, drv_param_id_t id, float *value)
+{
+    app_t *app = ctx;
+    return sim_get_f32(&app->sim, id, value) == DRV_OK;
+}
+
+static void reset_hook(void *ctx)
+{
+    /* NMT reset node: the drive and the plant start again from the configuration */
+    app_t *app = ctx;
+    char err[256];
+    if (sim_init(&app->sim, &app->cfg, app->rec_buf, app->table_buf, err, sizeof err) != 0) {
+        fprintf(stderr, "drive_sim: reset node: %s\n", err);
+    }
+}
+
+static void rx_hook(void *ctx, const scd_frame_t *f)
+{
+    app_t *app = ctx;
+    if (f->ext) {
+        return; /* CANopen uses 11-bit identifiers */
+    }
+    co_frame_t cf = {(uint16_t)f->id, f->len, {0}};
+    memcpy(cf.data, f->data, f->len);
+    co_node_rx(&app->node, &cf);
+}
+
+/* ---- bus service ---- */
+
+static void service_bus(app_t *app, int timeout_ms)
+{
+    struct pollfd pfd[1 + SCD_MAX_CLIENTS];
+    int n;
+    if (app->o.socketcan) {
+        pfd[0].fd = app->can_fd;
+        pfd[0].events = POLLIN;
+        pfd[0].revents = 0;
+        n = 1;
+    } else {
+        n = scd_pollfds(app->scd, pfd);
+    }
+    int r = poll(pfd, (nfds_t)n, timeout_ms);
+    app->now_us = mono_us();
+    if (r > 0) {
+        if (app->o.socketcan) {
+            scd_frame_t f;
+            for (int k = 0; k < 256 && sockcan_read(app->can_fd, &f) == 1; k++) {
+                rx_hook(app, &f);
+            }
+        } else {
+            scd_handle(app->scd, pfd, n, app->now_us, rx_hook, app);
+        }
+    }
+    co_node_process(&app->node, (uint32_t)app->now_us);
+    if (!app->o.socketcan) {
+        scd_flush(app->scd, app->now_us);
+    }
+}
+
+static void loop_free_run(app_t *app)
+{
+    while (!g_stop) {
+        if (co_node_run_active(&app->node)) {
+            /* as fast as the CPU allows; service the bus every ~1 ms */
+            uint64_t until = app->now_us + 1000u;
+            do {
+                for (int k = 0; k < 64 && co_node_run_active(&app->node); k++) {
+                    sim_step(&app->sim);
+                    app->steps++;
+                }
+            } while (mono_us() < until && co_node_run_active(&app->node));
+            service_bus(app, 0);
+            continue;
+        }
+        /* idle: simulated time holds; wake for the bus or the 1 ms CANopen timer tick */
+        service_bus(app, 1);
+    }
+}
+
+static void loop_realtime(app_t *app)
+{
+    const uint64_t period_ns = (uint64_t)(1e9 / app->cfg.fs_hz + 0.5);
+    struct timespec next;
+    clock_gettime(CLOCK_MONOTONIC, &next);
+    while (!g_stop) {
+        uint64_t t = (uint64_t)next.tv_nsec + period_ns;
+        next.tv_sec += (time_t)(t / 1000000000u);
+        next.tv_nsec = (long)(t % 1000000000u);
+        while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, NULL) == EINTR && !g_stop) {
+        }
+        struct timespec now;
+        clock_gettime(CLOCK_MONOTONIC, &now);
+        int64_t late_ns = (int64_t)(now.tv_sec - next.tv_sec) * 1000000000 + (now.tv_nsec - next.tv_nsec);
+        if (late_ns > (int64_t)period_ns) {
+            app->overruns++;
+            if (late_ns > 100 * (int64_t)period_ns) {
+                next = now; /* far behind: re-base instead of catching up */
+            }
+        }
+        sim_step(&app->sim);
+        app->steps++;
+        service_bus(app, 0);
+    }
+}
+
+int main(int argc, char **argv)
+{
+    static app_t app;
+    char err[512];
+    if (parse_args(&app.o, argc, argv) != 0) {
+        return 2;
+    }
+    plant_config_defaults(&app.cfg);
+    if (app.o.config && plant_config_load(app.o.config, &app.cfg, err, sizeof err) != 0) {
+        fprintf(stderr, "drive_sim: error: %s\n", err);
+        return 2;
+    }
+    app.rec_buf = calloc(app.cfg.rec_capacity ? app.cfg.rec_capacity : 1u, sizeof(float));
+    app.table_buf = calloc(app.cfg.table_capacity ? app.cfg.table_capacity : 1u, sizeof(float));
+    if (app.rec_buf == NULL || app.table_buf == NULL) {
+        fprintf(stderr, "drive_sim: error: out of memory (recorder of %u floats)\n", (unsigned)app.cfg.rec_capacity);
+        return 2;
+    }
+    if (sim_init(&app.sim, &app.cfg, app.rec_buf, app.table_buf, err, sizeof err) != 0) {
+        fprintf(stderr, "drive_sim: error: %s: %s\n", app.o.config ? app.o.config : "built-in config", err);
+        return 2;
+    }
+    int bound = app.o.port;
+    if (app.o.socketcan) {
+        app.can_fd = sockcan_open(app.o.ifname, err, sizeof err);
+        if (app.can_fd < 0) {
+            fprintf(stderr, "drive_sim: error: %s\n", err);
+            return 2;
+        }
+    } else {
+        app.scd = calloc(1, sizeof *app.scd);
+        if (app.scd == NULL || scd_open(app.scd, app.o.host, app.o.port, &bound, err, sizeof err) != 0) {
+            fprintf(stderr, "drive_sim: error: %s\n", app.scd ? err : "out of memory");
+            return 2;
+        }
+    }
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_signal;
+    sigaction(SIGINT, &sa, NULL);
+    sigaction(SIGTERM, &sa, NULL);
+    signal(SIGPIPE, SIG_IGN);
+
+    co_cfg_t cc;
+    memset(&cc, 0, sizeof cc);
+    cc.node_id = (uint8_t)app.o.node_id;
+    cc.tx = tx_hook;
+    cc.tx_ctx = &app;
+    cc.sim_get = sim_hook;
+    cc.sim_ctx = &app;
+    cc.reset_app = reset_hook;
+    cc.app_ctx = &app;
+    cc.table_capacity_bytes = app.cfg.table_capacity * 4u;
+    app.now_us = mono_us();
+    co_node_init(&app.node, &cc, sim_drv(&app.sim), (uint32_t)app.now_us);
+
+    if (app.o.socketcan) {
+        printf("drive_sim: listening on socketcan %s, node %d\n", app.o.ifname, app.o.node_id);
+    } else {
+        printf("drive_sim: listening on socketcand %s:%d, node %d\n", app.o.host, bound, app.o.node_id);
+    }
+    fflush(stdout);
+
+    if (app.o.realtime) {
+        loop_realtime(&app);
+    } else {
+        loop_free_run(&app);
+    }
+
+    if (!app.o.quiet) {
+        fprintf(stderr,
+                "drive_sim: stopped: %llu steps, %llu overruns, %u frames received, %u sent, %u not sent",
+                (unsigned long long)app.steps, (unsigned long long)app.overruns, (unsigned)app.node.rx_frames,
+                (unsigned)app.node.tx_frames, (unsigned)app.node.tx_dropped);
+        if (app.scd) {
+            fprintf(stderr, ", socketcand: %llu frames dropped at full client buffers, %llu bad commands, %llu refused connections",
+                    (unsigned long long)app.scd->dropped, (unsigned long long)app.scd->garbage,
+                    (unsigned long long)app.scd->refused);
+        }
+        fprintf(stderr, "\n");
+    }
+    if (app.scd) {
+        scd_close(app.scd);
+    }
+    return 0;
+}
