@@ -372,12 +372,20 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     def check_finite(*values):
         if not all(np.isfinite(v).all() for v in values if v is not None):
             _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
-            zero = np.flatnonzero(np.any((U == 0).reshape(-1, n_exc), axis=0))
-            if zero.size:
-                raise InputError(
-                    f"input u: zero power at excited line(s) "
-                    f"{', '.join(f'{excited[i] * fs / n:g} Hz' for i in zero[:5])}")
             raise InputError("non-finite result (overflow in the input data?)")
+
+    def check_power(name, spectra):
+        # "zero" power: 120 dB or more under the median excited line (rounding noise)
+        power = _abs2_sum(spectra.reshape(-1, 1, n_exc), axis=0)[0]
+        check_finite(power)
+        low = np.flatnonzero(~(power > 1e-12 * np.median(power)))
+        if low.size:
+            raise InputError(
+                f"{name}: zero power at {low.size} excited line(s) "
+                f"{', '.join(f'{excited[i] * fs / n:g} Hz' for i in low[:5])}"
+                f"{' ...' if low.size > 5 else ''} (wrong excited lines?)")
+
+    check_power("input u", U)
 
     notes = []
     if r is None:
@@ -396,9 +404,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         u_level = np.mean(np.abs(U.mean(axis=1)) ** 2, axis=0)
     else:
         R = _spectral_lines(r[:, settle:, :], excited).mean(axis=1)
-        check_finite(R)
-        if np.any(R == 0):
-            raise InputError("reference r: zero power at an excited line")
+        check_power("reference r", R)
         rot = np.conj(R / np.abs(R))[:, None, :]
         Un, Yn = U * rot, Y * rot
         U_m, Y_m = Un.mean(axis=1), Yn.mean(axis=1)

@@ -154,6 +154,8 @@ def test_bad_input_is_rejected():
         robust_bla(u, bad)
     with pytest.raises(InputError, match="zero power"):
         robust_bla(u, y, excited_bins=[2, 4, 6])
+    with pytest.raises(InputError, match=r"zero power at 1 excited line\(s\) 4 Hz"):
+        robust_bla(u, y, fs=128.0, excited_bins=np.append(designs[0].excited, 4))
     with pytest.raises(InputError, match="settle"):
         robust_bla(u, y, settle_periods=2)
 
