@@ -95,9 +95,11 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
         Sine frequency (Hz), broadcast over the leading axes. Checked to lie on a DFT
         line of the N-sample block. Found from the input spectrum if omitted.
     leakage_tol : float
-        When f0 is found from the data: a record whose largest input line has
+        When f0 is found from the data: a record whose largest input line has both
         neighbours above ``leakage_tol`` times its magnitude is rejected as a sine off
-        the DFT grid (a sine off by d bins gives about d / (1 - d)).
+        the DFT grid (a sine off by d bins raises them to about d / (1 -+ d)). Not
+        checked for a sine of one period per block (its neighbours are DC and the
+        second harmonic): give ``f0`` there.
 
     Returns
     -------
@@ -138,7 +140,10 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
         left = np.take_along_axis(np.abs(U), (k0 - 1)[..., None], axis=-1)[..., 0]
         right = np.take_along_axis(np.abs(U), np.minimum(k0 + 1, n_lines - 1)[..., None],
                                    axis=-1)[..., 0]
-        leak = np.maximum(left, right) / peak
+        # an off-grid sine raises both neighbours (d/(1-d), d/(1+d)): the smaller one is
+        # the test, so that a harmonic of the input next to the peak does not count.
+        # For k0 = 1 the neighbours are DC and the 2nd harmonic: no test (give f0).
+        leak = np.where(k0 > 1, np.minimum(left, right) / peak, 0.0)
         bad = np.argwhere(leak > leakage_tol)
         if bad.size:
             idx = tuple(int(i) for i in bad[0])

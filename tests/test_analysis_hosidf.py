@@ -205,6 +205,9 @@ def test_sine_off_the_dft_grid_is_rejected():
     assert hosidf(on, on, fs=512.0, f0=10.0).H[0] == pytest.approx(1.0)
     with pytest.raises(InputError, match="fs/2"):
         hosidf(on, on, fs=512.0, n_harmonics=30)
+    # one period per block with DC and a 2nd harmonic in the input: not mistaken for leakage
+    one = (0.3 + np.sin(2 * np.pi * t / n) + 0.05 * np.sin(4 * np.pi * t / n)).reshape(1, 1, n)
+    assert hosidf(one, one ** 3, fs=512.0, n_harmonics=3).f0 == pytest.approx(1.0)
     bad = on.copy()
     bad[0, 0, 3] = np.inf
     with pytest.raises(InputError, match="NaN or inf"):
