@@ -4,7 +4,7 @@ import pytest
 from matplotlib.figure import Figure
 
 from analysis import plots
-from analysis.bla import bla_levels, robust_bla
+from analysis.bla import bla_levels
 from analysis.hosidf import hosidf
 from analysis.multisine import multisine_realizations
 
