@@ -33,7 +33,8 @@ import numpy as np
 
 from analysis.errors import InputError
 
-__all__ = ["DEFAULT_HARMONICS", "odd_ratio", "signed_odd_ratio", "reference_phases",
+__all__ = ["DEFAULT_HARMONICS", "odd_ratio", "signed_odd_ratio", "signed_odd_ratio_std",
+           "reference_phases",
            "TuningResult", "RatioMinimizer", "SignedRootSearch"]
 
 DEFAULT_HARMONICS = (3, 5, 7)
@@ -90,6 +91,23 @@ def signed_odd_ratio(H, phases_rad, harmonics=DEFAULT_HARMONICS):
         raise InputError(f"tuning: need {len(harmonics)} reference phases, got {phases_rad.shape}")
     proj = [np.real(_harmonic(H, k) * np.exp(-1j * phi)) for k, phi in zip(harmonics, phases_rad)]
     return np.mean(proj, axis=0) / np.abs(_harmonic(H, 1))
+
+
+def signed_odd_ratio_std(H, H_std, n_repeats, harmonics=DEFAULT_HARMONICS):
+    """Standard deviation of :func:`signed_odd_ratio` from the repeat scatter.
+
+    With ``H_std`` the standard deviation of one repeat's complex H_k
+    (``HosidfResult.H_std``) and R repeats averaged, each projection has variance
+    H_std^2 / (2 R) (half of a circular complex variance); the noise of |H_1| is
+    neglected. Use it (times 2 or 3) as ``ftol`` of :class:`SignedRootSearch`.
+
+    Returns
+    -------
+    ndarray or float, shape (...)
+    """
+    var = np.mean([_harmonic(H_std, k) ** 2 for k in harmonics], axis=0) / (
+        2 * int(n_repeats) * len(harmonics))
+    return np.sqrt(var) / np.abs(_harmonic(H, 1))
 
 
 @dataclass

@@ -5,7 +5,7 @@ import pytest
 from analysis.errors import InputError
 from analysis.hosidf import hosidf
 from analysis.tuning import (RatioMinimizer, SignedRootSearch, odd_ratio, reference_phases,
-                             signed_odd_ratio)
+                             signed_odd_ratio, signed_odd_ratio_std)
 
 FC, A, GAIN = 0.1157, 1.0, 2.0      # plant Coulomb friction, sine amplitude, linear gain
 
@@ -110,3 +110,18 @@ def test_no_sign_change_and_misuse():
         RatioMinimizer(1.0, 0.0)
     capped = RatioMinimizer(0.0, 1.0, xtol=1e-9, max_evaluations=4).run(lambda k: abs(k - 0.3))
     assert capped.n_evaluations == 4 and not capped.converged and "max_evaluations" in capped.reason
+
+
+def test_signed_ratio_std_matches_scatter():
+    rng = np.random.default_rng(3)
+    h_true = relay_with_offset_hosidf(0.08)
+    phases = reference_phases(relay_with_offset_hosidf(0.0))
+    sigma, repeats = 0.004, 5
+    values, predicted = [], []
+    for _ in range(400):
+        noise = sigma * (rng.standard_normal((repeats, 7)) + 1j * rng.standard_normal((repeats, 7)))
+        reps = h_true + noise
+        H, H_std = reps.mean(0), np.sqrt(np.sum(np.abs(reps - reps.mean(0)) ** 2, 0) / (repeats - 1))
+        values.append(signed_odd_ratio(H, phases))
+        predicted.append(signed_odd_ratio_std(H, H_std, repeats))
+    assert np.std(values) == pytest.approx(np.mean(predicted), rel=0.15)
