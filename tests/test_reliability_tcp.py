@@ -200,9 +200,12 @@ def test_nan_inf_and_out_of_range_writes_rejected_with_the_right_abort(node):
     assert tried == 7 * len(params)
 
 
-def test_controller_output_saturated_over_a_whole_recording(node):
+@pytest.mark.parametrize("fc_smooth", [0.0, 1.0e-40])
+def test_controller_output_saturated_over_a_whole_recording(node, fc_smooth):
     """A deliberately violent controller (Kp 1e5, Kd 1e4, big excitation): every recorded
-    plant-input sample stays within u_max."""
+    plant-input sample stays finite and within u_max. fc_smooth 1e-40 (a denormal sign
+    smoothing width, accepted as >= 0) is the regression case of fuzz/regress/co_node/
+    nan_output_denormal_fc_smooth.bin: 1/width overflowed and the output became NaN."""
     u_max = 0.75
     node.nmt.state = "OPERATIONAL"
     for cw in (0x06, 0x07, 0x0F):
@@ -212,6 +215,7 @@ def test_controller_output_saturated_over_a_whole_recording(node):
     w(0x2000, 2, "<f", 1.0e4)   # Kd
     w(0x2000, 4, "<f", 50.0)    # K_fc far above u_max
     w(0x2000, 7, "<f", u_max)
+    w(0x2000, 6, "<f", fc_smooth)
     w(0x2001, 1, "<B", 1)       # sine
     w(0x2001, 3, "<f", 500.0)   # amplitude [rad]
     w(0x2001, 5, "<I", 1024)

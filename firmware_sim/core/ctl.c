@@ -20,6 +20,9 @@ static void ctl_update_derived(ctl_t *ctl)
     ctl->d_pole = ctl->tau_d / den;
     ctl->d_gain = ctl->kd / den;
     ctl->inv_smooth = (ctl->fc_smooth > 0.0f) ? 1.0f / ctl->fc_smooth : 0.0f;
+    if (!isfinite(ctl->inv_smooth)) {
+        ctl->inv_smooth = 0.0f; /* a denormal width: 1/w overflows (0 * inf = NaN); pure sign */
+    }
 }
 
 ctl_status_t ctl_init(ctl_t *ctl, float fs_hz)
