@@ -48,6 +48,8 @@ int plant_init(plant_t *pl, const plant_params_t *p, char *err, size_t errlen)
     pl->events = 0u;
     pl->slow_steps = 0u;
     pl->fast_dt = 0.0;
+    pl->count = p->counts_per_rev ? PLANT_TWO_PI / (double)p->counts_per_rev : 0.0;
+    pl->per_count = p->counts_per_rev ? (double)p->counts_per_rev / PLANT_TWO_PI : 0.0;
     pl->rng = p->seed;
     pl->has_spare = 0;
     pl->spare = 0.0;
@@ -387,12 +389,12 @@ static double plant_gauss(plant_t *pl)
 
 /* nearest count: q floor(th / q + 1/2), the floor by integer conversion (no libm call on
  * the per-step path); beyond +-2^62 counts it saturates, far outside any simulation */
-static double plant_quantise(const plant_params_t *p, double th)
+static double plant_quantise(const plant_t *pl, double th)
 {
-    if (p->counts_per_rev == 0u) {
+    if (pl->per_count == 0.0) {
         return th;
     }
-    double t = th * ((double)p->counts_per_rev / PLANT_TWO_PI) + 0.5;
+    double t = th * pl->per_count + 0.5;
     if (!(fabs(t) < 4.0e18)) {
         return th;
     }
@@ -400,13 +402,13 @@ static double plant_quantise(const plant_params_t *p, double th)
     if ((double)i > t) {
         i--;
     }
-    return (double)i * (PLANT_TWO_PI / (double)p->counts_per_rev);
+    return (double)i * pl->count;
 }
 
 void plant_measure(plant_t *pl, double *th1_meas, double *th2_meas)
 {
-    double m1 = plant_quantise(&pl->p, pl->x[0]);
-    double m2 = plant_quantise(&pl->p, pl->x[2]);
+    double m1 = plant_quantise(pl, pl->x[0]);
+    double m2 = plant_quantise(pl, pl->x[2]);
     if (pl->p.noise_std > 0.0) {
         m1 += pl->p.noise_std * plant_gauss(pl);
         m2 += pl->p.noise_std * plant_gauss(pl);

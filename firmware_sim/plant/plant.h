@@ -60,6 +60,7 @@ typedef struct {
     uint64_t events;        /* stick/slip switches so far */
     uint64_t slow_steps;    /* controller steps integrated on the sub-step path */
     double fast_dt;         /* step length Phi/Gamma belong to (0 = none) */
+    double count, per_count;    /* encoder count [rad] and its inverse (0: no quantisation) */
     double phi[4][4], gam[4];   /* slip: x+ = phi x + gam (km u - s Fc) */
     double phis[2][2], gams[2]; /* stick: (th2, w2)+ = phis (th2, w2) + gams th1 */
     uint64_t rng;

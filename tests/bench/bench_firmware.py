@@ -1,0 +1,75 @@
+"""Benchmark: closed-loop simulation rate of firmware_sim (C: simulated plant + drive core)
+beside a scipy solve_ivp simulation of the same model, as a ratio, measured in the same run.
+
+C: build/bench_fw rate (free run, -O2, sine reference; median of 5 x 2e6 steps).
+scipy: what a Python user would reach for: per controller step the same PD + Coulomb
+feed-forward law on the sampled motor angle, then solve_ivp (RK45, rtol 1e-8) over the step
+with the input held and friction Fc sign(w1) + viscous; median of 3 runs of 1 s simulated.
+Rates are controller steps of simulated time per wall-clock second.
+"""
+import os
+import re
+import subprocess
+import sys
+import time
+
+import numpy as np
+import yaml
+from scipy.integrate import solve_ivp
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
+FW = os.path.join(ROOT, "firmware_sim")
+CONFIG = os.path.join(ROOT, "configs", "plant_twomass.yaml")
+
+
+def c_rate():
+    subprocess.run(["make", "--no-print-directory", "-C", FW, "core-all"], check=True, stdout=subprocess.DEVNULL)
+    out = subprocess.run([os.path.join(FW, "build", "bench_fw"), "rate", CONFIG], check=True,
+                         capture_output=True, text=True).stdout
+    print(out.strip())
+    return float(re.search(r"^RATE (\S+)", out, re.M).group(1))
+
+
+def scipy_rate(sim_seconds=1.0, amplitude=0.5, f0=1.0):
+    with open(CONFIG, encoding="utf-8") as f:
+        cfg = yaml.safe_load(f)
+    p, c = cfg["plant"], cfg["controller"]
+    fs = cfg["drive"]["fs_hz"]
+    dt = 1.0 / fs
+    tau, kp, kd, kfc, umax = c["tau_d"], c["kp"], c["kd"], p["coulomb"] / p["km"], c["u_max"]
+
+    def rhs(t, x, u):
+        th1, w1, th2, w2 = x
+        spring = p["k"] * (th1 - th2) + p["c"] * (w1 - w2)
+        friction = p["coulomb"] * np.sign(w1) + p["viscous"] * w1
+        return [w1, (p["km"] * u - spring - friction) / p["j1"], w2, (spring - p["load_viscous"] * w2) / p["j2"]]
+
+    n = int(round(sim_seconds * fs))
+    x = np.zeros(4)
+    e_prev, d = 0.0, 0.0
+    t0 = time.perf_counter()
+    for i in range(n):
+        ref = amplitude * np.sin(2 * np.pi * f0 * i * dt)
+        vref = amplitude * 2 * np.pi * f0 * np.cos(2 * np.pi * f0 * i * dt)
+        e = ref - x[0]
+        d = tau / (tau + dt) * d + kd / (tau + dt) * (e - e_prev)
+        e_prev = e
+        u = float(np.clip(kp * e + d + kfc * np.sign(vref), -umax, umax))
+        x = solve_ivp(rhs, (0.0, dt), x, method="RK45", rtol=1e-8, atol=1e-10, args=(u,)).y[:, -1]
+    wall = time.perf_counter() - t0
+    return n / wall
+
+
+def main():
+    rate_c = c_rate()
+    rates_py = sorted(scipy_rate() for _ in range(3))
+    rate_py = rates_py[1]
+    print(f"scipy solve_ivp closed loop (same model, same controller): median {rate_py:.3g} steps/s "
+          f"(min {rates_py[0]:.3g}, max {rates_py[2]:.3g}) over 3 x 1 s simulated")
+    print(f"firmware_sim C closed loop: {rate_c:.3g} steps/s (target >= 1e7)")
+    print(f"ratio C / scipy: {rate_c / rate_py:.3g}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
