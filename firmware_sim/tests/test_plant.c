@@ -147,6 +147,16 @@ static void test_config_files_load(void)
     }
 }
 
+static void test_defaults_equal_twomass_file(void)
+{
+    /* drive_sim without --config runs the built-in defaults: they must be plant_twomass.yaml */
+    plant_config_t file, def;
+    char err[300];
+    TH_EQ(plant_config_load("../configs/plant_twomass.yaml", &file, err, sizeof err), 0);
+    plant_config_defaults(&def);
+    TH_ASSERT(memcmp(&file, &def, sizeof def) == 0);
+}
+
 static void test_config_errors_name_file_line_key(void)
 {
     const struct {
@@ -236,6 +246,7 @@ int main(void)
     TH_RUN(test_coulomb_slide_to_rest_analytic);
     TH_RUN(test_measurement_quantisation_and_noise);
     TH_RUN(test_config_files_load);
+    TH_RUN(test_defaults_equal_twomass_file);
     TH_RUN(test_config_errors_name_file_line_key);
     TH_RUN(test_sim_truth_and_holding);
     return th_finish();
