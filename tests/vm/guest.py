@@ -60,6 +60,12 @@ DEFAULT_GUEST_ENV = {
     "TERM": "dumb",
     "PYTHONDONTWRITEBYTECODE": "1",
     "MPLBACKEND": "Agg",
+    # Lets code (and guest_available) know it already runs inside the guest.
+    "FFTUNE_IN_VM_GUEST": "1",
+    # The job directory (read-write, shared with the host) and its "out" subdirectory: files
+    # written to FFTUNE_VM_OUT come back in GuestResult.outputs.
+    "FFTUNE_VM_JOB": "/run/vmjob",
+    "FFTUNE_VM_OUT": "/run/vmjob/out",
 }
 
 # Seconds the host waits beyond the command's own timeout for boot, setup and power-off
@@ -93,6 +99,8 @@ class GuestResult:
     init_log : the guest init's log (module loading, mounts, setup timing).
     console : the guest's serial console (kernel messages).
     duration_s : host wall-clock time from qemu start to its exit, seconds.
+    outputs : {name: text} of the files the command wrote under $FFTUNE_VM_OUT
+        (names relative to it, subdirectories with '/').
     """
 
     args: object
@@ -103,6 +111,7 @@ class GuestResult:
     init_log: str = ""
     console: str = ""
     duration_s: float = 0.0
+    outputs: dict = dataclasses.field(default_factory=dict)
 
     def check_returncode(self):
         if self.returncode != 0:
@@ -377,6 +386,8 @@ def build_initramfs(kernel: GuestKernel | None = None, cache_dir: Path = CACHE_D
 
 def guest_available() -> tuple[bool, str]:
     """(True, description) when everything the guest needs is installed, else (False, reason)."""
+    if os.environ.get("FFTUNE_IN_VM_GUEST") == "1":
+        return False, "already inside the qemu test guest (no nested guests)"
     try:
         qemu = find_qemu()
         kernel = find_kernel()
@@ -410,7 +421,7 @@ def _read_text(path: Path) -> str:
 
 
 def run_in_guest(command, env: dict | None = None, cwd: str | os.PathLike | None = None,
-                 timeout_s: float = 300.0, memory_mib: int = 1536, cpus: int = 2,
+                 timeout_s: float = 300.0, files: dict | None = None, memory_mib: int = 1536, cpus: int = 2,
                  hard_limit_s: float | None = None) -> GuestResult:
     """Boot the guest, run ``command`` in the host tree with vcan0 up, power off.
 
@@ -425,6 +436,10 @@ def run_in_guest(command, env: dict | None = None, cwd: str | os.PathLike | None
         Working directory in the guest (the host tree is mounted at /); default the repo root.
     timeout_s : float
         Limit on the command in the guest, seconds; the guest kills its process group then.
+    files : dict, optional
+        {name: str or bytes} written into the job directory before boot; the command sees
+        them as $FFTUNE_VM_JOB/name (/run/vmjob/name). The host's /tmp is NOT visible in the
+        guest (a tmpfs covers it), so pass scripts this way or inline.
     memory_mib, cpus : guest RAM (also holds everything written in the guest) and vCPUs.
     hard_limit_s : float, optional
         Host-side limit for the whole qemu run; default ``timeout_s + BOOT_ALLOWANCE_S``.
@@ -447,6 +462,12 @@ def run_in_guest(command, env: dict | None = None, cwd: str | os.PathLike | None
         job.mkdir()
         (job / "job.sh").write_text(_job_script(command, full_env, cwd))
         (job / "timeout_s").write_text(f"{max(1, int(round(timeout_s)))}\n")
+        (job / "out").mkdir()
+        for name, content in (files or {}).items():
+            if "/" in name or name in ("job.sh", "timeout_s", "out", "stdout", "stderr", "rc",
+                                       "timed_out", "init.log"):
+                raise ValueError(f"files: {name!r} is not a plain file name or is reserved")
+            (job / name).write_bytes(content.encode() if isinstance(content, str) else content)
         console = Path(tmp) / "console.log"
         argv = [
             qemu, "-accel", "tcg", "-M", "pc", "-cpu", os.environ.get("FFTUNE_VM_CPU", "max"), "-smp", str(cpus),
@@ -481,8 +502,10 @@ def run_in_guest(command, env: dict | None = None, cwd: str | os.PathLike | None
             stderr += (f"\n[guest.py] no exit status from the guest; qemu "
                        f"{'killed after ' + str(hard_limit_s) + ' s' if host_timed_out else 'exited'}"
                        f"{': ' + qemu_err.strip() if qemu_err.strip() else ''}\n")
+        outputs = {str(p.relative_to(job / "out")): _read_text(p)
+                   for p in sorted((job / "out").rglob("*")) if p.is_file()}
         return GuestResult(
-            args=command, returncode=returncode, stdout=_read_text(job / "stdout"),
+            outputs=outputs, args=command, returncode=returncode, stdout=_read_text(job / "stdout"),
             stderr=stderr, timed_out=guest_timed_out or host_timed_out,
             init_log=_read_text(job / "init.log"), console=_read_text(console),
             duration_s=duration)
