@@ -107,6 +107,7 @@ typedef struct {
     const void *entry; /* const co_od_entry_t * */
     uint32_t size;     /* total bytes (0 if not indicated, download) */
     bool size_indicated;
+    uint32_t generation; /* recorder upload: run counter when the transfer began */
     uint32_t offset;  /* bytes transferred so far */
     uint8_t toggle;
     uint8_t buf[CO_SDO_BUF]; /* non-DOMAIN values */
@@ -186,6 +187,7 @@ const co_od_entry_t *co_od_lookup(uint16_t index, uint8_t sub, uint32_t *abort_c
 uint32_t co_od_read(co_node_t *n, const co_od_entry_t *e, uint8_t *dst, uint32_t cap, uint32_t *len);
 uint32_t co_od_write(co_node_t *n, const co_od_entry_t *e, const uint8_t *src, uint32_t len);
 uint32_t co_od_domain_size(co_node_t *n, const co_od_entry_t *e, uint32_t *size);
+uint32_t co_od_domain_generation(co_node_t *n, const co_od_entry_t *e);
 uint32_t co_od_domain_read(co_node_t *n, const co_od_entry_t *e, uint32_t off, uint8_t *dst, uint32_t len);
 uint32_t co_od_domain_begin(co_node_t *n, const co_od_entry_t *e, uint32_t size, bool size_known);
 uint32_t co_od_domain_write(co_node_t *n, const co_od_entry_t *e, uint32_t off, const uint8_t *src, uint32_t len);

@@ -371,6 +371,15 @@ uint32_t co_od_domain_size(co_node_t *n, const co_od_entry_t *e, uint32_t *size)
     return CO_SDO_AB_GENERAL;
 }
 
+uint32_t co_od_domain_generation(co_node_t *n, const co_od_entry_t *e)
+{
+    uint32_t counter = 0u;
+    if (e->ref == CO_DOMAIN_RECORDER) {
+        (void)drv_get_u32(n->drv, DRV_P_RUN_COUNTER, &counter);
+    }
+    return counter;
+}
+
 uint32_t co_od_domain_read(co_node_t *n, const co_od_entry_t *e, uint32_t off, uint8_t *dst, uint32_t len)
 {
     drv_status_t st;

@@ -82,7 +82,11 @@ static uint32_t src_read(co_node_t *n, uint32_t off, uint8_t *dst, uint32_t len)
         return 0u;
     }
     if (e->type == CO_T_DOMAIN) {
-        return co_od_domain_read(n, e, off, dst, len);
+        uint32_t ab = co_od_domain_read(n, e, off, dst, len);
+        if (ab == 0u && co_od_domain_generation(n, e) != s->generation) {
+            ab = CO_SDO_AB_GENERAL; /* a new run replaced the data under the transfer */
+        }
+        return ab;
     }
     if ((uint64_t)off + len > s->size || s->size > CO_SDO_BUF) {
         return CO_SDO_AB_GENERAL;
@@ -146,6 +150,7 @@ static uint32_t prepare_upload(co_node_t *n, const co_od_entry_t *e)
         return CO_SDO_AB_WRITEONLY;
     }
     if (e->type == CO_T_DOMAIN) {
+        s->generation = co_od_domain_generation(n, e);
         return co_od_domain_size(n, e, &s->size);
     }
     return co_od_read(n, e, s->buf, CO_SDO_BUF, &s->size);

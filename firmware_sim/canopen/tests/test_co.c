@@ -297,13 +297,19 @@ static void test_abort_codes(void)
     CHECK(abort_code(last_id(0x585)) == CO_SDO_AB_TIMEOUT);
     /* device state: run start outside OPERATIONAL / OPERATION ENABLED */
     CHECK(sdo_write(0x2010, 1, 1, 1) == CO_SDO_AB_DATA_DEV_STATE);
-    /* general error: data under a running upload changed size */
+    /* general error: the data under a running upload changed (size, or a new run) */
     g_drv.rec_bytes = 100;
     uint8_t up[8] = {0x40, 0x21, 0x20, 0, 0, 0, 0, 0};
     CHECK(sdo(up)->data[0] == 0x41);
     g_drv.rec_bytes = 3;
     uint8_t s0[8] = {0x60, 0, 0, 0, 0, 0, 0, 0};
     CHECK(abort_code(sdo(s0)) == CO_SDO_AB_GENERAL);
+    g_drv.rec_bytes = 100;
+    CHECK(sdo(up)->data[0] == 0x41);
+    CHECK(sdo(s0)->data[0] == 0x00); /* first segment */
+    g_drv.run_counter++;
+    uint8_t s1[8] = {0x70, 0, 0, 0, 0, 0, 0, 0};
+    CHECK(abort_code(sdo(s1)) == CO_SDO_AB_GENERAL);
     /* block sizes */
     uint8_t bu[8] = {0xA4, 0x21, 0x20, 0, 0, 0, 0, 0};
     CHECK(abort_code(sdo(bu)) == CO_SDO_AB_BLKSIZE);

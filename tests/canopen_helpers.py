@@ -1,0 +1,52 @@
+"""Helpers of the CANopen conformance tests (tests/test_canopen_*.py)."""
+import time
+
+
+def wait_for(pred, timeout_s, poll_s=0.02):
+    """True as soon as pred() is true, False after timeout_s."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(poll_s)
+    return bool(pred())
+
+
+def collect(net, cob_id):
+    """Subscribe to a COB-ID; returns the list the frames (data bytes) are appended to."""
+    got = []
+    net.subscribe(cob_id, lambda can_id, data, ts: got.append(bytes(data)))
+    return got
+
+
+def enable_402(node):
+    """Shutdown, switch on, enable operation by SDO; returns the statusword."""
+    for cw in (0x06, 0x07, 0x0F):
+        node.sdo[0x6040].raw = cw
+    return node.sdo[0x6041].raw
+
+
+def configure_sine_run(node, period=2048, settle=0, record=1, amplitude=0.5, cycles=1,
+                       signals=0x07):
+    ex = node.sdo["Excitation"]
+    ex["Kind"].raw = 1
+    ex["Amplitude"].raw = amplitude
+    ex["Offset"].raw = 0.0
+    ex["Period length N"].raw = period
+    ex["Sine cycles per period"].raw = cycles
+    ex["Settle periods"].raw = settle
+    ex["Record periods"].raw = record
+    node.sdo["Recorder"]["Signal selection"].raw = signals
+
+
+def start_long_run(node):
+    """A run that settles for 1000 periods of 8192 samples (seconds in free-run)."""
+    configure_sine_run(node, period=8192, settle=1000, record=1, signals=0x01)
+    node.sdo["Run control"]["Command"].raw = 1
+
+
+def run_to_done(node, timeout_s=30.0):
+    node.sdo["Run control"]["Command"].raw = 1
+    ok = wait_for(lambda: node.sdo["Run control"]["State"].raw not in (1, 2), timeout_s, 0.01)
+    assert ok, "run did not finish"
+    return node.sdo["Run control"]["State"].raw

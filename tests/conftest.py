@@ -1,0 +1,147 @@
+"""Shared pytest fixtures: the simulated drive (firmware_sim's ``drive_sim``) as a CANopen node.
+
+``drive_sim`` starts ``firmware_sim/build/drive_sim`` as a subprocess (a fresh node per
+test) and yields a :class:`DriveSim` with the connection facts. The transport is chosen
+by the environment variable ``FFTUNE_TEST_CAN``:
+
+- ``socketcand`` (default): drive_sim serves socketcand on a free loopback port; clients
+  connect with python-can's ``socketcand`` interface;
+- ``socketcan:IFNAME`` (e.g. ``socketcan:vcan0`` inside the qemu guest): drive_sim and the
+  clients use that SocketCAN interface.
+"""
+import logging
+import os
+import re
+import select
+import subprocess
+import time
+from dataclasses import dataclass, field
+
+import pytest
+
+REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
+DRIVE_SIM_BIN = os.path.join(REPO, "firmware_sim", "build", "drive_sim")
+DRIVE_SIM_EDS = os.path.join(REPO, "firmware_sim", "build", "gen", "fftune_drive.eds")
+PLANT_TWOMASS = os.path.join(REPO, "configs", "plant_twomass.yaml")
+
+# python-can's socketcand client logs a warning on every partial TCP read.
+logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
+
+_LISTEN = re.compile(r"drive_sim: listening on (socketcand (\S+):(\d+)|socketcan (\S+)), node (\d+)")
+
+
+def can_transport():
+    """('socketcand', None) or ('socketcan', IFNAME) from FFTUNE_TEST_CAN."""
+    spec = os.environ.get("FFTUNE_TEST_CAN", "socketcand").strip()
+    if spec == "socketcand":
+        return "socketcand", None
+    if spec.startswith("socketcan:") and len(spec) > len("socketcan:"):
+        return "socketcan", spec.split(":", 1)[1]
+    raise pytest.UsageError(f"FFTUNE_TEST_CAN={spec!r}: expected 'socketcand' or 'socketcan:IFNAME'")
+
+
+@dataclass
+class DriveSim:
+    """A running drive_sim and how to reach its bus."""
+    proc: subprocess.Popen
+    transport: str            # 'socketcand' or 'socketcan'
+    node_id: int
+    eds: str
+    host: str = None
+    port: int = None
+    channel: str = "can0"
+    stderr_path: str = None
+    extra: dict = field(default_factory=dict)
+
+    def bus_kwargs(self):
+        """Keyword arguments for ``can.Bus(...)`` / ``canopen.Network.connect(...)``."""
+        if self.transport == "socketcand":
+            return dict(interface="socketcand", channel="can0", host=self.host, port=self.port)
+        return dict(interface="socketcan", channel=self.channel)
+
+    def network(self):
+        """A connected ``canopen.Network`` (disconnect it when done)."""
+        import canopen
+        net = canopen.Network()
+        # the notifier thread blocks this long in recv(): it bounds disconnect()'s wait
+        net.NOTIFIER_CYCLE = 0.1
+        net.connect(**self.bus_kwargs())
+        return net
+
+    def stderr_text(self):
+        with open(self.stderr_path, encoding="utf-8", errors="replace") as f:
+            return f.read()
+
+
+def drive_sim_missing_reason():
+    if not os.path.exists(DRIVE_SIM_BIN):
+        return f"{DRIVE_SIM_BIN} not built (run `make setup`; needs firmware_sim core + plant)"
+    if not os.path.exists(DRIVE_SIM_EDS):
+        return f"{DRIVE_SIM_EDS} not generated (run `make setup`)"
+    return None
+
+
+def start_drive_sim(tmp_path, node_id=1, extra_args=(), timeout_s=10.0):
+    """Start drive_sim on the selected transport and wait for its 'listening' line."""
+    reason = drive_sim_missing_reason()
+    if reason:
+        pytest.skip(reason)
+    transport, ifname = can_transport()
+    bus = f"socketcand:127.0.0.1:0" if transport == "socketcand" else f"socketcan:{ifname}"
+    cmd = [DRIVE_SIM_BIN, "--can", bus, "--node-id", str(node_id), "--config", PLANT_TWOMASS,
+           *extra_args]
+    err_path = os.path.join(str(tmp_path), f"drive_sim_{node_id}.stderr")
+    err = open(err_path, "w")
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, bufsize=1)
+    err.close()
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"drive_sim exited ({proc.returncode}) before listening: "
+                               f"{open(err_path).read().strip()}")
+        ready, _, _ = select.select([proc.stdout], [], [], 0.1)
+        if not ready:
+            continue
+        m = _LISTEN.search(proc.stdout.readline())
+        if m:
+            if transport == "socketcand":
+                return DriveSim(proc, transport, int(m.group(5)), DRIVE_SIM_EDS, host=m.group(2),
+                                port=int(m.group(3)), stderr_path=err_path)
+            return DriveSim(proc, transport, int(m.group(5)), DRIVE_SIM_EDS, channel=m.group(4),
+                            stderr_path=err_path)
+    proc.kill()
+    proc.wait()
+    raise RuntimeError("drive_sim printed no 'listening' line within %g s" % timeout_s)
+
+
+def stop_drive_sim(sim):
+    if sim.proc.poll() is None:
+        sim.proc.terminate()
+        try:
+            sim.proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            sim.proc.kill()
+            sim.proc.wait()
+    sim.proc.stdout.close()
+
+
+@pytest.fixture
+def drive_sim(tmp_path):
+    """A fresh drive_sim (node 1, plant_twomass) on the transport FFTUNE_TEST_CAN selects."""
+    sim = start_drive_sim(tmp_path)
+    yield sim
+    stop_drive_sim(sim)
+
+
+@pytest.fixture
+def co_node(drive_sim):
+    """(network, node): python-canopen RemoteNode for drive_sim with the generated EDS."""
+    import canopen
+    net = drive_sim.network()
+    node = canopen.RemoteNode(drive_sim.node_id, drive_sim.eds)
+    # python-canopen waits 0.3 s for an SDO answer and does not retry: on a loaded 2-core CI
+    # machine its own receive thread can miss that; the node itself answers in < 1 ms.
+    node.sdo.RESPONSE_TIMEOUT = 2.0
+    net.add_node(node)
+    yield net, node
+    net.disconnect()

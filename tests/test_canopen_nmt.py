@@ -1,0 +1,99 @@
+"""drive_sim's NMT slave and heartbeat (CiA 301), driven by python-canopen."""
+import time
+
+import canopen
+import pytest
+from canopen.sdo import SdoCommunicationError
+
+from canopen_helpers import collect, enable_402, start_long_run, wait_for
+
+
+def _boot_ups(net, node_id):
+    """Boot-up frames (0x700 + id, one byte 0) seen from now on.
+
+    (python-canopen's wait_for_bootup() starts listening only when called, so a boot-up
+    that follows the NMT command at once is missed: subscribe first.)"""
+    return collect(net, 0x700 + node_id)
+
+
+def test_reset_node_sends_boot_up_and_restores_defaults(co_node):
+    net, node = co_node
+    node.sdo["Controller"]["Kp"].raw = 3.5
+    node.sdo[0x1017].raw = 200
+    frames = _boot_ups(net, node.id)
+    node.nmt.state = "RESET"
+    assert wait_for(lambda: b"\x00" in frames, 2.0)    # boot-up message: state byte 0
+    assert node.nmt.state == "PRE-OPERATIONAL"
+    assert node.sdo[0x1017].raw == 0
+    assert node.sdo["Controller"]["Kp"].raw == pytest.approx(2.0)  # plant_twomass value
+
+
+def test_reset_communication_keeps_application_values(co_node):
+    net, node = co_node
+    node.sdo["Controller"]["Kp"].raw = 3.5
+    node.sdo[0x1017].raw = 200
+    frames = _boot_ups(net, node.id)
+    node.nmt.state = "RESET COMMUNICATION"
+    assert wait_for(lambda: b"\x00" in frames, 2.0)
+    assert node.sdo[0x1017].raw == 0
+    assert node.sdo["Controller"]["Kp"].raw == pytest.approx(3.5)
+
+
+def test_nmt_states_seen_in_heartbeat_and_sdo_only_outside_stopped(co_node):
+    net, node = co_node
+    node.sdo[0x1017].raw = 50
+    assert node.nmt.wait_for_heartbeat(1.0) == "PRE-OPERATIONAL"
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.12)
+    assert node.nmt.wait_for_heartbeat(1.0) == "OPERATIONAL"
+    node.nmt.state = "STOPPED"
+    time.sleep(0.12)
+    assert node.nmt.wait_for_heartbeat(1.0) == "STOPPED"
+    node.sdo.RESPONSE_TIMEOUT = 0.3
+    with pytest.raises(SdoCommunicationError):      # no SDO server in STOPPED
+        node.sdo[0x1000].raw
+    node.nmt.state = "PRE-OPERATIONAL"
+    time.sleep(0.12)
+    assert node.nmt.wait_for_heartbeat(1.0) == "PRE-OPERATIONAL"
+    assert node.sdo[0x1000].raw == 0x00020192
+
+
+def test_heartbeat_producer_period(co_node):
+    net, node = co_node
+    stamps = []
+    node.nmt.add_heartbeat_callback(lambda state: stamps.append(time.monotonic()))
+    node.sdo[0x1017].raw = 100
+    time.sleep(1.05)
+    node.sdo[0x1017].raw = 0
+    assert 9 <= len(stamps) <= 12
+    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+    assert sum(gaps) / len(gaps) == pytest.approx(0.1, abs=0.02)
+
+
+def test_host_heartbeat_loss_stops_a_run_safely(co_node):
+    net, node = co_node
+    host_id = 0x7F
+    hb = net.send_periodic(0x700 + host_id, [5], 0.05)
+    try:
+        node.sdo["Consumer heartbeat time"][1].raw = (host_id << 16) | 300
+        emcys = []
+        node.emcy.add_callback(emcys.append)
+        node.nmt.state = "OPERATIONAL"
+        enable_402(node)
+        start_long_run(node)
+        time.sleep(0.5)                         # host alive: the run goes on
+        assert node.sdo["Run control"]["State"].raw in (1, 2)
+    finally:
+        hb.stop()
+    t_lost = time.monotonic()
+    assert wait_for(lambda: node.sdo["Run control"]["State"].raw == 4, 2.0)
+    assert time.monotonic() - t_lost < 1.0
+    assert node.sdo["Run control"]["Last stop reason"].raw == 2      # heartbeat lost
+    assert wait_for(lambda: any(e.code == 0x8130 for e in emcys), 1.0)
+    assert node.sdo[0x1001].raw & 0x10                                # communication error
+    # the drive still holds position: statusword OPERATION ENABLED
+    assert node.sdo[0x6041].raw & 0x6F == 0x27
+    # the host comes back: error reset EMCY and cleared error register
+    net.send_message(0x700 + host_id, [5])
+    assert wait_for(lambda: any(e.code == 0x0000 for e in emcys), 1.0)
+    assert node.sdo[0x1001].raw == 0
