@@ -34,7 +34,11 @@ def quiet_can_loggers():
     """python-can's socketcand client logs every partial TCP read and every refused
     connection attempt as a warning; keep the user's terminal readable."""
     logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
-    logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.ERROR)
+    # (CRITICAL: a receive error on a lost connection is logged with a traceback; the next
+    # SDO request reports it as one line)
+    logging.getLogger("can.interfaces.socketcand.socketcand").setLevel(logging.CRITICAL)
+    # a heartbeat send failing on a lost connection: reported by the next SDO request
+    logging.getLogger("can.bcm").setLevel(logging.CRITICAL)
     # python-canopen logs SDO retries and aborts itself; we report them as errors.
     logging.getLogger("canopen").setLevel(logging.CRITICAL)
 
@@ -150,6 +154,25 @@ def _open_bus(opts, deadline_s=CONNECT_DEADLINE_S):
     return result["bus"]
 
 
+class _BusErrorListener:
+    """Marks receive errors of the bus (e.g. the socketcand server went away) as handled,
+    so that python-can's receive thread does not die with a traceback on the terminal; it
+    retries every 50 ms until the client closes, and the next SDO request reports the lost
+    connection as one error line."""
+
+    def __call__(self, msg):
+        pass
+
+    def on_message_received(self, msg):
+        pass
+
+    def on_error(self, exc):
+        time.sleep(0.05)
+
+    def stop(self):
+        pass
+
+
 class DriveClient:
     """A connected drive. Use as a context manager, or call :meth:`close`.
 
@@ -198,6 +221,7 @@ class DriveClient:
         self.network = canopen.Network(bus)
         self.network.add_node(self.node)
         self.network.connect()
+        self.network.notifier.add_listener(_BusErrorListener())
         self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.node.sdo.MAX_RETRIES = max(1, self.sdo_retries)
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
@@ -246,6 +270,11 @@ class DriveClient:
         period = self.heartbeat_ms / 1000.0
         # Host heartbeat (state 0x05 operational) on 0x700 + host id.
         self._hb_task = self.network.send_periodic(0x700 + self.host_node_id, [0x05], period)
+        # A send error (the bus went away) ends the heartbeat thread quietly; the next SDO
+        # request reports the lost connection as one error line instead of a thread traceback.
+        task = getattr(self._hb_task, "_task", None)
+        if task is not None and hasattr(task, "on_error"):
+            task.on_error = lambda exc: False
         self.write(0x1017, 0, self.heartbeat_ms)
         consumer = (self.host_node_id << 16) | min(0xFFFF, 4 * self.heartbeat_ms)
         self.write(0x1016, 1, consumer)
@@ -289,6 +318,7 @@ class DriveClient:
         return f"0x{index:04X}:{sub:02X} '{name}'"
 
     def _sdo_call(self, what, index, sub, fn):
+        import can
         from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
         try:
@@ -302,6 +332,10 @@ class DriveClient:
                               f"{self.node.sdo.RESPONSE_TIMEOUT:g} s ({self.opts.describe()})") from None
         except (ValueError, TypeError, KeyError) as exc:
             raise FftuneError(f"{what} {self._describe_obj(index, sub)}: {exc}") from None
+        except (OSError, can.CanError) as exc:
+            # the bus itself failed (e.g. the socketcand server, the drive, went away)
+            raise FftuneError(f"{what} {self._describe_obj(index, sub)} on node {self.opts.node_id}: "
+                              f"connection lost ({type(exc).__name__}: {exc}) on {self.opts.describe()}") from None
 
     def _var(self, index, sub):
         obj = self.node.sdo[index]
