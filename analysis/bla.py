@@ -230,23 +230,6 @@ def _validate_lines(bins, n):
     return bins
 
 
-def _spectral_lines(x, lines):
-    """rfft over the last axis, keeping only ``lines`` (unscaled DFT, complex128).
-
-    One realization at a time: the full spectrum of one realization stays in cache
-    while its lines are gathered, and its buffer is reused by the allocator (no page
-    faults on a spectrum-sized array), which makes this about as fast as a bare rfft.
-    """
-    out = np.empty(x.shape[:-1] + (lines.size,), dtype=np.complex128)
-    for m in range(x.shape[0]):
-        spectrum = scipy.fft.rfft(x[m], axis=-1)
-        if spectrum.dtype == out.dtype:
-            np.take(spectrum, lines, axis=-1, out=out[m])
-        else:                                   # float32 input: complex64 spectrum
-            out[m] = np.take(spectrum, lines, axis=-1)
-    return out
-
-
 def _abs2_sum(z, axis):
     """sum |z|^2 over ``axis`` without complex temporaries (einsum on the real view)."""
     v = np.ascontiguousarray(z).view(np.float64)          # (..., 2K): re, im interleaved
@@ -306,6 +289,55 @@ def _locate_bad(arrays):
             raise InputError(f"{name}: contains NaN or inf")
 
 
+def _realization_pass(u, y, r, settle, excited, det_bins):
+    """Per realization: spectra at the needed lines and their reductions over periods.
+
+    Returns a dict of arrays (unscaled DFT values): ``Y_exc`` (M, T+P, E) output at the
+    excited lines; ``u_power`` (E,) sum of |U|^2; ``U_mean`` (M, E); ``det_mean``,
+    ``det_ss`` (M, D) mean and sum of squared deviations over periods at the detection
+    lines; known input: ``G_m``, ``G_ss`` (M, E) for G = Y/U; known reference:
+    ``R_mean``, ``Un_m``, ``Yn_m`` (M, E) and ``su2``, ``sy2``, ``syu`` (M, E) the
+    period sums of |dU|^2, |dY|^2, dY conj(dU) after the R/|R| rotation.
+    """
+    n_real, n_total, _ = y.shape
+    n_exc, n_det = excited.size, det_bins.size
+    y_lines = np.concatenate([excited, det_bins])
+    c = np.complex128
+    st = {"Y_exc": np.empty((n_real, n_total, n_exc), c), "u_power": np.zeros(n_exc),
+          "U_mean": np.empty((n_real, n_exc), c), "det_mean": np.empty((n_real, n_det), c),
+          "det_ss": np.empty((n_real, n_det))}
+    if r is None:
+        st.update(G_m=np.empty((n_real, n_exc), c), G_ss=np.empty((n_real, n_exc)))
+    else:
+        st.update(R_mean=np.empty((n_real, n_exc), c), Un_m=np.empty((n_real, n_exc), c),
+                  Yn_m=np.empty((n_real, n_exc), c), su2=np.empty((n_real, n_exc)),
+                  sy2=np.empty((n_real, n_exc)), syu=np.empty((n_real, n_exc), c))
+    for m in range(n_real):
+        Yl = np.take(scipy.fft.rfft(y[m], axis=-1), y_lines, axis=-1).astype(c, copy=False)
+        st["Y_exc"][m] = Yl[:, :n_exc]
+        Y = Yl[settle:, :n_exc]
+        Yd = Yl[settle:, n_exc:]
+        st["det_mean"][m], st["det_ss"][m] = _spread(Yd[None])
+        U = np.take(scipy.fft.rfft(u[m, settle:], axis=-1), excited, axis=-1).astype(c, copy=False)
+        st["u_power"] += _abs2_sum(U, axis=0)
+        st["U_mean"][m] = U.mean(axis=0)
+        if r is None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                G = Y / U
+            st["G_m"][m], st["G_ss"][m] = _spread(G[None])
+        else:
+            R = np.take(scipy.fft.rfft(r[m, settle:], axis=-1), excited, axis=-1).mean(axis=0)
+            st["R_mean"][m] = R
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rot = np.conj(R / np.abs(R))
+            Un, Yn = U * rot, Y * rot
+            um, ss_u = _spread(Un[None])
+            ym, ss_y = _spread(Yn[None])
+            st["Un_m"][m], st["Yn_m"][m], st["su2"][m], st["sy2"][m] = um, ym, ss_u, ss_y
+            st["syu"][m] = np.einsum("pk,pk->k", Yn - ym, np.conj(Un - um))
+    return st
+
+
 def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                warn_transient=True):
     """Robust BLA with total, noise and nonlinear variances, and odd/even detection.
@@ -362,21 +394,13 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     n_exc, n_odd = excited.size, odd_bins.size
     scale2 = (2.0 / n) ** 2        # |DFT|^2 -> squared amplitude of the line (levels only)
 
-    # one rfft per signal, keeping only the needed lines; every later step works on those
-    U = _spectral_lines(u[:, settle:, :], excited)                       # (M, P, E)
-    Y_lines = _spectral_lines(y, np.concatenate([excited, odd_bins, even_bins]))
-    Y_all_exc = Y_lines[..., :n_exc]                                     # (M, T+P, E)
-    Y = Y_all_exc[:, settle:, :]
-    Y_det = Y_lines[:, settle:, n_exc:]                                  # (M, P, D)
-
     def check_finite(*values):
         if not all(np.isfinite(v).all() for v in values if v is not None):
             _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
             raise InputError("non-finite result (overflow in the input data?)")
 
-    def check_power(name, spectra):
+    def check_power(name, power):
         # "zero" power: 120 dB or more under the median excited line (rounding noise)
-        power = _abs2_sum(spectra.reshape(-1, 1, n_exc), axis=0)[0]
         check_finite(power)
         low = np.flatnonzero(~(power > 1e-12 * np.median(power)))
         if low.size:
@@ -385,29 +409,28 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                 f"{', '.join(f'{excited[i] * fs / n:g} Hz' for i in low[:5])}"
                 f"{' ...' if low.size > 5 else ''} (wrong excited lines?)")
 
-    check_power("input u", U)
+    # One pass over the realizations: rfft of one realization per signal, its lines
+    # gathered while the spectrum is in cache, then reduced over the periods at once.
+    # Only (M, lines)-sized results and the excited output lines (transient check)
+    # are kept; the per-realization temporaries are reused by the allocator.
+    st = _realization_pass(u, y, r, settle, excited, np.concatenate([odd_bins, even_bins]))
+    check_power("input u", st["u_power"])
+    if r is not None:
+        check_power("reference r", np.sum(np.abs(st["R_mean"]) ** 2, axis=0))
 
     notes = []
     if r is None:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            G_mp = Y / U
-        G_m, ss = _spread(G_mp) if n_per >= 2 else (G_mp.mean(axis=1), None)
-        del G_mp
+        G_m = st["G_m"]
         check_finite(G_m)
         G = G_m.mean(axis=0)
-        s2n_m = None if ss is None else ss / (n_per * (n_per - 1))
         var_total = var_noise = None
         if n_real >= 2:
             var_total = _abs2_sum((G_m - G)[:, None, :], axis=0)[0] / (n_real * (n_real - 1))
-        if s2n_m is not None:
-            var_noise = s2n_m.sum(axis=0) / n_real ** 2
-        u_level = np.mean(np.abs(U.mean(axis=1)) ** 2, axis=0)
+        if n_per >= 2:
+            var_noise = st["G_ss"].sum(axis=0) / (n_per * (n_per - 1)) / n_real ** 2
+        u_level = np.mean(np.abs(st["U_mean"]) ** 2, axis=0)
     else:
-        R = _spectral_lines(r[:, settle:, :], excited).mean(axis=1)
-        check_power("reference r", R)
-        rot = np.conj(R / np.abs(R))[:, None, :]
-        Un, Yn = U * rot, Y * rot
-        U_m, Y_m = Un.mean(axis=1), Yn.mean(axis=1)
+        U_m, Y_m = st["Un_m"], st["Yn_m"]
         U_bar, Y_bar = U_m.mean(axis=0), Y_m.mean(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
             G = Y_bar / U_bar
@@ -424,12 +447,9 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
             var_total = propagate(np.sum(np.abs(dy) ** 2, 0) / k, np.sum(np.abs(du) ** 2, 0) / k,
                                   np.sum(dy * np.conj(du), 0) / k)
         if n_per >= 2:
-            du, dy = Un - U_m[:, None, :], Yn - Y_m[:, None, :]
             k = n_per * (n_per - 1) * n_real ** 2
-            var_noise = propagate(_abs2_sum(dy, 1).sum(0) / k, _abs2_sum(du, 1).sum(0) / k,
-                                  np.einsum("mpk,mpk->k", dy, np.conj(du)) / k)
-            del du, dy
-        del Un, Yn
+            var_noise = propagate(st["sy2"].sum(0) / k, st["su2"].sum(0) / k,
+                                  st["syu"].sum(0) / k)
 
     var_nl = var_nl_negative = None
     if var_total is not None and var_noise is not None:
@@ -445,16 +465,16 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         notes.append("P = 1 period: no noise variance (needs P >= 2)")
 
     # Figure 3 view (levels as squared line amplitudes, scale2)
-    output_power = scale2 * np.mean(np.abs(Y.mean(axis=1)) ** 2, axis=0)
+    Y_all_exc = st["Y_exc"]
+    output_power = scale2 * np.mean(np.abs(Y_all_exc[:, settle:, :].mean(axis=1)) ** 2, axis=0)
     u_level = scale2 * u_level
     nl_power = None if var_nl is None else var_nl * u_level
     noise_power = None if var_noise is None else n_real * var_noise * u_level
 
-    det_mean, det_ss = _spread(Y_det)
-    det_power = scale2 * np.mean(np.abs(det_mean) ** 2, axis=0)
+    det_power = scale2 * np.mean(np.abs(st["det_mean"]) ** 2, axis=0)
     det_noise = None
     if n_per >= 2:
-        det_noise = scale2 * det_ss.mean(axis=0) / (n_per * (n_per - 1))
+        det_noise = scale2 * st["det_ss"].mean(axis=0) / (n_per * (n_per - 1))
     check_finite(output_power, det_power)
     odd_power, even_power = det_power[:n_odd], det_power[n_odd:]
     odd_noise = None if det_noise is None else det_noise[:n_odd]
