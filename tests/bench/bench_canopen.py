@@ -1,0 +1,166 @@
+"""Benchmark of drive_sim's CANopen node (run by `make bench`; prints figures).
+
+1. Recorder upload payload throughput with python-canopen block upload (CRC on) of a
+   > 1 MiB recording, median of 3, beside a segmented upload of the same object (first
+   256 KiB) measured in the same run, and beside what a 1 Mbit/s CAN bus can carry.
+2. Frames per second the node sustains: a burst of SDO expedited read requests written in
+   one go over a raw socketcand connection, answered one by one (request + answer = 2
+   frames on the bus); and the segments/s of the block upload.
+
+Transport: FFTUNE_TEST_CAN (default socketcand on loopback; 'socketcan:vcan0' in the qemu
+guest, where part 2's raw burst is replaced by the block upload figure alone).
+"""
+import logging
+import os
+import re
+import select
+import socket
+import statistics
+import subprocess
+import sys
+import time
+
+import canopen
+
+REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir, os.pardir))
+DRIVE_SIM = os.path.join(REPO, "firmware_sim", "build", "drive_sim")
+EDS = os.path.join(REPO, "firmware_sim", "build", "gen", "fftune_drive.eds")
+PLANT = os.path.join(REPO, "configs", "plant_twomass.yaml")
+logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
+
+# 1 Mbit/s CAN, 8-byte frames with 11-bit ids: 111 bits + ~10 stuff bits + 3 IFS = ~125 bit
+# times per frame, i.e. 8000 frames/s; a block-upload segment carries 7 payload bytes.
+CAN_1M_PAYLOAD_BPS = 8000 * 7
+
+
+def start():
+    spec = os.environ.get("FFTUNE_TEST_CAN", "socketcand")
+    bus = "socketcand:127.0.0.1:0" if spec == "socketcand" else spec
+    proc = subprocess.Popen([DRIVE_SIM, "--can", bus, "--config", PLANT, "--quiet"],
+                            stdout=subprocess.PIPE, text=True)
+    end = time.monotonic() + 10
+    while time.monotonic() < end:
+        if select.select([proc.stdout], [], [], 0.1)[0]:
+            line = proc.stdout.readline()
+            m = re.search(r"socketcand (\S+):(\d+)", line)
+            if m:
+                return proc, dict(interface="socketcand", channel="can0", host=m.group(1),
+                                  port=int(m.group(2)))
+            m = re.search(r"socketcan (\S+),", line)
+            if m:
+                return proc, dict(interface="socketcan", channel=m.group(1))
+    proc.kill()
+    sys.exit("bench_canopen: drive_sim did not start")
+
+
+def record(node, periods=129, n=2048):
+    node.nmt.state = "OPERATIONAL"
+    for cw in (0x06, 0x07, 0x0F):
+        node.sdo[0x6040].raw = cw
+    ex = node.sdo["Excitation"]
+    ex["Kind"].raw = 1
+    ex["Amplitude"].raw = 0.5
+    ex["Period length N"].raw = n
+    ex["Settle periods"].raw = 0
+    ex["Record periods"].raw = periods
+    node.sdo["Recorder"]["Signal selection"].raw = 0x01
+    node.sdo["Run control"]["Command"].raw = 1
+    while node.sdo["Run control"]["State"].raw in (1, 2):
+        time.sleep(0.01)
+    return node.sdo["Recorder"]["Data size"].raw
+
+
+def block_upload(node):
+    t = time.perf_counter()
+    with node.sdo[0x2021].open("rb", block_transfer=True) as f:
+        data = f.read()
+    return len(data), time.perf_counter() - t
+
+
+def segmented_upload(node, limit):
+    t = time.perf_counter()
+    fp = node.sdo.open(0x2021, 0, "rb", buffering=0)
+    got = 0
+    while got < limit:
+        chunk = fp.read(7)
+        if not chunk:
+            break
+        got += len(chunk)
+    dt = time.perf_counter() - t
+    quiet = logging.getLogger("canopen.sdo.client")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)
+    node.sdo.abort(0x08000000)        # leave the rest of the object
+    quiet.setLevel(level)
+    return got, dt
+
+
+def raw_burst(host, port, count=20000):
+    s = socket.create_connection((host, port))
+    assert s.recv(256) == b"< hi >"
+    s.sendall(b"< open can0 >")
+    s.recv(256)
+    s.sendall(b"< rawmode >")
+    s.recv(256)
+    req = b"< send 601 8 40 0 10 0 0 0 0 0 >"
+    t = time.perf_counter()
+    s.sendall(req * count)
+    seen, buf = 0, b""
+    s.settimeout(10)
+    while seen < count:
+        chunk = s.recv(1 << 16)
+        if not chunk:
+            break
+        buf += chunk
+        seen += buf.count(b"< frame 581 ")
+        buf = buf[buf.rfind(b">") + 1:]
+    dt = time.perf_counter() - t
+    s.close()
+    return seen, dt
+
+
+def main():
+    if not os.path.exists(DRIVE_SIM):
+        sys.exit(f"bench_canopen: {DRIVE_SIM} not built (make setup)")
+    proc, kw = start()
+    try:
+        net = canopen.Network()
+        net.NOTIFIER_CYCLE = 0.1
+        net.connect(**kw)
+        node = canopen.RemoteNode(1, EDS)
+        node.sdo.RESPONSE_TIMEOUT = 2.0
+        net.add_node(node)
+        size = record(node)
+        print(f"transport: {kw['interface']}; recording: {size} bytes ({size / 2**20:.2f} MiB)")
+        runs = [block_upload(node) for _ in range(3)]
+        assert all(n == size for n, _ in runs)
+        rates = [n / dt for n, dt in runs]
+        block = statistics.median(rates)
+        n_seg, t_seg = segmented_upload(node, 256 * 1024)
+        seg = n_seg / t_seg
+        print(f"recorder block upload (python-canopen, CRC): median {block / 1e3:.1f} kB/s "
+              f"(runs: {', '.join(f'{r / 1e3:.1f}' for r in rates)}); target >= 150 kB/s: "
+              f"{'met' if block >= 150e3 else 'NOT met'}")
+        print(f"  segmented upload, same object, same run: {seg / 1e3:.1f} kB/s "
+              f"(block / segmented = {block / seg:.1f}x)")
+        print(f"  1 Mbit/s CAN carries at most ~{CAN_1M_PAYLOAD_BPS / 1e3:.0f} kB/s of block payload: "
+              f"block upload here = {block / CAN_1M_PAYLOAD_BPS:.1f}x that")
+        print(f"  block upload segments sent by the node: {block / 7:.0f} frames/s")
+        net.disconnect()
+        if kw["interface"] == "socketcand":
+            frames = []
+            for _ in range(3):
+                seen, dt = raw_burst(kw["host"], kw["port"])
+                frames.append(2 * seen / dt)
+            print(f"node request/answer rate (20000 SDO reads in one burst, raw socketcand): "
+                  f"median {statistics.median(frames):.0f} frames/s on the bus "
+                  f"({statistics.median(frames) / 2:.0f} SDO transactions/s)")
+        else:
+            print("node request/answer burst: socketcand only (SocketCAN: see the segments/s above)")
+    finally:
+        proc.terminate()
+        proc.wait()
+
+
+if __name__ == "__main__":
+    main()
