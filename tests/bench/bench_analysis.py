@@ -6,7 +6,8 @@
   over the same u and y records (target <= 1.5x).
 
 Medians of several rounds; in each round the reference and the functions run once, in
-random order, in the same process.
+random order, in the same process. Printed: median time, ratio of medians, and the
+median of the per-round ratios (steadier on a loaded machine).
 """
 import time
 import tracemalloc
@@ -32,7 +33,12 @@ def alternate_medians(funcs, repeats=15):
             t0 = time.perf_counter()
             f()
             times[name].append(time.perf_counter() - t0)
-    return {name: float(np.median(v)) for name, v in times.items()}
+    medians = {name: float(np.median(v)) for name, v in times.items()}
+    # ratio to the first (reference) function within each round, then the median:
+    # steadier than a ratio of medians when other processes load the machine
+    ref = np.array(times[names[0]])
+    round_ratios = {name: float(np.median(np.array(v) / ref)) for name, v in times.items()}
+    return medians, round_ratios
 
 
 def peak_bytes(f):
@@ -51,7 +57,7 @@ def bench_bla(f_max_hz):
     rng = np.random.default_rng(0)
     y = u + 0.1 * u ** 3 + 0.01 * rng.standard_normal(u.shape)
     r = u
-    med = alternate_medians({
+    med, per_round = alternate_medians({
         "rfft u, y": lambda: (np.fft.rfft(u, axis=-1), np.fft.rfft(y, axis=-1)),
         "robust_bla (known input, lines detected)": lambda: robust_bla(u, y, fs=fs),
         "robust_bla (known input, lines given)": lambda: robust_bla(
@@ -62,8 +68,9 @@ def bench_bla(f_max_hz):
     print(f"robust BLA, M={m} P={p} N={n} (float64, {u.nbytes / 1e6:.1f} MB per signal), "
           f"band 1 .. {f_max_hz:g} Hz: {designs[0].excited.size} excited lines")
     for name, t in med.items():
-        print(f"  {name:45s} {1e3 * t:8.2f} ms   {t / ref:5.2f} x rfft(u, y)   "
-              + ("(target <= 2x)" if "known input, lines detected" in name else ""))
+        print(f"  {name:45s} {1e3 * t:8.2f} ms   {t / ref:5.2f} x rfft(u, y) "
+              f"(per round {per_round[name]:4.2f} x) "
+              + ("target <= 2x" if "known input, lines detected" in name else ""))
     peak = peak_bytes(lambda: robust_bla(u, y, fs=fs))
     peak_rfft = peak_bytes(lambda: (np.fft.rfft(u, axis=-1), np.fft.rfft(y, axis=-1)))
     inp = u.nbytes + y.nbytes
@@ -87,7 +94,7 @@ def bench_hosidf():
     u4 = u.reshape(n_f, reps, p, n)
     y4 = y.reshape(n_f, reps, p, n)
     f0 = bins * fs / n
-    med = alternate_medians({
+    med, per_round = alternate_medians({
         "rfft u, y (whole records)": lambda: (np.fft.rfft(u, axis=-1), np.fft.rfft(y, axis=-1)),
         "hosidf (f0 found)": lambda: hosidf(u4, y4, fs=fs, n_harmonics=7),
         "hosidf (f0 given)": lambda: hosidf(u4, y4, fs=fs, n_harmonics=7, f0=f0),
@@ -96,8 +103,9 @@ def bench_hosidf():
     print(f"HOSIDF, {n_f} freqs x {reps} repeats x {p} periods x {n} samples "
           f"({u.nbytes / 1e6:.0f} MB per signal), K = 7")
     for name, tm in med.items():
-        print(f"  {name:45s} {1e3 * tm:8.2f} ms   {tm / ref:5.2f} x rfft(u, y)   "
-              + ("(target <= 1.5x)" if "found" in name else ""))
+        print(f"  {name:45s} {1e3 * tm:8.2f} ms   {tm / ref:5.2f} x rfft(u, y) "
+              f"(per round {per_round[name]:4.2f} x) "
+              + ("target <= 1.5x" if "found" in name else ""))
 
 
 if __name__ == "__main__":
