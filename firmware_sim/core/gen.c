@@ -30,7 +30,7 @@ static int gen_check_common(float amp, float offset, float fs_hz)
 
 int gen_start_sine(gen_t *gen, uint32_t n, uint32_t cycles, float amp, float offset, float fs_hz)
 {
-    if (gen_check_common(amp, offset, fs_hz) != 0 || n < 4u || cycles < 1u || 2u * cycles >= n) {
+    if (gen_check_common(amp, offset, fs_hz) != 0 || n < 4u || n > GEN_N_MAX || cycles < 1u || 2u * cycles >= n) {
         gen_init(gen);
         return -1;
     }

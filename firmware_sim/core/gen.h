@@ -21,6 +21,8 @@
 
 typedef enum { GEN_OFF = 0, GEN_SINE = 1, GEN_TABLE = 2 } gen_kind_t;
 
+#define GEN_N_MAX (1u << 28) /* sine period limit: 4 p must fit 32 bits */
+
 typedef struct {
     gen_kind_t kind;
     uint32_t n;        /* period [samples] */
@@ -34,7 +36,7 @@ typedef struct {
 } gen_t;
 
 void gen_init(gen_t *gen);
-/* Sine, cycles in [1, n/2) and n >= 4; returns 0 on success, -1 on a bad argument
+/* Sine, cycles in [1, n/2) and 4 <= n <= GEN_N_MAX; returns 0 on success, -1 on a bad argument
  * (generator left off). */
 int gen_start_sine(gen_t *gen, uint32_t n, uint32_t cycles, float amp, float offset, float fs_hz);
 /* Table of n >= 2 samples (caller keeps it alive and unchanged while playing). */
