@@ -97,3 +97,15 @@ def test_host_heartbeat_loss_stops_a_run_safely(co_node):
     net.send_message(0x700 + host_id, [5])
     assert wait_for(lambda: any(e.code == 0x0000 for e in emcys), 1.0)
     assert node.sdo[0x1001].raw == 0
+
+
+def test_leaving_operational_stops_a_run(co_node):
+    net, node = co_node
+    node.nmt.state = "OPERATIONAL"
+    enable_402(node)
+    start_long_run(node)
+    assert node.sdo["Run control"]["State"].raw in (1, 2)
+    node.nmt.state = "PRE-OPERATIONAL"
+    assert node.sdo["Run control"]["State"].raw == 4
+    assert node.sdo["Run control"]["Last stop reason"].raw == 6        # NMT
+    assert node.sdo[0x6041].raw & 0x6F == 0x27                        # still holding
