@@ -607,6 +607,111 @@ static void test_fft_inverse_complex_small(void)
     TH_ASSERT(!fft_inverse_real(a, 12u));
 }
 
+/* xorshift for the randomized sequence (deterministic) */
+static uint32_t rnd_state = 0x12345678u;
+static uint32_t rnd(void)
+{
+    rnd_state ^= rnd_state << 13;
+    rnd_state ^= rnd_state >> 17;
+    rnd_state ^= rnd_state << 5;
+    return rnd_state;
+}
+
+static float rnd_float(void)
+{
+    switch (rnd() % 8u) {
+    case 0: return NAN;
+    case 1: return (rnd() & 1u) ? INFINITY : -INFINITY;
+    case 2: return -(float)(rnd() % 1000u) * 0.01f;
+    case 3: return (float)(rnd() % 100000u) * 10.0f;
+    default: return (float)(rnd() % 1000u) * 0.001f;
+    }
+}
+
+static void test_random_api_sequences_keep_invariants(void)
+{
+    /* 200 000 random calls (parameters incl. NaN/inf/out of range, run start/abort/safe
+     * stop, enable, table writes, non-finite measurements, steps). After every call: a
+     * rejected set leaves the value unchanged; the output is finite and within +-u_max; the
+     * recorder never exceeds its capacity; progress never exceeds the run length. */
+    drv_t d = make_drv(4096u);
+    float motor = 0.0f;
+    int fails = 0;
+    for (int i = 0; i < 200000 && fails < 5; i++) {
+        uint32_t op = rnd() % 10u;
+        drv_param_id_t id = (drv_param_id_t)(rnd() % (DRV_PARAM_COUNT + 2u));
+        if (op <= 2u) {
+            float before = 0.0f, after = 0.0f, v = rnd_float();
+            drv_status_t g = drv_get_f32(&d, id, &before);
+            drv_status_t s = drv_set_f32(&d, id, v);
+            if (g == DRV_OK && s != DRV_OK) {
+                (void)drv_get_f32(&d, id, &after);
+                if (memcmp(&before, &after, sizeof before) != 0) {
+                    TH_ASSERT(!"rejected f32 set changed the value");
+                    fails++;
+                }
+            }
+        } else if (op <= 4u) {
+            uint32_t before = 0u, after = 0u, v = (rnd() & 1u) ? rnd() % 40u : rnd() % 9000u;
+            if (id == DRV_P_EXC_PERIOD && (rnd() & 1u)) {
+                v = 16u << (rnd() % 5u);
+            }
+            drv_status_t g = drv_get_u32(&d, id, &before);
+            drv_status_t s = drv_set_u32(&d, id, v);
+            if (g == DRV_OK && s != DRV_OK && id != DRV_P_RUN_COMMAND) {
+                (void)drv_get_u32(&d, id, &after);
+                if (after != before) {
+                    TH_ASSERT(!"rejected u32 set changed the value");
+                    fails++;
+                }
+            }
+        } else if (op == 5u) {
+            switch (rnd() % 6u) {
+            case 0: (void)drv_run_start(&d); break;
+            case 1: drv_run_abort(&d, DRV_STOP_ABORT_CMD); break;
+            case 2: drv_safe_stop(&d, DRV_STOP_HEARTBEAT); break;
+            case 3: drv_enable(&d, (rnd() & 1u) != 0u); break;
+            case 4: (void)drv_set_target(&d, rnd_float()); break;
+            default: {
+                float t[16];
+                for (int k = 0; k < 16; k++) {
+                    t[k] = (float)(rnd() % 200u) * 0.01f - 1.0f;
+                }
+                uint32_t off = (rnd() % 8u) * 64u;
+                (void)drv_table_write(&d, off, (const uint8_t *)t, sizeof t);
+                (void)drv_table_commit(&d, off + (uint32_t)sizeof t);
+                break;
+            }
+            }
+        } else {
+            drv_meas_t m = {motor, 0.5f * motor};
+            if (rnd() % 5000u == 0u) {
+                m.motor_angle_rad = NAN;
+            }
+            float u = drv_step(&d, &m);
+            float umax;
+            (void)drv_get_f32(&d, DRV_P_U_MAX, &umax);
+            if (!isfinite(u) || fabsf(u) > umax) {
+                TH_ASSERT(!"output not finite or beyond u_max");
+                fails++;
+            }
+            motor += 1e-3f * u;
+        }
+        uint32_t cap, bytes, prog, total;
+        (void)drv_get_u32(&d, DRV_P_REC_CAPACITY, &cap);
+        (void)drv_get_u32(&d, DRV_P_REC_BYTES, &bytes);
+        (void)drv_get_u32(&d, DRV_P_RUN_PROGRESS, &prog);
+        (void)drv_get_u32(&d, DRV_P_RUN_TOTAL, &total);
+        if (bytes > cap * 4u || prog > total) {
+            TH_ASSERT(!"recorder beyond capacity or progress beyond the run");
+            fails++;
+        }
+    }
+    uint32_t runs;
+    (void)drv_get_u32(&d, DRV_P_RUN_COUNTER, &runs);
+    TH_ASSERT(runs > 10u); /* the sequence did exercise runs */
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
@@ -625,5 +730,6 @@ int main(void)
     TH_RUN(test_ms_lines_and_period_vectors);
     TH_RUN(test_ms_through_drive);
     TH_RUN(test_fft_inverse_complex_small);
+    TH_RUN(test_random_api_sequences_keep_invariants);
     return th_finish();
 }
