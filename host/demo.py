@@ -10,7 +10,7 @@ import time
 from host.commands import DEFAULT_CONFIG
 from host.config import check_output_dir, load_config
 from host.drive import BusOptions, DriveClient
-from host.sim import DEFAULT_PLANT, start_drive_sim
+from host.sim import DEFAULT_PLANT, derived_plant, start_drive_sim
 
 
 def add_parser(sub):
@@ -19,7 +19,9 @@ def add_parser(sub):
                                    "(`fftune run`) against it, stop it, and leave results.yaml, "
                                    "captures, figures and report.html in the output directory.")
     p.add_argument("--config", default=DEFAULT_CONFIG, help="configuration (default configs/demo.yaml)")
-    p.add_argument("--plant", default=DEFAULT_PLANT, help="plant of the simulated drive (default %(default)s)")
+    p.add_argument("--plant", default=None,
+                   help="plant of the simulated drive (default: the configuration's sim.plant, "
+                        "else configs/plant_twomass.yaml)")
     p.add_argument("--out", default=None, help="output directory (default: the configuration's)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
@@ -32,10 +34,18 @@ def run(args):
     cfg = load_config(args.config)
     out = check_output_dir(args.out or cfg["output"])
     d = cfg["drive"]
-    sim = start_drive_sim(args.plant, node_id=d["node_id"], log_path=os.path.join(out, "drive_sim.log"))
+    plant = args.plant or cfg["sim"]["plant"] or DEFAULT_PLANT
+    if not os.path.isabs(plant) and not os.path.exists(plant):
+        from host.odmap import REPO_ROOT
+        plant = os.path.join(REPO_ROOT, plant)
+    shown = os.path.relpath(plant)
+    if cfg["sim"]["overrides"]:
+        plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
+                              where=f"{args.config}: key 'sim.overrides'")
+        shown += " with sim.overrides -> " + os.path.relpath(plant)
+    sim = start_drive_sim(plant, node_id=d["node_id"], log_path=os.path.join(out, "drive_sim.log"))
     try:
-        print(f"fftune demo: drive_sim ({os.path.relpath(args.plant)}) listening on "
-              f"127.0.0.1:{sim.port}", flush=True)
+        print(f"fftune demo: drive_sim ({shown}) listening on 127.0.0.1:{sim.port}", flush=True)
         opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
                           node_id=d["node_id"], eds=d["eds"] or None)
         if opts.eds is None:

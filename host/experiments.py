@@ -288,29 +288,35 @@ def tune(session):
     H_sweep = np.stack([p["H"] for p in sweep])
     ratio_sweep = np.array([p["ratio"] for p in sweep])
     kfc_sweep = np.array([p["kfc"] for p in sweep])
-    phases0 = _tuning.reference_phases(H_sweep[0])
-    signed_sweep = np.asarray(_tuning.signed_odd_ratio(H_sweep, phases0))
+    # Reference phases of the signed objective: the direction in which the odd HOSIDFs
+    # move from under- (K_fc = 0) to over-compensation (the bracket's upper end). Odd
+    # harmonics that do not depend on K_fc (quantisation, other nonlinearities) cancel in
+    # the difference, so the zero crossing sits at the minimum of |H_i| along that line.
+    phases_sweep = _tuning.reference_phases(H_sweep[0] - H_sweep[-1])
+    signed_sweep = np.asarray(_tuning.signed_odd_ratio(H_sweep, phases_sweep))
     k_sweep_opt = sweep_optimum(kfc_sweep, ratio_sweep, signed_sweep)
     # (b) automated search, one experiment at a time
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
     max_exp = c["search"]["max_experiments"]
-    evaluations = []
-    ref = {}
+    xtol = c["search"]["xtol_v"] or 1e-3 * k_hi
+    measured = {}
 
-    def objective(k):
-        p = probe.measure("search", float(k))
-        evaluations.append(p)
-        if c["search"]["method"] == "root":
-            if "phases" not in ref:       # the first experiment (K_fc = lower end) sets them
-                ref["phases"] = _tuning.reference_phases(p["H"])
-            return float(_tuning.signed_odd_ratio(p["H"], ref["phases"]))
-        return p["ratio"]
+    def experiment(k):
+        k32 = float(np.float32(k))
+        if k32 not in measured:
+            measured[k32] = probe.measure("search", float(k))
+        return measured[k32]
 
     if c["search"]["method"] == "root":
-        search = _tuning.SignedRootSearch(0.0, k_hi, max_evaluations=max_exp)
+        # The bracket ends are the search's own first two experiments; measuring them
+        # first gives the reference phases before the first value is told.
+        phases = _tuning.reference_phases(experiment(0.0)["H"] - experiment(k_hi)["H"])
+        search = _tuning.SignedRootSearch(0.0, k_hi, xtol=xtol, max_evaluations=max_exp)
+        outcome = search.run(lambda k: float(_tuning.signed_odd_ratio(experiment(k)["H"], phases)))
     else:
-        search = _tuning.RatioMinimizer(0.0, k_hi, max_evaluations=max_exp)
-    outcome = search.run(objective)
+        search = _tuning.RatioMinimizer(0.0, k_hi, xtol=xtol, max_evaluations=max_exp)
+        outcome = search.run(lambda k: experiment(k)["ratio"])
+    evaluations = list(measured.values())
     k_star = float(outcome.k_fc)
     k_star_unc = _f(outcome.uncertainty)
     n_search = len(evaluations)
@@ -321,7 +327,7 @@ def tune(session):
     i_rms = int(np.argmin([p["rms_error"] for p in sweep]))
     p_rms = sweep[i_rms]
     # (c) viscous feed-forward K_v at K_fc*
-    kv_block = None
+    kv_block = p_kv = None
     if c["viscous"]["enabled"]:
         kv_eval = []
 
@@ -370,5 +376,6 @@ def tune(session):
         results["rms_error_rad"]["k_fc_star_k_v_star"] = kv_block["rms_error_rad"]
     data = {"k_sweep": kfc_sweep, "H_sweep": H_sweep, "ratio_sweep": ratio_sweep,
             "signed_sweep": signed_sweep, "k_star": k_star, "p0": p0, "p_star": p_star, "p_rms": p_rms,
+            "p_kv": p_kv,
             "n": probe.n, "fs": session.fs_hz}
     return results, data

@@ -52,12 +52,16 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None):
         fs, n = tune_data["fs"], tune_data["n"]
         recs = [("K_fc = 0", tune_data["p0"]), (f"K_fc* = {tune_data['p_star']['kfc']:.4g} V", tune_data["p_star"]),
                 (f"min rms error, K_fc = {tune_data['p_rms']['kfc']:.4g} V", tune_data["p_rms"])]
+        if tune_data.get("p_kv") is not None:
+            p = tune_data["p_kv"]
+            recs.append((f"K_fc* and K_v* = {p['kv']:.4g} V s/rad", p))
         save("figure9_time_response", plots.figure9(
             fs, tune_data["p0"]["record"].signals["reference"],
             {label: p["record"].signals["motor_angle"] for label, p in recs},
             {label: p["record"].signals["error"] for label, p in recs}),
             "Figure 9: closed-loop response and tracking error without feed-forward, at "
-            "K_fc* and at the smallest rms error.")
+            "K_fc*, at the smallest rms error of the sweep, and at K_fc* with the tuned "
+            "viscous feed-forward K_v*.")
     return made
 
 

@@ -121,3 +121,32 @@ def _run(args):
         return 130
     finally:
         sys.stdout.flush()
+
+
+def derived_plant(base_path, overrides, out_path, where="sim.overrides"):
+    """Write ``base_path`` with ``overrides`` ({section: {key: number}}) to ``out_path``
+    in drive_sim's two-level YAML subset; returns ``out_path``."""
+    import yaml
+
+    from host.atomic import write_atomic
+
+    try:
+        with open(base_path, "r", encoding="utf-8") as fh:
+            plant = yaml.safe_load(fh)
+    except OSError as exc:
+        raise FftuneError(f"plant configuration {base_path}: {exc.strerror}") from None
+    for section, values in overrides.items():
+        if section not in plant:
+            raise FftuneError(f"{where}.{section}: no section '{section}' in {base_path}")
+        for key, value in values.items():
+            if key not in plant[section]:
+                raise FftuneError(f"{where}.{section}.{key}: no key '{key}' in section "
+                                  f"'{section}' of {base_path}")
+            plant[section][key] = value
+    lines = [f"# {os.path.basename(base_path)} with {where} applied (written by fftune demo)"]
+    for section, values in plant.items():
+        lines.append(f"{section}:")
+        for key, value in values.items():
+            lines.append(f"  {key}: {value!r}")
+    write_atomic(out_path, "\n".join(lines) + "\n")
+    return out_path

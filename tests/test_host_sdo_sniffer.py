@@ -128,3 +128,54 @@ def test_block_upload_crc_mismatch_is_a_problem():
     feed(0x601, [0xA2, 1, 4])
     feed(0x581, [0xC1 | (4 << 2), 0x12, 0x34])
     assert sn.problems and "CRC" in sn.problems[0]
+
+
+def _block_upload_frames(data, blksize=4):
+    """A clean CiA 301 block upload of ``data`` as (can_id, bytes) in bus order."""
+    import binascii
+    segs = [data[i:i + 7] for i in range(0, len(data), 7)]
+    frames = [(0x601, [0xA4, 0x21, 0x20, 0x00, blksize, 0]),
+              (0x581, [0xC6, 0x21, 0x20, 0x00] + list(struct.pack("<L", len(data)))),
+              (0x601, [0xA3])]
+    for b in range(0, len(segs), blksize):
+        block = segs[b:b + blksize]
+        for i, seg in enumerate(block):
+            last = 0x80 if b + i == len(segs) - 1 else 0
+            frames.append((0x581, [(i + 1) | last] + list(seg.ljust(7, b"\0"))))
+        frames.append((0x601, [0xA2, len(block), blksize]))
+    unused = 7 * len(segs) - len(data)
+    frames.append((0x581, [0xC1 | (unused << 2)] + list(struct.pack("<H", binascii.crc_hqx(data, 0)))))
+    frames.append((0x601, [0xA1]))
+    return frames
+
+
+def _responses_first(frames):
+    """Gateway order: every server frame moved before the client frame that caused it."""
+    out, pending_client = [], None
+    for cid, d in frames:
+        if cid == 0x601:
+            if pending_client is not None:
+                out.append(pending_client)
+            pending_client = (cid, d)
+        else:
+            out.append((cid, d))
+    out.append(pending_client)
+    return out
+
+
+@pytest.mark.parametrize("order", ["bus", "responses first"])
+def test_block_upload_over_several_sub_blocks_in_either_frame_order(order):
+    data = bytes((7 * i) & 0xFF for i in range(100))       # 15 segments, 4 sub-blocks
+    frames = _block_upload_frames(data)
+    if order != "bus":
+        frames = _responses_first(frames)
+    # plus an expedited upload, answered before it was asked in the gateway order
+    exp = [(0x601, [0x40, 0x00, 0x10, 0x00]), (0x581, [0x43, 0x00, 0x10, 0x00, 0x92, 0x01, 0x02, 0x00])]
+    frames += exp if order == "bus" else exp[::-1]
+    sn = SdoSniffer([1])
+    for cid, d in frames:
+        sn.feed(cid, bytes(d) + bytes(8 - len(d)), 0.0)
+    assert not sn.problems
+    assert [t.mode for t in sn.transfers] == ["block", "expedited"]
+    assert sn.transfers[0].data == data
+    assert sn.transfers[1].data == struct.pack("<L", 0x00020192)

@@ -1,0 +1,175 @@
+"""End to end against the real simulated drive (firmware_sim's drive_sim, CANopen over
+socketcand): the demo configuration's accuracy, the CAN log of that live session imported
+offline to the same result, SDO aborts from the real node, and `fftune demo` itself."""
+import os
+import shutil
+import threading
+import time
+
+import can
+import numpy as np
+import pytest
+import yaml
+
+from analysis.errors import FftuneError
+from host.cli import main
+from host.config import load_config
+from host.drive import BusOptions, DriveClient
+from host.sim import start_drive_sim
+from host_fixtures import EDS, REPO, drive_sim_missing_reason
+
+pytestmark = pytest.mark.skipif(drive_sim_missing_reason() is not None,
+                                reason=drive_sim_missing_reason() or "")
+
+PLANT = os.path.join(REPO, "configs", "plant_twomass.yaml")
+DEMO = os.path.join(REPO, "configs", "demo.yaml")
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    log = tmp_path_factory.mktemp("sim") / "drive_sim.log"
+    drive = start_drive_sim(PLANT, log_path=str(log))
+    yield drive
+    drive.stop()
+
+
+def _small_config(tmp_path):
+    """configs/demo.yaml cut down to a few short runs (for the CAN-log round trip)."""
+    cfg = yaml.safe_load(open(DEMO))
+    cfg["detect"].update(rms_levels=[1.0], realizations=2)
+    cfg["quantify"].update(frequencies_hz=[2.5], rms_levels=[0.35], repeats=2, period_samples=1024)
+    cfg["tune"].update(frequency_hz=1.25, period_samples=2048)
+    cfg["tune"]["sweep"]["points"] = 4
+    cfg["tune"]["viscous"]["enabled"] = False
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def tuned(sim, tmp_path_factory):
+    """`fftune tune --config configs/demo.yaml` against drive_sim, with the demo's plant."""
+    out = tmp_path_factory.mktemp("tune")
+    code = main(["tune", "--config", DEMO, "--out", str(out), "--port", str(sim.port),
+                 "--no-progress", "--no-figures"])
+    assert code == 0
+    return yaml.safe_load(open(out / "results.yaml")), out
+
+
+@pytest.fixture(scope="module")
+def logged(sim, tmp_path_factory):
+    """`fftune run` with a small configuration, the bus logged by a second socketcand
+    client (python-can's can.Logger, candump format)."""
+    out = tmp_path_factory.mktemp("live")
+    config = _small_config(out)
+    log_path = str(out / "session.log")
+    spy = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    logger = can.Logger(log_path)
+    notifier = can.Notifier(spy, [logger])
+    try:
+        code = main(["run", "--config", config, "--out", str(out / "run"), "--port", str(sim.port),
+                     "--no-progress", "--no-figures"])
+    finally:
+        time.sleep(0.3)
+        notifier.stop()
+        logger.stop()
+        spy.shutdown()
+    assert code == 0
+    results = yaml.safe_load(open(out / "run" / "results.yaml"))
+    return results, out, log_path, config
+
+
+def test_demo_config_finds_the_true_coulomb_level(tuned):
+    r, _ = tuned
+    t = r["tune"]
+    truth = r["drive"]["plant_truth"]["sim_fc_volt"]
+    assert t["true_coulomb_v"] == pytest.approx(truth)
+    assert abs(t["k_fc_star"] / truth - 1) <= 0.02
+    assert t["search"]["experiments"] <= 8
+    assert abs(t["search"]["relative_to_sweep_optimum"]) <= 0.01
+    assert t["ratio_at_zero"] >= 10 * t["ratio_at_k_fc_star"]
+
+
+def test_odd_phases_turn_across_k_fc_star(tuned):
+    from analysis import capture
+    r, out = tuned
+    k_star = r["tune"]["k_fc_star"]
+    h3 = {}
+    for f in os.listdir(out / "captures"):
+        if not f.startswith("tune-sweep-"):
+            continue
+        run = capture.read_run(str(out / "captures" / f))
+        ref = run.signals["reference"].reshape(-1, run.meta["n_period"])
+        y = run.signals["motor_angle"].reshape(-1, run.meta["n_period"])
+        from analysis.hosidf import hosidf
+        h = hosidf(ref[None], y[None], fs=run.meta["fs_hz"], n_harmonics=3, f0=r["tune"]["frequency_hz"])
+        h3[run.meta["parameters"]["kfc"]] = h.H[2]
+    below = h3[max(k for k in h3 if k < 0.85 * k_star)]
+    above = h3[min(k for k in h3 if k > 1.15 * k_star)]
+    assert abs(abs(np.degrees(np.angle(above / below))) - 180) < 45
+
+
+def test_viscous_friction_puts_the_rms_minimum_above_k_fc_star_and_k_v_beats_both(tuned):
+    t = tuned[0]["tune"]
+    e = t["rms_error_rad"]
+    assert e["sweep_min_at_k_fc"] > t["k_fc_star"]
+    assert e["k_fc_star_k_v_star"] < min(e["k_fc_star"], e["sweep_min"])
+    assert t["viscous"]["experiments"] <= 8
+
+
+def test_live_captures_and_report_are_written(logged):
+    r, out, _, _ = logged
+    run = out / "run"
+    caps = os.listdir(run / "captures")
+    assert len(caps) == r["experiments"]["measured"] > 0
+    assert (run / "report.html").exists()
+    assert r["drive"]["identity"]["firmware_version"]
+    assert r["detect"]["levels"][-1]["summary_db"]["odd_detected"] is True
+
+
+@pytest.mark.parametrize("ext", [".log", ".asc", ".blf", ".trc"])
+def test_can_log_of_the_live_session_gives_the_live_result(logged, tmp_path, ext):
+    live_results, out, log_path, config = logged
+    path = log_path
+    if ext != ".log":                                # the same frames in another format
+        path = str(tmp_path / f"session{ext}")
+        with can.LogReader(log_path) as reader, can.Logger(path) as writer:
+            for msg in reader:
+                writer(msg)
+    code = main(["import-canlog", path, "--eds", EDS, "--config", config,
+                 "--out", str(tmp_path / "offline"), "--no-figures"])
+    assert code == 0
+    off = yaml.safe_load(open(tmp_path / "offline" / "results.yaml"))
+    assert off["experiments"]["measured"] == live_results["experiments"]["measured"]
+    assert off["tune"] == live_results["tune"]
+    assert off["detect"] == live_results["detect"]
+    assert off["quantify"] == live_results["quantify"]
+
+
+def test_sdo_abort_from_the_drive_names_object_and_meaning(sim):
+    opts = BusOptions(port=sim.port, host=sim.host, eds=EDS)
+    with DriveClient(opts, progress=False) as drive:
+        with pytest.raises(FftuneError, match=r"0x2000:04 'Controller.Coulomb feed-forward K_fc'.*"
+                                              r"SDO abort 0x06090031 \(Value of parameter written too high\)"):
+            drive.set("kfc", 1000.0)
+        assert drive.get("kfc") != pytest.approx(1000.0)     # old value kept
+
+
+def test_wrong_node_id_on_the_real_bus(sim):
+    with pytest.raises(FftuneError, match="no SDO answer from node 9 .*nodes answering on this bus: 1"):
+        DriveClient(BusOptions(port=sim.port, host=sim.host, eds=EDS, node_id=9), progress=False).connect()
+
+
+def test_fftune_demo_runs_end_to_end(tmp_path, capsys):
+    cfg = yaml.safe_load(open(DEMO))
+    cfg["detect"].update(rms_levels=[1.0], realizations=2)
+    cfg["quantify"].update(frequencies_hz=[2.5], rms_levels=[0.5], repeats=1)
+    cfg["tune"]["sweep"]["points"] = 4
+    cfg["tune"]["viscous"]["enabled"] = False
+    small = tmp_path / "small.yaml"
+    small.write_text(yaml.safe_dump(cfg))
+    code = main(["demo", "--config", str(small), "--out", str(tmp_path / "demo"), "--no-progress"])
+    text = capsys.readouterr().out
+    assert code == 0
+    assert "K_fc* (automated search)" in text and "report.html" in text
+    assert (tmp_path / "demo" / "results.yaml").exists()
