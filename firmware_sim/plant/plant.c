@@ -58,6 +58,9 @@ int plant_init(plant_t *pl, const plant_params_t *p, char *err, size_t errlen)
 
 void plant_set_state(plant_t *pl, double th1, double w1, double th2, double w2)
 {
+    if (!isfinite(th1) || !isfinite(w1) || !isfinite(th2) || !isfinite(w2)) {
+        return; /* keep the present state */
+    }
     pl->x[0] = th1;
     pl->x[1] = w1;
     pl->x[2] = th2;
@@ -346,6 +349,9 @@ static int plant_fast_step(plant_t *pl, double u)
 
 void plant_advance(plant_t *pl, double u, double dt)
 {
+    if (!isfinite(u) || !isfinite(dt) || !(dt > 0.0)) {
+        return; /* documented: no advance on a non-finite input or step */
+    }
     if (pl->p.stribeck_vel == 0.0) {
         if (dt != pl->fast_dt) {
             plant_discretise(pl, dt);

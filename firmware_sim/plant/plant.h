@@ -72,10 +72,11 @@ typedef struct {
 int plant_check_params(const plant_params_t *p, char *err, size_t errlen);
 /* At rest at the origin, sticking. Returns plant_check_params' result. */
 int plant_init(plant_t *pl, const plant_params_t *p, char *err, size_t errlen);
+/* Non-finite values: ignored (state kept). Sticking if w1 == 0 (until |T| > Fs). */
 void plant_set_state(plant_t *pl, double th1, double w1, double th2, double w2);
 void plant_get_state(const plant_t *pl, double x[4]);
 int plant_mode(const plant_t *pl);
-/* Advance by dt seconds with u [V] held (dt split into p.substeps sub-steps). */
+/* Advance by dt seconds with u [V] held. Non-finite u or dt <= 0: no change. */
 void plant_advance(plant_t *pl, double u, double dt);
 /* Measured angles (quantised + noise); advances the noise generator. */
 void plant_measure(plant_t *pl, double *th1_meas, double *th2_meas);
