@@ -49,7 +49,7 @@ INITRAMFS_FORMAT = 1
 # What the guest loads. Order does not matter: dependencies come from modules.dep.
 GUEST_MODULES = (
     "virtio_pci", "virtio_mmio", "9pnet_virtio", "9p", "overlay",
-    "can", "can_raw", "vcan",
+    "can", "can_raw", "can_bcm", "vcan",  # can_bcm: python-can send_periodic on socketcan
 )
 
 DEFAULT_GUEST_ENV = {
