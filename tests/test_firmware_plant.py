@@ -46,9 +46,10 @@ def write_config(tmp_path, base=TWOMASS, **overrides):
 def rhs(t, x, u, s, p):
     th1, w1, th2, w2 = x
     spring = p["k"] * (th1 - th2) + p["c"] * (w1 - w2)
-    fr = p["coulomb"]
+    fc = p["coulomb"] * (1 + s * p.get("coulomb_asymmetry", 0.0))
+    fr = fc
     if p["stribeck_velocity"] > 0:
-        fr += (p["static"] - p["coulomb"]) * np.exp(-(w1 / p["stribeck_velocity"]) ** 2)
+        fr += (p["static"] - fc) * np.exp(-(w1 / p["stribeck_velocity"]) ** 2)
     friction = s * fr + p["viscous"] * w1
     return [w1, (p["km"] * u - spring - friction) / p["j1"], w2, (spring - p["load_viscous"] * w2) / p["j2"]]
 
@@ -101,7 +102,10 @@ def c_trajectory(path, x0, inputs):
 def test_plant_matches_solve_ivp_with_reversals(tmp_path, case):
     # the Stribeck term makes the slip dynamics nonlinear: the plant then integrates with
     # RK4 sub-steps; without it, exact ZOH steps between events
-    over = {} if case == "exact_zoh_path" else {"plant__stribeck_velocity": 0.5, "plant__static": 8e-3}
+    if case == "exact_zoh_path":  # with direction-dependent Coulomb friction
+        over = {"plant__coulomb_asymmetry": 0.3, "plant__static": 8e-3}
+    else:
+        over = {"plant__stribeck_velocity": 0.5, "plant__static": 8e-3}
     path, p = write_config(tmp_path, **over)
     n = 768
     t = np.arange(n) * DT

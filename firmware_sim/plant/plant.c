@@ -26,8 +26,13 @@ int plant_check_params(const plant_params_t *p, char *err, size_t errlen)
             return -1;
         }
     }
-    if (p->stat < p->coulomb) {
-        snprintf(err, errlen, "static = %g: must be >= coulomb = %g", p->stat, p->coulomb);
+    if (!isfinite(p->coulomb_asym) || fabs(p->coulomb_asym) > 0.9) {
+        snprintf(err, errlen, "coulomb_asymmetry = %g: must be in [-0.9, 0.9]", p->coulomb_asym);
+        return -1;
+    }
+    if (p->stat < p->coulomb * (1.0 + fabs(p->coulomb_asym))) {
+        snprintf(err, errlen, "static = %g: must be >= coulomb (1 + |coulomb_asymmetry|) = %g", p->stat,
+                 p->coulomb * (1.0 + fabs(p->coulomb_asym)));
         return -1;
     }
     if (p->substeps < 1u || p->substeps > 10000u) {
@@ -99,10 +104,11 @@ static void plant_rhs(const plant_params_t *p, int mode, const double x[4], doub
         dx[0] = 0.0;
         dx[1] = 0.0;
     } else {
-        double fr = p->coulomb;
+        double fc = p->coulomb * (1.0 + (double)mode * p->coulomb_asym);
+        double fr = fc;
         if (p->stribeck_vel > 0.0) {
             double r = x[1] / p->stribeck_vel;
-            fr += (p->stat - p->coulomb) * exp(-r * r);
+            fr += (p->stat - fc) * exp(-r * r);
         }
         double friction = (double)mode * fr + p->viscous * x[1];
         dx[0] = x[1];
@@ -281,7 +287,7 @@ static void plant_discretise(plant_t *pl, double dt)
     m[1][1] = -(p->c + p->viscous) / p->j1;
     m[1][2] = p->k / p->j1;
     m[1][3] = p->c / p->j1;
-    m[1][4] = 1.0 / p->j1; /* input v = km u - s Fc */
+    m[1][4] = 1.0 / p->j1; /* input v = km u - s Fc_s */
     m[2][3] = 1.0;
     m[3][0] = p->k / p->j2;
     m[3][1] = p->c / p->j2;
@@ -320,7 +326,7 @@ static int plant_fast_step(plant_t *pl, double u)
     const plant_params_t *p = &pl->p;
     double *x = pl->x;
     if (pl->mode != 0) {
-        double v = p->km * u - (double)pl->mode * p->coulomb, y[4];
+        double v = p->km * u - (double)pl->mode * p->coulomb - p->coulomb * p->coulomb_asym, y[4];
         for (int i = 0; i < 4; i++) {
             y[i] = pl->phi[i][0] * x[0] + pl->phi[i][1] * x[1] + pl->phi[i][2] * x[2] +
                    pl->phi[i][3] * x[3] + pl->gam[i] * v;

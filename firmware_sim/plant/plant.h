@@ -5,8 +5,9 @@
  * torsional spring k and damper c to the load inertia J2:
  *   J1 w1' = km u - k (th1 - th2) - c (w1 - w2) - F(w1)
  *   J2 w2' =        k (th1 - th2) + c (w1 - w2) - b2 w2
- * Motor friction while slipping in direction s = sign(w1):
- *   F = s (Fc + (Fs - Fc) exp(-(w1/vs)^2)) + bv w1      (Stribeck term only if vs > 0)
+ * Motor friction while slipping in direction s = sign(w1), with the Coulomb level of that
+ * direction Fc_s = Fc (1 + s a) (asymmetry a, 0 = symmetric; a != 0 gives even harmonics):
+ *   F = s (Fc_s + (Fs - Fc_s) exp(-(w1/vs)^2)) + bv w1   (Stribeck term only if vs > 0)
  * Stiction: while w1 = 0 the motor sticks (th1 fixed, w1 = 0 exactly: no creep) as long as
  * |T| <= Fs, T = km u - k (th1 - th2) + c w2 the net non-friction torque on it.
  *
@@ -41,8 +42,9 @@ typedef struct {
     double j1, j2;          /* kg m^2 */
     double k, c;            /* N m/rad, N m s/rad */
     double km;              /* N m/V: torque per input volt */
-    double coulomb;         /* Fc, N m */
-    double stat;            /* Fs >= Fc, N m (static / break-away) */
+    double coulomb;         /* Fc, N m (mean of the two directions) */
+    double coulomb_asym;    /* a in [-0.9, 0.9]: Fc_+ = Fc (1 + a), Fc_- = Fc (1 - a) */
+    double stat;            /* Fs >= Fc (1 + |a|), N m (static / break-away) */
     double stribeck_vel;    /* vs, rad/s; 0 = no Stribeck term */
     double viscous;         /* bv, N m s/rad (motor side) */
     double load_viscous;    /* b2, N m s/rad */

@@ -82,14 +82,17 @@ static void test_coulomb_slide_to_rest_analytic(void)
     TH_NEAR(pl.x[1], 0.0, 0.0);
     TH_EQ(plant_mode(&pl), 0);
     TH_EQ(pl.events, 1u);
-    /* reversal without sticking: input torque 2 Fs against the motion */
+    /* reversal without sticking, direction-dependent Coulomb friction (a = 0.25):
+     * input torque 2 Fs against the motion */
+    p.coulomb_asym = 0.25;
+    TH_EQ(plant_init(&pl, &p, err, sizeof err), 0);
     plant_set_state(&pl, 0.0, v0, 0.0, 0.0);
     double tq = -2.0 * p.stat;
     for (int i = 0; i < 2560; i++) {
         plant_advance(&pl, tq / p.km, 1.0 / 2560.0);
     }
-    /* phase 1: decel (|tq| + Fc)/J1 to rest; phase 2: accel (|tq| - Fc)/J1 backwards */
-    double a1 = (2.0 * p.stat + p.coulomb) / p.j1, a2 = (2.0 * p.stat - p.coulomb) / p.j1;
+    /* phase 1: decel (|tq| + Fc+)/J1 to rest; phase 2: accel (|tq| - Fc-)/J1 backwards */
+    double a1 = (2.0 * p.stat + 1.25 * p.coulomb) / p.j1, a2 = (2.0 * p.stat - 0.75 * p.coulomb) / p.j1;
     double t1 = v0 / a1, x1 = v0 * t1 / 2.0, t2 = 1.0 - t1;
     TH_NEAR(pl.x[0], x1 - 0.5 * a2 * t2 * t2, 1e-9);
     TH_NEAR(pl.x[1], -a2 * t2, 1e-9);
@@ -173,6 +176,8 @@ static void test_config_errors_name_file_line_key(void)
         {"plant:\n  substeps: 2.5\n", ":2: plant.substeps = 2.5: must be an integer"},
         {"plant:\n  j1: .nan\n", ":2: plant.j1: '.nan' is not a finite number"},
         {"plant:\n  coulomb: 0.2\n  static: 0.1\n", "static = 0.1: must be >= coulomb"},
+        {"plant:\n  coulomb_asymmetry: 0.95\n", ":2: plant.coulomb_asymmetry = 0.95: out of range [-0.9, 0.9]"},
+        {"plant:\n  coulomb: 0.1\n  coulomb_asymmetry: 0.5\n  static: 0.12\n", "static = 0.12: must be >= coulomb (1 + |coulomb_asymmetry|) = 0.15"},
         {"drive: 3\n", ":1: top-level 'drive' must be a section"},
     };
     for (size_t i = 0; i < sizeof cases / sizeof cases[0]; i++) {
