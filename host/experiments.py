@@ -341,6 +341,9 @@ def tune(session):
                                       max_evaluations=c["viscous"]["max_experiments"])
         kv_star = float(mini.run(rms_at).k_fc)
         p_kv = probe.measure("verify", k_star, kv_star)
+        if p_kv["rms_error"] > p_star["rms_error"]:
+            # Brent never evaluates the bracket ends; K_v = 0 (the K_fc* run) is better.
+            kv_star, p_kv = 0.0, p_star
         kv_block = {
             "k_v_star": _f(kv_star), "experiments": len(kv_eval),
             "rms_error_rad": _f(p_kv["rms_error"]),
