@@ -66,11 +66,23 @@ class DriveSim:
         # the notifier thread blocks this long in recv(): it bounds disconnect()'s wait
         net.NOTIFIER_CYCLE = 0.1
         net.connect(**self.bus_kwargs())
+        if self.transport == "socketcan":
+            enlarge_receive_buffer(net.bus)
         return net
 
     def stderr_text(self):
         with open(self.stderr_path, encoding="utf-8", errors="replace") as f:
             return f.read()
+
+
+def enlarge_receive_buffer(bus, size=4 << 20):
+    """A SocketCAN client on vcan: the bus has no bit rate, an SDO block of 127 frames
+    arrives at once; the default socket buffer can overflow while Python is descheduled."""
+    import socket
+    try:
+        bus.socket.setsockopt(socket.SOL_SOCKET, 33, size)       # SO_RCVBUFFORCE (root)
+    except OSError:
+        bus.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
 
 
 def drive_sim_missing_reason():
@@ -141,7 +153,9 @@ def co_node(drive_sim):
     node = canopen.RemoteNode(drive_sim.node_id, drive_sim.eds)
     # python-canopen waits 0.3 s for an SDO answer and does not retry: on a loaded 2-core CI
     # machine its own receive thread can miss that; the node itself answers in < 1 ms.
-    node.sdo.RESPONSE_TIMEOUT = 2.0
+    # Below drive_sim's 1 s SDO server timeout, so that a lost block segment is still
+    # recovered by the client's retransmission request.
+    node.sdo.RESPONSE_TIMEOUT = 0.8
     net.add_node(node)
     yield net, node
     net.disconnect()

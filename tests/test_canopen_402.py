@@ -14,7 +14,7 @@ from canopen_helpers import collect, configure_sine_run, start_long_run, wait_fo
 def node402(drive_sim):
     net = drive_sim.network()
     node = canopen.BaseNode402(drive_sim.node_id, drive_sim.eds)
-    node.sdo.RESPONSE_TIMEOUT = 2.0
+    node.sdo.RESPONSE_TIMEOUT = 0.8
     net.add_node(node)
     yield net, node
     net.disconnect()

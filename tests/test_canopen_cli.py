@@ -60,7 +60,7 @@ def test_realtime_mode_steps_at_the_controller_rate(tmp_path):
     try:
         net = sim.network()
         node = canopen.RemoteNode(1, sim.eds)
-        node.sdo.RESPONSE_TIMEOUT = 2.0
+        node.sdo.RESPONSE_TIMEOUT = 0.8
         net.add_node(node)
         node.nmt.state = "OPERATIONAL"
         enable_402(node)

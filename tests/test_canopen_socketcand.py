@@ -96,6 +96,7 @@ def test_two_python_can_clients_and_two_canopen_networks_share_the_bus(drive_sim
     try:
         r1 = canopen.RemoteNode(1, drive_sim.eds)
         r2 = canopen.RemoteNode(1, drive_sim.eds)
+        r1.sdo.RESPONSE_TIMEOUT = r2.sdo.RESPONSE_TIMEOUT = 0.8
         n1.add_node(r1)
         n2.add_node(r2)
         r1.sdo["Controller"]["Kp"].raw = 7.0
@@ -103,6 +104,7 @@ def test_two_python_can_clients_and_two_canopen_networks_share_the_bus(drive_sim
         # time): r2's receive queue also got r1's answer, let it arrive before r2 asks
         time.sleep(0.2)
         assert r2.sdo["Controller"]["Kp"].raw == 7.0
+        time.sleep(0.2)                      # and r2's answer reaches r1's queue too
         r1.sdo[0x1017].raw = 20
         assert r2.nmt.wait_for_heartbeat(1.0) == "PRE-OPERATIONAL"
         assert r1.nmt.wait_for_heartbeat(1.0) == "PRE-OPERATIONAL"
@@ -135,6 +137,7 @@ def test_garbage_and_stalled_half_lines_do_not_disturb_the_bus(drive_sim):
     net = drive_sim.network()
     try:
         node = canopen.RemoteNode(1, drive_sim.eds)
+        node.sdo.RESPONSE_TIMEOUT = 0.8
         net.add_node(node)
         assert node.sdo[0x1000].raw == 0x00020192
         # the garbage client is still connected and still sees and sends frames

@@ -23,6 +23,12 @@ int sockcan_open(const char *ifname, char *err, size_t errlen)
         snprintf(err, errlen, "socketcan: socket(PF_CAN): %s (kernel without CAN support?)", strerror(errno));
         return -1;
     }
+    /* a virtual bus (vcan) has no bit rate: a burst of frames (an SDO block of 127) arrives
+     * at memory speed, so give the socket room (SO_RCVBUFFORCE needs CAP_NET_ADMIN) */
+    int rcvbuf = 4 << 20;
+    if (setsockopt(fd, SOL_SOCKET, SO_RCVBUFFORCE, &rcvbuf, sizeof rcvbuf) != 0) {
+        (void)setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
+    }
     unsigned idx = if_nametoindex(ifname);
     if (idx == 0) {
         snprintf(err, errlen, "socketcan: no interface '%s'", ifname);
