@@ -41,7 +41,7 @@ def guest_available() -> tuple[bool, str]:
 
 
 def run_in_guest(command, env: dict | None = None, cwd=None, timeout: float = 300.0,
-                 files: dict | None = None) -> GuestResult:
+                 files: dict | None = None, cpus: int = 2) -> GuestResult:
     """Boot the guest, run ``command`` there, power off; a CompletedProcess-like result.
 
     Parameters
@@ -54,13 +54,15 @@ def run_in_guest(command, env: dict | None = None, cwd=None, timeout: float = 30
     timeout : seconds the command may run in the guest; qemu itself is killed
         ``guest.BOOT_ALLOWANCE_S`` later at the latest.
     files : {name: str/bytes} placed at $FFTUNE_VM_JOB/name in the guest.
+    cpus : virtual CPUs of the guest.
 
     Returns
     -------
     GuestResult with returncode, stdout, stderr, timed_out, outputs (files the command
     wrote under $FFTUNE_VM_OUT), init_log, console, duration_s and ``describe()``.
     """
-    return _guest.run_in_guest(command, env=env, cwd=cwd, timeout_s=timeout, files=files)
+    return _guest.run_in_guest(command, env=env, cwd=cwd, timeout_s=timeout, files=files,
+                               cpus=cpus)
 
 
 @dataclasses.dataclass
@@ -74,7 +76,7 @@ class SectionResult:
 
 def run_sections(sections: dict, env: dict | None = None, cwd=None,
                  section_timeout: float = 120.0, timeout: float = 300.0,
-                 files: dict | None = None):
+                 files: dict | None = None, cpus: int = 2):
     """Run several shell snippets one after the other in ONE guest boot.
 
     Each snippet runs under ``/bin/sh -c`` with its own time limit (coreutils ``timeout``,
@@ -97,7 +99,7 @@ def run_sections(sections: dict, env: dict | None = None, cwd=None,
             f"echo $? > \"$out/{name}.rc\"",
         ]
     result = run_in_guest("\n".join(lines) + "\n", env=env, cwd=cwd, timeout=timeout,
-                          files=files)
+                          files=files, cpus=cpus)
     found = {}
     for name in sections:
         rc_text = result.outputs.get(f"{name}.rc", "").strip()
