@@ -500,9 +500,15 @@ class DriveClient:
             bar.close()
         t_end = time.time()
         params = self.read_parameters()
+        if self._bootups != boots0:
+            raise FftuneError(f"node {self.opts.node_id} rebooted during the run (boot-up seen); "
+                              "its recording is lost")
         n = int(params["exc_period"])
         rec_periods = int(params["exc_record_periods"])
         data = self.upload_recording()
+        if self._bootups != boots0:
+            raise FftuneError(f"node {self.opts.node_id} rebooted during the run (boot-up seen); "
+                              "its recording is lost")
         expected_samples = rec_periods * n
         nsig = len(order)
         if len(data) != expected_samples * nsig * 4:
@@ -524,11 +530,31 @@ class DriveClient:
             raise FftuneError(f"heartbeat of node {self.opts.node_id} lost ({silent:.1f} s silent) on "
                               f"{self.opts.describe()}")
 
-    def upload_recording(self):
-        """The recorder data (0x2021) by SDO block upload (CRC checked by python-canopen)."""
+    def upload_recording(self, block_sizes=(127, 32, 8)):
+        """The recorder data (0x2021) by SDO block upload (CRC checked by python-canopen).
+
+        A failed transfer (timeout, lost segments: a slow receiver on a bus without flow
+        control drops frames of a long sub-block) is repeated with smaller sub-blocks; the
+        recording stays on the drive until the next run starts.
+        """
+        from canopen.sdo.client import BlockUploadStream
+
         index, sub = 0x2021, 0
 
         def do():
             with self.node.sdo[index].open("rb", block_transfer=True) as fh:
                 return fh.read()
-        return self._sdo_call("block upload of", index, sub, do)
+
+        saved = BlockUploadStream.blksize
+        try:
+            for i, size in enumerate(block_sizes):
+                # python-canopen takes the sub-block size from this class attribute
+                BlockUploadStream.blksize = size
+                try:
+                    return self._sdo_call(f"block upload (sub-blocks of {size}) of", index, sub, do)
+                except FftuneError:
+                    if i == len(block_sizes) - 1:
+                        raise
+                    time.sleep(0.2)
+        finally:
+            BlockUploadStream.blksize = saved

@@ -60,15 +60,19 @@ class Session:
         ctl = {k: v for k, v in cfg["drive"]["controller"].items() if v is not None}
         self.controller = {"tau_d" if k == "tau_d" else k: v for k, v in ctl.items()}
 
-    def run(self, experiment, key, request, level_index=0, realization=0):
+    def run(self, experiment, key, request, level_index=0, realization=0, extra_signals=None):
         """The run ``key`` of ``experiment`` with drive parameters ``request``, measured or
-        loaded from an earlier capture with the same request."""
+        loaded from an earlier capture with the same request. ``extra_signals`` (name ->
+        array of the record's length, e.g. the excitation the drive generated but does
+        not record) are stored in the capture beside the recorded ones, as float32."""
         request = dict(self.controller, **request)
         rec = self.store.load(key, request)
         if rec is not None:
             self.counts["resumed"] += 1
             return rec
         rec = self.drive.run(request, desc=key)
+        for name, values in (extra_signals or {}).items():
+            rec.signals[name] = np.asarray(values, dtype=np.float32).astype(np.float64)
         self.store.save(key, rec, experiment=experiment, request=request, config=self.cfg,
                         identity=self.identity, level_index=level_index, realization=realization)
         self.counts["measured"] += 1
@@ -130,15 +134,19 @@ def detect(session):
                    "exc_settle_periods": c["settle_periods"], "exc_record_periods": c["periods"],
                    "ms_k_min": k_min, "ms_k_max": k_max, "ms_group": c["group"],
                    "ms_seed": c["seed"], "ms_realization": m, "kfc": c["k_fc"], "kv": c["k_v"]}
-            rec = session.run("detect", f"detect-L{li:02d}-M{m:02d}", req, level_index=li, realization=m)
+            extra = None
+            if c["inject"] == "plant_input":
+                # The drive does not record the disturbance it adds; it is the same design
+                # (docs/multisine.md), stored with the capture as 'excitation' so that
+                # `fftune analyze` of the captures repeats the known-reference estimate.
+                one = drive_multisine(n, k_min, k_max, c["group"], c["seed"], m, rms)
+                extra = {"excitation": np.tile(one, c["periods"])}
+            rec = session.run("detect", f"detect-L{li:02d}-M{m:02d}", req, level_index=li,
+                              realization=m, extra_signals=extra)
             u_m.append(_blocks(rec.signals["plant_input"], n))
             y_m.append(_blocks(rec.signals["motor_angle"], n))
-            if c["inject"] == "reference":
-                r_m.append(_blocks(rec.signals["reference"], n))
-            else:
-                # The disturbance the drive added: the same design, float64.
-                one = drive_multisine(n, k_min, k_max, c["group"], c["seed"], m, rms)
-                r_m.append(np.tile(one, (c["periods"], 1)))
+            r_name = "reference" if c["inject"] == "reference" else "excitation"
+            r_m.append(_blocks(rec.signals[r_name], n))
         u_lv.append(np.stack(u_m))
         y_lv.append(np.stack(y_m))
         r_lv.append(np.stack(r_m))

@@ -173,3 +173,26 @@ def test_fftune_demo_runs_end_to_end(tmp_path, capsys):
     assert code == 0
     assert "K_fc* (automated search)" in text and "report.html" in text
     assert (tmp_path / "demo" / "results.yaml").exists()
+
+
+def test_drive_reset_during_a_run_is_reported(sim):
+    """An NMT reset of the drive right after the start command (a second client on the bus
+    sends it when it sees the start) ends the run with one error line."""
+    opts = BusOptions(port=sim.port, host=sim.host, eds=EDS)
+    other = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    start = bytes([0x2F, 0x10, 0x20, 0x01, 0x01])
+
+    def on_frame(msg):
+        if msg.arbitration_id == 0x601 and bytes(msg.data[:5]) == start:
+            other.send(can.Message(arbitration_id=0x000, data=[0x81, 1], is_extended_id=False))
+
+    notifier = can.Notifier(other, [on_frame])
+    try:
+        with DriveClient(opts, progress=False, heartbeat_ms=50) as drive:
+            drive.enable()
+            with pytest.raises(FftuneError, match="node 1 rebooted during the run|reason 6 \\(NMT"):
+                drive.run({"exc_kind": 1, "exc_inject": 0, "exc_amplitude": 0.1, "exc_period": 8192,
+                           "exc_sine_cycles": 4, "exc_settle_periods": 1000, "exc_record_periods": 1})
+    finally:
+        notifier.stop()
+        other.shutdown()

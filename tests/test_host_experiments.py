@@ -174,3 +174,20 @@ def test_drive_rate_mismatch_is_named(tmp_path):
     cfg["drive"]["fs_hz"] = 5120.0
     with pytest.raises(FftuneError, match=r"key 'drive.fs_hz': the drive runs at 2560 Hz"):
         ex.Session(_drive(), cfg, str(tmp_path), log=lambda s: None)
+
+
+def test_analysing_the_captures_again_gives_the_live_bla(tmp_path):
+    from analysis import capture
+    from analysis.bla import robust_bla
+    from analysis.multisine import drive_lines
+    session = ex.Session(_drive(), _cfg(), str(tmp_path), log=lambda s: None)
+    r, levels = ex.detect(session)
+    for li, live in enumerate(levels.results):
+        data = capture.load_experiment(str(tmp_path / "captures"), experiment="detect", level_index=li)
+        sig = {k: v.astype(np.float64) for k, v in data.signals.items()}   # stored float32
+        again = robust_bla(sig["plant_input"], sig["motor_angle"], sig["excitation"],
+                           fs=data.fs_hz, settle_periods=0,
+                           excited_bins=drive_lines(r["period_samples"], r["k_min"], r["k_max"],
+                                                    4, 3).excited, warn_transient=False)
+        np.testing.assert_array_equal(again.G, live.G)
+        np.testing.assert_array_equal(again.var_nl, live.var_nl)
