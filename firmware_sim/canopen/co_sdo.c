@@ -655,6 +655,13 @@ void co_sdo_process(co_node_t *n)
         block_upload_send(n);
     }
     uint32_t timeout = n->cfg.sdo_timeout_us != 0u ? n->cfg.sdo_timeout_us : 1000000u;
+    if (s->state == SDO_BUL_ACK) {
+        /* the client has up to 127 segments to take in before it can confirm them: allow
+         * 100 ms per segment on top (a slow client on a bus without bit rate, e.g. vcan in
+         * an emulated guest, takes several ms per frame). A new request from the client
+         * replaces the transfer at any time, so waiting long blocks nobody. */
+        timeout += 100000u * s->seqno;
+    }
     if ((uint32_t)(n->now_us - s->last_us) > timeout) {
         abort_transfer(n, s->index, s->sub, CO_SDO_AB_TIMEOUT);
     }

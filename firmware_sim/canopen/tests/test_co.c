@@ -295,6 +295,17 @@ static void test_abort_codes(void)
     g_ntx = 0;
     advance_ms(1100);
     CHECK(abort_code(last_id(0x585)) == CO_SDO_AB_TIMEOUT);
+    /* waiting for a block-upload confirmation: 1 s + 100 ms per segment sent */
+    g_drv.rec_bytes = 7 * 127 * 2;
+    uint8_t bu0[8] = {0xA4, 0x21, 0x20, 0, 127, 0, 0, 0};
+    sdo(bu0);
+    uint8_t st0[8] = {0xA3, 0, 0, 0, 0, 0, 0, 0};
+    sdo(st0);
+    g_ntx = 0;
+    advance_ms(13700);
+    CHECK(last_id(0x585) == NULL);
+    advance_ms(100);
+    CHECK(abort_code(last_id(0x585)) == CO_SDO_AB_TIMEOUT);
     /* device state: run start outside OPERATIONAL / OPERATION ENABLED */
     CHECK(sdo_write(0x2010, 1, 1, 1) == CO_SDO_AB_DATA_DEV_STATE);
     /* general error: the data under a running upload changed (size, or a new run) */
