@@ -476,7 +476,7 @@ class DriveClient:
         total = int(self.get("run_total"))
         deadline = time.monotonic() + self.run_timeout_s
         bar = tqdm(total=total, desc=desc, unit="sample", unit_scale=True, leave=False,
-                   disable=not self.progress, dynamic_ncols=True)
+                   disable=None if self.progress else True, dynamic_ncols=True)  # None: off when not a terminal
         try:
             while True:
                 state = int(self.get("run_state"))
@@ -529,6 +529,26 @@ class DriveClient:
         if silent > max(1.0, 10 * self.heartbeat_ms / 1000.0):
             raise FftuneError(f"heartbeat of node {self.opts.node_id} lost ({silent:.1f} s silent) on "
                               f"{self.opts.describe()}")
+
+    def load_waveform(self, samples):
+        """Download one period (float32 little-endian, at most 8192 samples) into the
+        waveform table 0x2002 by SDO block download; returns the drive's table length.
+
+        Runs with ``exc_kind = 2`` play it cyclically, scaled by ``exc_amplitude``.
+        """
+        data = np.asarray(samples, dtype="<f4")
+        if data.ndim != 1 or not 4 <= data.size <= 8192 or not np.isfinite(data).all():
+            raise FftuneError(f"waveform table: need 4 .. 8192 finite samples, got shape {data.shape}")
+        raw = data.tobytes()
+
+        def do():
+            with self.node.sdo[0x2002].open("wb", size=len(raw), block_transfer=True) as fh:
+                fh.write(raw)
+        self._sdo_call("block download of", 0x2002, 0, do)
+        length = int(self.get("table_length"))
+        if length != data.size:
+            raise FftuneError(f"waveform table: the drive reports {length} samples after writing {data.size}")
+        return length
 
     def upload_recording(self, block_sizes=(127, 32, 8)):
         """The recorder data (0x2021) by SDO block upload (CRC checked by python-canopen).

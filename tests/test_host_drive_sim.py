@@ -196,3 +196,18 @@ def test_drive_reset_during_a_run_is_reported(sim):
     finally:
         notifier.stop()
         other.shutdown()
+
+
+def test_waveform_table_is_played_as_loaded(sim):
+    n = 512
+    k = np.arange(n)
+    table = (np.sin(2 * np.pi * 3 * k / n) + 0.3 * np.sin(2 * np.pi * 7 * k / n)).astype(np.float32)
+    with DriveClient(BusOptions(port=sim.port, host=sim.host, eds=EDS), progress=False) as drive:
+        drive.enable()
+        assert drive.load_waveform(table) == n
+        rec = drive.run({"exc_kind": 2, "exc_inject": 0, "exc_amplitude": 0.25, "exc_offset": 0.0,
+                         "exc_period": n, "exc_settle_periods": 1, "exc_record_periods": 2})
+    ref = rec.signals["reference"].reshape(2, n)
+    # The reference is the hold set-point plus the scaled table (float32 on the drive).
+    for period in ref:
+        np.testing.assert_allclose(period - period[0] + 0.25 * table[0], 0.25 * table, atol=2e-6)
