@@ -222,4 +222,5 @@ class ReplayDrive:
                 return rec
         shown = ", ".join(f"{k}={v}" for k, v in sorted(parameters.items()))
         raise FftuneError(f"{self.source}: no logged run with {shown} "
-                          f"({len(self.session.runs)} runs in the log, {len(self.used)} matched)")
+                          f"({len(self.session.runs)} runs in the log, {len(self.used)} matched; "
+                          "give the configuration and --steps the session used)")
