@@ -6,6 +6,7 @@ same directory, then a no-clobber rename); an existing file is never overwritten
 """
 import csv
 import datetime as _dt
+import hashlib
 import io as _io
 import json
 import os
@@ -23,7 +24,7 @@ __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "STANDARD_SIGNALS", "REQUIRED_META",
            "load_experiment", "export_mat", "export_csv", "atomic_write"]
 
 FORMAT_NAME = "fftune-capture"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2 = 1 + the checksum user block (1 is still read)
 STANDARD_SIGNALS = ("reference", "plant_input", "motor_angle", "load_angle", "error")
 REQUIRED_META = ("fs_hz", "n_period", "settle_periods", "record_periods", "experiment")
 _INT_META = ("n_period", "settle_periods", "record_periods", "level_index", "realization")
@@ -160,6 +161,41 @@ def _validate_meta(meta, where):
     return out
 
 
+# Version 2 files start with a 512-byte HDF5 user block (HDF5 itself skips it) holding
+# "fftune-capture 2 sha256=<hex>\n": the SHA-256 of everything after the block. It is checked
+# BEFORE libhdf5 parses the file: a damaged file is refused with one clear line, instead of
+# being read as other numbers (HDF5 keeps no checksum of its own) or making libhdf5 hang or
+# crash on its damaged structures (one flipped byte in an attribute header is enough).
+_USERBLOCK = 512
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+_HEADER = re.compile(rb"fftune-capture (\d+) sha256=([0-9a-f]{64})\n\0*\Z")
+
+
+def _sha256_after_userblock(fh):
+    h = hashlib.sha256()
+    fh.seek(_USERBLOCK)
+    for chunk in iter(lambda: fh.read(1 << 20), b""):
+        h.update(chunk)
+    return h.hexdigest()
+
+
+def _verify_file(path, where):
+    """Check the user-block checksum of a version-2 file (version 1: nothing to check)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(_USERBLOCK)
+            if head[:8] == _HDF5_SIGNATURE:
+                return  # version 1: written without the checksum block
+            m = _HEADER.match(head) if len(head) == _USERBLOCK else None
+            if m is None:
+                raise InputError(f"{where}: not an HDF5 capture file (or its header is damaged)")
+            if _sha256_after_userblock(fh) != m.group(2).decode():
+                raise InputError(f"{where}: checksum mismatch: the file was changed, truncated or "
+                                 f"damaged after it was written")
+    except OSError as exc:
+        raise InputError(f"{where}: cannot read: {exc.strerror}") from None
+
+
 def write_run(path, signals, meta):
     """Write one experiment run to a new HDF5 capture file, atomically.
 
@@ -207,7 +243,7 @@ def write_run(path, signals, meta):
         data[name] = arr
 
     def write(tmp):
-        with h5py.File(tmp, "w") as f:
+        with h5py.File(tmp, "w", userblock_size=_USERBLOCK) as f:
             f.attrs["format"] = FORMAT_NAME
             f.attrs["format_version"] = FORMAT_VERSION
             for key in ("fs_hz",) + _INT_META + _STR_META:
@@ -216,6 +252,10 @@ def write_run(path, signals, meta):
                 f.attrs[key] = json.dumps(m[key], sort_keys=True)
             for name, arr in data.items():
                 f.create_dataset(name, data=arr)
+        with open(tmp, "r+b") as fh:
+            header = f"fftune-capture {FORMAT_VERSION} sha256={_sha256_after_userblock(fh)}\n".encode()
+            fh.seek(0)
+            fh.write(header.ljust(_USERBLOCK, b"\0"))
 
     return atomic_write(path, write, suffix=".h5.tmp")
 
@@ -238,18 +278,33 @@ def read_run(path):
     where = f"capture {path}"
     if not path.is_file():
         raise InputError(f"{where}: no such file")
+    _verify_file(path, where)
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
         raise InputError(f"{where}: not an HDF5 file ({exc})") from None
+    try:
+        return _read_open(f, path, where)
+    except InputError:
+        raise
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError) as exc:
+        # h5py on a damaged file (truncated, overwritten structures)
+        raise InputError(f"{where}: damaged HDF5 file ({type(exc).__name__}: {exc})") from None
+    finally:
+        f.close()
+
+
+def _read_open(f, path, where):
+    import h5py
+
     with f:
         if f.attrs.get("format") != FORMAT_NAME:
             raise InputError(f"{where}: not an fftune capture file (attribute 'format' is "
                              f"{f.attrs.get('format')!r})")
         version = int(f.attrs.get("format_version", -1))
-        if version != FORMAT_VERSION:
+        if version not in (1, FORMAT_VERSION):
             raise InputError(f"{where}: format_version {version} not supported "
-                             f"(this fftune reads {FORMAT_VERSION})")
+                             f"(this fftune reads 1 and {FORMAT_VERSION})")
         meta = {}
         for key in ("fs_hz",) + _INT_META + _STR_META:
             if key in f.attrs:
