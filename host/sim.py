@@ -113,14 +113,14 @@ def add_parser(sub):
 def _run(args):
     if not os.path.exists(DRIVE_SIM):
         raise FftuneError(f"{DRIVE_SIM} not built (run `make setup`)")
+    if not os.path.exists(args.plant):
+        raise FftuneError(f"plant configuration not found: {args.plant}")
     extra = ["--realtime"] if args.realtime else []
     cmd = drive_sim_command(args.plant, args.host, args.port, args.node_id, extra)
-    try:
-        return subprocess.call(cmd)
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        sys.stdout.flush()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # Become drive_sim: signals (Ctrl-C, kill) reach the simulator itself, no orphan.
+    os.execv(DRIVE_SIM, cmd)
 
 
 def derived_plant(base_path, overrides, out_path, where="sim.overrides"):

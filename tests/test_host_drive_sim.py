@@ -211,3 +211,22 @@ def test_waveform_table_is_played_as_loaded(sim):
     # The reference is the hold set-point plus the scaled table (float32 on the drive).
     for period in ref:
         np.testing.assert_allclose(period - period[0] + 0.25 * table[0], 0.25 * table, atol=2e-6)
+
+
+def test_fftune_sim_serves_the_drive_until_interrupted(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    from host_fixtures import free_port
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "host.cli", "sim", "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert f"listening on socketcand 127.0.0.1:{port}" in line
+        with DriveClient(BusOptions(port=port, eds=EDS), progress=False) as drive:
+            assert drive.identity()["device_name"] == "fftune drive_sim"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(10)
+    assert proc.returncode in (0, 130)
