@@ -289,6 +289,8 @@ def load_config(path):
             text = fh.read()
     except OSError as exc:
         raise FftuneError(f"{path}: cannot read configuration: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise FftuneError(f"{path}: cannot read configuration: not UTF-8 text (byte {exc.start})") from None
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:
