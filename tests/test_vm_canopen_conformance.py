@@ -62,6 +62,10 @@ def test_canopen_conformance_suite_passes_over_vcan0_in_the_guest():
         args[3:3] = ["-p", "pytest_bus_only"]
     result = run_in_guest(args, cwd=REPO_ROOT, timeout=GUEST_PYTEST_TIMEOUT_S,
                           env={"FFTUNE_TEST_CAN": "socketcan:vcan0", "PYTHONPATH": str(VM_DIR)})
+    # The whole guest output, kept for a look after the run (build/ is ignored by git).
+    log = REPO_ROOT / "build" / "vm" / "last-conformance.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text(result.describe())
     counts = pytest_summary_counts(result.stdout)
     # shown with -s / -rA: the guest's slowest tests and what it deselected, with reasons
     print(f"guest conformance run: {counts}, {result.duration_s:.0f} s boot-run-poweroff\n"
