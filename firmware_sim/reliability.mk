@@ -9,7 +9,8 @@
 #                   -fsanitize=address,undefined -fno-sanitize-recover=all into build/asan/,
 #                   the unit tests run under it; tests/test_reliability_*.py use
 #                   build/asan/drive_sim when it exists.
-.PHONY: rel-fuzz rel-fuzz-build rel-fuzz-seeds rel-fuzz-replay rel-asan-test rel-asan-build
+.PHONY: rel-fuzz rel-fuzz-build rel-fuzz-seeds rel-fuzz-replay rel-asan-test rel-asan-build \
+        $(FZ_TARGETS:%=rel-fuzz-run-%)
 
 FZ_CC      ?= clang
 comma      := ,
@@ -25,8 +26,8 @@ FZ_TARGETS := $(strip $(if $(REL_HAVE_CO),fuzz_co_node) $(if $(REL_HAVE_PORT),fu
 FZ_BINS    := $(FZ_TARGETS:%=$(FZ_DIR)/%)
 REL_MISSING := $(if $(REL_HAVE_CO),,canopen/ core/ plant/ sources) $(if $(REL_HAVE_PORT),,port/scd.c)
 # Executions per target (sum >= 10 million) and a wall-clock bound per target [s].
-REL_FUZZ_RUNS      ?= fuzz_co_node=4000000 fuzz_scd=6500000
-REL_FUZZ_MAX_TIME  ?= 900
+REL_FUZZ_RUNS      ?= fuzz_co_node=1500000 fuzz_scd=8600000
+REL_FUZZ_MAX_TIME  ?= 3000
 REL_FUZZ_MIN_EXECS ?= 10000000
 REL_FUZZ_MAX_LEN   ?= fuzz_co_node=2048 fuzz_scd=600
 
@@ -55,13 +56,11 @@ $(FZ_DIR)/seeds/.stamp: fuzz/gen_seeds.py $(GEN)/fftune_drive.eds
 # Each target: its seeds + committed regression inputs, a fresh working corpus each time
 # (so the figures are reproducible from the same starting point); libFuzzer's leak
 # detection stays on; any crash / leak / UB stops make with the reproducer in build/fuzz/.
-rel-fuzz: rel-fuzz-build $(if $(FZ_TARGETS),rel-fuzz-seeds)
-	@rm -f $(FZ_DIR)/summary.txt
-	@if [ -z "$(FZ_TARGETS)" ]; then echo "rel-fuzz: no fuzz target can be built in this tree (missing: $(strip $(REL_MISSING)))"; exit 1; fi
-	@for t in $(FZ_TARGETS); do \
-	  runs=$$(echo "$(REL_FUZZ_RUNS)" | tr ' ' '\n' | sed -n "s/^$$t=//p"); \
+# One rule per target, so `make -j2 fuzz` runs them side by side.
+rel-fuzz-run-%: rel-fuzz-build rel-fuzz-seeds
+	@t=$*; runs=$$(echo "$(REL_FUZZ_RUNS)" | tr ' ' '\n' | sed -n "s/^$$t=//p"); \
 	  maxlen=$$(echo "$(REL_FUZZ_MAX_LEN)" | tr ' ' '\n' | sed -n "s/^$$t=//p"); \
-	  rm -rf $(FZ_DIR)/corpus/$$t; mkdir -p $(FZ_DIR)/corpus/$$t $(FZ_DIR)/artifacts/$$t; \
+	  rm -rf $(FZ_DIR)/corpus/$$t $(FZ_DIR)/$$t.summary; mkdir -p $(FZ_DIR)/corpus/$$t $(FZ_DIR)/artifacts/$$t; \
 	  cp $(FZ_DIR)/seeds/$${t#fuzz_}/* $(FZ_DIR)/corpus/$$t/; \
 	  if ls fuzz/regress/$${t#fuzz_}/* >/dev/null 2>&1; then cp fuzz/regress/$${t#fuzz_}/* $(FZ_DIR)/corpus/$$t/; fi; \
 	  echo "rel-fuzz: $$t: $$runs executions at most, $(REL_FUZZ_MAX_TIME) s at most"; \
@@ -77,8 +76,11 @@ rel-fuzz: rel-fuzz-build $(if $(FZ_TARGETS),rel-fuzz-seeds)
 	  ft=$$(echo "$$last" | sed -n 's/.* ft: \([0-9]*\).*/\1/p'); \
 	  corp=$$(echo "$$last" | sed -n 's/.* corp: \([0-9]*\/[0-9]*[a-zA-Z]*\).*/\1/p'); \
 	  secs=$$(sed -n 's/^Done [0-9]* runs in \([0-9]*\) second.*/\1/p' $(FZ_DIR)/$$t.log); \
-	  echo "$$t executions=$$execs cov=$$cov ft=$$ft corpus=$$corp seconds=$$secs crashes=0" | tee -a $(FZ_DIR)/summary.txt; \
-	done
+	  echo "$$t executions=$$execs cov=$$cov ft=$$ft corpus=$$corp seconds=$$secs crashes=0" | tee $(FZ_DIR)/$$t.summary
+
+rel-fuzz: $(if $(FZ_TARGETS),$(FZ_TARGETS:%=rel-fuzz-run-%),rel-fuzz-build)
+	@if [ -z "$(FZ_TARGETS)" ]; then echo "rel-fuzz: no fuzz target can be built in this tree (missing: $(strip $(REL_MISSING)))"; exit 1; fi
+	@cat $(FZ_TARGETS:%=$(FZ_DIR)/%.summary) > $(FZ_DIR)/summary.txt
 	@total=$$(sed -n 's/.*executions=\([0-9]*\).*/\1/p' $(FZ_DIR)/summary.txt | awk '{s+=$$1} END {print s+0}'); \
 	  echo "rel-fuzz: $$total executions in total, 0 crashes, 0 leaks, 0 UB reports" | tee -a $(FZ_DIR)/summary.txt; \
 	  if [ $$total -lt $(REL_FUZZ_MIN_EXECS) ]; then echo "rel-fuzz: fewer than $(REL_FUZZ_MIN_EXECS) executions (the time bound cut a run short)" >&2; exit 1; fi
