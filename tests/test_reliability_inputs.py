@@ -1,6 +1,6 @@
 """Bad inputs: corrupted and truncated capture files and CAN logs, malformed configs.
 
-Every case goes through the `fftune` command line as a user meets it: exit code 2, one line
+Every case goes through the `fftune` command line (host.cli.main) as a user meets it: exit code 2, one line
 ``fftune: error: ...`` naming the file, no traceback, nothing written. For capture files
 also in-process: 300 seeded corruptions (flipped bytes anywhere, truncations) each read back
 either exactly as written or rejected with an InputError, never as other numbers.
@@ -8,8 +8,6 @@ either exactly as written or rejected with an InputError, never as other numbers
 import json
 import os
 import random
-import subprocess
-import sys
 import threading
 
 import numpy as np
@@ -35,10 +33,22 @@ def _signals():
     return {name: rng.standard_normal((T + P) * N) for name in ("reference", "plant_input", "motor_angle")}
 
 
-def _fftune(args, cwd):
-    return subprocess.run([sys.executable, "-m", "host.cli", *args], cwd=cwd,
-                          env=dict(os.environ, PYTHONPATH=REPO), capture_output=True, text=True,
-                          timeout=120)
+class _Result:
+    def __init__(self, returncode, stderr):
+        self.returncode, self.stderr = returncode, stderr
+
+
+def _fftune(args, capsys):
+    """`fftune ARGS` in this process (an exception other than the CLI's own error handling
+    propagates and fails the test, as a traceback would)."""
+    from host.cli import main
+
+    capsys.readouterr()
+    try:
+        code = main(list(args))
+    except SystemExit as exc:  # argparse usage errors
+        code = exc.code
+    return _Result(code, capsys.readouterr().err)
 
 
 def _assert_clear_error(res, names):
@@ -92,7 +102,7 @@ def test_corrupted_capture_files_never_read_as_other_data(good_capture, tmp_path
 
 @pytest.mark.parametrize("case", ["truncated_half", "truncated_header", "empty", "flipped_data",
                                   "text_file", "directory"])
-def test_bad_capture_file_on_the_command_line(good_capture, tmp_path, case):
+def test_bad_capture_file_on_the_command_line(good_capture, tmp_path, case, capsys):
     raw = open(good_capture, "rb").read()
     path = tmp_path / "bad.h5"
     if case == "truncated_half":
@@ -111,10 +121,10 @@ def test_bad_capture_file_on_the_command_line(good_capture, tmp_path, case):
     elif case == "directory":
         path.mkdir()
     out = tmp_path / "exported"
-    res = _fftune(["export", str(path), "--format", "csv", "--to", str(out)], cwd=str(tmp_path))
+    res = _fftune(["export", str(path), "--format", "csv", "--to", str(out)], capsys)
     _assert_clear_error(res, ["bad.h5"])
     assert not out.exists() or not os.listdir(out), "something was written from a bad capture"
-    res = _fftune(["analyze", "bla", str(path), "--json", str(tmp_path / "r.json")], cwd=str(tmp_path))
+    res = _fftune(["analyze", "bla", str(path), "--json", str(tmp_path / "r.json")], capsys)
     _assert_clear_error(res, ["bad.h5"])
     assert not (tmp_path / "r.json").exists()
 
@@ -172,7 +182,7 @@ def _cut_mid_transfer(lines):
 @needs_drive
 @pytest.mark.parametrize("case", ["cut_mid_upload", "cut_mid_line", "garbage_lines", "random_bytes",
                                   "empty", "random_blf", "unknown_suffix", "missing"])
-def test_bad_can_logs_on_the_command_line(session_log, tmp_path, case):
+def test_bad_can_logs_on_the_command_line(session_log, tmp_path, case, capsys):
     lines = open(session_log).read().splitlines(keepends=True)
     rng = random.Random(len(case))
     name = "bad.log"
@@ -199,7 +209,7 @@ def test_bad_can_logs_on_the_command_line(session_log, tmp_path, case):
         (path.write_bytes if isinstance(data, bytes) else path.write_text)(data)
     out = tmp_path / "out"
     res = _fftune(["import-canlog", str(path), "--eds", EDS, "--steps", "detect", "--out", str(out),
-                   "--no-progress", "--no-figures"], cwd=str(tmp_path))
+                   "--no-progress", "--no-figures"], capsys)
     _assert_clear_error(res, [name])
 
 
@@ -216,7 +226,7 @@ BAD_CONFIGS = {
 
 
 @pytest.mark.parametrize("case", sorted(BAD_CONFIGS) + ["missing", "directory"])
-def test_malformed_configs_on_the_command_line(tmp_path, case):
+def test_malformed_configs_on_the_command_line(tmp_path, case, capsys):
     import yaml
 
     path = tmp_path / "bad.yaml"
@@ -238,6 +248,6 @@ def test_malformed_configs_on_the_command_line(tmp_path, case):
     out = tmp_path / "out"
     # port 9: nothing listens there; the config must be refused before any connection
     res = _fftune(["detect", "--config", str(path), "--out", str(out), "--port", "9",
-                   "--no-progress", "--no-figures"], cwd=str(tmp_path))
+                   "--no-progress", "--no-figures"], capsys)
     _assert_clear_error(res, ["bad.yaml"])
     assert not out.exists(), "output directory created for a bad config"
