@@ -27,8 +27,12 @@ DEMO = os.path.join(REPO, "configs", "demo.yaml")
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    log = tmp_path_factory.mktemp("sim") / "drive_sim.log"
-    drive = start_drive_sim(PLANT, log_path=str(log))
+    """drive_sim with the demo's plant (configs/plant_twomass.yaml + demo.yaml sim.overrides)."""
+    from host.sim import derived_plant
+    d = tmp_path_factory.mktemp("sim")
+    overrides = load_config(DEMO)["sim"]["overrides"]
+    plant = derived_plant(PLANT, overrides, str(d / "plant.yaml"))
+    drive = start_drive_sim(plant, log_path=str(d / "drive_sim.log"))
     yield drive
     drive.stop()
 
