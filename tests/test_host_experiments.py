@@ -191,3 +191,15 @@ def test_analysing_the_captures_again_gives_the_live_bla(tmp_path):
                                                     4, 3).excited, warn_transient=False)
         np.testing.assert_array_equal(again.G, live.G)
         np.testing.assert_array_equal(again.var_nl, live.var_nl)
+
+
+def test_detect_at_the_reference_uses_the_recorded_reference(tmp_path):
+    cfg = _cfg(detect={"inject": "reference", "rms_levels": [0.3]})
+    session = ex.Session(_drive(), cfg, str(tmp_path), log=lambda s: None)
+    r, levels = ex.detect(session)
+    res = levels.results[0]
+    assert res.known_reference
+    assert r["levels"][0]["summary_db"]["odd_detected"] is True
+    # The plant seen through the loop: a mass with friction, |G| falling with frequency.
+    g = np.abs(res.G)
+    assert g[0] > 10 * g[-1]
