@@ -438,8 +438,9 @@ def run_in_guest(command, env: dict | None = None, cwd: str | os.PathLike | None
         Limit on the command in the guest, seconds; the guest kills its process group then.
     files : dict, optional
         {name: str or bytes} written into the job directory before boot; the command sees
-        them as $FFTUNE_VM_JOB/name (/run/vmjob/name). The host's /tmp is NOT visible in the
-        guest (a tmpfs covers it), so pass scripts this way or inline.
+        them as $FFTUNE_VM_JOB/name (/run/vmjob/name). The host's /tmp is visible in the
+        guest as it was at boot (writes stay in the guest), but files written while the guest
+        runs are not: pass scripts this way or inline.
     memory_mib, cpus : guest RAM (also holds everything written in the guest) and vCPUs.
     hard_limit_s : float, optional
         Host-side limit for the whole qemu run; default ``timeout_s + BOOT_ALLOWANCE_S``.

@@ -65,7 +65,9 @@ mount -t sysfs sysfs /host/sys || fail "mount /host/sys"
 mount -t devtmpfs devtmpfs /host/dev || fail "mount /host/dev"
 mkdir -p /host/dev/pts /host/dev/shm
 mount -t devpts devpts /host/dev/pts
-for d in /host/tmp /host/run /host/var/tmp /host/dev/shm; do
+# /tmp and /var/tmp stay as the overlay shows them (writable, guest-only): a repo checked
+# out under /tmp (CI clones may live there) must stay visible in the chroot.
+for d in /host/run /host/dev/shm; do
     mkdir -p "$d"
     mount -t tmpfs -o mode=1777 tmpfs "$d" || fail "mount tmpfs on $d"
 done
