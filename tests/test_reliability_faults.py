@@ -32,7 +32,7 @@ from test_reliability_support import EDS, REPO, SocketcandProxy, needs_drive, st
 
 pytestmark = needs_drive
 
-RUN = dict(exc_kind=1, exc_inject=0, exc_amplitude=0.3, exc_period=2048, exc_sine_cycles=2,
+RUN = dict(exc_kind=1, exc_inject=0, exc_amplitude=0.3, exc_period=1024, exc_sine_cycles=2,
            exc_settle_periods=0, exc_record_periods=2)
 SIGNALS = ("reference", "plant_input", "motor_angle", "error")
 
@@ -91,7 +91,7 @@ def test_block_upload_under_frame_loss_is_exact_or_fails_clearly(recorded, loss)
         # python-canopen's block upload repairs a lost segment (it acknowledges the last
         # good one and the drive resends from there) but not a lost acknowledgement (it
         # then waits for a segment that never comes and times out): at 0.1 % most of the
-        # ~10 000-frame uploads get through, at 1 % and 5 % most end with the error.
+        # ~5 000-frame uploads get through, at 1 % and 5 % most end with the error.
         assert outcomes["exact"] >= 1, (outcomes, stats, errors)
     # the drive is fine afterwards: a clean upload still gives the same bytes
     clean = _client(drive.port)
@@ -119,7 +119,7 @@ def test_parameter_writes_under_frame_loss_are_exact_or_fail_clearly(recorded, l
     with SocketcandProxy(drive.port, drop=loss, delay=0.01, seed=int(loss * 1000) + 1) as proxy:
         lossy = _client(proxy.port, sdo_timeout_s=0.3, sdo_retries=2)
         try:
-            for _ in range(60):
+            for _ in range(150):
                 alias = rng.choice(sorted(limits))
                 value = float(np.float32(rng.uniform(*limits[alias])))
                 try:
@@ -152,7 +152,7 @@ def test_parameter_writes_under_frame_loss_are_exact_or_fail_clearly(recorded, l
         clean.close()
     assert stats["dropped"] > 0, stats
     # SDO retries repair most single losses: most writes succeed
-    assert outcomes["write_ok"] >= 40, (outcomes, stats)
+    assert outcomes["write_ok"] >= 100, (outcomes, stats)
     print(f"loss {loss:.1%}: {outcomes} frames {stats}")
 
 
