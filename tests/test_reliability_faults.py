@@ -293,3 +293,42 @@ def test_host_killed_mid_run_drive_stops_and_holds(tmp_path):
             host.kill()
         net.disconnect()
         drive.stop()
+
+
+# ---- drive reboots during a run (boot-up seen on a bus that stays up) -----------------
+
+def test_drive_reboot_during_a_run_is_noticed_by_its_boot_up(tmp_path):
+    """On a real CAN bus the connection stays up when the drive restarts: the host must
+    notice the boot-up message. A second client resets the node (NMT reset node) in the
+    middle of a run; DriveClient.run stops with a clear error naming the reboot, and a new
+    session on the same drive completes a run."""
+    import threading
+
+    from test_reliability_support import RawClient
+
+    drive = start_drive(tmp_path, "--realtime")
+    try:
+        cli = _client(drive.port, heartbeat_ms=100)
+        cli.enable()
+        other = RawClient(drive.port)
+        timer = threading.Timer(1.0, lambda: other.send_frame(0x000, [0x81, 0x01]))
+        timer.start()
+        t0 = time.monotonic()
+        with pytest.raises(FftuneError) as exc:
+            cli.run(dict(RUN, exc_settle_periods=20), signals=SIGNALS)
+        noticed = time.monotonic() - t0 - 1.0
+        timer.join()
+        other.close()
+        msg = str(exc.value)
+        assert "\n" not in msg
+        assert "rebooted" in msg or "boot-up" in msg or "stopped by the drive" in msg, msg
+        assert noticed < 2.0, f"noticed {noticed:.2f} s after the reset"
+        cli.close()
+        again = _client(drive.port, heartbeat_ms=100)
+        again.enable()
+        rec = again.run(dict(RUN, exc_record_periods=1), signals=SIGNALS)
+        assert rec.signals["plant_input"].size == RUN["exc_period"]
+        again.close()
+        print(f"reboot noticed {noticed * 1000:.0f} ms after the NMT reset: {msg}")
+    finally:
+        drive.stop()
