@@ -142,7 +142,12 @@ def _is_static_elf(path: Path) -> bool:
 
 
 def find_qemu() -> str:
-    qemu = os.environ.get("FFTUNE_VM_QEMU") or shutil.which("qemu-system-x86_64")
+    wanted = os.environ.get("FFTUNE_VM_QEMU")
+    if wanted:
+        if not (os.path.isfile(wanted) and os.access(wanted, os.X_OK)):
+            raise GuestUnavailable(f"FFTUNE_VM_QEMU={wanted} is not an executable file")
+        return wanted
+    qemu = shutil.which("qemu-system-x86_64")
     if not qemu:
         raise GuestUnavailable("qemu-system-x86_64 not found (Debian package qemu-system-x86)")
     return qemu
