@@ -69,7 +69,8 @@ def test_block_upload_under_frame_loss_is_exact_or_fails_clearly(recorded, loss)
     errors = []
     with SocketcandProxy(drive.port, drop=loss, delay=0.002, seed=int(loss * 10000)) as proxy:
         lossy = _client(proxy.port, sdo_timeout_s=0.5, sdo_retries=2)
-        for attempt in range(3):
+        attempts = 3 if loss < 0.01 else 2
+        for attempt in range(attempts):
             try:
                 data = lossy.upload_recording()
             except FftuneError as exc:
@@ -86,7 +87,7 @@ def test_block_upload_under_frame_loss_is_exact_or_fails_clearly(recorded, loss)
         lossy.close()
         stats = dict(proxy.stats)
     assert stats["dropped"] > 0 and stats["delayed"] > 0, stats
-    assert outcomes["exact"] + outcomes["error"] == 3
+    assert outcomes["exact"] + outcomes["error"] == attempts
     if loss <= 0.001:
         # python-canopen's block upload repairs a lost segment (it acknowledges the last
         # good one and the drive resends from there) but not a lost acknowledgement (it
@@ -179,10 +180,17 @@ def _captures(out):
 def test_drive_killed_and_restarted_mid_experiment(tmp_path):
     from analysis.capture import read_run
 
+    import yaml
+
+    cfg = yaml.safe_load(open(os.path.join(REPO, "configs", "demo.yaml")))
+    cfg["detect"].update(rms_levels=[0.3, 1.0], realizations=3)  # 6 runs (time)
+    config = tmp_path / "detect.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    n_runs = 6
     drive = start_drive(tmp_path, name="first")
     port = drive.port
     out = str(tmp_path / "out")
-    args = ["detect", "--config", os.path.join(REPO, "configs", "demo.yaml"), "--out", out,
+    args = ["detect", "--config", str(config), "--out", out,
             "--port", str(port), "--no-progress", "--no-figures"]
     proc = _fftune(*args)
     deadline = time.monotonic() + 120
@@ -215,8 +223,8 @@ def test_drive_killed_and_restarted_mid_experiment(tmp_path):
         final = _captures(out)
         for name, digest in kept.items():
             assert final[name] == digest, f"{name} was rewritten on resume"
-        assert len(final) == 12  # 3 levels x 4 realizations (configs/demo.yaml)
-        print(f"killed after {len(kept)} of 12 runs; error seen {t_noticed:.1f} s after the kill: {last}")
+        assert len(final) == n_runs
+        print(f"killed after {len(kept)} of {n_runs} runs; error seen {t_noticed:.1f} s after the kill: {last}")
     finally:
         restarted.stop()
     assert "ERROR: AddressSanitizer" not in drive.log()
