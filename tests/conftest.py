@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import pytest
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
-DRIVE_SIM_BIN = os.path.join(REPO, "firmware_sim", "build", "drive_sim")
+DRIVE_SIM_BIN = os.environ.get("FFTUNE_DRIVE_SIM") or os.path.join(REPO, "firmware_sim", "build", "drive_sim")  # e.g. build/asan/drive_sim
 DRIVE_SIM_EDS = os.path.join(REPO, "firmware_sim", "build", "gen", "fftune_drive.eds")
 PLANT_TWOMASS = os.path.join(REPO, "configs", "plant_twomass.yaml")
 
