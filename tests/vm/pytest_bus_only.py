@@ -6,8 +6,8 @@ only the tests that request the ``drive_sim`` fixture (directly or through ``co_
 those exercise the SocketCAN transport. The rest (EDS generation, docs tables, bad input)
 does not depend on the transport and already runs on the host.
 
-``TOO_SLOW_FOR_TCG`` lists bus tests that cannot finish at TCG speed, each with the measured
-reason; they run over socketcand on the host. Every deselection is listed with its reason at
+``TOO_SLOW_FOR_TCG`` lists bus tests that cannot finish, or whose wall-clock assertions do
+not hold, at TCG speed, each with the measured reason; they run over socketcand on the host. Every deselection is listed with its reason at
 the end of the run (and counted in pytest's "N deselected").
 """
 
@@ -23,6 +23,13 @@ TOO_SLOW_FOR_TCG = {
     "tests/test_canopen_sdo.py::test_block_download_of_a_full_table_and_block_upload_back":
         "python-canopen under TCG needs 0.5-1.5 s per 127-frame block-upload sub-block; "
         "drive_sim's SDO timeout is 1 s (abort 0x05040000)",
+    # Wall-clock windows measured by Python in the guest; each failed here on a loaded host
+    # (load average 9-11) while the same test passes on the host.
+    "tests/test_canopen_nmt.py::test_heartbeat_producer_period":
+        "counts heartbeats in a 1.05 s sleep bracketed by two SDO writes; in the guest the "
+        "callback stamps had 0.10-0.17 s gaps and 8 arrived (test wants 9..12)",
+    "tests/test_canopen_pdo.py::test_tpdos_report_status_and_run_progress":
+        "asserts the next TPDO within 0.3 s of python's clock; measured 0.40 s in the guest",
 }
 
 _deselected = []
