@@ -2,7 +2,7 @@
 
 The guest boots Debian's kernel under qemu (TCG), has ``vcan0`` up, and sees the host's
 ``/`` (read-only on the host side, writable in the guest through a tmpfs overlay). A boot
-costs 10-30 s on a busy 2-core machine and Python in the guest runs 20-40x slower than on
+costs 7-25 s on a shared 2-core machine and Python in the guest runs 10-40x slower than on
 the host, so a test module should boot once and run all its checks in that session:
 :func:`run_sections` does that and hands back each check's output and status.
 

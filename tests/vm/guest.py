@@ -69,7 +69,8 @@ DEFAULT_GUEST_ENV = {
 }
 
 # Seconds the host waits beyond the command's own timeout for boot, setup and power-off
-# before it kills qemu. TCG on a loaded 2-core machine boots in 3-15 s.
+# before it kills qemu. Boot-run-poweroff of `true` takes 7-25 s under TCG on a shared
+# 2-core machine.
 BOOT_ALLOWANCE_S = 120.0
 
 
