@@ -61,5 +61,5 @@ system-deps:
 
 clean:
 	@$(MAKE) --no-print-directory -C firmware_sim clean
-	rm -rf $(VENV) out .pytest_cache *.egg-info
+	rm -rf $(VENV) out build .pytest_cache *.egg-info
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
