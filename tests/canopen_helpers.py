@@ -40,7 +40,8 @@ def configure_sine_run(node, period=2048, settle=0, record=1, amplitude=0.5, cyc
 
 
 def start_long_run(node):
-    """A run that settles for 1000 periods of 8192 samples (seconds in free-run)."""
+    """A run that settles for 1000 periods of 8192 samples: 53 min with drive_sim --realtime
+    (free-run may finish it in half a second), so mark the test drive_sim_args("--realtime")."""
     configure_sine_run(node, period=8192, settle=1000, record=1, signals=0x01)
     node.sdo["Run control"]["Command"].raw = 1
 

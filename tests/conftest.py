@@ -138,9 +138,15 @@ def stop_drive_sim(sim):
 
 
 @pytest.fixture
-def drive_sim(tmp_path):
-    """A fresh drive_sim (node 1, plant_twomass) on the transport FFTUNE_TEST_CAN selects."""
-    sim = start_drive_sim(tmp_path)
+def drive_sim(tmp_path, request):
+    """A fresh drive_sim (node 1, plant_twomass) on the transport FFTUNE_TEST_CAN selects.
+
+    ``@pytest.mark.drive_sim_args("--realtime")`` adds command-line options: tests that
+    need a run still active seconds later use real-time stepping, because in free-run a
+    "long" run ends in well under a second on an idle machine.
+    """
+    marker = request.node.get_closest_marker("drive_sim_args")
+    sim = start_drive_sim(tmp_path, extra_args=marker.args if marker else ())
     yield sim
     stop_drive_sim(sim)
 

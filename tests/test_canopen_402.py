@@ -70,6 +70,7 @@ def test_target_position_moves_the_drive_in_csp(co_node):
     assert abs(node.sdo[0x60F4].raw) < 20000
 
 
+@pytest.mark.drive_sim_args("--realtime")
 def test_a_run_starts_only_in_operation_enabled_and_disable_stops_it(co_node):
     net, node = co_node
     node.nmt.state = "OPERATIONAL"

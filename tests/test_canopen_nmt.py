@@ -90,6 +90,7 @@ class _HostHeartbeat:
         self.thread.join()
 
 
+@pytest.mark.drive_sim_args("--realtime")
 def test_host_heartbeat_loss_stops_a_run_safely(co_node):
     net, node = co_node
     host_id = 0x7F
@@ -119,6 +120,7 @@ def test_host_heartbeat_loss_stops_a_run_safely(co_node):
     assert node.sdo[0x1001].raw == 0
 
 
+@pytest.mark.drive_sim_args("--realtime")
 def test_leaving_operational_stops_a_run(co_node):
     net, node = co_node
     node.nmt.state = "OPERATIONAL"

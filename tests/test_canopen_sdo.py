@@ -211,6 +211,7 @@ def test_abort_crc_error_in_block_download(co_node, monkeypatch):
     assert node.sdo[0x2003].raw == 0                  # nothing committed
 
 
+@pytest.mark.drive_sim_args("--realtime")
 def test_abort_data_cannot_be_stored_in_the_present_device_state(co_node):
     net, node = co_node
     configure_sine_run(node)
