@@ -5,6 +5,7 @@ with ``configs/demo.yaml`` through the CANopen client exactly as ``fftune run`` 
 the drive (also on an error or Ctrl-C) and leaves everything in ``out/demo/``.
 """
 import os
+import shutil
 import time
 
 from host.commands import DEFAULT_CONFIG
@@ -22,9 +23,22 @@ def add_parser(sub):
     p.add_argument("--plant", default=None,
                    help="plant of the simulated drive (default: the configuration's sim.plant, "
                         "else configs/plant_twomass.yaml)")
-    p.add_argument("--out", default=None, help="output directory (default: the configuration's)")
+    p.add_argument("--out", default=None, help="output directory (default: the configuration's); "
+                   "an earlier one is kept as <out>.previous")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
+
+
+def _set_aside_previous(out):
+    """The demo is always a fresh run: an earlier output directory (perhaps made with
+    another configuration, whose captures would not resume) is kept as ``<out>.previous``."""
+    if os.path.isdir(out) and os.listdir(out):
+        previous = out.rstrip(os.sep) + ".previous"
+        if os.path.isdir(previous):
+            shutil.rmtree(previous)
+        os.replace(out, previous)
+        print(f"fftune demo: the earlier {os.path.relpath(out)} is kept as {os.path.relpath(previous)}")
+    return out
 
 
 def run(args):
@@ -32,7 +46,7 @@ def run(args):
 
     t0 = time.monotonic()
     cfg = load_config(args.config)
-    out = check_output_dir(args.out or cfg["output"])
+    out = check_output_dir(_set_aside_previous(args.out or cfg["output"]))
     d = cfg["drive"]
     plant = args.plant or cfg["sim"]["plant"] or DEFAULT_PLANT
     if not os.path.isabs(plant) and not os.path.exists(plant):
