@@ -71,6 +71,11 @@ def add_parser(subparsers):
         q.add_argument("--skip-periods", type=_int_at_least(0), metavar="T",
                        help="settle periods T dropped at the start of each " + what +
                             " (default: from the file, else 0)")
+        q.add_argument("--experiment", metavar="KIND",
+                       help="directory of captures: use only runs of this experiment "
+                            "(detect, quantify, tune)")
+        q.add_argument("--level", type=_int_at_least(0), metavar="L", dest="level_index",
+                       help="directory of captures: use only runs of this level index")
         q.add_argument("--json", metavar="PATH", help="write the results as JSON")
         q.add_argument("--plot", metavar="DIR", help="write figures (PNG) into DIR")
 
@@ -247,7 +252,7 @@ def run_bla(args):
     from analysis.bla import robust_bla
     from analysis.io import load_lines, load_signals
 
-    loaded = load_signals(args.file)
+    loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "bla")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "bla")
     lines = load_lines(args.lines) if args.lines else None
@@ -289,7 +294,7 @@ def run_hosidf(args):
     from analysis.hosidf import hosidf
     from analysis.io import load_signals
 
-    loaded = load_signals(args.file)
+    loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "hosidf")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "hosidf")
     u = sig["u"].reshape(m, t + p, n)[:, t:, :]

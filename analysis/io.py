@@ -212,11 +212,12 @@ _LOADERS = {".csv": load_csv, ".txt": load_csv, ".npz": load_npz, ".mat": load_m
             ".h5": load_capture, ".hdf5": load_capture}
 
 
-def load_capture_directory(path):
-    """A directory of capture runs of one experiment and level (analysis.capture)."""
+def load_capture_directory(path, experiment=None, level_index=None):
+    """A directory of capture runs of one experiment and level (analysis.capture); a
+    directory that mixes them (the host's captures/) needs ``experiment`` / ``level_index``."""
     from analysis.capture import load_experiment
 
-    exp = load_experiment(path)
+    exp = load_experiment(path, experiment=experiment, level_index=level_index)
     m = len(exp.runs)
     return LoadedSignals(path=Path(path),
                          signals={k: v.astype(np.float64).reshape(-1)
@@ -226,9 +227,16 @@ def load_capture_directory(path):
                                  "record_periods": exp.record_periods, "realizations": m})
 
 
-def load_signals(path):
+def load_signals(path, experiment=None, level_index=None):
     """Load a measurement file by its extension (.csv/.txt, .npz, .mat, .h5/.hdf5), or a
     directory of capture runs (realizations in the order of their index).
+
+    Parameters
+    ----------
+    path : str or Path
+    experiment, level_index : optional
+        For a directory of capture runs: keep only runs of this experiment kind
+        ('detect', 'quantify', 'tune') and level index. Not allowed for single files.
 
     Returns
     -------
@@ -236,7 +244,10 @@ def load_signals(path):
     """
     path = Path(path)
     if path.is_dir():
-        return load_capture_directory(path)
+        return load_capture_directory(path, experiment, level_index)
+    if experiment is not None or level_index is not None:
+        raise InputError(f"{path}: --experiment/--level select runs in a directory of captures, "
+                         "not in a single file")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     loader = _LOADERS.get(path.suffix.lower())

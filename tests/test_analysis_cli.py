@@ -145,6 +145,14 @@ def test_bla_from_capture_directory(tmp_path, capsys):
                        "experiment": "multisine", "realization": 0, "level_index": 1})
     code, out, err = cli(capsys, "bla", runs)
     assert code == 2 and "several levels" in err
+    # the host's captures/ mixes levels and experiments: --experiment/--level pick one set
+    code, out, err = cli(capsys, "bla", runs, "--experiment", "multisine", "--level", "1")
+    assert code == 0, err
+    assert "M = 1" in out
+    code, out, err = cli(capsys, "bla", runs, "--experiment", "tune")
+    assert code == 2 and "no capture run of experiment 'tune'" in err
+    code, out, err = cli(capsys, "bla", runs / "other.h5", "--level", "0")
+    assert code == 2 and "not in a single file" in err
 
 
 def sine_data(repeats=3, p=4, n=512, k0=8, amplitude=1.5):
