@@ -42,6 +42,11 @@ test: setup
 bench: setup
 	@$(FW) bench
 	@set -e; for b in tests/bench/bench_*.py; do [ -e "$$b" ] || continue; echo "== $$b"; $(VENV)/bin/python "$$b"; done
+	@echo "== tests/bench/bench_canopen.py over vcan0 in the qemu guest (software emulation: slow)"
+	@if $(PY) tests/vm/guest.py check >/dev/null 2>&1; then \
+	    $(PY) tests/vm/guest.py run --timeout 400 --env FFTUNE_TEST_CAN=socketcan:vcan0 -- \
+	        $(PY) tests/bench/bench_canopen.py; \
+	else echo "skipped: $$($(PY) tests/vm/guest.py check 2>&1 | tail -1)"; fi
 
 cross:
 	@command -v arm-none-eabi-gcc >/dev/null 2>&1 || { echo "make cross: arm-none-eabi-gcc not found (install: sudo make system-deps, package gcc-arm-none-eabi)" >&2; exit 1; }
