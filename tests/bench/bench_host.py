@@ -54,11 +54,17 @@ def run():
         _report("demo (configs/demo.yaml, `make demo` path)",
                 yaml.safe_load(open(os.path.join(tmp, "demo", "results.yaml"))), wall)
         # The paper's settings, tuning step only (the full detect/quantify grid takes hours).
-        from host.sim import start_drive_sim
-        sim = start_drive_sim(os.path.join(REPO, "configs", "plant_twomass.yaml"))
+        from host.config import load_config
+        from host.sim import derived_plant, start_drive_sim
+        paper_yaml = os.path.join(REPO, "configs", "paper.yaml")
+        sim_cfg = load_config(paper_yaml)["sim"]
+        plant = os.path.join(REPO, sim_cfg["plant"] or "configs/plant_twomass.yaml")
+        if sim_cfg["overrides"]:       # the paper config's own plant, as `fftune demo` builds it
+            plant = derived_plant(plant, sim_cfg["overrides"], os.path.join(tmp, "paper_plant.yaml"))
+        sim = start_drive_sim(plant)
         try:
             t0 = time.monotonic()
-            code = main(["tune", "--config", os.path.join(REPO, "configs", "paper.yaml"),
+            code = main(["tune", "--config", paper_yaml,
                          "--out", os.path.join(tmp, "paper"), "--port", str(sim.port),
                          "--no-progress", "--no-figures"])
             wall = time.monotonic() - t0
