@@ -51,3 +51,18 @@ def run_to_done(node, timeout_s=30.0):
     ok = wait_for(lambda: node.sdo["Run control"]["State"].raw not in (1, 2), timeout_s, 0.01)
     assert ok, "run did not finish"
     return node.sdo["Run control"]["State"].raw
+
+
+def attach_node(drive_sim, node_class=None):
+    """(network, node): a python-canopen node of ``node_class`` (default RemoteNode) for
+    drive_sim with the generated EDS, on a fresh network. The caller disconnects it."""
+    import canopen
+    net = drive_sim.network()
+    node = (node_class or canopen.RemoteNode)(drive_sim.node_id, drive_sim.eds)
+    # python-canopen waits 0.3 s for an SDO answer and does not retry: on a loaded 2-core CI
+    # machine its own receive thread can miss that; the node itself answers in < 1 ms.
+    # Below drive_sim's 1 s SDO server timeout, so that a lost block segment is still
+    # recovered by the client's retransmission request.
+    node.sdo.RESPONSE_TIMEOUT = 0.8
+    net.add_node(node)
+    return net, node

@@ -154,14 +154,7 @@ def drive_sim(tmp_path, request):
 @pytest.fixture
 def co_node(drive_sim):
     """(network, node): python-canopen RemoteNode for drive_sim with the generated EDS."""
-    import canopen
-    net = drive_sim.network()
-    node = canopen.RemoteNode(drive_sim.node_id, drive_sim.eds)
-    # python-canopen waits 0.3 s for an SDO answer and does not retry: on a loaded 2-core CI
-    # machine its own receive thread can miss that; the node itself answers in < 1 ms.
-    # Below drive_sim's 1 s SDO server timeout, so that a lost block segment is still
-    # recovered by the client's retransmission request.
-    node.sdo.RESPONSE_TIMEOUT = 0.8
-    net.add_node(node)
+    from canopen_helpers import attach_node
+    net, node = attach_node(drive_sim)
     yield net, node
     net.disconnect()

@@ -7,15 +7,12 @@ import canopen
 import pytest
 from canopen.sdo import SdoAbortedError
 
-from canopen_helpers import collect, configure_sine_run, start_long_run, wait_for
+from canopen_helpers import attach_node, collect, configure_sine_run, start_long_run, wait_for
 
 
 @pytest.fixture
 def node402(drive_sim):
-    net = drive_sim.network()
-    node = canopen.BaseNode402(drive_sim.node_id, drive_sim.eds)
-    node.sdo.RESPONSE_TIMEOUT = 0.8
-    net.add_node(node)
+    net, node = attach_node(drive_sim, canopen.BaseNode402)
     yield net, node
     net.disconnect()
 
