@@ -5,4 +5,4 @@ variances, odd/even nonlinearity detection, HOSIDFs and the friction feed-forwar
 objective. Works on arrays from any source; imports no CAN code.
 """
 
-__version__ = "0.1.0"
+from fftune import __version__  # noqa: F401  (one version: the distribution's)

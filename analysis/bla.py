@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.fft
 
-from analysis.errors import InputError
+from fftune.analysis.errors import InputError
 
 __all__ = ["BLAResult", "TransientCheck", "TransientWarning", "BLALevels",
            "detect_excited_lines", "robust_bla", "bla_levels", "to_db"]

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.errors import FftuneError, InputError, OutputExistsError
+from fftune.analysis.errors import FftuneError, InputError, OutputExistsError
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "STANDARD_SIGNALS", "REQUIRED_META",
            "CaptureRun", "ExperimentData", "write_run", "read_run", "list_runs",

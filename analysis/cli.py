@@ -2,7 +2,7 @@
 
 Registered in host/cli.py (SUBCOMMAND_MODULES). Signals are laid out realization after
 realization (repeat after repeat for ``hosidf``), each with T + P periods of N samples.
-Bad input raises :class:`analysis.errors.InputError` (one line, exit code 2); outputs are
+Bad input raises :class:`fftune.analysis.errors.InputError` (one line, exit code 2); outputs are
 written atomically and only after the analysis succeeded.
 """
 import json
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.errors import InputError
+from fftune.analysis.errors import InputError
 
 __all__ = ["add_parser", "run_bla", "run_hosidf", "parse_columns", "bla_to_json",
            "hosidf_to_json"]
@@ -120,7 +120,7 @@ def parse_columns(text, allowed):
 
 
 def _select(loaded, args, kind):
-    from analysis.capture import STANDARD_SIGNALS
+    from fftune.analysis.capture import STANDARD_SIGNALS
 
     allowed = ("u", "y", "r") if kind == "bla" else ("u", "y")
     names = loaded.signals
@@ -193,7 +193,7 @@ def _complex_pairs(values):
 
 
 def bla_to_json(res):
-    """The ``fftune analyze bla --json`` document of a :class:`analysis.bla.BLAResult`."""
+    """The ``fftune analyze bla --json`` document of a :class:`fftune.analysis.bla.BLAResult`."""
     summary = dict(res.summary)
     summary.update({
         "fs_hz": res.fs, "n_period": res.n_period, "realizations": res.n_realizations,
@@ -228,7 +228,7 @@ def hosidf_to_json(res):
 
 
 def _write_json(path, document):
-    from analysis.capture import atomic_write
+    from fftune.analysis.capture import atomic_write
 
     text = json.dumps(document, indent=1, allow_nan=False) + "\n"
     atomic_write(path, lambda tmp: Path(tmp).write_text(text), overwrite=True, suffix=".json")
@@ -249,8 +249,8 @@ def _fmt_db(value):
 
 def run_bla(args):
     """``fftune analyze bla``."""
-    from analysis.bla import robust_bla
-    from analysis.io import load_lines, load_signals
+    from fftune.analysis.bla import robust_bla
+    from fftune.analysis.io import load_lines, load_signals
 
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "bla")
@@ -266,7 +266,7 @@ def run_bla(args):
     if args.json:
         _write_json(args.json, document)
     if plot_dir:
-        from analysis import plots
+        from fftune.analysis import plots
         plots.plot_output_spectrum(res, plot_dir / "bla_output_spectrum.png")
         plots.plot_bla(res, plot_dir / "bla_frf.png")
     for w in caught:
@@ -291,8 +291,8 @@ def run_bla(args):
 
 def run_hosidf(args):
     """``fftune analyze hosidf``."""
-    from analysis.hosidf import hosidf
-    from analysis.io import load_signals
+    from fftune.analysis.hosidf import hosidf
+    from fftune.analysis.io import load_signals
 
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "hosidf")
@@ -305,7 +305,7 @@ def run_hosidf(args):
     if args.json:
         _write_json(args.json, document)
     if plot_dir:
-        from analysis import plots
+        from fftune.analysis import plots
         plots.plot_hosidf_harmonics(res, plot_dir / "hosidf_harmonics.png")
     print(f"HOSIDF of {columns['y']} / {columns['u']}: f0 = {document['f0']:g} Hz, "
           f"amplitude = {document['amplitude']:.4g}, {m} repeat(s) of {p} period(s)")

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
-from analysis.errors import InputError
+from fftune.analysis.errors import InputError
 
 __all__ = ["HosidfResult", "hosidf"]
 

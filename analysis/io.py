@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.errors import InputError
+from fftune.analysis.errors import InputError
 
 __all__ = ["LoadedSignals", "load_signals", "load_csv", "load_npz", "load_mat",
            "load_capture", "load_capture_directory", "load_lines"]
@@ -73,7 +73,7 @@ def load_csv(path):
     """CSV with a header line of column names; lines starting with '#' are skipped.
 
     A first comment ``# fftune capture: {...}`` (written by
-    :func:`analysis.capture.export_csv`) provides fs_hz and the layout.
+    :func:`fftune.analysis.capture.export_csv`) provides fs_hz and the layout.
     """
     path = Path(path)
     meta = {}
@@ -197,8 +197,8 @@ def load_mat(path):
 
 
 def load_capture(path):
-    """An fftune capture file (analysis.capture)."""
-    from analysis.capture import read_run
+    """An fftune capture file (fftune.analysis.capture)."""
+    from fftune.analysis.capture import read_run
 
     run = read_run(path)
     layout = {k: run.meta[k] for k in ("n_period", "settle_periods", "record_periods")}
@@ -213,9 +213,9 @@ _LOADERS = {".csv": load_csv, ".txt": load_csv, ".npz": load_npz, ".mat": load_m
 
 
 def load_capture_directory(path, experiment=None, level_index=None):
-    """A directory of capture runs of one experiment and level (analysis.capture); a
+    """A directory of capture runs of one experiment and level (fftune.analysis.capture); a
     directory that mixes them (the host's captures/) needs ``experiment`` / ``level_index``."""
-    from analysis.capture import load_experiment
+    from fftune.analysis.capture import load_experiment
 
     exp = load_experiment(path, experiment=experiment, level_index=level_index)
     m = len(exp.runs)

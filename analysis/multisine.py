@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from analysis.errors import InputError
+from fftune.analysis.errors import InputError
 
 __all__ = [
     "Multisine", "LineSet", "fmix32", "stream_init", "xorshift32", "uniform01",

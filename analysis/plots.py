@@ -19,7 +19,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from analysis.errors import InputError
+from fftune.analysis.errors import InputError
 
 __all__ = ["figure3", "figure4", "figure5", "figure7", "figure9", "figure_bla",
            "figure_hosidf_harmonics", "plot_output_spectrum", "plot_bla", "plot_bla_levels",
@@ -35,7 +35,7 @@ def _figure(rows=1, height=4.0):
 
 
 def _save(fig, path):
-    from analysis.capture import atomic_write
+    from fftune.analysis.capture import atomic_write
 
     path = Path(path)
     fmt = path.suffix.lstrip(".") or "png"
@@ -61,7 +61,7 @@ def figure3(result, title=None):
 
     Parameters
     ----------
-    result : analysis.bla.BLAResult
+    result : fftune.analysis.bla.BLAResult
     title : str, optional
     """
     fig, (ax,) = _figure()
@@ -127,7 +127,7 @@ def figure4(levels, title=None):
 
     Parameters
     ----------
-    levels : analysis.bla.BLALevels
+    levels : fftune.analysis.bla.BLALevels
     """
     from matplotlib import colormaps
 
@@ -160,7 +160,7 @@ def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=0, title=None):
 
     Parameters
     ----------
-    result : analysis.hosidf.HosidfResult
+    result : fftune.analysis.hosidf.HosidfResult
         Leading axes (L,) amplitudes, or (L, F) amplitudes x frequencies.
     harmonics : sequence of int
     frequency_index : int
@@ -240,14 +240,14 @@ def figure7(k_fc, H, ratio=None, *, k_star=None, harmonics=(3, 5, 7), H_std=None
         HOSIDFs at each K_fc.
     ratio : array_like, shape (n,), optional
         The objective r per experiment; computed with
-        :func:`analysis.tuning.odd_ratio` if omitted.
+        :func:`fftune.analysis.tuning.odd_ratio` if omitted.
     k_star : float, optional
         K_fc* to mark.
     harmonics : sequence of int
     H_std : array_like, shape (n, K), optional
         Standard deviations (plotted as dots).
     """
-    from analysis.tuning import odd_ratio
+    from fftune.analysis.tuning import odd_ratio
 
     k_fc = np.asarray(k_fc, dtype=float)
     H = np.asarray(H)

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from analysis.errors import InputError
+from fftune.analysis.errors import InputError
 
 __all__ = ["DEFAULT_HARMONICS", "odd_ratio", "signed_odd_ratio", "signed_odd_ratio_std",
            "reference_phases",

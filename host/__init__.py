@@ -4,4 +4,4 @@ detect -> quantify -> tune experiments, stores captures, writes reports.
 Depends on :mod:`analysis`; never the other way round.
 """
 
-__version__ = "0.1.0"
+from fftune import __version__  # noqa: F401  (one version: the distribution's)

@@ -2,12 +2,12 @@
 
 A CAN traffic log written by common tools (python-can's formats through
 :class:`can.LogReader`: candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``, ``.db``)
-is decoded into SDO transfers (:mod:`host.sdo_sniffer`), and those into the same
-:class:`host.drive.RunRecord` objects a live session produces: the parameter writes up to a
+is decoded into SDO transfers (:mod:`fftune.host.sdo_sniffer`), and those into the same
+:class:`fftune.host.drive.RunRecord` objects a live session produces: the parameter writes up to a
 run's start command, the parameters read back after it, and the recorder data uploaded.
 
 :class:`ReplayDrive` serves those runs through the drive-client interface, so the very
-experiment code of a live session (``host.experiments``) analyses a log and reaches the
+experiment code of a live session (``fftune.host.experiments``) analyses a log and reaches the
 live result (same recorded bytes, same computation).
 """
 import os
@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from analysis.errors import FftuneError
-from host.drive import RunRecord
-from host.odmap import PARAMS, SIGNAL_BITS
-from host.sdo_sniffer import SdoSniffer
+from fftune.analysis.errors import FftuneError
+from fftune.host.drive import RunRecord
+from fftune.host.odmap import PARAMS, SIGNAL_BITS
+from fftune.host.sdo_sniffer import SdoSniffer
 
 _BY_OBJ = {(e.index, e.subindex): a for a, e in PARAMS.items()}
 _RECORDER_DATA = (0x2021, 0)

@@ -1,4 +1,4 @@
-"""Capture files of a session: one HDF5 file per run, in the format of :mod:`analysis.capture`.
+"""Capture files of a session: one HDF5 file per run, in the format of :mod:`fftune.analysis.capture`.
 
 :class:`CaptureStore` names each run's file after its key (``captures/<key>.h5``), writes
 it as soon as the run arrives (the format's writer is atomic and never overwrites) with
@@ -13,10 +13,10 @@ import os
 
 import numpy as np
 
-from analysis import capture as _capture
-from analysis.errors import FftuneError
-from host import __version__
-from host.drive import RunRecord
+from fftune.analysis import capture as _capture
+from fftune.analysis.errors import FftuneError
+from fftune.host import __version__
+from fftune.host.drive import RunRecord
 
 LAYOUT = ("one float32 value per sample from the drive's recorder, stored as float64; "
           "record_periods x period_samples samples per signal after settle_periods "
@@ -106,7 +106,7 @@ def _iso(t):
 
 
 def record_from_capture(run):
-    """A :class:`host.drive.RunRecord` from a :class:`analysis.capture.CaptureRun`."""
+    """A :class:`fftune.host.drive.RunRecord` from a :class:`fftune.analysis.capture.CaptureRun`."""
     meta = run.meta
     extra = meta.get("metadata", {})
 
@@ -122,7 +122,7 @@ def record_from_capture(run):
 
 
 def export_captures(source, fmt, to_dir=None):
-    """Export capture file(s) with :func:`analysis.capture.export_mat` / ``export_csv``
+    """Export capture file(s) with :func:`fftune.analysis.capture.export_mat` / ``export_csv``
     (one file per run, never overwriting); returns the files written."""
     if os.path.isdir(source):
         files = [str(p) for p in _capture.list_runs(source)]

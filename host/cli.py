@@ -2,22 +2,22 @@
 
 Each module in ``SUBCOMMAND_MODULES`` has ``add_parser(subparsers)`` which adds its
 subcommand(s) and sets ``func`` (called with the parsed args, returns an exit code).
-User errors (:class:`analysis.errors.FftuneError`) are printed as one line, exit code 2.
+User errors (:class:`fftune.analysis.errors.FftuneError`) are printed as one line, exit code 2.
 """
 import argparse
 import importlib
 import sys
 
-from analysis.errors import FftuneError
+from fftune.analysis.errors import FftuneError
 
-from host import __version__
+from fftune.host import __version__
 
 # Order = order in --help.
 SUBCOMMAND_MODULES = [
-    "host.commands",
-    "host.sim",
-    "analysis.cli",
-    "host.demo",
+    "fftune.host.commands",
+    "fftune.host.sim",
+    "fftune.analysis.cli",
+    "fftune.host.demo",
 ]
 
 

@@ -2,12 +2,12 @@
 import os
 import sys
 
-from analysis.errors import FftuneError
-from host.config import check_output_dir, load_config
-from host.drive import BusOptions, DriveClient, add_bus_arguments
-from host.odmap import REPO_ROOT
+from fftune.analysis.errors import FftuneError
+from fftune.host.config import check_output_dir, load_config
+from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
+from fftune.host.resources import config_path
 
-DEFAULT_CONFIG = os.path.join(REPO_ROOT, "configs", "demo.yaml")
+DEFAULT_CONFIG = config_path("demo.yaml")
 
 _HELP = {
     "detect": "random odd multisines at several levels: BLA, nonlinear and noise levels, odd/even verdict",
@@ -61,7 +61,7 @@ def _prepare(args):
 
 
 def _experiment(args):
-    from host.pipeline import run_pipeline, summary_lines
+    from fftune.host.pipeline import run_pipeline, summary_lines
 
     cfg, out = _prepare(args)
     opts = BusOptions.from_args(args, cfg["drive"])
@@ -78,9 +78,9 @@ def _experiment(args):
 
 
 def _import_canlog(args):
-    from host.canlog import ReplayDrive, read_transfers, session_from_transfers
-    from host.odmap import DEFAULT_EDS
-    from host.pipeline import run_pipeline, summary_lines
+    from fftune.host.canlog import ReplayDrive, read_transfers, session_from_transfers
+    from fftune.host.odmap import DEFAULT_EDS
+    from fftune.host.pipeline import run_pipeline, summary_lines
 
     cfg, out = _prepare(args)
     node_id = args.node_id or cfg["drive"]["node_id"]
@@ -104,7 +104,7 @@ def _import_canlog(args):
 
 
 def _export(args):
-    from host.captures import export_captures
+    from fftune.host.captures import export_captures
     files = export_captures(args.captures, args.format, args.to)
     for f in files:
         print(f)

@@ -1,6 +1,6 @@
 """Experiment configuration files (YAML): load, fill defaults, validate.
 
-Every problem is reported as one :class:`analysis.errors.FftuneError` line naming the
+Every problem is reported as one :class:`fftune.analysis.errors.FftuneError` line naming the
 file, the key (dotted path) and what was expected. The validated configuration is a plain
 nested ``dict`` (JSON/YAML serialisable) so that it can be stored with every capture.
 
@@ -14,7 +14,7 @@ import os
 import numpy as np
 import yaml
 
-from analysis.errors import FftuneError
+from fftune.analysis.errors import FftuneError
 
 INJECTION_POINTS = ("reference", "plant_input")
 SIGNAL_NAMES = ("reference", "plant_input", "motor_angle", "load_angle", "error")

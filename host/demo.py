@@ -8,10 +8,10 @@ import os
 import shutil
 import time
 
-from host.commands import DEFAULT_CONFIG
-from host.config import check_output_dir, load_config
-from host.drive import BusOptions, DriveClient
-from host.sim import DEFAULT_PLANT, derived_plant, start_drive_sim
+from fftune.host.commands import DEFAULT_CONFIG
+from fftune.host.config import check_output_dir, load_config
+from fftune.host.drive import BusOptions, DriveClient
+from fftune.host.sim import DEFAULT_PLANT, derived_plant, start_drive_sim
 
 
 def add_parser(sub):
@@ -42,7 +42,7 @@ def _set_aside_previous(out):
 
 
 def run(args):
-    from host.pipeline import run_pipeline, summary_lines
+    from fftune.host.pipeline import run_pipeline, summary_lines
 
     t0 = time.monotonic()
     cfg = load_config(args.config)
@@ -50,8 +50,11 @@ def run(args):
     d = cfg["drive"]
     plant = args.plant or cfg["sim"]["plant"] or DEFAULT_PLANT
     if not os.path.isabs(plant) and not os.path.exists(plant):
-        from host.odmap import REPO_ROOT
-        plant = os.path.join(REPO_ROOT, plant)
+        # "configs/NAME" of the shipped configurations, from anywhere (also installed)
+        from fftune.host.resources import config_path
+        packaged = config_path(os.path.basename(plant))
+        if os.path.dirname(plant) == "configs" and os.path.exists(packaged):
+            plant = packaged
     shown = os.path.relpath(plant)
     if cfg["sim"]["overrides"]:
         plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
@@ -63,7 +66,7 @@ def run(args):
         opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
                           node_id=d["node_id"], eds=d["eds"] or None)
         if opts.eds is None:
-            from host.odmap import DEFAULT_EDS
+            from fftune.host.odmap import DEFAULT_EDS
             opts.eds = DEFAULT_EDS
         client = DriveClient(opts, sdo_timeout_s=d["sdo_timeout_s"], sdo_retries=d["sdo_retries"],
                              heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],

@@ -8,7 +8,7 @@ recording by SDO block transfer and checks its sample count. Heartbeats run both
 drive watches the host's (object 0x1016), the client watches the drive's and its boot-up.
 
 Every failure a user can cause or meet (unreachable bus, wrong node id, SDO abort, timeout,
-run stopped by the drive) is raised as one :class:`analysis.errors.FftuneError` line.
+run stopped by the drive) is raised as one :class:`fftune.analysis.errors.FftuneError` line.
 """
 import logging
 import socket
@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from analysis.errors import FftuneError
-from host.odmap import (DEFAULT_EDS, PARAMS, RUN_STATES, SIGNAL_BITS, STOP_REASONS)
+from fftune.analysis.errors import FftuneError
+from fftune.host.odmap import (DEFAULT_EDS, PARAMS, RUN_STATES, SIGNAL_BITS, STOP_REASONS)
 
 DEFAULT_SOCKETCAND_HOST = "127.0.0.1"
 DEFAULT_SOCKETCAND_PORT = 29536
@@ -454,7 +454,7 @@ class DriveClient:
         parameters : dict
             Alias (or EDS name) -> value, written before the start in this order.
         signals : sequence of str
-            Recorder signals (``host.odmap.SIGNAL_BITS``).
+            Recorder signals (``fftune.host.odmap.SIGNAL_BITS``).
         desc : str
             Progress bar label.
 

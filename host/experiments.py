@@ -6,21 +6,21 @@ request, so an interrupted experiment resumes), and analyses them with the ``ana
 package. Results are plain dicts of numbers (YAML-ready) plus the analysis objects the
 figures need.
 
-The drive is anything with the :class:`host.drive.DriveClient` interface: the CANopen
-client, or :class:`host.canlog.ReplayDrive` serving the runs of a CAN log.
+The drive is anything with the :class:`fftune.host.drive.DriveClient` interface: the CANopen
+client, or :class:`fftune.host.canlog.ReplayDrive` serving the runs of a CAN log.
 """
 import math
 import time
 
 import numpy as np
 
-from analysis import hosidf as _hosidf
-from analysis import tuning as _tuning
-from analysis.bla import bla_levels
-from analysis.errors import FftuneError
-from analysis.multisine import drive_lines, drive_multisine
-from host.captures import CaptureStore
-from host.odmap import EXC_KINDS, INJECT
+from fftune.analysis import hosidf as _hosidf
+from fftune.analysis import tuning as _tuning
+from fftune.analysis.bla import bla_levels
+from fftune.analysis.errors import FftuneError
+from fftune.analysis.multisine import drive_lines, drive_multisine
+from fftune.host.captures import CaptureStore
+from fftune.host.odmap import EXC_KINDS, INJECT
 
 
 def _f(x):
@@ -38,7 +38,7 @@ class Session:
     ----------
     drive : DriveClient-like
     cfg : dict
-        Validated configuration (:func:`host.config.load_config`).
+        Validated configuration (:func:`fftune.host.config.load_config`).
     out_dir : str
         Output directory (captures go to ``out_dir/captures``).
     log : callable
@@ -109,8 +109,8 @@ def detect(session):
     Returns
     -------
     results : dict
-        Per level: rms, summary (dB figures of ``analysis.bla``), odd/even verdict.
-    levels : analysis.bla.BLALevels
+        Per level: rms, summary (dB figures of ``fftune.analysis.bla``), odd/even verdict.
+    levels : fftune.analysis.bla.BLALevels
     """
     c = session.cfg["detect"]
     fs, n = session.fs_hz, c["period_samples"]
@@ -186,7 +186,7 @@ def quantify(session):
     Returns
     -------
     results : dict
-    hos : analysis.hosidf.HosidfResult, leading axes (amplitude, frequency)
+    hos : fftune.analysis.hosidf.HosidfResult, leading axes (amplitude, frequency)
     """
     c = session.cfg["quantify"]
     fs, n = session.fs_hz, c["period_samples"]
@@ -344,7 +344,7 @@ def tune(session):
             kv_eval.append(p)
             return p["rms_error"]
 
-        # Brent's minimiser of analysis.tuning on the rms error instead of the ratio.
+        # Brent's minimiser of fftune.analysis.tuning on the rms error instead of the ratio.
         mini = _tuning.RatioMinimizer(0.0, c["viscous"]["k_v_max"],
                                       max_evaluations=c["viscous"]["max_experiments"])
         kv_star = float(mini.run(rms_at).k_fc)
@@ -361,7 +361,7 @@ def tune(session):
     fc_true = truth.get("sim_fc_volt")
     results = {
         "frequency_hz": c["frequency_hz"], "amplitude_rad": c["amplitude_rad"],
-        "objective": "r = rms(|H_3|, |H_5|, |H_7|) / |H_1|, reference -> motor angle (analysis.tuning)",
+        "objective": "r = rms(|H_3|, |H_5|, |H_7|) / |H_1|, reference -> motor angle (fftune.analysis.tuning)",
         "sweep": {
             "k_fc": [_f(k) for k in kfc_sweep], "ratio": [_f(r) for r in ratio_sweep],
             "rms_error_rad": [_f(p["rms_error"]) for p in sweep],

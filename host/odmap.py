@@ -5,16 +5,16 @@ Each manufacturer entry with ``param: NAME`` gets the short alias ``name.lower()
 (``"Controller.Coulomb feed-forward K_fc"``). The host addresses objects by (index,
 sub-index) resolved from either; the drive's EDS supplies types and access.
 """
-import os
 from dataclasses import dataclass
 
 import yaml
 
-from analysis.errors import FftuneError
+from fftune.analysis.errors import FftuneError
+from fftune.host.resources import EDS_NAME, config_path
 
-REPO_ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
-OD_YAML = os.path.join(REPO_ROOT, "configs", "od.yaml")
-DEFAULT_EDS = os.path.join(REPO_ROOT, "firmware_sim", "build", "gen", "fftune_drive.eds")
+OD_YAML = config_path("od.yaml")
+# Generated from od.yaml by firmware_sim/tools/odgen.py; a test keeps the copy current.
+DEFAULT_EDS = config_path(EDS_NAME)
 
 # Recorder signals in bit order (firmware_sim/core/drv.h DRV_SIG_*).
 SIGNAL_BITS = {"reference": 0, "plant_input": 1, "motor_angle": 2, "load_angle": 3, "error": 4}

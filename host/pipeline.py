@@ -8,9 +8,9 @@ import datetime
 import os
 import time
 
-from host import __version__
-from host import experiments as ex
-from host.report import make_figures, write_html, write_results
+from fftune.host import __version__
+from fftune.host import experiments as ex
+from fftune.host.report import make_figures, write_html, write_results
 
 STEPS = ("detect", "quantify", "tune")
 
@@ -62,7 +62,7 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
 
 def summary_lines(results, out_dir):
     """A short text summary for the terminal."""
-    from host.report import key_numbers
+    from fftune.host.report import key_numbers
     lines = [f"fftune results in {os.path.relpath(out_dir)}/ (results.yaml, report.html, captures/)"]
     for label, text in key_numbers(results):
         lines.append(f"  {label}: {text}")

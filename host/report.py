@@ -5,7 +5,7 @@ import os
 
 import yaml
 
-from host.atomic import write_atomic
+from fftune.host.atomic import write_atomic
 
 
 def write_results(out_dir, results):
@@ -16,13 +16,13 @@ def write_results(out_dir, results):
 
 
 def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None):
-    """The paper's Figures 3, 4, 5, 7 and 9 as PNG files via :mod:`analysis.plots`.
+    """The paper's Figures 3, 4, 5, 7 and 9 as PNG files via :mod:`fftune.analysis.plots`.
 
     Returns ``{figure name: file name}`` for the figures that the available data allow.
     """
     import matplotlib
     matplotlib.use("Agg")
-    from analysis import plots
+    from fftune.analysis import plots
 
     made = {}
 

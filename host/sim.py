@@ -12,11 +12,10 @@ import subprocess
 import sys
 import time
 
-from analysis.errors import FftuneError
-from host.odmap import REPO_ROOT
+from fftune.analysis.errors import FftuneError
+from fftune.host.resources import config_path, drive_sim_path
 
-DRIVE_SIM = os.path.join(REPO_ROOT, "firmware_sim", "build", "drive_sim")
-DEFAULT_PLANT = os.path.join(REPO_ROOT, "configs", "plant_twomass.yaml")
+DEFAULT_PLANT = config_path("plant_twomass.yaml")
 _LISTEN = re.compile(r"listening\D*?(?:[\d.]+:)?(\d{2,5})\b", re.IGNORECASE)
 
 
@@ -46,15 +45,14 @@ class SimulatedDrive:
 
 
 def drive_sim_command(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_id=1, extra=()):
-    return [DRIVE_SIM, "--can", f"socketcand:{host}:{port}", "--config", plant_config,
+    return [drive_sim_path(), "--can", f"socketcand:{host}:{port}", "--config", plant_config,
             "--node-id", str(node_id), *extra]
 
 
 def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_id=1,
                     extra=(), startup_timeout_s=10.0, log_path=None):
     """Start ``drive_sim`` and wait for its 'listening' line (the bound port)."""
-    if not os.path.exists(DRIVE_SIM):
-        raise FftuneError(f"{DRIVE_SIM} not built (run `make setup`)")
+    drive_sim_path()  # a one-line error when it is missing
     if not os.path.exists(plant_config):
         raise FftuneError(f"plant configuration not found: {plant_config}")
     cmd = drive_sim_command(plant_config, host, port, node_id, extra)
@@ -111,8 +109,7 @@ def add_parser(sub):
 
 
 def _run(args):
-    if not os.path.exists(DRIVE_SIM):
-        raise FftuneError(f"{DRIVE_SIM} not built (run `make setup`)")
+    exe = drive_sim_path()
     if not os.path.exists(args.plant):
         raise FftuneError(f"plant configuration not found: {args.plant}")
     extra = ["--realtime"] if args.realtime else []
@@ -120,7 +117,7 @@ def _run(args):
     sys.stdout.flush()
     sys.stderr.flush()
     # Become drive_sim: signals (Ctrl-C, kill) reach the simulator itself, no orphan.
-    os.execv(DRIVE_SIM, cmd)
+    os.execv(exe, cmd)
 
 
 def derived_plant(base_path, overrides, out_path, where="sim.overrides"):
@@ -128,7 +125,7 @@ def derived_plant(base_path, overrides, out_path, where="sim.overrides"):
     in drive_sim's two-level YAML subset; returns ``out_path``."""
     import yaml
 
-    from host.atomic import write_atomic
+    from fftune.host.atomic import write_atomic
 
     try:
         with open(base_path, "r", encoding="utf-8") as fh:

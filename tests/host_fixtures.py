@@ -1,6 +1,6 @@
 """Host test helpers: a Python TEST DOUBLE of the drive, and drive_sim process helpers.
 
-``FakeDriveForTests`` implements the :class:`host.drive.DriveClient` interface the
+``FakeDriveForTests`` implements the :class:`fftune.host.drive.DriveClient` interface the
 experiments use (identity, get/set/read_parameters, plant_truth, enable, run) with a
 Python simulation of a single mass with Coulomb + viscous friction and stiction under the
 drive's controller law (firmware_sim/core/ctl.h: PD with backward-Euler filtered
@@ -17,10 +17,10 @@ import zlib
 
 import numpy as np
 
-from analysis.errors import FftuneError
-from analysis.multisine import drive_multisine
-from host.drive import RunRecord
-from host.odmap import PARAMS, SIGNAL_BITS
+from fftune.analysis.errors import FftuneError
+from fftune.analysis.multisine import drive_multisine
+from fftune.host.drive import RunRecord
+from fftune.host.odmap import PARAMS, SIGNAL_BITS
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
 DRIVE_SIM = os.path.join(REPO, "firmware_sim", "build", "drive_sim")
@@ -47,7 +47,7 @@ class FakeDriveForTests:
         self.enabled = False
         self.calls = []
 
-    # interface of host.drive.DriveClient
+    # interface of fftune.host.drive.DriveClient
     def __enter__(self):
         return self
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from analysis.bla import TransientWarning, bla_levels, detect_excited_lines, robust_bla
-from analysis.errors import InputError
-from analysis.multisine import multisine_realizations
+from fftune.analysis.bla import TransientWarning, bla_levels, detect_excited_lines, robust_bla
+from fftune.analysis.errors import InputError
+from fftune.analysis.multisine import multisine_realizations
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "kul_motorbench_twomass.npz"
 B, A = signal.butter(2, 0.12)          # the "plant": a discrete 2nd-order low-pass

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import scipy.io
 
-from analysis import capture
-from analysis.errors import FftuneError, InputError
-from analysis.io import load_lines, load_signals
+from fftune.analysis import capture
+from fftune.analysis.errors import FftuneError, InputError
+from fftune.analysis.io import load_lines, load_signals
 
 N, T, P = 64, 1, 3
 

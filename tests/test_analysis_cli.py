@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import scipy.io
 
-from analysis import capture
-from analysis.multisine import multisine_realizations
-from host.cli import main
+from fftune.analysis import capture
+from fftune.analysis.multisine import multisine_realizations
+from fftune.host.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "kul_motorbench_twomass.npz"
@@ -62,7 +62,7 @@ def test_bla_json_keys_and_shapes(tmp_path, capsys):
     assert s["realizations"] == M and s["periods"] == P and s["odd_detected"] is True
     assert s["even_detected"] is False
     # the numbers agree with the library on the same data
-    from analysis.bla import robust_bla
+    from fftune.analysis.bla import robust_bla
     res = robust_bla(u.reshape(M, T + P, N), y.reshape(M, T + P, N), fs=FS, settle_periods=T)
     np.testing.assert_allclose(np.array(doc["G"])[:, 0], res.G.real, rtol=1e-12)
     np.testing.assert_allclose(doc["freq"], res.freq)
@@ -250,7 +250,7 @@ def test_console_script_subprocess(tmp_path):
     u, y = wiener_data()
     f = write_csv(tmp_path / "d.csv", {"u": u, "y": y})
     exe = Path(sys.executable).parent / "fftune"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "host.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "fftune.host.cli"]
     ok = subprocess.run(cmd + ["analyze", "bla", str(f), "--fs", str(FS), "--period", str(N),
                                "--realizations", str(M), "--skip-periods", "1"],
                         capture_output=True, text=True)

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from analysis.errors import InputError
-from analysis.hosidf import hosidf
+from fftune.analysis.errors import InputError
+from fftune.analysis.hosidf import hosidf
 
 N_FINE = 2 ** 17      # samples per sine period: keeps aliasing of slow 1/k harmonics < 1e-8
 

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from analysis.errors import InputError
-from analysis.multisine import (crest_factor, design_multisine, drive_lines, drive_multisine,
+from fftune.analysis.errors import InputError
+from fftune.analysis.multisine import (crest_factor, design_multisine, drive_lines, drive_multisine,
                                 drive_phases, fmix32, multisine_realizations, stream_init,
                                 xorshift32)
 

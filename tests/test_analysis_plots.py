@@ -3,10 +3,10 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from analysis import plots
-from analysis.bla import bla_levels
-from analysis.hosidf import hosidf
-from analysis.multisine import multisine_realizations
+from fftune.analysis import plots
+from fftune.analysis.bla import bla_levels
+from fftune.analysis.hosidf import hosidf
+from fftune.analysis.multisine import multisine_realizations
 
 
 def assert_png(path, min_bytes=15000):

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from analysis.errors import InputError
-from analysis.hosidf import hosidf
-from analysis.tuning import (RatioMinimizer, SignedRootSearch, odd_ratio, reference_phases,
+from fftune.analysis.errors import InputError
+from fftune.analysis.hosidf import hosidf
+from fftune.analysis.tuning import (RatioMinimizer, SignedRootSearch, odd_ratio, reference_phases,
                              signed_odd_ratio, signed_odd_ratio_std)
 
 FC, A, GAIN = 0.1157, 1.0, 2.0      # plant Coulomb friction, sine amplitude, linear gain

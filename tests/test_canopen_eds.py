@@ -44,6 +44,13 @@ def test_eds_in_the_build_is_what_od_yaml_generates(tmp_path):
         assert open(out / name).read() == open(built).read(), name
 
 
+def test_packaged_eds_is_what_od_yaml_generates(tmp_path):
+    """configs/fftune_drive.eds (package data the host reads) is current with od.yaml."""
+    packaged = os.path.join(REPO, "configs", "fftune_drive.eds")
+    assert open(_generate(tmp_path) / "fftune_drive.eds").read() == open(packaged).read(), \
+        "configs/fftune_drive.eds is stale: make -C firmware_sim gen"
+
+
 def test_object_dictionary_doc_table_is_generated_from_od_yaml(tmp_path):
     doc = tmp_path / "object-dictionary.md"
     doc.write_text(open(DOC).read())

@@ -2,7 +2,7 @@
 import subprocess
 import sys
 
-from host.cli import main
+from fftune.host.cli import main
 
 
 def test_version_flag_prints_version(capsys):
@@ -19,7 +19,7 @@ def test_no_command_prints_help_and_fails(capsys):
 
 
 def test_unknown_subcommand_is_rejected():
-    proc = subprocess.run([sys.executable, "-m", "host.cli", "no-such-command"],
+    proc = subprocess.run([sys.executable, "-m", "fftune.host.cli", "no-such-command"],
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert "invalid choice" in proc.stderr

@@ -131,7 +131,7 @@ def test_on_drive_multisine_equals_vectors(design):
 
 
 def test_on_drive_multisine_equals_analysis_design():
-    multisine = pytest.importorskip("analysis.multisine", reason="analysis.multisine not present")
+    multisine = pytest.importorskip("fftune.analysis.multisine", reason="fftune.analysis.multisine not present")
     designs = _load_vectors() + [
         {"N": 8192, "k_min": 1, "k_max": 2000, "G": 4, "seed": 2024, "m": 7, "rms": 0.3},
         {"N": 2048, "k_min": 5, "k_max": 1023, "G": 0, "seed": 0xFFFFFFFF, "m": 4294967295, "rms": 1.0},

@@ -5,7 +5,7 @@ import os
 import can
 import pytest
 
-from host.cli import main
+from fftune.host.cli import main
 from host_fixtures import EDS
 
 

@@ -3,8 +3,8 @@ import os
 
 import pytest
 
-from analysis.errors import FftuneError
-from host.config import check_output_dir, expand_values, load_config
+from fftune.analysis.errors import FftuneError
+from fftune.host.config import check_output_dir, expand_values, load_config
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
 

@@ -12,10 +12,10 @@ import can
 import canopen
 import pytest
 
-from analysis.errors import FftuneError
-from host.cli import main
-from host.drive import BusOptions, DriveClient
-from host.odmap import PARAMS
+from fftune.analysis.errors import FftuneError
+from fftune.host.cli import main
+from fftune.host.drive import BusOptions, DriveClient
+from fftune.host.odmap import PARAMS
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
 

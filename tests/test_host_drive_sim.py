@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import yaml
 
-from analysis.errors import FftuneError
-from host.cli import main
-from host.config import load_config
-from host.drive import BusOptions, DriveClient
-from host.sim import start_drive_sim
+from fftune.analysis.errors import FftuneError
+from fftune.host.cli import main
+from fftune.host.config import load_config
+from fftune.host.drive import BusOptions, DriveClient
+from fftune.host.sim import start_drive_sim
 from host_fixtures import EDS, REPO, drive_sim_missing_reason
 
 pytestmark = pytest.mark.skipif(drive_sim_missing_reason() is not None,
@@ -28,7 +28,7 @@ DEMO = os.path.join(REPO, "configs", "demo.yaml")
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
     """drive_sim with the demo's plant (configs/plant_twomass.yaml + demo.yaml sim.overrides)."""
-    from host.sim import derived_plant
+    from fftune.host.sim import derived_plant
     d = tmp_path_factory.mktemp("sim")
     overrides = load_config(DEMO)["sim"]["overrides"]
     plant = derived_plant(PLANT, overrides, str(d / "plant.yaml"))
@@ -95,7 +95,7 @@ def test_demo_config_finds_the_true_coulomb_level(tuned):
 
 
 def test_odd_phases_turn_across_k_fc_star(tuned):
-    from analysis import capture
+    from fftune.analysis import capture
     r, out = tuned
     k_star = r["tune"]["k_fc_star"]
     h3 = {}
@@ -105,7 +105,7 @@ def test_odd_phases_turn_across_k_fc_star(tuned):
         run = capture.read_run(str(out / "captures" / f))
         ref = run.signals["reference"].reshape(-1, run.meta["n_period"])
         y = run.signals["motor_angle"].reshape(-1, run.meta["n_period"])
-        from analysis.hosidf import hosidf
+        from fftune.analysis.hosidf import hosidf
         h = hosidf(ref[None], y[None], fs=run.meta["fs_hz"], n_harmonics=3, f0=r["tune"]["frequency_hz"])
         h3[run.meta["parameters"]["kfc"]] = h.H[2]
     below = h3[max(k for k in h3 if k < 0.85 * k_star)]
@@ -223,7 +223,7 @@ def test_fftune_sim_serves_the_drive_until_interrupted(tmp_path):
     import sys
     from host_fixtures import free_port
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "host.cli", "sim", "--port", str(port)],
+    proc = subprocess.Popen([sys.executable, "-m", "fftune.host.cli", "sim", "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from analysis.errors import FftuneError
-from host import experiments as ex
-from host.captures import export_captures
-from host.config import validate
-from host.pipeline import run_pipeline
+from fftune.analysis.errors import FftuneError
+from fftune.host import experiments as ex
+from fftune.host.captures import export_captures
+from fftune.host.config import validate
+from fftune.host.pipeline import run_pipeline
 from host_fixtures import FakeDriveForTests
 
 FC, FV = 0.3, 0.02
@@ -87,7 +87,7 @@ def test_captures_hold_metadata_and_export(tuned, tmp_path):
     _, _, session, out = tuned
     files = sorted(os.listdir(os.path.join(out, "captures")))
     assert len(files) == session.counts["measured"]
-    from analysis import capture
+    from fftune.analysis import capture
     run = capture.read_run(os.path.join(out, "captures", files[0]))
     for key in ("parameters", "firmware_version", "eds_identity", "started_at", "finished_at",
                 "fs_hz", "n_period", "record_periods"):
@@ -177,9 +177,9 @@ def test_drive_rate_mismatch_is_named(tmp_path):
 
 
 def test_analysing_the_captures_again_gives_the_live_bla(tmp_path):
-    from analysis import capture
-    from analysis.bla import robust_bla
-    from analysis.multisine import drive_lines
+    from fftune.analysis import capture
+    from fftune.analysis.bla import robust_bla
+    from fftune.analysis.multisine import drive_lines
     session = ex.Session(_drive(), _cfg(), str(tmp_path), log=lambda s: None)
     r, levels = ex.detect(session)
     for li, live in enumerate(levels.results):

@@ -12,7 +12,7 @@ import can
 import canopen
 import pytest
 
-from host.sdo_sniffer import SdoSniffer
+from fftune.host.sdo_sniffer import SdoSniffer
 
 
 def _od():

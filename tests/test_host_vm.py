@@ -7,8 +7,8 @@ import time
 import pytest
 import yaml
 
-from host.cli import main
-from host.sim import start_drive_sim
+from fftune.host.cli import main
+from fftune.host.sim import start_drive_sim
 from host_fixtures import REPO, drive_sim_missing_reason
 from vmguest import guest_available, run_sections
 

@@ -26,8 +26,8 @@ import time
 import numpy as np
 import pytest
 
-from analysis.errors import FftuneError
-from host.drive import BusOptions, DriveClient, quiet_can_loggers
+from fftune.analysis.errors import FftuneError
+from fftune.host.drive import BusOptions, DriveClient, quiet_can_loggers
 from test_reliability_support import EDS, REPO, SocketcandProxy, needs_drive, start_drive
 
 pytestmark = needs_drive
@@ -161,7 +161,7 @@ def test_parameter_writes_under_frame_loss_are_exact_or_fail_clearly(recorded, l
 
 def _fftune(*args, timeout=240):
     env = dict(os.environ, PYTHONPATH=REPO)
-    return subprocess.Popen([sys.executable, "-m", "host.cli", *args], cwd=REPO, env=env,
+    return subprocess.Popen([sys.executable, "-m", "fftune.host.cli", *args], cwd=REPO, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -178,7 +178,7 @@ def _captures(out):
 
 
 def test_drive_killed_and_restarted_mid_experiment(tmp_path):
-    from analysis.capture import read_run
+    from fftune.analysis.capture import read_run
 
     import yaml
 
@@ -234,7 +234,7 @@ def test_drive_killed_and_restarted_mid_experiment(tmp_path):
 
 HOST_SCRIPT = textwrap.dedent("""
     import sys, time
-    from host.drive import BusOptions, DriveClient, quiet_can_loggers
+    from fftune.host.drive import BusOptions, DriveClient, quiet_can_loggers
     quiet_can_loggers()
     d = DriveClient(BusOptions(port=int(sys.argv[1]), eds=sys.argv[2]), heartbeat_ms=100,
                     progress=False).connect()

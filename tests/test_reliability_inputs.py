@@ -1,6 +1,6 @@
 """Bad inputs: corrupted and truncated capture files and CAN logs, malformed configs.
 
-Every case goes through the `fftune` command line (host.cli.main) as a user meets it: exit code 2, one line
+Every case goes through the `fftune` command line (fftune.host.cli.main) as a user meets it: exit code 2, one line
 ``fftune: error: ...`` naming the file, no traceback, nothing written. For capture files
 also in-process: 300 seeded corruptions (flipped bytes anywhere, truncations) each read back
 either exactly as written or rejected with an InputError, never as other numbers.
@@ -13,8 +13,8 @@ import threading
 import numpy as np
 import pytest
 
-from analysis import capture
-from analysis.errors import InputError
+from fftune.analysis import capture
+from fftune.analysis.errors import InputError
 from test_reliability_support import EDS, REPO, needs_drive, start_drive
 
 N, T, P = 64, 1, 3
@@ -41,7 +41,7 @@ class _Result:
 def _fftune(args, capsys):
     """`fftune ARGS` in this process (an exception other than the CLI's own error handling
     propagates and fails the test, as a traceback would)."""
-    from host.cli import main
+    from fftune.host.cli import main
 
     capsys.readouterr()
     try:
@@ -137,7 +137,7 @@ def session_log(tmp_path_factory):
     if not os.path.exists(EDS):
         pytest.skip("firmware_sim/build/gen/fftune_drive.eds not generated")
     import can
-    from host.drive import BusOptions, DriveClient, quiet_can_loggers
+    from fftune.host.drive import BusOptions, DriveClient, quiet_can_loggers
 
     quiet_can_loggers()
     d = tmp_path_factory.mktemp("canlog")

@@ -14,9 +14,9 @@ import tracemalloc
 
 import numpy as np
 
-from analysis.bla import robust_bla
-from analysis.hosidf import hosidf
-from analysis.multisine import multisine_realizations
+from fftune.analysis.bla import robust_bla
+from fftune.analysis.hosidf import hosidf
+from fftune.analysis.multisine import multisine_realizations
 
 
 def alternate_medians(funcs, repeats=15):

@@ -16,7 +16,7 @@ import yaml
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir, os.pardir))
 sys.path.insert(0, os.path.join(REPO, "tests"))
 
-from host.cli import main  # noqa: E402
+from fftune.host.cli import main  # noqa: E402
 from host_fixtures import drive_sim_missing_reason  # noqa: E402
 
 
@@ -54,8 +54,8 @@ def run():
         _report("demo (configs/demo.yaml, `make demo` path)",
                 yaml.safe_load(open(os.path.join(tmp, "demo", "results.yaml"))), wall)
         # The paper's settings, tuning step only (the full detect/quantify grid takes hours).
-        from host.config import load_config
-        from host.sim import derived_plant, start_drive_sim
+        from fftune.host.config import load_config
+        from fftune.host.sim import derived_plant, start_drive_sim
         paper_yaml = os.path.join(REPO, "configs", "paper.yaml")
         sim_cfg = load_config(paper_yaml)["sim"]
         plant = os.path.join(REPO, sim_cfg["plant"] or "configs/plant_twomass.yaml")

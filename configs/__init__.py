@@ -1,0 +1,1 @@
+"""Package data of fftune (fftune.configs): od.yaml, the generated EDS, example configurations."""
