@@ -58,6 +58,38 @@ static void test_stiction_holds_without_creep(void)
     TH_EQ(plant_mode(&pl), 1);
 }
 
+/* With a Stribeck term (sub-step path only: the fast step is off) the stick/slip decision
+ * is the event logic's alone. A torque between Coulomb and static friction must not break
+ * the motor away (release at Fs, not at Fc); above Fs it slips in the torque's direction. */
+static void test_stiction_with_stribeck_holds_between_coulomb_and_static(void)
+{
+    plant_params_t p = base_params();
+    p.coulomb = 0.01;
+    p.stat = 0.02;
+    p.stribeck_vel = 0.05;
+    plant_t pl;
+    char err[200];
+    for (int dir = -1; dir <= 1; dir += 2) {
+        TH_EQ(plant_init(&pl, &p, err, sizeof err), 0);
+        /* 1.5 Fc = 0.75 Fs: above Coulomb, below static friction */
+        double u = (double)dir * 1.5 * p.coulomb / p.km;
+        int moved = 0;
+        for (int i = 0; i < 2560 && !moved; i++) { /* 1 s at 2560 Hz */
+            plant_advance(&pl, u, 1.0 / 2560.0);
+            moved = pl.x[0] != 0.0 || pl.x[1] != 0.0;
+        }
+        TH_ASSERT(!moved);
+        TH_EQ(plant_mode(&pl), 0);
+        TH_EQ(pl.events, 0u);
+        TH_ASSERT(pl.slow_steps == 2560u); /* the Stribeck plant never takes the fast step */
+        /* 1.05 Fs: breaks away at once, in the direction of the torque */
+        u = (double)dir * 1.05 * p.stat / p.km;
+        plant_advance(&pl, u, 1.0 / 2560.0);
+        TH_EQ(plant_mode(&pl), dir);
+        TH_ASSERT((double)dir * pl.x[1] > 0.0);
+    }
+}
+
 static void test_coulomb_slide_to_rest_analytic(void)
 {
     /* free motor (no spring), initial velocity v0, no input: constant deceleration Fc/J1,
@@ -248,6 +280,7 @@ static void test_sim_truth_and_holding(void)
 int main(void)
 {
     TH_RUN(test_stiction_holds_without_creep);
+    TH_RUN(test_stiction_with_stribeck_holds_between_coulomb_and_static);
     TH_RUN(test_coulomb_slide_to_rest_analytic);
     TH_RUN(test_measurement_quantisation_and_noise);
     TH_RUN(test_config_files_load);

@@ -463,6 +463,48 @@ static void test_block_upload(void)
     CHECK(abort_code(sdo(bu)) == CO_SDO_AB_DATA_DEV_STATE);
 }
 
+/* Zero-length block upload, frame by frame (CiA 301 7.2.4.3.11-14): one segment holding
+ * no data (seqno 1, c = 1), then the end with n = 7 unused bytes and the CRC of nothing
+ * (0). Checked on its own so that a wrong length or CRC of the last segment is seen as
+ * such, not only through a crash of a larger transfer. */
+static void test_block_upload_zero_length(void)
+{
+    setup();
+    g_drv.rec_bytes = 0;
+    uint8_t r[8] = {0xA4, 0x21, 0x20, 0, 5, 0, 0, 0}; /* CRC supported, blksize 5 */
+    const co_frame_t *f = sdo(r);
+    CHECK(f != NULL && f->data[0] == 0xC6 && co_get_u32(&f->data[4]) == 0u);
+    uint8_t start[8] = {0xA3, 0, 0, 0, 0, 0, 0, 0};
+    g_ntx = 0;
+    rx(0x605, start, 8);
+    CHECK(g_ntx == 1 && g_tx[0].id == 0x585 && g_tx[0].data[0] == 0x81);
+    uint8_t ack[8] = {0xA2, 1, 5, 0, 0, 0, 0, 0};
+    g_ntx = 0;
+    rx(0x605, ack, 8);
+    CHECK(g_ntx == 1 && g_tx[0].data[0] == (0xC1 | (7 << 2)));
+    CHECK(g_ntx == 1 && co_get_u16(&g_tx[0].data[1]) == 0u);
+    CHECK(co_sdo_crc16(0, g_buf, 0) == 0u);
+    uint8_t end[8] = {0xA1, 0, 0, 0, 0, 0, 0, 0};
+    g_ntx = 0;
+    rx(0x605, end, 8);
+    CHECK(g_ntx == 0 && g_n.sdo.state == 0);
+    /* a two-byte upload: one segment, n = 5, the CRC of those bytes */
+    g_drv.rec_bytes = 2;
+    f = sdo(r);
+    CHECK(f != NULL && f->data[0] == 0xC6 && co_get_u32(&f->data[4]) == 2u);
+    g_ntx = 0;
+    rx(0x605, start, 8);
+    uint8_t two[2] = {rec_byte(0), rec_byte(1)};
+    CHECK(g_ntx == 1 && g_tx[0].data[0] == 0x81 && memcmp(&g_tx[0].data[1], two, 2) == 0);
+    g_ntx = 0;
+    rx(0x605, ack, 8);
+    CHECK(g_ntx == 1 && g_tx[0].data[0] == (0xC1 | (5 << 2)));
+    CHECK(g_ntx == 1 && co_get_u16(&g_tx[0].data[1]) == co_sdo_crc16(0, two, 2));
+    CHECK(co_sdo_crc16(0, two, 2) != 0u);
+    rx(0x605, end, 8);
+    CHECK(g_n.sdo.state == 0);
+}
+
 /* Block download like python-canopen (optionally dropping segment `drop` once, bad CRC). */
 static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int bad_crc)
 {
@@ -541,6 +583,12 @@ static void test_block_download(void)
     CHECK(g_drv.table_bytes == 4000 && memcmp(g_drv.table, table, 4000) == 0);
     CHECK(block_download(table, 4000, -1, 1) == CO_SDO_AB_CRC);
     CHECK(block_download(table, 6, -1, 0) == CO_SDO_AB_TYPE_MISMATCH); /* not whole floats */
+    /* zero length: one segment without data, end with n = 7 and the CRC of nothing; a
+     * wrong CRC is still refused, the right one reaches the table's own check (an empty
+     * table is not whole samples) and the table loaded before is kept */
+    CHECK(block_download(table, 0, -1, 1) == CO_SDO_AB_CRC);
+    CHECK(block_download(table, 0, -1, 0) == CO_SDO_AB_TYPE_MISMATCH);
+    CHECK(g_drv.table_bytes == 4000 && g_n.sdo.state == 0);
     /* while a run is active: device state */
     nmt(0x01);
     enable_402();
@@ -708,6 +756,7 @@ int main(void)
     test_expedited_and_segmented();
     test_abort_codes();
     test_block_upload();
+    test_block_upload_zero_length();
     test_block_download();
     test_heartbeat();
     test_402();
