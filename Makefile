@@ -17,7 +17,7 @@ help:
 	@echo "make test         every test, C and Python"
 	@echo "make bench        benchmarks, printing their figures"
 	@echo "make cross        deployable C for Cortex-M4F (arm-none-eabi-gcc), with sizes"
-	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils"
+	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils, valgrind, octave"
 	@echo "make clean"
 
 setup: $(STAMP) firmware
@@ -62,7 +62,7 @@ system-deps:
 	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
 	    python3-venv gcc make gcc-arm-none-eabi libnewlib-arm-none-eabi \
 	    qemu-system-x86 linux-image-amd64 busybox-static cpio kmod \
-	    can-utils clang llvm libclang-rt-14-dev valgrind >/dev/null
+	    can-utils clang llvm libclang-rt-14-dev valgrind octave >/dev/null
 
 clean:
 	@$(MAKE) --no-print-directory -C firmware_sim clean

@@ -2,7 +2,61 @@
 
 Random odd multisines, the robust Best Linear Approximation with noise and nonlinear
 variances, odd/even nonlinearity detection, HOSIDFs and the friction feed-forward tuning
-objective. Works on arrays from any source; imports no CAN code.
+objective. Functions work on numpy arrays from any source (as :mod:`scipy.signal` does);
+the package imports no CAN code.
+
+Excitation
+----------
+random_odd_multisine   -- M realizations of a random odd multisine (paper eq. 2).
+design_multisine       -- general designer (kinds, bands, amplitude spectra, crest factor).
+multisine_realizations -- M realizations of :func:`design_multisine`.
+drive_multisine        -- exactly what the drive plays (docs/multisine.md).
+crest_factor           -- max|x| / rms(x).
+
+Best Linear Approximation
+-------------------------
+robust_bla             -- robust BLA with total, noise and nonlinear variances.
+bla_levels             -- robust BLA at several excitation levels.
+detect_excited_lines   -- excited DFT bins of a periodic multisine.
+
+Higher order sinusoidal input describing functions
+--------------------------------------------------
+hosidf                 -- H_1 .. H_K with mean and standard deviation over repeats.
+
+Feed-forward tuning
+-------------------
+odd_ratio              -- rms of |H_3|, |H_5|, |H_7| over |H_1| (objective).
+signed_odd_ratio       -- signed objective: > 0 under-, < 0 over-compensated.
+RatioMinimizer, SignedRootSearch -- K_fc searches (ask/tell).
+
+Captures
+--------
+read_run, write_run, load_experiment, export_mat, export_csv -- the HDF5 capture format
+(docs/capture-format.md) and its MATLAB / CSV exports.
+
+Plots live in :mod:`fftune.analysis.plots` (imported on demand: matplotlib is slow to load).
 """
 
 from fftune import __version__  # noqa: F401  (one version: the distribution's)
+from fftune.analysis.bla import (BLALevels, BLAResult, TransientWarning, bla_levels,
+                                 detect_excited_lines, robust_bla)
+from fftune.analysis.capture import (export_csv, export_mat, load_experiment, read_run,
+                                     write_run)
+from fftune.analysis.errors import FftuneError, InputError
+from fftune.analysis.hosidf import HosidfResult, hosidf
+from fftune.analysis.multisine import (Multisine, crest_factor, design_multisine,
+                                       drive_multisine, multisine_realizations,
+                                       random_odd_multisine)
+from fftune.analysis.tuning import (RatioMinimizer, SignedRootSearch, TuningResult,
+                                    odd_ratio, signed_odd_ratio)
+
+__all__ = [
+    "random_odd_multisine", "design_multisine", "multisine_realizations", "drive_multisine",
+    "crest_factor", "Multisine",
+    "robust_bla", "bla_levels", "detect_excited_lines", "BLAResult", "BLALevels",
+    "TransientWarning",
+    "hosidf", "HosidfResult",
+    "odd_ratio", "signed_odd_ratio", "RatioMinimizer", "SignedRootSearch", "TuningResult",
+    "read_run", "write_run", "load_experiment", "export_mat", "export_csv",
+    "FftuneError", "InputError",
+]

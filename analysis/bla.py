@@ -5,7 +5,8 @@ T settle periods (dropped from the estimate, used by the transient check) follow
 steady-state periods, N samples per period. Frequencies are DFT bins k of one period:
 f = k fs / N.
 
-Formulas (../shared/REFERENCE.md section 1; Pintelon and Schoukens, "System
+Formulas (docs/method.md section 2, after the paper "Frequency domain based feed
+forward tuning for friction compensation" and Pintelon and Schoukens, "System
 Identification", robust method), with G[m, p] = Y[m, p] / U[m, p] at the excited lines:
 
 * G_m = mean_p G[m, p];  s2n_m = sum_p |G[m, p] - G_m|^2 / (P (P - 1))
@@ -99,7 +100,7 @@ class BLAResult:
     G : ndarray of complex, shape (E,)
         G_BLA at the excited lines (output unit / input unit).
     var_total, var_noise, var_nl : ndarray, shape (E,), or None
-        s2_BLA, s2_BLA,n and s2_S (REFERENCE.md). ``var_total`` needs M >= 2,
+        s2_BLA, s2_BLA,n and s2_S (docs/method.md). ``var_total`` needs M >= 2,
         ``var_noise`` P >= 2, ``var_nl`` both; ``var_nl`` may be negative where the
         noise estimate exceeds the total (kept, flagged in ``var_nl_negative``).
     var_nl_negative : ndarray of bool or None

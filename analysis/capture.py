@@ -21,7 +21,8 @@ from fftune.analysis.errors import FftuneError, InputError, OutputExistsError
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "STANDARD_SIGNALS", "REQUIRED_META",
            "CaptureRun", "ExperimentData", "write_run", "read_run", "list_runs",
-           "load_experiment", "export_mat", "export_csv", "atomic_write"]
+           "load_experiment", "export_mat", "export_csv", "atomic_write", "matlab_name",
+           "SIGNAL_UNITS"]
 
 FORMAT_NAME = "fftune-capture"
 FORMAT_VERSION = 2  # 2 = 1 + the checksum user block (1 is still read)
@@ -435,19 +436,129 @@ def _run_of(run_or_path):
     return run_or_path if isinstance(run_or_path, CaptureRun) else read_run(run_or_path)
 
 
-def export_mat(run_or_path, out_path, *, overwrite=False):
-    """Export a capture run to a MATLAB .mat file (scipy.io.savemat), atomically.
+# Units of the standard signals (docs/capture-format.md); other signals get "".
+SIGNAL_UNITS = {"reference": "rad", "plant_input": "V", "motor_angle": "rad",
+                "load_angle": "rad", "error": "rad"}
+_META_UNITS = {"fs_hz": "Hz", "n_period": "samples", "settle_periods": "periods",
+               "record_periods": "periods"}
+_MATLAB_NAME_MAX = 63           # MATLAB's namelengthmax
+_MATLAB_KEYWORDS = frozenset((
+    "break case catch classdef continue else elseif end for function global if otherwise "
+    "parfor persistent return spmd switch try while").split())
 
-    Signals become variables of the same name (float32 column vectors); metadata
-    become scalar/string variables (parameters and metadata as JSON strings).
+
+def matlab_name(text, prefix="x"):
+    """A valid MATLAB identifier for ``text``: letters, digits and '_', starting with a
+    letter, at most 63 characters, not a keyword (other characters become '_').
+
+    Examples
+    --------
+    >>> matlab_name("detect-L00-M01"), matlab_name("2nd run"), matlab_name("end")
+    ('detect_L00_M01', 'x2nd_run', 'x_end')
+    """
+    name = re.sub(r"[^A-Za-z0-9_]", "_", str(text))
+    if not name or not name[0].isalpha():
+        name = prefix + name
+    if name in _MATLAB_KEYWORDS:
+        name = f"{prefix}_{name}"
+    return name[:_MATLAB_NAME_MAX]
+
+
+def _mat_value(value):
+    """A metadata value as MATLAB sees it best: numbers (and bools) as double, text as
+    char, dicts as structs (keys made valid names), numeric lists as double arrays."""
+    if isinstance(value, dict):
+        return _mat_struct(value)
+    if isinstance(value, str):
+        return value
+    if value is None:
+        return np.zeros((0, 0))
+    arr = np.asarray(value)
+    if arr.dtype.kind in "biuf":
+        return arr.astype(np.float64)
+    return json.dumps(value, sort_keys=True, default=str)   # mixed lists: text
+
+
+def _mat_struct(mapping):
+    out = {}
+    for key, value in mapping.items():
+        name = matlab_name(key)
+        while name in out:                       # two keys that map to one name
+            name = (name + "_")[:_MATLAB_NAME_MAX] if len(name) < _MATLAB_NAME_MAX \
+                else name[:-1] + "_"
+        out[name] = _mat_value(value)
+    return out
+
+
+def mat_content(run, name):
+    """The variables ``export_mat`` writes: ``{name: struct}`` (see :func:`export_mat`)."""
+    meta = run.meta
+    struct = {
+        "fs_hz": np.float64(meta["fs_hz"]),
+        "n_period": np.float64(meta["n_period"]),
+        "settle_periods": np.float64(meta["settle_periods"]),
+        "record_periods": np.float64(meta["record_periods"]),
+        "level_index": np.float64(meta.get("level_index", 0)),
+        "realization": np.float64(meta.get("realization", 0)),
+        "experiment": meta["experiment"],
+        "signals": {matlab_name(k): np.asarray(v, dtype=np.float64).reshape(-1, 1)
+                    for k, v in run.signals.items()},
+        "units": {**_META_UNITS, **{matlab_name(k): SIGNAL_UNITS.get(k, "")
+                                    for k in run.signals}},
+        "parameters": _mat_struct(meta.get("parameters", {}) or {}),
+        "metadata_json": json.dumps(meta.get("metadata", {}), sort_keys=True),
+        "firmware_version": meta.get("firmware_version", ""),
+        "eds_identity": meta.get("eds_identity", ""),
+        "started_at": meta.get("started_at", ""),
+        "finished_at": meta.get("finished_at", ""),
+        "format_version": np.float64(meta.get("format_version", FORMAT_VERSION)),
+    }
+    return {name: struct}
+
+
+def export_mat(run_or_path, out_path, *, overwrite=False, name=None):
+    """Export a capture run to a MATLAB .mat file (v5, scipy.io.savemat), atomically.
+
+    The file holds ONE struct per capture, named after the output file (``name``, made a
+    valid MATLAB identifier: ``detect-L00-M01.mat`` -> ``detect_L00_M01``), so that
+    ``load`` of several exports into one workspace keeps them apart. Every number is a
+    double (MATLAB divides an integer type by a double in integer arithmetic:
+    ``fs_hz / n_period`` must give 2.5, not 3). Fields:
+
+    ``fs_hz``, ``n_period``, ``settle_periods``, ``record_periods``, ``level_index``,
+    ``realization``
+        Scalars (double).
+    ``signals``
+        Struct of column vectors (double), one per recorded signal.
+    ``units``
+        Struct of char: the unit of each signal and of the layout fields.
+    ``experiment``, ``firmware_version``, ``eds_identity``, ``started_at``, ``finished_at``
+        Text.
+    ``parameters``
+        Struct of the drive parameters read back (numbers as double).
+    ``metadata_json``
+        The free-form metadata as JSON text (``jsondecode`` in MATLAB).
+
+    Parameters
+    ----------
+    run_or_path : CaptureRun or path
+    out_path : path
+        The .mat file; an existing file is refused unless ``overwrite``.
+    name : str, optional
+        Name of the struct; default the stem of ``out_path``.
+
+    Returns
+    -------
+    Path
+        ``out_path``.
     """
     import scipy.io
 
     run = _run_of(run_or_path)
-    content = {name: arr.reshape(-1, 1) for name, arr in run.signals.items()}
-    for key, value in run.meta.items():
-        content[key] = json.dumps(value, sort_keys=True) if key in _JSON_META else value
-    return atomic_write(out_path, lambda tmp: scipy.io.savemat(tmp, content),
+    var = matlab_name(Path(out_path).stem if name is None else name, prefix="capture_")
+    content = mat_content(run, var)
+    return atomic_write(out_path, lambda tmp: scipy.io.savemat(tmp, content, format="5",
+                                                               long_field_names=True),
                         overwrite=overwrite, suffix=".mat")
 
 
@@ -457,6 +568,17 @@ def export_csv(run_or_path, out_path, *, overwrite=False):
     The first line is a comment ``# fftune capture: {json metadata}``, the second the
     header (signal names), then one row per sample. ``fftune analyze`` reads it back
     (comment lines are skipped).
+
+    Parameters
+    ----------
+    run_or_path : CaptureRun or path
+    out_path : path
+        The .csv file; an existing file is refused unless ``overwrite``.
+
+    Returns
+    -------
+    Path
+        ``out_path``.
     """
     run = _run_of(run_or_path)
     names = list(run.signals)

@@ -186,14 +186,23 @@ def load_npz(path):
 
 
 def load_mat(path):
-    """MATLAB .mat (scipy.io.loadmat, v5/v7): numeric variables are signals, scalars layout."""
+    """MATLAB .mat (scipy.io.loadmat, v5/v7): numeric variables are signals, scalars layout;
+    a capture exported by :func:`fftune.analysis.capture.export_mat` (one struct) is read too."""
     import scipy.io
 
     try:
-        content = scipy.io.loadmat(path)
+        content = scipy.io.loadmat(path, simplify_cells=True)
     except (OSError, ValueError, NotImplementedError, TypeError) as exc:
         raise InputError(f"{path}: not a readable .mat file ({exc})") from None
-    return _from_mapping(path, [(k, v) for k, v in content.items() if not k.startswith("__")])
+    items = {k: v for k, v in content.items() if not k.startswith("__")}
+    captures = [v for v in items.values()
+                if isinstance(v, dict) and isinstance(v.get("signals"), dict) and "fs_hz" in v]
+    if len(items) == 1 and len(captures) == 1:       # a capture exported by export_mat
+        cap = captures[0]
+        return _from_mapping(path, [*cap["signals"].items(),
+                                    *[(k, cap[k]) for k in ("fs_hz", "n_period", "settle_periods",
+                                                            "record_periods") if k in cap]])
+    return _from_mapping(path, [(k, v) for k, v in items.items() if not isinstance(v, dict)])
 
 
 def load_capture(path):

@@ -22,7 +22,7 @@ from fftune.analysis.errors import InputError
 __all__ = [
     "Multisine", "LineSet", "fmix32", "stream_init", "xorshift32", "uniform01",
     "index_below", "drive_lines", "drive_phases", "drive_multisine", "design_multisine",
-    "multisine_realizations", "crest_factor", "synthesize_period",
+    "multisine_realizations", "random_odd_multisine", "crest_factor", "synthesize_period",
 ]
 
 _MASK32 = 0xFFFFFFFF
@@ -383,3 +383,57 @@ def multisine_realizations(n_realizations, fs, n_period, **design):
     """
     return [design_multisine(fs, n_period, realization=m, **design)
             for m in range(int(n_realizations))]
+
+
+def random_odd_multisine(fs, n_period, n_realizations=1, *, f_min=None, f_max=None,
+                         k_min=None, k_max=None, group=5, rms=1.0, seed=0):
+    """M realizations of a random odd multisine (paper eq. 2), as the drive plays them.
+
+    Odd DFT bins of the band are excited with a flat amplitude spectrum; in each full
+    group of ``group`` consecutive odd candidates one line is left out at random (a
+    detection line for odd nonlinear distortion, the same for all realizations); even
+    bins are never excited. Phases are uniform in [-pi, pi), new for each realization.
+
+    Parameters
+    ----------
+    fs : float
+        Sample rate (Hz).
+    n_period : int
+        Samples per period N; frequency resolution f0 = fs / N (Hz).
+    n_realizations : int
+        M, realizations m = 0 .. M-1 (same lines, independent phases).
+    f_min, f_max : float, optional
+        Band (Hz), inclusive. Or give ``k_min``, ``k_max`` in DFT bins.
+    k_min, k_max : int, optional
+        Band in DFT bins (default 1 .. N/2 - 1).
+    group : int
+        Group size G of the random line removal (0: keep every odd line; default 5).
+    rms : float
+        rms value of each period (signal unit).
+    seed : int
+        uint32 seed of the line set and the phases (the drive's ``seed`` parameter).
+
+    Returns
+    -------
+    u : ndarray, shape (M, N)
+        One period of each realization (float64).
+    design : Multisine
+        Realization 0's design: ``excited``, ``detection_odd``, ``even`` bins, phases,
+        amplitudes (the line sets are the same for every realization).
+
+    See Also
+    --------
+    design_multisine : other kinds, user amplitude spectra, crest-factor reduction.
+
+    Examples
+    --------
+    >>> u, d = random_odd_multisine(1000.0, 1000, 4, f_min=1, f_max=100, rms=0.5)
+    >>> u.shape, bool(d.excited.size > 0), bool((d.excited % 2 == 1).all())
+    ((4, 1000), True, True)
+    """
+    designs = multisine_realizations(n_realizations, fs, n_period, f_min=f_min,
+                                     f_max=f_max, k_min=k_min, k_max=k_max,
+                                     kind="random_odd", group=group, rms=rms, seed=seed)
+    if not designs:
+        raise InputError(f"multisine: n_realizations must be >= 1, got {n_realizations}")
+    return np.stack([d.period for d in designs]), designs[0]

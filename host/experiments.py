@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from fftune.analysis import hosidf as _hosidf
+from fftune.analysis.hosidf import hosidf as _hosidf_estimate  # (fftune.analysis.hosidf is the function)
 from fftune.analysis import tuning as _tuning
 from fftune.analysis.bla import bla_levels
 from fftune.analysis.errors import FftuneError
@@ -209,7 +209,7 @@ def quantify(session):
                 U[ai, fi, rep] = _blocks(rec.signals[in_name], n)
                 Y[ai, fi, rep] = _blocks(rec.signals["motor_angle"], n)
     f0 = np.broadcast_to(np.asarray(c["frequencies_hz"])[None, :], U.shape[:2])
-    hos = _hosidf.hosidf(U, Y, fs=fs, n_harmonics=c["harmonics"], f0=f0)
+    hos = _hosidf_estimate(U, Y, fs=fs, n_harmonics=c["harmonics"], f0=f0)
     mag = np.abs(hos.H)
     h1 = mag[..., 0]
     odd_rel = np.sqrt(np.sum(mag[..., 2::2] ** 2, axis=-1)) / h1
@@ -254,7 +254,7 @@ class _TuneProbe:
         rec = self.s.run("tune", key, req)
         r = _blocks(rec.signals["reference"], self.n)[None]
         y = _blocks(rec.signals["motor_angle"], self.n)[None]
-        hos = _hosidf.hosidf(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
+        hos = _hosidf_estimate(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
                              f0=c["frequency_hz"])
         H = hos.H
         point = {

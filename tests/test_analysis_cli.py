@@ -13,7 +13,7 @@ from fftune.analysis.multisine import multisine_realizations
 from fftune.host.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "kul_motorbench_twomass.npz"
+DATA = REPO / "tests" / "data" / "kul_motorbench_twomass.npz"   # MIT, see tests/data/
 M, T, P, N, FS = 3, 1, 4, 256, 1000.0
 
 
@@ -261,8 +261,6 @@ def test_console_script_subprocess(tmp_path):
 
 
 def test_real_data_through_the_cli(tmp_path, capsys):
-    if not DATA.exists():
-        pytest.skip(f"real data not found: {DATA} (the shared/ directory beside the repo)")
     d = np.load(DATA)
     f = tmp_path / "b.npz"
     np.savez(f, iq=d["B_iq"].astype(float).reshape(-1),

@@ -1,4 +1,4 @@
-"""HOSIDF against analytic describing functions (REFERENCE.md section 1)."""
+"""HOSIDF against analytic describing functions (docs/method.md section 3)."""
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp

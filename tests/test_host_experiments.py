@@ -98,8 +98,10 @@ def test_captures_hold_metadata_and_export(tuned, tmp_path):
     assert len(run.signals["motor_angle"]) == run.meta["record_periods"] * run.meta["n_period"]
     mats = export_captures(os.path.join(out, "captures", files[0]), "mat", str(tmp_path))
     import scipy.io
-    m = scipy.io.loadmat(mats[0])
-    np.testing.assert_array_equal(m["motor_angle"].ravel(), run.signals["motor_angle"])
+    m = scipy.io.loadmat(mats[0], simplify_cells=True)
+    (struct,) = [v for k, v in m.items() if not k.startswith("__")]    # one struct per capture
+    np.testing.assert_array_equal(struct["signals"]["motor_angle"], run.signals["motor_angle"])
+    assert struct["fs_hz"] == run.meta["fs_hz"] and struct["units"]["motor_angle"] == "rad"
     csvs = export_captures(os.path.join(out, "captures", files[0]), "csv", str(tmp_path))
     table = np.genfromtxt(csvs[0], delimiter=",", names=True, skip_header=1)
     np.testing.assert_allclose(table["motor_angle"], run.signals["motor_angle"], rtol=1e-8, atol=1e-12)
