@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fftune.analysis.errors import FftuneError
-from fftune.host.odmap import (DEFAULT_EDS, PARAMS, RUN_STATES, SIGNAL_BITS, STOP_REASONS)
+from fftune.host.odmap import (DEFAULT_EDS, PARAMS, RUN_STATES, SIGNAL_BITS, STOP_REASONS,
+                                check_drive_profile)
 
 DEFAULT_SOCKETCAND_HOST = "127.0.0.1"
 DEFAULT_SOCKETCAND_PORT = 29536
@@ -212,6 +213,7 @@ class DriveClient:
             raise FftuneError(f"EDS not found: {opts.eds} (build it with `make firmware`, or pass --eds)") from None
         except Exception as exc:
             raise FftuneError(f"EDS {opts.eds}: cannot import: {exc}") from None
+        check_drive_profile(self.node.object_dictionary, opts.eds)
 
     # ---- connection -------------------------------------------------------------------
     def connect(self):

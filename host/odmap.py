@@ -71,3 +71,60 @@ def load_param_map(path=OD_YAML):
 
 
 PARAMS = load_param_map()
+
+# CiA 301 / 402 objects the host reads or writes (DriveClient: probe, heartbeats, identity,
+# the CiA 402 state machine); every manufacturer object of od.yaml that is not sim_only is
+# part of the profile too. docs/drive-profile.md describes them for drive vendors.
+PROFILE_DOC = "docs/drive-profile.md"
+STANDARD_PROFILE_OBJECTS = {
+    0x1000: "Device type", 0x1008: "Manufacturer device name",
+    0x100A: "Manufacturer software version", 0x1016: "Consumer heartbeat time",
+    0x1017: "Producer heartbeat time", 0x1018: "Identity object",
+    0x6040: "Controlword", 0x6041: "Statusword",
+}
+
+
+def profile_objects(path=OD_YAML):
+    """The objects an fftune drive must provide: ``[(index, subindex or None, name)]``.
+
+    ``subindex`` None stands for the object as a whole (a variable, a DOMAIN, or a record
+    whose every listed sub-index is required, then given as its own entries too)."""
+    with open(path, "r", encoding="utf-8") as fh:
+        od = yaml.safe_load(fh)
+    out = [(index, None, name) for index, name in sorted(STANDARD_PROFILE_OBJECTS.items())]
+    for obj in od.get("objects", []):
+        if not 0x2000 <= obj["index"] <= 0x5FFF or obj.get("sim_only"):
+            continue
+        out.append((obj["index"], None, obj["name"]))
+        for sub in obj.get("sub", []):
+            out.append((obj["index"], sub["sub"], f"{obj['name']}.{sub['name']}"))
+    return out
+
+
+def missing_profile_objects(object_dictionary, required=None):
+    """Names of the profile objects absent from a python-canopen ``ObjectDictionary``
+    (``"0x2000 Controller"``, or ``"0x2010:6 Run control.Run length"`` when only a
+    sub-index lacks); an absent object is named once, not with each of its sub-indices."""
+    missing, absent = [], set()
+    for index, sub, name in (profile_objects() if required is None else required):
+        if index in absent:
+            continue
+        if index not in object_dictionary:
+            absent.add(index)
+            missing.append(f"0x{index:04X} {name}")
+        elif sub is not None:
+            obj = object_dictionary[index]
+            if not hasattr(obj, "__contains__") or sub not in obj:
+                missing.append(f"0x{index:04X}:{sub} {name}")
+    return missing
+
+
+def check_drive_profile(object_dictionary, eds):
+    """A one-line :class:`FftuneError` if the EDS lacks objects of the fftune drive profile."""
+    missing = missing_profile_objects(object_dictionary)
+    if not missing:
+        return
+    shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+    raise FftuneError(f"EDS {eds}: not an fftune drive: it lacks {shown} (the fftune drive "
+                      f"profile: objects, units and behaviour a drive must provide are listed in "
+                      f"{PROFILE_DOC} of the fftune sources)")
