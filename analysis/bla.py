@@ -32,7 +32,8 @@ import scipy.fft
 from fftune.analysis.errors import InputError
 
 __all__ = ["BLAResult", "TransientCheck", "TransientWarning", "BLALevels",
-           "detect_excited_lines", "robust_bla", "bla_levels", "to_db"]
+           "detect_excited_lines", "robust_bla", "robust_bla_spectra", "bla_levels",
+           "classify_grid", "level_verdict", "estimate_quantisation_step", "to_db"]
 
 
 class TransientWarning(UserWarning):
@@ -113,11 +114,26 @@ class BLAResult:
         Non-excited odd and even lines between the lowest and highest excited line.
     odd_db, even_db : ndarray
         Output level at those lines (same scale as ``output_db``).
+        Only for grids that separate odd from even distortion (odd bins excited, see
+        :func:`classify_grid`); empty otherwise.
     odd_noise_db, even_noise_db : ndarray or None
         Noise level of the period-averaged output at those lines (None when P = 1).
+    grid : str
+        Excitation grid (:func:`classify_grid`).
+    nonexcited_bins, nonexcited_db, nonexcited_noise_db : ndarray
+        Every non-excited line in the band (whatever the grid), its output level and
+        noise level.
+    plant_db : ndarray or None
+        Plant-referred level at the non-excited lines: output minus the BLA
+        (interpolated) times the input measured there, period-averaged (same scale).
+    plant_expected_db : ndarray or None
+        What ``plant_db`` holds without plant distortion: its noise plus the BLA
+        interpolation error (leave-one-out) times the input there.
+    quantisation_floor_db : float or None
+        Output quantisation floor per line, 4 (q^2/12) / N (given ``y_quantisation_step``).
     summary : dict
-        Power-averaged figures in dB (keys documented in docs/analysis.md); None
-        where not defined.
+        Per-line medians, power ratios, detection flags, plant-referred figures (keys
+        documented in docs/analysis.md); None where not defined.
     transient : TransientCheck
     n_realizations, n_periods, settle_periods : int
     known_reference : bool
@@ -150,6 +166,13 @@ class BLAResult:
     settle_periods: int
     known_reference: bool
     notes: list = field(default_factory=list)
+    grid: str = None
+    nonexcited_bins: np.ndarray = None
+    nonexcited_db: np.ndarray = None
+    nonexcited_noise_db: np.ndarray = None
+    plant_db: np.ndarray = None
+    plant_expected_db: np.ndarray = None
+    quantisation_floor_db: float = None
 
     @property
     def odd_freq(self):
@@ -174,13 +197,59 @@ def _as_layout(name, x):
     return x
 
 
-def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0):
+def _split_by_gap(level, min_lower):
+    """Largest gap between consecutive sorted values (descending) that leaves at least
+    ``min_lower`` values below it; returns (threshold, gap) or (None, 0)."""
+    order = np.sort(level)[::-1]
+    gaps = order[:-1] - order[1:]
+    # split after position i: lower cluster holds order.size - 1 - i values
+    allowed = np.arange(gaps.size) <= order.size - 1 - min_lower
+    if not allowed.any():
+        return None, 0.0
+    gaps = np.where(allowed, gaps, -np.inf)
+    i = int(np.argmax(gaps))
+    return order[i] - gaps[i] / 2, float(gaps[i])
+
+
+def _local_floor(level, half_width=24, quantile=0.1):
+    """Low quantile of ``level`` in a window of +-half_width lines (the non-excited floor
+    near each line when the excited lines are fewer than 90 % of the window)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+    padded = np.pad(level, half_width, mode="reflect")
+    return np.quantile(sliding_window_view(padded, 2 * half_width + 1), quantile, axis=-1)
+
+
+def _otsu(values):
+    """Otsu threshold of 1-D values: the split of the sorted values that maximises the
+    between-class variance; returns (threshold, upper median - lower median)."""
+    v = np.sort(values)
+    n = v.size
+    c = np.cumsum(v)
+    k = np.arange(1, n)                     # lower class = v[:k]
+    mu_lo = c[:-1] / k
+    mu_hi = (c[-1] - c[:-1]) / (n - k)
+    score = k * (n - k) * (mu_hi - mu_lo) ** 2
+    i = int(np.argmax(score)) + 1
+    return (v[i - 1] + v[i]) / 2, float(np.median(v[i:]) - np.median(v[:i]))
+
+
+def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False):
     """Find the excited lines of a periodic excitation from its spectrum.
 
     The power of the period-averaged spectrum (mean over realizations) at bins
-    1 .. ceil(N/2) - 1 is sorted; the excited lines are those above the largest gap
-    (in dB) between consecutive sorted values. Works for any grid (full, odd, odd-odd,
-    random odd, user shaped) as long as excited and non-excited lines are separated.
+    1 .. ceil(N/2) - 1 is taken in dB, and the excited lines are the cluster far above
+    the rest:
+
+    1. the largest gap between consecutive sorted levels (full, odd, odd-odd, random odd
+       grids with excited lines at similar levels), if it is at least ``min_gap_db``;
+    2. otherwise (a distorted input: the excited level and a broadband distortion vary
+       over the band and their scatter fills the gap) the level re a running floor (10th
+       percentile of +-24 lines) split at its Otsu threshold, if the two clusters' medians
+       lie at least 2 ``min_gap_db`` apart and at most 5 % of the lines fall within 3 dB of
+       the threshold.
+
+    A split must leave at least max(2, 1 %) of the lines below it: a few near-zero lines
+    (a filter's stop band, float32 zeros) never make "every other line excited".
 
     Parameters
     ----------
@@ -189,12 +258,15 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0):
     settle_periods : int
         Periods T at the start of each realization that are ignored.
     min_gap_db : float
-        The gap must be at least this large (dB), else InputError.
+        Separation needed (dB), else InputError.
+    return_info : bool
+        Also return a dict: ``method`` ('gap' or 'local threshold'), ``separation_db``,
+        ``note`` (None, or what the caller should tell the user).
 
     Returns
     -------
     ndarray of int
-        Excited bins, ascending.
+        Excited bins, ascending (and the info dict with ``return_info``).
     """
     x = _as_layout("excitation", x)
     n = x.shape[2]
@@ -208,16 +280,29 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0):
     # floor at -120 dB re the largest line: rounding noise and exact zeros (float32
     # signals) must not open a larger gap than the one under the excited lines
     level = 10 * np.log10(np.maximum(power, top * 1e-12))
-    order = np.sort(level)[::-1]
-    gaps = order[:-1] - order[1:]
-    i = int(np.argmax(gaps))
-    if gaps[i] < min_gap_db:
+    min_lower = max(2, int(np.ceil(0.01 * level.size)))
+    threshold, gap = _split_by_gap(level, min_lower)
+    info = {"method": "gap", "separation_db": gap, "note": None}
+    found = None
+    if threshold is not None and gap >= min_gap_db:
+        found = np.flatnonzero(level > threshold) + 1
+    elif level.size >= 64:
+        rel = level - _local_floor(level)
+        thr, sep = _otsu(rel)
+        ambiguous = float(np.mean(np.abs(rel - thr) < 3.0))
+        if sep >= 2 * min_gap_db and ambiguous <= 0.05:
+            found = np.flatnonzero(rel > thr) + 1
+            info = {"method": "local threshold", "separation_db": sep,
+                    "note": f"excited lines found by a threshold on the level re the local "
+                            f"floor (no clean gap in the spectrum: the input is distorted); "
+                            f"{100 * ambiguous:.1f} % of the lines lie within 3 dB of the "
+                            f"threshold: give the design's lines (--lines FILE) to be sure"}
+    if found is None:
         raise InputError(
             f"excitation: cannot tell excited from non-excited lines (largest gap in the "
-            f"spectrum {gaps[i]:.1f} dB < {min_gap_db:g} dB); give the excited lines "
-            f"explicitly (--lines FILE)")
-    threshold = order[i] - gaps[i] / 2
-    return np.flatnonzero(level > threshold) + 1
+            f"spectrum {gap:.1f} dB < {min_gap_db:g} dB, no clear cluster re the local "
+            f"floor either); give the excited lines explicitly (--lines FILE)")
+    return (found, info) if return_info else found
 
 
 def _validate_lines(bins, n):
@@ -290,58 +375,153 @@ def _locate_bad(arrays):
             raise InputError(f"{name}: contains NaN or inf")
 
 
-def _realization_pass(u, y, r, settle, excited, det_bins):
-    """Per realization: spectra at the needed lines and their reductions over periods.
+def _band_spectra(x, lines):
+    """DFT values (numpy rfft scaling) of every period at ``lines``: (M, T+P, L) complex,
+    one realization at a time (the full spectrum of one realization only)."""
+    out = np.empty(x.shape[:2] + (lines.size,), dtype=np.complex128)
+    for m in range(x.shape[0]):
+        out[m] = np.take(scipy.fft.rfft(x[m], axis=-1), lines, axis=-1)
+    return out
 
-    Returns a dict of arrays (unscaled DFT values): ``Y_exc`` (M, T+P, E) output at the
-    excited lines; ``u_power`` (E,) sum of |U|^2; ``U_mean`` (M, E); ``det_mean``,
-    ``det_ss`` (M, D) mean and sum of squared deviations over periods at the detection
-    lines; known input: ``G_m``, ``G_ss`` (M, E) for G = Y/U; known reference:
-    ``R_mean``, ``Un_m``, ``Yn_m`` (M, E) and ``su2``, ``sy2``, ``syu`` (M, E) the
-    period sums of |dU|^2, |dY|^2, dY conj(dU) after the R/|R| rotation.
+
+def classify_grid(excited_bins, n_period):
+    """What the excitation grid lets the non-excited lines say.
+
+    Parameters
+    ----------
+    excited_bins : array_like of int
+        Excited DFT bins, ascending.
+    n_period : int
+        Samples per period N (bins 1 .. ceil(N/2) - 1 are usable).
+
+    Returns
+    -------
+    dict
+        ``grid``: 'random odd' (odd bins, some odd bins of the band left out), 'odd'
+        (every odd bin of the band), 'odd-odd' (bins 4k+1 only, or 4k+3 only),
+        'full' (both parities, no line left out), 'full with removed lines' (both
+        parities, some lines left out), 'even' (even bins only); ``parity`` True when
+        odd and even nonlinear distortions fall on separate non-excited lines (odd
+        grids: an odd number of odd bins sums to an odd bin, an even number to an even
+        bin); ``note``: why there is no parity claim (None when there is).
     """
-    n_real, n_total, _ = y.shape
-    n_exc, n_det = excited.size, det_bins.size
-    y_lines = np.concatenate([excited, det_bins])
-    c = np.complex128
-    st = {"Y_exc": np.empty((n_real, n_total, n_exc), c), "u_power": np.zeros(n_exc),
-          "U_mean": np.empty((n_real, n_exc), c), "det_mean": np.empty((n_real, n_det), c),
-          "det_ss": np.empty((n_real, n_det))}
-    if r is None:
-        st.update(G_m=np.empty((n_real, n_exc), c), G_ss=np.empty((n_real, n_exc)))
-    else:
-        st.update(R_mean=np.empty((n_real, n_exc), c), Un_m=np.empty((n_real, n_exc), c),
-                  Yn_m=np.empty((n_real, n_exc), c), su2=np.empty((n_real, n_exc)),
-                  sy2=np.empty((n_real, n_exc)), syu=np.empty((n_real, n_exc), c))
-    for m in range(n_real):
-        Yl = np.take(scipy.fft.rfft(y[m], axis=-1), y_lines, axis=-1).astype(c, copy=False)
-        st["Y_exc"][m] = Yl[:, :n_exc]
-        Y = Yl[settle:, :n_exc]
-        Yd = Yl[settle:, n_exc:]
-        st["det_mean"][m], st["det_ss"][m] = _spread(Yd[None])
-        U = np.take(scipy.fft.rfft(u[m, settle:], axis=-1), excited, axis=-1).astype(c, copy=False)
-        st["u_power"] += _abs2_sum(U, axis=0)
-        st["U_mean"][m] = U.mean(axis=0)
-        if r is None:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                G = Y / U
-            st["G_m"][m], st["G_ss"][m] = _spread(G[None])
+    exc = np.asarray(excited_bins, dtype=np.int64)
+    band = np.arange(exc[0], exc[-1] + 1)
+    removed = np.setdiff1d(band, exc)
+    if np.all(exc % 2 == 1):
+        if exc.size > 1 and np.all(exc % 4 == exc[0] % 4):
+            grid = "odd-odd"
+        elif np.any(removed % 2 == 1):
+            grid = "random odd"
         else:
-            R = np.take(scipy.fft.rfft(r[m, settle:], axis=-1), excited, axis=-1).mean(axis=0)
-            st["R_mean"][m] = R
-            with np.errstate(divide="ignore", invalid="ignore"):
-                rot = np.conj(R / np.abs(R))
-            Un, Yn = U * rot, Y * rot
-            um, ss_u = _spread(Un[None])
-            ym, ss_y = _spread(Yn[None])
-            st["Un_m"][m], st["Yn_m"][m], st["su2"][m], st["sy2"][m] = um, ym, ss_u, ss_y
-            st["syu"][m] = np.einsum("pk,pk->k", Yn - ym, np.conj(Un - um))
-    return st
+            grid = "odd"
+        return {"grid": grid, "parity": True, "note": None}
+    if np.all(exc % 2 == 0):
+        return {"grid": "even", "parity": False,
+                "note": "even bins only: odd and even nonlinear distortions both fall on "
+                        "even bins; only 'nonlinear' can be said, no odd/even claim"}
+    if removed.size == 0:
+        return {"grid": "full", "parity": False,
+                "note": "full grid: every line of the band is excited, no non-excited line "
+                        "to detect nonlinear distortion on (design a random odd multisine)"}
+    return {"grid": "full with removed lines", "parity": False,
+            "note": "full grid with removed lines: odd and even distortions both fall on "
+                    "every line (odd + even bins mix), so the removed lines say only "
+                    "'nonlinear', not odd or even (use a random odd multisine for that)"}
+
+
+def _interp_frf(freq, G, f_at):
+    """G at ``f_at`` from 4-point Lagrange interpolation in log f of log|G| and the
+    unwrapped phase (exact for power laws such as a double integrator); and the
+    relative leave-one-out error at each excited line (each line predicted from its two
+    neighbours on each side), an upper bound of the error at the lines in between."""
+    e = freq.size
+    x = np.log(freq)
+    logmag = np.log(np.maximum(np.abs(G), 1e-300))
+    phase = np.unwrap(np.angle(G))
+    if e < 5:
+        g_at = np.exp(np.interp(np.log(f_at), x, logmag) + 1j * np.interp(np.log(f_at), x, phase))
+        return g_at, np.full(e, np.inf)
+
+    def lagrange(xs, ys, xa):
+        w = np.ones_like(xs)
+        for j in range(4):
+            for i in range(4):
+                if i != j:
+                    w[:, j] *= (xa - xs[:, i]) / (xs[:, j] - xs[:, i])
+        return np.sum(w * ys, axis=1)
+
+    def predict(idx, xa):
+        return np.exp(lagrange(x[idx], logmag[idx], xa) + 1j * lagrange(x[idx], phase[idx], xa))
+
+    xa = np.log(np.asarray(f_at, dtype=float))
+    start = np.clip(np.searchsorted(x, xa) - 2, 0, e - 4)
+    g_at = predict(start[:, None] + np.arange(4), xa)
+    # leave one out: window of 4 among the other e - 1 lines, centred on line i
+    i = np.arange(e)
+    start = np.clip(i - 2, 0, e - 5)
+    reduced = start[:, None] + np.arange(4)
+    idx = reduced + (reduced >= i[:, None])
+    loo = predict(idx, x)
+    return g_at, np.abs(loo - G) / np.abs(G)
+
+
+def _false_alarm_count(n_lines, p_line, alpha=1e-3):
+    """Smallest count k >= 1 with P(Binomial(n_lines, p_line) >= k) <= alpha."""
+    from scipy.stats import binom
+    if n_lines == 0:
+        return None
+    return max(1, int(binom.isf(alpha, n_lines, p_line)) + 1)
+
+
+def _class_stats(level, reference, nu, prefix, alpha=1e-3):
+    """Per-line figures of one class of non-excited lines (level vs what is expected
+    there without nonlinear distortion, ``reference``).
+
+    A noise-only line exceeds x times its estimated noise with probability
+    (1 + x / nu)^-nu (F(2, 2 nu) tail, nu = M (P - 1) complex degrees of freedom of the
+    noise estimate). The class is detected when more lines lie 6 dB over than noise
+    gives with probability ``alpha`` (binomial), or when the most significant line alone
+    is (Bonferroni: n min p <= alpha): a few lines far above the noise count as much as
+    many lines a little above it. Returns the median excess (dB), the count 6 dB over,
+    the count needed, the count noise gives on average, and the flag (None without a
+    line or a reference).
+    """
+    out = {f"{prefix}lines": int(np.size(level))}
+    if level is None or np.size(level) == 0 or reference is None or nu < 1:
+        out.update({f"{prefix}line_median_re_noise_db": None, f"{prefix}lines_over_noise_6db": None,
+                    f"{prefix}lines_needed": None, f"{prefix}lines_by_noise": None,
+                    f"{prefix}detected": None})
+        return out
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = level / reference
+        excess = 10 * np.log10(ratio)
+        p_lines = np.where(ratio > 0, (1.0 + np.maximum(ratio, 0) / nu) ** (-nu), 1.0)
+    p_line = (1.0 + 4.0 / nu) ** (-nu)
+    over = int(np.sum(level > 4.0 * reference))
+    need = _false_alarm_count(level.size, p_line, alpha)
+    med = float(np.median(excess))
+    strongest = bool(level.size * np.nanmin(p_lines) <= alpha)
+    out.update({f"{prefix}line_median_re_noise_db": med if np.isfinite(med) else None,
+                f"{prefix}lines_over_noise_6db": over, f"{prefix}lines_needed": need,
+                f"{prefix}lines_by_noise": float(level.size * p_line),
+                f"{prefix}detected": bool(over >= need or strongest)})
+    return out
+
+
+def _median_db(values_db):
+    """Median of per-line dB values; NaN (no variance there) counts as -inf. None when
+    more than half are -inf or there is no value."""
+    v = np.asarray(values_db, dtype=float)
+    if v.size == 0:
+        return None
+    med = float(np.median(np.where(np.isnan(v), -np.inf, v)))
+    return med if np.isfinite(med) else None
 
 
 def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
-               warn_transient=True):
-    """Robust BLA with total, noise and nonlinear variances, and odd/even detection.
+               warn_transient=True, y_quantisation_step=None):
+    """Robust BLA with total, noise and nonlinear variances, and nonlinear detection.
 
     Parameters
     ----------
@@ -354,10 +534,14 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     settle_periods : int
         T, periods dropped at the start of every realization.
     excited_bins : array_like of int, optional
-        Excited DFT bins; found from the spectrum of r (or u) by default
-        (:func:`detect_excited_lines`).
+        Excited DFT bins (the design grid when known); found from the spectrum of r (or
+        u) by default (:func:`detect_excited_lines`).
     warn_transient : bool
         Emit a :class:`TransientWarning` when the transient check is suspect.
+    y_quantisation_step : float, optional
+        Quantisation step of the measured output (unit of y, e.g. 2 pi / counts per
+        revolution in rad): its floor q^2/12 spread over the band is compared with the
+        plant-referred distortion.
 
     Returns
     -------
@@ -379,25 +563,102 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         raise InputError(f"samples per period N = {n} is too small")
     if not np.isfinite(fs) or fs <= 0:
         raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
-    n_per = n_total - settle
     excitation = r if r is not None else u
-    if excited_bins is None:
-        excited = detect_excited_lines(excitation, settle)
+    detected_here = excited_bins is None
+    line_note = None
+    if detected_here:
+        excited, info = detect_excited_lines(excitation, settle, return_info=True)
+        line_note = info["note"]
     else:
         excited = _validate_lines(excited_bins, n)
-
     band = np.arange(excited[0], excited[-1] + 1)
-    keep = np.ones(band.size, dtype=bool)
-    keep[excited - band[0]] = False
-    non_exc = band[keep]
-    odd_bins = non_exc[non_exc % 2 == 1]
-    even_bins = non_exc[non_exc % 2 == 0]
-    n_exc, n_odd = excited.size, odd_bins.size
+    spectra = [_band_spectra(x, band) if x is not None else None for x in (u, y, r)]
+    if not all(np.isfinite(s).all() for s in spectra if s is not None):
+        _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
+        raise InputError("non-finite result (overflow in the input data?)")
+    # resolution of the recorded numbers: float32 records round to 2^-24 of the value
+    f32 = y.dtype == np.float32 or np.array_equal(y, y.astype(np.float32))
+    y_rounding = float(np.max(np.abs(y))) * (2.0 ** -24 if f32 else 2.0 ** -53)
+    res = robust_bla_spectra(*spectra, bins=band, n_period=n, fs=fs, settle_periods=settle,
+                             excited_bins=excited, warn_transient=False,
+                             y_quantisation_step=y_quantisation_step, y_rounding=y_rounding)
+    if detected_here:
+        res.notes.insert(0, f"excited lines found from the spectrum of "
+                            f"{'r' if r is not None else 'u'}: {excited.size} lines "
+                            f"{excited[0] * fs / n:g} .. {excited[-1] * fs / n:g} Hz")
+    if line_note:
+        res.notes.insert(1, line_note)
+    if res.transient.suspect and warn_transient:
+        warnings.warn(res.transient.message, TransientWarning, stacklevel=2)
+    return res
+
+
+def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0,
+                       excited_bins, warn_transient=True, y_quantisation_step=None,
+                       y_rounding=0.0):
+    """The robust BLA of :func:`robust_bla` from per-period spectra.
+
+    Parameters
+    ----------
+    U, Y : array_like of complex, shape (M, T + P, L)
+        DFT of every period of input and output (numpy ``rfft`` scaling, no 1/N) at the
+        DFT bins ``bins``.
+    R : array_like of complex, shape (M, T + P, L), optional
+        The same for the reference (known-reference estimate).
+    bins : array_like of int, shape (L,)
+        Bin of each column, ascending; must hold every bin from the lowest to the
+        highest excited one (the detection lines).
+    n_period : int
+        Samples per period N (levels are |DFT| 2 / N).
+    fs, settle_periods, warn_transient, y_quantisation_step
+        As in :func:`robust_bla`.
+    excited_bins : array_like of int
+        Excited bins (a subset of ``bins``).
+    y_rounding : float
+        Largest rounding error of the recorded output values (e.g. 2^-24 max|y| for
+        float32 records): its floor (uniform, spread over the band) is added to the
+        noise at the non-excited lines, so that the rounding of a periodic record (the
+        same in every period, hence not in the noise estimate) is not taken for
+        distortion.
+
+    Returns
+    -------
+    BLAResult
+    """
+    n = int(n_period)
+    bins = np.asarray(bins, dtype=np.int64).reshape(-1)
+    U, Y = np.asarray(U), np.asarray(Y)
+    R = None if R is None else np.asarray(R)
+    for name, arr in (("U", U), ("Y", Y), ("R", R)):
+        if arr is not None and (arr.ndim != 3 or arr.shape[2] != bins.size
+                                or arr.shape != U.shape):
+            raise InputError(f"spectra {name}: expected shape (M, T+P, {bins.size}) like U "
+                             f"{U.shape}, got {arr.shape}")
+    excited = _validate_lines(excited_bins, n)
+    n_real, n_total, _ = U.shape
+    settle = int(settle_periods)
+    if not 0 <= settle < n_total:
+        raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1}")
+    n_per = n_total - settle
+    band = np.arange(excited[0], excited[-1] + 1)
+    pos = np.searchsorted(bins, band)
+    if np.any(pos >= bins.size) or np.any(bins[np.minimum(pos, bins.size - 1)] != band):
+        raise InputError(f"spectra: bins must hold every line {band[0]} .. {band[-1]} "
+                         f"between the lowest and the highest excited line")
+    is_exc = np.isin(band, excited)
+    ie, idet = pos[is_exc], pos[~is_exc]
+    det_bins = band[~is_exc]
+    gridinfo = classify_grid(excited, n)
+    if gridinfo["parity"]:
+        odd_sel, even_sel = det_bins % 2 == 1, det_bins % 2 == 0
+    else:
+        odd_sel = even_sel = np.zeros(det_bins.size, dtype=bool)
+    odd_bins, even_bins = det_bins[odd_sel], det_bins[even_sel]
     scale2 = (2.0 / n) ** 2        # |DFT|^2 -> squared amplitude of the line (levels only)
+    freq = excited * fs / n
 
     def check_finite(*values):
         if not all(np.isfinite(v).all() for v in values if v is not None):
-            _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
             raise InputError("non-finite result (overflow in the input data?)")
 
     def check_power(name, power):
@@ -410,28 +671,32 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                 f"{', '.join(f'{excited[i] * fs / n:g} Hz' for i in low[:5])}"
                 f"{' ...' if low.size > 5 else ''} (wrong excited lines?)")
 
-    # One pass over the realizations: rfft of one realization per signal, its lines
-    # gathered while the spectrum is in cache, then reduced over the periods at once.
-    # Only (M, lines)-sized results and the excited output lines (transient check)
-    # are kept; the per-realization temporaries are reused by the allocator.
-    st = _realization_pass(u, y, r, settle, excited, np.concatenate([odd_bins, even_bins]))
-    check_power("input u", st["u_power"])
-    if r is not None:
-        check_power("reference r", np.sum(np.abs(st["R_mean"]) ** 2, axis=0))
-
+    Y_exc = Y[:, :, ie]
+    Us, Ys = U[:, settle:, :], Y[:, settle:, :]
+    U_e, Y_e = Us[:, :, ie], Ys[:, :, ie]
+    check_power("input u", _abs2_sum(U_e, axis=1).sum(axis=0))
     notes = []
-    if r is None:
-        G_m = st["G_m"]
+    if R is None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            G_mp = Y_e / U_e
+        G_m, G_ss = _spread(G_mp)
         check_finite(G_m)
         G = G_m.mean(axis=0)
         var_total = var_noise = None
         if n_real >= 2:
             var_total = _abs2_sum((G_m - G)[:, None, :], axis=0)[0] / (n_real * (n_real - 1))
         if n_per >= 2:
-            var_noise = st["G_ss"].sum(axis=0) / (n_per * (n_per - 1)) / n_real ** 2
-        u_level = np.mean(np.abs(st["U_mean"]) ** 2, axis=0)
+            var_noise = G_ss.sum(axis=0) / (n_per * (n_per - 1)) / n_real ** 2
+        u_level = np.mean(np.abs(U_e.mean(axis=1)) ** 2, axis=0)
     else:
-        U_m, Y_m = st["Un_m"], st["Yn_m"]
+        R_mean = R[:, settle:, :][:, :, ie].mean(axis=1)
+        check_power("reference r", np.sum(np.abs(R_mean) ** 2, axis=0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rot = np.conj(R_mean / np.abs(R_mean))[:, None, :]
+        Un, Yn = U_e * rot, Y_e * rot
+        U_m, su2 = _spread(Un)
+        Y_m, sy2 = _spread(Yn)
+        syu = np.einsum("mpk,mpk->mk", Yn - Y_m[:, None, :], np.conj(Un - U_m[:, None, :]))
         U_bar, Y_bar = U_m.mean(axis=0), Y_m.mean(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
             G = Y_bar / U_bar
@@ -449,8 +714,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                                   np.sum(dy * np.conj(du), 0) / k)
         if n_per >= 2:
             k = n_per * (n_per - 1) * n_real ** 2
-            var_noise = propagate(st["sy2"].sum(0) / k, st["su2"].sum(0) / k,
-                                  st["syu"].sum(0) / k)
+            var_noise = propagate(sy2.sum(0) / k, su2.sum(0) / k, syu.sum(0) / k)
 
     var_nl = var_nl_negative = None
     if var_total is not None and var_noise is not None:
@@ -464,22 +728,53 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         notes.append("M = 1 realization: no total or nonlinear variance (needs M >= 2)")
     if n_per < 2:
         notes.append("P = 1 period: no noise variance (needs P >= 2)")
+    if not gridinfo["parity"]:
+        notes.append(gridinfo["note"])
 
     # Figure 3 view (levels as squared line amplitudes, scale2)
-    Y_all_exc = st["Y_exc"]
-    output_power = scale2 * np.mean(np.abs(Y_all_exc[:, settle:, :].mean(axis=1)) ** 2, axis=0)
+    output_power = scale2 * np.mean(np.abs(Y_e.mean(axis=1)) ** 2, axis=0)
     u_level = scale2 * u_level
     nl_power = None if var_nl is None else var_nl * u_level
     noise_power = None if var_noise is None else n_real * var_noise * u_level
 
-    det_power = scale2 * np.mean(np.abs(st["det_mean"]) ** 2, axis=0)
-    det_noise = None
-    if n_per >= 2:
-        det_noise = scale2 * st["det_ss"].mean(axis=0) / (n_per * (n_per - 1))
+    rounding_floor = 4.0 * (2.0 * float(y_rounding)) ** 2 / 12.0 / n
+
+    def line_levels(Z, floor=0.0):
+        """Level (mean over m of |period mean|^2) and noise of the period mean (plus a
+        rounding floor)."""
+        mean, ss = _spread(Z)
+        level = scale2 * np.mean(np.abs(mean) ** 2, axis=0)
+        noise = None if n_per < 2 else scale2 * ss.mean(axis=0) / (n_per * (n_per - 1)) + floor
+        return level, noise
+
+    Y_d = Ys[:, :, idet]
+    det_power, det_noise = line_levels(Y_d, rounding_floor)
     check_finite(output_power, det_power)
-    odd_power, even_power = det_power[:n_odd], det_power[n_odd:]
-    odd_noise = None if det_noise is None else det_noise[:n_odd]
-    even_noise = None if det_noise is None else det_noise[n_odd:]
+    sel = lambda a, s: None if a is None else a[s]        # noqa: E731
+    odd_power, even_power = det_power[odd_sel], det_power[even_sel]
+    odd_noise, even_noise = sel(det_noise, odd_sel), sel(det_noise, even_sel)
+
+    # Plant-referred: the output's non-excited lines minus the linear response (BLA,
+    # interpolated) to the input applied there. A nonlinearity before the measured input
+    # (drive output saturation, the loop) leaves nothing; a plant nonlinearity, sensor
+    # quantisation or noise remain. The interpolation error (leave-one-out) is added to
+    # what is expected there without plant distortion.
+    U_d = Us[:, :, idet]
+    plant_power = plant_expected = plant_bound = None
+    if det_bins.size:
+        g_det, loo = _interp_frf(freq, G, det_bins * fs / n)
+        E_d = Y_d - g_det * U_d
+        plant_power, plant_noise = line_levels(E_d, rounding_floor)
+        nb = np.clip(np.searchsorted(excited, det_bins), 1, excited.size - 1)
+        rel = np.maximum(loo[nb - 1], loo[nb])
+        plant_bound = scale2 * rel ** 2 * np.mean(np.abs(g_det * U_d.mean(axis=1)) ** 2, axis=0)
+        if plant_noise is not None:
+            plant_expected = plant_noise + plant_bound
+    quant_floor = None
+    if y_quantisation_step:
+        quant_floor = float(y_quantisation_step) ** 2 / (3.0 * n)   # 4 (q^2/12) / N
+
+    nu = n_real * (n_per - 1)        # complex degrees of freedom of the noise estimates
 
     def mean_or_none(x):
         return None if x is None or np.size(x) == 0 else float(np.mean(x))
@@ -488,7 +783,10 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     nl_mean, noise_mean = mean_or_none(nl_power), mean_or_none(noise_power)
     odd_mean, even_mean = mean_or_none(odd_power), mean_or_none(even_power)
     odd_noise_mean, even_noise_mean = mean_or_none(odd_noise), mean_or_none(even_noise)
+    output_db, nl_db, noise_db = to_db(output_power), to_db(nl_power), to_db(noise_power)
     summary = {
+        "grid": gridinfo["grid"], "parity_classifiable": gridinfo["parity"],
+        # ratios of power sums over the lines (dominated by the strongest lines)
         "nl_re_output_db": _db_ratio(nl_mean, out_mean),
         "noise_re_output_db": _db_ratio(noise_mean, out_mean),
         "noise_re_nl_db": _db_ratio(noise_mean, nl_mean),
@@ -498,28 +796,222 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         "odd_re_noise_db": _db_ratio(odd_mean, odd_noise_mean),
         "even_re_noise_db": _db_ratio(even_mean, even_noise_mean),
         "n_var_nl_negative": None if var_nl is None else int(var_nl_negative.sum()),
+        # per-line medians: what Figure 3 shows line by line
+        "line_median_nl_re_output_db": None if nl_db is None else _median_db(nl_db - output_db),
+        "line_median_noise_re_nl_db": None if nl_db is None or noise_db is None else
+        _median_db(-(nl_db - noise_db)),
+        "line_median_noise_re_output_db": None if noise_db is None else
+        _median_db(noise_db - output_db),
+        "line_fraction_nl_over_noise_6db": None if nl_power is None or noise_power is None
+        else float(np.mean(nl_power > 4.0 * noise_power)),
+        "line_median_odd_re_even_db": None if not odd_bins.size or not even_bins.size else
+        float(np.median(to_db(odd_power)) - np.median(to_db(even_power))),
     }
-    # detected: power-averaged level 3 dB or more over the noise expected there
-    summary["odd_detected"] = (None if summary["odd_re_noise_db"] is None
-                               else summary["odd_re_noise_db"] > 3.0)
-    summary["even_detected"] = (None if summary["even_re_noise_db"] is None
-                                else summary["even_re_noise_db"] > 3.0)
+    summary.update(_class_stats(odd_power, odd_noise, nu, "odd_"))
+    summary.update(_class_stats(even_power, even_noise, nu, "even_"))
+    summary.update(_class_stats(det_power, det_noise, nu, "nonexcited_"))
+    summary["odd_detected"] = summary["odd_detected"] if gridinfo["parity"] else None
+    summary["even_detected"] = summary["even_detected"] if gridinfo["parity"] else None
+    summary["nl_detected"] = summary.pop("nonexcited_detected")
+    if plant_power is not None:
+        floor = 0.0 if quant_floor is None else quant_floor
+        exp_q = None if plant_expected is None else plant_expected + floor
+        sel_exp = lambda s: None if exp_q is None else exp_q[s]     # noqa: E731
+        plant = {}
+        plant.update(_class_stats(plant_power[odd_sel], sel_exp(odd_sel), nu, "odd_"))
+        plant.update(_class_stats(plant_power[even_sel], sel_exp(even_sel), nu, "even_"))
+        plant.update(_class_stats(plant_power, exp_q, nu, "nonexcited_"))
+        # above the noise and the interpolation error, but not above the quantisation floor
+        plant["above_noise_lines"] = (None if plant_expected is None else
+                                      int(np.sum(plant_power > 4.0 * plant_expected)))
+        plant["line_median_re_quantisation_floor_db"] = (
+            None if quant_floor is None else float(np.median(to_db(plant_power / quant_floor))))
+        for key, value in plant.items():
+            key = key.replace("nonexcited_detected", "nl_detected")
+            summary["plant_" + key] = value
+        if not gridinfo["parity"]:
+            summary["plant_odd_detected"] = summary["plant_even_detected"] = None
+    summary["quantisation_floor_db"] = None if quant_floor is None else float(to_db(quant_floor))
 
-    transient = _transient(Y_all_exc, settle, n_per)
+    # the excitation itself at the non-excited lines (a distorted actuator force, ...)
+    X = R if R is not None else U
+    xname = "reference r" if R is not None else "input u"
+    summary["excitation_nonexcited_re_excited_db"] = None
+    summary["excitation_distorted"] = None
+    if det_bins.size:
+        x_det, x_noise = line_levels(X[:, settle:, :][:, :, idet])
+        x_exc = scale2 * np.mean(np.abs(X[:, settle:, :][:, :, ie].mean(axis=1)) ** 2, axis=0)
+        rel_db = float(np.median(to_db(np.maximum(x_det, 1e-300))) - np.median(to_db(x_exc)))
+        summary["excitation_nonexcited_re_excited_db"] = rel_db
+        if x_noise is not None:
+            xs = _class_stats(x_det, x_noise, nu, "x_")
+            # rounding of a float32 record is not distortion: 100 dB under the lines
+            summary["excitation_distorted"] = bool(xs["x_detected"] and rel_db > -100.0)
+            if summary["excitation_distorted"]:
+                notes.append(
+                    f"{xname} is distorted: its non-excited lines lie {rel_db:.1f} dB (median) "
+                    f"under its excited lines ({xs['x_lines_over_noise_6db']} of "
+                    f"{det_bins.size} lines 6 dB over their noise): the actuator or an "
+                    f"interaction with the structure. The output's non-excited lines then "
+                    f"carry the linear response to it too (the plant_* figures remove it)"
+                    + ("; give the reference (--columns ...,r=NAME) for a known-reference "
+                       "estimate" if R is None else ""))
+    else:
+        notes.append("no non-excited line between the lowest and the highest excited line: "
+                     "no nonlinear detection possible with this excitation")
+
+    transient = _transient(Y_exc, settle, n_per)
     if transient.suspect:
         notes.append(transient.message)
         if warn_transient:
             warnings.warn(transient.message, TransientWarning, stacklevel=2)
 
     return BLAResult(
-        fs=float(fs), n_period=n, bins=excited, freq=excited * fs / n, G=G,
+        fs=float(fs), n_period=n, bins=excited, freq=freq, G=G,
         var_total=var_total, var_noise=var_noise, var_nl=var_nl,
-        var_nl_negative=var_nl_negative, output_db=to_db(output_power),
-        nl_db=to_db(nl_power), noise_db=to_db(noise_power),
+        var_nl_negative=var_nl_negative, output_db=output_db,
+        nl_db=nl_db, noise_db=noise_db,
         odd_bins=odd_bins, odd_db=to_db(odd_power), odd_noise_db=to_db(odd_noise),
         even_bins=even_bins, even_db=to_db(even_power), even_noise_db=to_db(even_noise),
         summary=summary, transient=transient, n_realizations=n_real, n_periods=n_per,
-        settle_periods=settle, known_reference=r is not None, notes=notes)
+        settle_periods=settle, known_reference=R is not None, notes=notes,
+        grid=gridinfo["grid"], nonexcited_bins=det_bins, nonexcited_db=to_db(det_power),
+        nonexcited_noise_db=to_db(det_noise), plant_db=to_db(plant_power),
+        plant_expected_db=to_db(plant_expected), quantisation_floor_db=summary["quantisation_floor_db"])
+
+
+def estimate_quantisation_step(y, max_levels=200000):
+    """Quantisation step of a recorded signal (e.g. an encoder angle), or None.
+
+    The distinct values of a quantised signal are integer multiples of its step q: q is
+    taken as the median spacing of the sorted distinct values and accepted only when
+    every value lies within 2 % of q (plus float32 rounding) of a multiple of it.
+
+    Parameters
+    ----------
+    y : array_like
+        Samples (any shape).
+    max_levels : int
+        More distinct values than this: not quantised (None).
+
+    Returns
+    -------
+    float or None
+        q in the unit of y.
+    """
+    v = np.unique(np.asarray(y, dtype=np.float64).ravel())
+    v = v[np.isfinite(v)]
+    if v.size < 3 or v.size > max_levels:
+        return None
+    q = float(np.median(np.diff(v)))
+    if not q > 0:
+        return None
+    tol = 0.02 * q + 4 * np.finfo(np.float32).eps * float(np.max(np.abs(v)))
+    if np.max(np.abs(v - q * np.round(v / q))) > tol:
+        return None
+    return q
+
+
+def _plant_state(summary, cls):
+    """'yes' (detected), 'no' (no more lines over the noise than noise gives), 'unsure'
+    (some lines over, too few to tell), None (not measured) for a plant_ class."""
+    det = summary.get(f"plant_{cls}_detected")
+    over = summary.get(f"plant_{cls}_lines_over_noise_6db")
+    if det is None or over is None:
+        return None
+    if det:
+        return "yes"
+    by_noise = summary.get(f"plant_{cls}_lines_by_noise") or 0.0
+    return "no" if over <= max(1.0, 2.0 * by_noise) and over < summary[f"plant_{cls}_lines_needed"] \
+        else "unsure"
+
+
+def level_verdict(summary, saturation_fraction=None, level=None):
+    """What one level's detection supports, named by cause.
+
+    The closed-loop figures (output at the non-excited lines) say whether the loop is
+    nonlinear; the plant-referred ones (``plant_*``: output minus the BLA times the input
+    applied there) say whether the plant is. A class of lines counts as nonlinear when
+    more of its lines lie 6 dB over what noise (and the BLA interpolation error, and the
+    quantisation floor) explain than noise alone gives with probability 1e-3.
+
+    Parameters
+    ----------
+    summary : dict
+        ``BLAResult.summary`` of the level.
+    saturation_fraction : float, optional
+        Fraction of the samples at which the drive output (plant input) sat at u_max.
+    level : str, optional
+        Name of the level for the text (e.g. "3 V rms").
+
+    Returns
+    -------
+    dict
+        ``causes``: list of 'linear', 'plant odd nonlinearity', 'plant even
+        nonlinearity', 'plant nonlinearity (parity not classifiable with this grid)',
+        'drive output saturation', 'quantisation floor', 'loop nonlinearity outside
+        the plant', 'cannot tell'; ``text``: one sentence saying why.
+    """
+    at = f" at {level}" if level else ""
+    sat = saturation_fraction if saturation_fraction is not None else 0.0
+    sat_text = f"drive output saturation{at} ({100 * sat:.2g} % of the samples at u_max)"
+    flags = [summary.get(k) for k in ("odd_detected", "even_detected", "nl_detected")]
+    if all(f is None for f in flags):
+        return {"causes": ["cannot tell"],
+                "text": "cannot tell: no noise estimate (P = 1) or no non-excited line"}
+    loop = any(bool(f) for f in flags)
+    classes = ("odd", "even") if summary.get("parity_classifiable") else ("nonexcited",)
+    states = {cls: _plant_state(summary, cls) for cls in classes}
+    parts, causes = [], []
+    for cls, state in states.items():
+        name = (f"plant {cls} nonlinearity" if cls != "nonexcited" else
+                "plant nonlinearity (parity not classifiable with this grid)")
+        n_over = summary.get(f"plant_{cls}_lines_over_noise_6db")
+        n_all = summary.get(f"plant_{cls}_lines")
+        lines = "lines" if cls == "nonexcited" else f"{cls} lines"
+        if state == "yes":
+            causes.append(name)
+            med = summary.get(f"plant_{cls}_line_median_re_noise_db")
+            parts.append(f"{name.replace(' (parity', ', (parity')} ({n_over} of {n_all} {lines} "
+                         f"6 dB over what noise, BLA interpolation and quantisation explain"
+                         + (f", median {med:+.1f} dB)" if med is not None else ")"))
+        elif state == "unsure" and loop:
+            causes.append("cannot tell")
+            parts.append(f"cannot tell whether the plant is nonlinear at the {lines}: "
+                         f"{n_over} of {n_all} over the noise, "
+                         f"{summary[f'plant_{cls}_lines_needed']} needed (more detection lines: "
+                         f"a longer period or a wider band)")
+    plant_yes = any(s == "yes" for s in states.values())
+    if not loop and not plant_yes:
+        text = f"linear{at}: no nonlinear distortion above the noise"
+        if sat > 0:
+            text += f" (though {100 * sat:.2g} % of the samples at u_max)"
+        return {"causes": ["linear"], "text": text}
+    # lines that are nonlinear in the loop but not referred to the plant: say why
+    loop_only = [cls for cls in classes if states[cls] == "no" and
+                 summary.get("nl_detected" if cls == "nonexcited" else f"{cls}_detected")]
+    if not plant_yes and "cannot tell" not in causes and not loop_only:
+        loop_only = [classes[0]]
+    if loop_only:
+        which = " and ".join("non-excited" if c == "nonexcited" else c for c in loop_only)
+        if sat > 0:
+            causes.append("drive output saturation")
+            parts.append(f"{which} lines: {sat_text}; the distortion enters at the plant "
+                         f"input, the plant-referred lines show none above the noise")
+        elif summary.get("quantisation_floor_db") is not None:
+            causes.append("quantisation floor")
+            parts.append(f"{which} lines: distortion at the encoder quantisation floor "
+                         f"({summary['quantisation_floor_db']:.1f} dB per line), not above it")
+        else:
+            causes.append("loop nonlinearity outside the plant")
+            parts.append(f"{which} lines: distortion in the loop that the plant-referred "
+                         f"lines do not show (it enters at the plant input)")
+    elif sat > 0:
+        causes.append("drive output saturation")
+        parts.append("also " + sat_text)
+    if summary.get("parity_classifiable") is False and plant_yes:
+        parts.append(f"no odd/even claim: {summary.get('grid')} grid")
+    return {"causes": causes, "text": "; ".join(parts)}
 
 
 @dataclass

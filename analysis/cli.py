@@ -194,6 +194,7 @@ def _complex_pairs(values):
 
 def bla_to_json(res):
     """The ``fftune analyze bla --json`` document of a :class:`fftune.analysis.bla.BLAResult`."""
+    from fftune.analysis.bla import level_verdict
     summary = dict(res.summary)
     summary.update({
         "fs_hz": res.fs, "n_period": res.n_period, "realizations": res.n_realizations,
@@ -214,6 +215,12 @@ def bla_to_json(res):
         "even_nonexcited": {"freq": _clean(res.even_freq), "level_db": _clean(res.even_db),
                             "noise_db": _clean(res.even_noise_db)},
         "summary": summary,
+        "nonexcited": {"freq": _clean(res.nonexcited_bins * res.fs / res.n_period),
+                       "level_db": _clean(res.nonexcited_db),
+                       "noise_db": _clean(res.nonexcited_noise_db),
+                       "plant_referred_db": _clean(res.plant_db),
+                       "plant_expected_db": _clean(res.plant_expected_db)},
+        "verdict": level_verdict(res.summary),
     }
 
 
@@ -276,14 +283,27 @@ def run_bla(args):
     print(f"BLA of {columns['y']} / {columns['u']} ({how}): M = {m}, P = {p}, T = {t}, N = {n}, "
           f"fs = {fs:g} Hz, {res.bins.size} excited lines "
           f"{res.freq[0]:g} .. {res.freq[-1]:g} Hz")
-    print(f"  nonlinear level re BLA output : {_fmt_db(s['nl_re_output_db'])}")
-    print(f"  noise level re nonlinear level: {_fmt_db(s['noise_re_nl_db'])}")
-    print(f"  noise level re BLA output     : {_fmt_db(s['noise_re_output_db'])}")
-    print(f"  odd non-excited re noise      : {_fmt_db(s['odd_re_noise_db'])} "
-          f"({res.odd_bins.size} lines)")
-    print(f"  even non-excited re noise     : {_fmt_db(s['even_re_noise_db'])} "
-          f"({res.even_bins.size} lines)")
-    print(f"  odd re even                   : {_fmt_db(s['odd_re_even_db'])}")
+    print(f"  excitation grid: {s['grid']}")
+    print(f"  per line (median, as Figure 3 shows):")
+    print(f"    nonlinear level re BLA output : {_fmt_db(s['line_median_nl_re_output_db'])}")
+    print(f"    noise level re nonlinear level: {_fmt_db(s['line_median_noise_re_nl_db'])}")
+    frac = s["line_fraction_nl_over_noise_6db"]
+    print(f"    lines with nonlinear > noise + 6 dB: "
+          f"{'n/a' if frac is None else f'{100 * frac:.0f} %'}")
+    if s["parity_classifiable"]:
+        for kind in ("odd", "even"):
+            over = s[f"{kind}_lines_over_noise_6db"]
+            print(f"    {kind} non-excited re noise   : "
+                  f"{_fmt_db(s[f'{kind}_line_median_re_noise_db'])} "
+                  f"({'n/a' if over is None else over} of {s[f'{kind}_lines']} lines 6 dB over)")
+        print(f"    odd re even                   : {_fmt_db(s['line_median_odd_re_even_db'])}")
+    else:
+        over = s["nonexcited_lines_over_noise_6db"]
+        print(f"    non-excited re noise          : "
+              f"{_fmt_db(s['nonexcited_line_median_re_noise_db'])} "
+              f"({'n/a' if over is None else over} of {s['nonexcited_lines']} lines 6 dB over; "
+              f"no odd/even split with this grid)")
+    print(f"  verdict: {document['verdict']['text']}")
     for note in res.notes:
         print(f"  note: {note}")
     return 0

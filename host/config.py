@@ -49,6 +49,7 @@ DEFAULTS = {
         "rms_levels": {"start": 0.3, "stop": 5.0, "count": 20},
         "k_fc": 0.0,
         "k_v": 0.0,
+        "encoder_step_rad": None,   # motor angle quantisation step; None: found from the data
     },
     "quantify": {
         "enabled": True,
@@ -242,6 +243,7 @@ def validate(raw, path="<config>"):
     if d["group"] == 1:
         raise _err(path, "detect.group", "expected 0 (no detection lines) or 2 .. 16, got 1")
     _number(cfg, path, "detect.seed", low=0, high=2**32 - 1, integer=True)
+    _number(cfg, path, "detect.encoder_step_rad", low=0, low_inclusive=False, allow_none=True)
     _number(cfg, path, "detect.realizations", low=1, high=1000, integer=True)
     _number(cfg, path, "detect.periods", low=1, high=1000, integer=True)
     _number(cfg, path, "detect.settle_periods", low=0, high=1000, integer=True)

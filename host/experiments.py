@@ -16,7 +16,7 @@ import numpy as np
 
 from fftune.analysis.hosidf import hosidf as _hosidf_estimate  # (fftune.analysis.hosidf is the function)
 from fftune.analysis import tuning as _tuning
-from fftune.analysis.bla import bla_levels
+from fftune.analysis.bla import bla_levels, estimate_quantisation_step, level_verdict
 from fftune.analysis.errors import FftuneError
 from fftune.analysis.multisine import drive_lines, drive_multisine
 from fftune.host.captures import CaptureStore
@@ -103,13 +103,115 @@ def _blocks(x, n):
 # ---------------------------------------------------------------------------------------
 # detect
 # ---------------------------------------------------------------------------------------
+def _saturation_fraction(u, u_max):
+    """Fraction of the plant-input samples at the drive's output limit (|u| >= u_max,
+    float32 tolerance); None when u_max is unknown."""
+    if u_max is None or not u_max > 0:
+        return None
+    u = np.abs(np.asarray(u, dtype=float))
+    return float(np.mean(u >= u_max * (1 - 1e-6)))
+
+
+def _session_u_max(session):
+    """u_max in V: the configuration's controller.u_max, else the drive's object."""
+    u_max = session.controller.get("u_max")
+    if u_max is None:
+        try:
+            u_max = float(session.drive.get("u_max"))
+        except Exception:                   # a replayed log without it: not evaluated
+            u_max = None
+    return u_max
+
+
+def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
+                    u_max=None, y_quantisation_step=None):
+    """Closed-loop and plant-referred detection at each level, with the verdict.
+
+    Parameters
+    ----------
+    u_lv, y_lv, r_lv : list of ndarray (M, P, N)
+        Plant input (after saturation), motor angle and the excitation, per level.
+    fs : float
+        Sample rate (Hz).
+    excited_bins : ndarray of int
+        The design grid.
+    rms_levels : sequence of float
+        Requested rms per level (``unit``).
+    u_max : float, optional
+        Drive output limit (V) for the saturation fraction.
+    y_quantisation_step : float, optional
+        Encoder step (rad); estimated from the recorded angle when None.
+
+    Returns
+    -------
+    results : dict
+    levels : fftune.analysis.bla.BLALevels
+    """
+    q_note = None
+    if y_quantisation_step is None:
+        y_quantisation_step = estimate_quantisation_step(np.concatenate([y.ravel() for y in y_lv]))
+        q_note = "estimated from the recorded motor angle" if y_quantisation_step else \
+            "no quantisation step found in the recorded angle (ideal or fine encoder)"
+    levels = bla_levels(u_lv, y_lv, r_lv, fs=fs, settle_periods=0, excited_bins=excited_bins,
+                        warn_transient=False, y_quantisation_step=y_quantisation_step)
+    per_level = []
+    for i, (rms, res) in enumerate(zip(rms_levels, levels.results)):
+        sat = _saturation_fraction(u_lv[i], u_max)
+        v = level_verdict(res.summary, sat, f"level {i} ({rms:g} {unit} rms)")
+        per_level.append({
+            "rms_requested": _f(rms),
+            "saturation_fraction": _f(sat),
+            "verdict": v["text"], "causes": v["causes"],
+            "summary_db": {k: (_f(v) if isinstance(v, float) else v)
+                           for k, v in res.summary.items()},
+            "notes": list(res.notes),
+        })
+    names = [f"{rms:g} {unit} rms" for rms in rms_levels]
+
+    def where(cause):
+        return [names[i] for i, lv in enumerate(per_level) if cause in lv["causes"]]
+
+    parts = []
+    parity = levels.results[0].summary.get("parity_classifiable")
+    if parity:
+        for kind in ("odd", "even"):
+            at = where(f"plant {kind} nonlinearity")
+            parts.append(f"{kind} nonlinearity in the plant at {', '.join(at)}" if at
+                         else f"no {kind} nonlinearity in the plant")
+    else:
+        at = where("plant nonlinearity (parity not classifiable with this grid)")
+        parts.append((f"plant nonlinearity at {', '.join(at)}" if at else
+                      "no plant nonlinearity") + " (odd/even not classifiable with this grid)")
+    for cause in ("drive output saturation", "quantisation floor",
+                  "loop nonlinearity outside the plant", "cannot tell"):
+        at = where(cause)
+        if at:
+            parts.append(f"{cause} at {', '.join(at)}")
+    lin = where("linear")
+    if lin:
+        parts.append(f"linear at {', '.join(lin)}")
+    g = levels.G
+    spread_db = float(np.max(20 * np.log10(np.abs(g).max(0) / np.abs(g).min(0)))) if len(g) > 1 else 0.0
+    results = {
+        "realizations": int(u_lv[0].shape[0]), "periods": int(u_lv[0].shape[1]),
+        "excited_lines": int(len(excited_bins)), "grid": levels.results[0].grid,
+        "u_max_v": _f(u_max),
+        "encoder_step_rad": _f(y_quantisation_step), "encoder_step_source": q_note or "given",
+        "levels": per_level,
+        "bla_max_change_over_levels_db": _f(spread_db),
+        "verdict": "; ".join(parts),
+    }
+    return results, levels
+
+
 def detect(session):
     """Random odd multisines at L rms levels, M realizations; known-reference robust BLA.
 
     Returns
     -------
     results : dict
-        Per level: rms, summary (dB figures of ``fftune.analysis.bla``), odd/even verdict.
+        Per level: rms, saturation fraction, summary (``fftune.analysis.bla``), verdict
+        naming the cause (:func:`detect_analysis`); the overall verdict.
     levels : fftune.analysis.bla.BLALevels
     """
     c = session.cfg["detect"]
@@ -150,31 +252,13 @@ def detect(session):
         u_lv.append(np.stack(u_m))
         y_lv.append(np.stack(y_m))
         r_lv.append(np.stack(r_m))
-    levels = bla_levels(u_lv, y_lv, r_lv, fs=fs, settle_periods=0,
-                        excited_bins=lines.excited, warn_transient=False)
-    per_level = []
-    for rms, res in zip(c["rms_levels"], levels.results):
-        s = res.summary
-        per_level.append({
-            "rms_requested": _f(rms),
-            "summary_db": {k: (_f(v) if not isinstance(v, bool) and v is not None else v)
-                           for k, v in s.items()},
-            "notes": list(res.notes),
-        })
-    odd = [lv["summary_db"].get("odd_detected") for lv in per_level]
-    even = [lv["summary_db"].get("even_detected") for lv in per_level]
-    verdict = ("odd nonlinearity" if any(odd) else "no odd nonlinearity") + ", " + \
-              ("even nonlinearity" if any(even) else "no even nonlinearity") + " detected"
-    g = levels.G
-    spread_db = float(np.max(20 * np.log10(np.abs(g).max(0) / np.abs(g).min(0)))) if len(g) > 1 else 0.0
-    results = {
-        "inject": c["inject"], "fs_hz": fs, "period_samples": n, "k_min": k_min, "k_max": k_max,
-        "realizations": c["realizations"], "periods": c["periods"],
-        "excited_lines": int(len(lines.excited)), "levels": per_level,
-        "bla_max_change_over_levels_db": _f(spread_db),
-        "verdict": verdict,
-    }
-    return results, levels
+    results, levels = detect_analysis(
+        u_lv, y_lv, r_lv, fs=fs, excited_bins=lines.excited, rms_levels=c["rms_levels"],
+        unit="V" if c["inject"] == "plant_input" else "rad", u_max=_session_u_max(session),
+        y_quantisation_step=c.get("encoder_step_rad"))
+    head = {"inject": c["inject"], "fs_hz": fs, "period_samples": n, "k_min": k_min,
+            "k_max": k_max}
+    return dict(head, **results), levels
 
 
 # ---------------------------------------------------------------------------------------

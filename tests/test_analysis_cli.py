@@ -51,7 +51,7 @@ def test_bla_json_keys_and_shapes(tmp_path, capsys):
     assert code == 0, err
     doc = json.loads(out_json.read_text())
     assert list(doc) == ["freq", "G", "var_total", "var_noise", "var_nl", "odd_nonexcited",
-                         "even_nonexcited", "summary"]
+                         "even_nonexcited", "summary", "nonexcited", "verdict"]
     e = len(doc["freq"])
     assert e > 30 and all(len(g) == 2 for g in doc["G"]) and len(doc["G"]) == e
     for key in ("var_total", "var_noise", "var_nl"):
