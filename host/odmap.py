@@ -23,6 +23,7 @@ STOP_REASONS = {
     0: "none", 1: "abort command", 2: "host heartbeat lost", 3: "drive left OPERATION ENABLED",
     4: "recorder too small for the run", 5: "inconsistent excitation parameters",
     6: "NMT left OPERATIONAL", 7: "non-finite measurement (fault)",
+    8: "controller output not finite (fault)",
 }
 EXC_KINDS = {"none": 0, "sine": 1, "table": 2, "multisine": 3}
 INJECT = {"reference": 0, "plant_input": 1}

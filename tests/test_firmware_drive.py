@@ -154,7 +154,7 @@ def test_multisine_start_refused_for_inconsistent_design():
     with FwSim(TWOMASS) as sim:
         sim.enable()
         sim.configure(exc_kind=3, exc_period=1000, ms_k_max=99)  # N not a power of two
-        with pytest.raises(FwError, match="STATE"):
+        with pytest.raises(FwError, match="INCOMPATIBLE"):
             sim.start()
         assert sim.get("RUN_LAST_ERROR") == 5
         assert sim.get("RUN_STATE") == 0

@@ -140,7 +140,11 @@ void co_402_fault(co_node_t *n)
         return;
     }
     set_state(n, CO402_FAULT);
-    co_emcy_send(n, CO_EMCY_RUN_FAULT, CO_ERR_REG_MANUFACTURER | CO_ERR_REG_GENERIC, 0u, NULL);
+    /* manufacturer byte 0: the drive's stop reason (7 measurement, 8 controller output) */
+    uint32_t reason = 0u;
+    (void)drv_get_u32(n->drv, DRV_P_RUN_LAST_ERROR, &reason);
+    uint8_t mfr[5] = {(uint8_t)reason, 0u, 0u, 0u, 0u};
+    co_emcy_send(n, CO_EMCY_RUN_FAULT, CO_ERR_REG_MANUFACTURER | CO_ERR_REG_GENERIC, 0u, mfr);
     update_statusword(n);
 }
 

@@ -89,12 +89,20 @@ uint32_t co_hb_check_consumer(const co_node_t *n, uint32_t value)
     return 0u;
 }
 
-void co_hb_config_changed(co_node_t *n)
+/* 0x1017 written: the producer restarts its period (as CANopenNode). The consumers are
+ * not touched: a producer write must never disarm the host watchdog. */
+void co_hb_producer_changed(co_node_t *n)
 {
     n->hb_last_us = n->now_us;
-    for (uint32_t i = 0u; i < CO_NUM_HB_CONSUMERS; i++) {
-        n->hbc[i].active = false;
-        n->hbc[i].timed_out = false;
+}
+
+/* 0x1016:sub written: that consumer starts over (monitoring resumes with the next
+ * heartbeat of the configured node); the others keep running. */
+void co_hb_consumer_changed(co_node_t *n, uint8_t sub)
+{
+    if (sub >= 1u && sub <= CO_NUM_HB_CONSUMERS) {
+        n->hbc[sub - 1u].active = false;
+        n->hbc[sub - 1u].timed_out = false;
     }
 }
 

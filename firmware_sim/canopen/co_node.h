@@ -201,7 +201,8 @@ void co_nmt_set_state(co_node_t *n, co_nmt_state_t s);
 void co_nmt_boot(co_node_t *n);
 void co_hb_rx(co_node_t *n, const co_frame_t *f);
 void co_hb_process(co_node_t *n);
-void co_hb_config_changed(co_node_t *n);
+void co_hb_producer_changed(co_node_t *n);
+void co_hb_consumer_changed(co_node_t *n, uint8_t sub);
 uint32_t co_hb_check_consumer(const co_node_t *n, uint32_t value);
 
 /* co_sdo.c */

@@ -84,6 +84,8 @@ uint32_t co_od_abort_from_drv(drv_status_t st)
         return CO_SDO_AB_DATA_DEV_STATE;
     case DRV_E_LENGTH:
         return CO_SDO_AB_TYPE_MISMATCH;
+    case DRV_E_INCOMPATIBLE:
+        return CO_SDO_AB_PARAM_INCOMPAT;
     default:
         return CO_SDO_AB_GENERAL;
     }
@@ -260,8 +262,10 @@ static void after_comm_write(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
 {
     switch (e->index) {
     case 0x1016u:
+        co_hb_consumer_changed(n, e->sub);
+        break;
     case 0x1017u:
-        co_hb_config_changed(n);
+        co_hb_producer_changed(n);
         break;
     case 0x6040u:
         co_402_controlword(n, (uint16_t)raw);
@@ -376,6 +380,8 @@ uint32_t co_od_domain_generation(co_node_t *n, const co_od_entry_t *e)
     uint32_t counter = 0u;
     if (e->ref == CO_DOMAIN_RECORDER) {
         (void)drv_get_u32(n->drv, DRV_P_RUN_COUNTER, &counter);
+    } else if (e->ref == CO_DOMAIN_TABLE) {
+        counter = drv_table_generation(n->drv); /* a multisine run start rewrites it */
     }
     return counter;
 }

@@ -50,6 +50,7 @@ void ctl_reset(ctl_t *ctl)
 {
     ctl->e_prev = 0.0f;
     ctl->d_state = 0.0f;
+    ctl->u_unsat = 0.0f;
     ctl->primed = false;
 }
 

@@ -39,6 +39,7 @@ typedef struct {
     /* state */
     float e_prev;
     float d_state;
+    float u_unsat; /* last output before saturation: the drive faults when it is not finite */
     bool primed; /* e_prev valid (no derivative kick on the first step) */
 } ctl_t;
 
@@ -70,7 +71,9 @@ static inline float ctl_ff_sign(const ctl_t *ctl, float v_ref)
 }
 
 /* One step: error e [rad], reference velocity [rad/s], u_add [V] added before saturation
- * (disturbance injection). Returns the saturated plant input [V]. */
+ * (disturbance injection). Returns the saturated plant input [V]. A NaN passes the
+ * saturation (comparisons with NaN are false) and an overflow is clamped to +-u_max, so the
+ * caller checks u_unsat (drv_step: not finite -> fault, output 0). */
 static inline float ctl_step(ctl_t *ctl, float e, float v_ref, float u_add)
 {
     float de = ctl->primed ? (e - ctl->e_prev) : 0.0f;
@@ -78,6 +81,7 @@ static inline float ctl_step(ctl_t *ctl, float e, float v_ref, float u_add)
     ctl->primed = true;
     ctl->d_state = ctl->d_pole * ctl->d_state + ctl->d_gain * de;
     float u = ctl->kp * e + ctl->d_state + ctl->kfc * ctl_ff_sign(ctl, v_ref) + ctl->kv * v_ref + u_add;
+    ctl->u_unsat = u;
     if (u > ctl->u_max) {
         u = ctl->u_max;
     } else if (u < -ctl->u_max) {

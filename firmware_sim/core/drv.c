@@ -11,7 +11,6 @@
 #include "ms.h"
 
 #define DRV_FS_MAX_HZ 1.0e6f
-#define DRV_TABLE_MAX 8192u
 
 /* ---- helpers ---- */
 
@@ -61,13 +60,16 @@ drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
         return DRV_E_RANGE_HIGH;
     }
     if ((storage->rec_buf == NULL && storage->rec_capacity != 0u) ||
-        (storage->table_buf == NULL && storage->table_capacity != 0u)) {
+        ((storage->table_buf == NULL || storage->table_stage_buf == NULL ||
+          storage->table_stage_buf == storage->table_buf) && storage->table_capacity != 0u)) {
         return DRV_E_GENERAL;
     }
     drv->fs_hz = storage->fs_hz;
     drv->table_buf = storage->table_buf;
+    drv->table_stage = storage->table_stage_buf;
     drv->table_capacity = storage->table_capacity;
     drv->table_length = 0u;
+    drv->table_generation = 0u;
     (void)ctl_init(&drv->ctl, storage->fs_hz);
     gen_init(&drv->gen);
     run_init(&drv->run);
@@ -276,6 +278,36 @@ drv_status_t drv_set_u32(drv_t *drv, drv_param_id_t id, uint32_t value)
 
 /* ---- run control ---- */
 
+/* Largest |t[i]| and |t[i+1] - t[i-1]| (periodic) of a table; false if one is not finite
+ * (a central difference of two samples near +-FLT_MAX overflows). */
+static bool drv_table_extent(const float *t, uint32_t n, float *peak, float *diff)
+{
+    float p = 0.0f, d = 0.0f;
+    for (uint32_t i = 0u; i < n; i++) {
+        float a = fabsf(t[i]);
+        float b = fabsf(t[(i + 1u == n) ? 0u : i + 1u] - t[(i == 0u) ? n - 1u : i - 1u]);
+        if (!isfinite(a) || !isfinite(b)) {
+            return false;
+        }
+        p = a > p ? a : p;
+        d = b > d ? b : d;
+    }
+    *peak = p;
+    *diff = d;
+    return true;
+}
+
+/* The generator forms offset + amp t[i] and amp fs / 2 (t[i+1] - t[i-1]): both must be
+ * finite for this table (amp <= 1000, samples up to FLT_MAX: they can overflow). */
+static bool drv_table_fits(const float *t, uint32_t n, float amp, float offset, float fs_hz)
+{
+    float peak, diff;
+    if (!drv_table_extent(t, n, &peak, &diff)) {
+        return false;
+    }
+    return isfinite(fabsf(offset) + amp * peak) && isfinite(amp * fs_hz * 0.5f * diff);
+}
+
 static drv_status_t drv_refuse(drv_t *drv, drv_stop_reason_t reason, drv_status_t st)
 {
     run_refuse(&drv->run, (uint32_t)reason);
@@ -294,26 +326,29 @@ drv_status_t drv_run_start(drv_t *drv)
         break;
     case DRV_EXC_SINE:
         if (n < 4u || drv->exc_sine_cycles < 1u || 2u * drv->exc_sine_cycles >= n) {
-            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE); /* at/above Nyquist */
         }
         break;
     case DRV_EXC_TABLE:
         if (drv->table_length < 2u || drv->table_length != n) {
-            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
+        }
+        if (!drv_table_fits(drv->table_buf, n, drv->exc_amplitude, drv->exc_offset, drv->fs_hz)) {
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
         }
         break;
     case DRV_EXC_MULTISINE:
         if (ms_check(&ms) != MS_OK || n > drv->table_capacity) {
-            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
         }
         break;
     default:
-        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
     }
     uint64_t settle = (uint64_t)drv->exc_settle_periods * n;
     uint64_t record = (uint64_t)drv->exc_record_periods * n;
     if (record == 0u || settle + record > UINT32_MAX) {
-        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
     }
     if (!rec_fits(&drv->rec, (uint32_t)record)) {
         return drv_refuse(drv, DRV_STOP_NO_FIT, DRV_E_NO_FIT);
@@ -329,8 +364,10 @@ drv_status_t drv_run_start(drv_t *drv)
     case DRV_EXC_MULTISINE:
         /* one unit-rms period, scaled by the amplitude (= rms) at play time; it replaces
          * the table (readable back through drv_table_read) */
+        drv->table_generation++; /* the table is rewritten in place (an upload aborts) */
         if (ms_build(&ms, 1.0f, drv->table_buf, drv->table_capacity) != MS_OK) {
-            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+            drv->table_length = 0u;
+            return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
         }
         drv->table_length = n;
         gst = gen_start_table(&drv->gen, drv->table_buf, n, drv->exc_amplitude, drv->exc_offset, drv->fs_hz);
@@ -340,7 +377,7 @@ drv_status_t drv_run_start(drv_t *drv)
         break;
     }
     if (gst != 0) {
-        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_STATE);
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
     }
     rec_clear(&drv->rec);
     drv->run_inject = drv->exc_inject;
@@ -408,16 +445,24 @@ bool drv_fault(const drv_t *drv)
 
 /* ---- the control step ---- */
 
+/* Latch a fault: excitation off, run FAULT with the reason, controller state cleared (a
+ * NaN in the derivative state would stay there), output 0. */
+static float drv_fault_stop(drv_t *drv, drv_stop_reason_t reason)
+{
+    run_stop(&drv->run, RUN_FAULT, reason);
+    drv->run.state = RUN_FAULT;
+    drv->run.last_error = reason;
+    gen_stop(&drv->gen);
+    ctl_reset(&drv->ctl);
+    drv->fault = true;
+    drv->u = 0.0f;
+    return 0.0f;
+}
+
 float drv_step(drv_t *drv, const drv_meas_t *meas)
 {
     if (meas == NULL || !isfinite(meas->motor_angle_rad) || !isfinite(meas->load_angle_rad)) {
-        run_stop(&drv->run, RUN_FAULT, DRV_STOP_MEAS_FAULT);
-        drv->run.state = RUN_FAULT;
-        drv->run.last_error = DRV_STOP_MEAS_FAULT;
-        gen_stop(&drv->gen);
-        drv->fault = true;
-        drv->u = 0.0f;
-        return 0.0f;
+        return drv_fault_stop(drv, DRV_STOP_MEAS_FAULT);
     }
     float motor = meas->motor_angle_rad;
     drv->motor_prev = drv->motor;
@@ -440,6 +485,13 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
     float u = 0.0f;
     if (drv->enabled && !drv->fault) {
         u = ctl_step(&drv->ctl, e, v_ref, u_add);
+        /* the last line of defence: whatever the inputs, a non-finite sum (NaN passes the
+         * saturation, an overflow would be clamped to +-u_max) never reaches the plant */
+        if (!isfinite(drv->ctl.u_unsat)) {
+            drv->reference = ref;
+            drv->error = e;
+            return drv_fault_stop(drv, DRV_STOP_OUTPUT_FAULT);
+        }
     }
     drv->reference = ref;
     drv->error = e;
@@ -477,8 +529,7 @@ drv_status_t drv_table_write(drv_t *drv, uint32_t offset, const uint8_t *src, ui
     if (offset > cap || len > cap - offset || (src == NULL && len != 0u)) {
         return DRV_E_LENGTH;
     }
-    drv->table_length = 0u; /* invalid until committed */
-    uint8_t *dst = (uint8_t *)drv->table_buf + offset;
+    uint8_t *dst = (uint8_t *)drv->table_stage + offset; /* the table in use stays */
     for (uint32_t i = 0u; i < len; i++) {
         dst[i] = src[i];
     }
@@ -494,14 +545,21 @@ drv_status_t drv_table_commit(drv_t *drv, uint32_t total_len_bytes)
     if (total_len_bytes % 4u != 0u || n < 2u || n > drv->table_capacity) {
         return DRV_E_LENGTH;
     }
-    for (uint32_t i = 0u; i < n; i++) {
-        if (!isfinite(drv->table_buf[i])) {
-            drv->table_length = 0u;
-            return DRV_E_NOT_FINITE;
-        }
+    float peak, diff;
+    if (!drv_table_extent(drv->table_stage, n, &peak, &diff)) {
+        return DRV_E_NOT_FINITE; /* the previous table stays */
     }
+    float *t = drv->table_buf;
+    drv->table_buf = drv->table_stage;
+    drv->table_stage = t;
     drv->table_length = n;
+    drv->table_generation++;
     return DRV_OK;
+}
+
+uint32_t drv_table_generation(const drv_t *drv)
+{
+    return drv->table_generation;
 }
 
 uint32_t drv_table_size_bytes(const drv_t *drv)

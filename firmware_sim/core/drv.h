@@ -28,7 +28,10 @@ typedef enum {
     DRV_E_STATE,         /* not allowed in the present state    -> 0x08000022 */
     DRV_E_NO_FIT,        /* run would not fit the recorder      -> 0x08000022 (last error tells) */
     DRV_E_LENGTH,        /* bad data length / offset            -> 0x06070010 */
-    DRV_E_GENERAL        /*                                     -> 0x08000000 */
+    DRV_E_GENERAL,       /*                                     -> 0x08000000 */
+    DRV_E_INCOMPATIBLE   /* parameters inconsistent with each other (run start: sine at or
+                            above Nyquist, bad multisine band, table x amplitude overflows)
+                                                                -> 0x06040043 */
 } drv_status_t;
 
 /* Run states (RUN_STATE parameter). */
@@ -50,7 +53,8 @@ typedef enum {
     DRV_STOP_NO_FIT = 4,         /* refused: recorder too small */
     DRV_STOP_BAD_CONFIG = 5,     /* refused: excitation parameters inconsistent */
     DRV_STOP_NMT = 6,            /* NMT left OPERATIONAL */
-    DRV_STOP_MEAS_FAULT = 7      /* (added by core) non-finite measurement: FAULT, output 0 */
+    DRV_STOP_MEAS_FAULT = 7,     /* (added by core) non-finite measurement: FAULT, output 0 */
+    DRV_STOP_OUTPUT_FAULT = 8    /* controller output not finite (overflow / NaN): FAULT, output 0 */
 } drv_stop_reason_t;
 
 /* Excitation kinds (EXC_KIND) and injection points (EXC_INJECT). */
@@ -72,13 +76,18 @@ typedef struct {
     float load_angle_rad;
 } drv_meas_t;
 
+#define DRV_TABLE_MAX 8192u /* table samples at most */
+
 /* Storage the integrator provides (fixed, static in the port; no heap). */
 typedef struct {
     float *rec_buf;            /* recorder RAM */
     uint32_t rec_capacity;     /* in float values */
     float *table_buf;          /* waveform table / on-drive multisine period */
-    uint32_t table_capacity;   /* in samples, <= 8192 */
+    uint32_t table_capacity;   /* in samples, <= DRV_TABLE_MAX */
     float fs_hz;               /* controller rate */
+    float *table_stage_buf;    /* table_capacity samples more: a download is written here and
+                                  becomes the table only at its commit (a failed download
+                                  leaves the previous table); required when table_capacity > 0 */
 } drv_storage_t;
 
 #include "drv_state.h" /* drv_t: the module states (core's business) */
@@ -107,12 +116,18 @@ void drv_enable(drv_t *drv, bool enabled);
 uint32_t drv_rec_size_bytes(const drv_t *drv);
 drv_status_t drv_rec_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
 
-/* Waveform table download: bytes of float32 LE samples; commit sets TABLE_LENGTH.
+/* Waveform table download: bytes of float32 LE samples written into the staging buffer;
+ * commit checks samples [0, total/4) of it (finite, and finite central differences, which the
+ * generator's derivative forms) and only then swaps it in as the table (sets TABLE_LENGTH).
+ * Until a commit succeeds, the previous table stays in use and readable.
  * Refused (DRV_E_STATE) while a run is active. */
 drv_status_t drv_table_write(drv_t *drv, uint32_t offset, const uint8_t *src, uint32_t len);
 drv_status_t drv_table_commit(drv_t *drv, uint32_t total_len_bytes);
 uint32_t drv_table_size_bytes(const drv_t *drv);
 drv_status_t drv_table_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
+/* Counts changes of the table's content (commit, multisine run start rebuilding it): a
+ * reader streaming the table (SDO upload of 0x2002) aborts when it changes under it. */
+uint32_t drv_table_generation(const drv_t *drv);
 
 /* ---- Additions by core (backward compatible; nothing above changed meaning) ---- */
 
@@ -135,8 +150,10 @@ typedef struct {
 } drv_monitor_t;
 void drv_get_monitor(const drv_t *drv, drv_monitor_t *mon);
 
-/* Latched measurement fault (non-finite measurement): output 0, run FAULT, reason
- * DRV_STOP_MEAS_FAULT. Cleared by drv_enable(drv, true) (CiA 402 fault reset + enable). */
+/* Latched fault: a non-finite measurement (reason DRV_STOP_MEAS_FAULT) or a non-finite
+ * controller output before saturation (DRV_STOP_OUTPUT_FAULT, e.g. an overflow in the
+ * derivative): output 0 from that step on, run FAULT, the controller state reset. Cleared by
+ * drv_enable(drv, true) (CiA 402 fault reset + enable). */
 bool drv_fault(const drv_t *drv);
 
 #endif /* DRV_H */

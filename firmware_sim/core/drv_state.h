@@ -20,9 +20,11 @@ typedef struct {
     rec_t rec;
 
     float fs_hz;
-    float *table_buf;
+    float *table_buf;        /* the table in use (committed) */
+    float *table_stage;      /* the next one, being downloaded; swapped at commit */
     uint32_t table_capacity; /* samples */
     uint32_t table_length;   /* committed samples (TABLE_LENGTH) */
+    uint32_t table_generation;
 
     /* excitation configuration (EXC_*, MS_*) */
     uint32_t exc_kind, exc_inject, exc_period, exc_sine_cycles;

@@ -9,7 +9,8 @@
  * calls __builtin_trap, which libFuzzer reports as a crash):
  *   - every transmitted frame has len <= 8 and a COB-ID this node may send on;
  *   - after controller steps the plant input is finite and |u| <= u_max (the controller
- *     output stays saturated, whatever parameters were written);
+ *     output stays saturated, whatever parameters were written or tables downloaded:
+ *     "plant input finite");
  *   - when the host's heartbeat times out, no run is active afterwards (safe stop).
  *
  * Input format: a stream of records, each an opcode byte followed by its operands (a
@@ -26,8 +27,16 @@
  *   7 RPDO             which, len, 8 bytes           -> id 0x200 + 0x100 * (which & 3) + node
  * Opcodes are taken modulo 8.
  *
+ * Structure-aware mutation (LLVMFuzzerCustomMutator): half of the mutations are libFuzzer's
+ * own; the other half walk the records and overwrite 4 bytes at a random place of the data
+ * bytes of one frame record (SDO, any frame, RPDO) with a float from a list of values where
+ * float arithmetic breaks (near +-FLT_MAX, 1e30, denormals, NaN, inf, the od.yaml limits).
+ * So table samples (in download segments) and amplitudes / gains (in expedited writes) reach
+ * the overflow region, where byte-level mutations almost never land.
+ *
  * FUZZ_TRACE=1 in the environment prints every frame in and out (to check the seeds).
  */
+#include <float.h>
 #include <math.h>
 #include <stdbool.h>
 #include <stdint.h>
@@ -268,4 +277,66 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         }
     }
     return 0;
+}
+
+/* ---- structure-aware mutator ---- */
+
+size_t LLVMFuzzerMutate(uint8_t *data, size_t size, size_t max_size);
+
+static const float FZ_EDGE_FLOATS[] = {
+    FLT_MAX, -FLT_MAX, 3.0e38f, -3.0e38f, 1.7e38f, -1.7e38f, 1.0e30f, -1.0e30f, 1.0e20f,
+    -1.0e20f, 1000.0f, -1000.0f, 999.99994f, 100000.0f, 1.0f, -1.0f, 0.0f, -0.0f, 1.0e-40f,
+    -1.0e-40f, FLT_MIN, 1.0e-30f, INFINITY, -INFINITY, NAN,
+};
+
+/* Offset of the first data byte and the data length of the record at p (0 if none). */
+static size_t fz_record_data(const uint8_t *data, size_t size, size_t p, size_t *len, size_t *next)
+{
+    static const uint8_t operands[8] = {8, 11, 2, 2, 2, 2, 1, 10};
+    uint8_t op = data[p] & 7u;
+    *next = p + 1u + operands[op];
+    *len = 0;
+    if (*next > size) {
+        return 0;
+    }
+    switch (op) {
+    case 0: *len = 8; return p + 1u;
+    case 1: *len = 8; return p + 4u;
+    case 7: *len = 8; return p + 3u;
+    default: return 0;
+    }
+}
+
+size_t LLVMFuzzerCustomMutator(uint8_t *data, size_t size, size_t max_size, unsigned int seed)
+{
+    uint32_t r = seed * 2654435761u + 12345u;
+    if ((r & 1u) == 0u || size == 0u) {
+        return LLVMFuzzerMutate(data, size, max_size);
+    }
+    /* count frame records, pick one */
+    size_t count = 0, p = 0, next = 0, len = 0;
+    while (p < size) {
+        if (fz_record_data(data, size, p, &len, &next) != 0u) {
+            count++;
+        }
+        p = next;
+    }
+    if (count == 0u) {
+        return LLVMFuzzerMutate(data, size, max_size);
+    }
+    size_t pick = (r >> 1) % count;
+    p = 0;
+    while (p < size) {
+        size_t at = fz_record_data(data, size, p, &len, &next);
+        if (at != 0u && pick-- == 0u) {
+            /* expedited SDO values sit at bytes 4..7, segment data at 1..7: any 4-byte
+             * window of the 8 data bytes (also one straddling two samples) */
+            size_t off = (r >> 8) % 5u;
+            float v = FZ_EDGE_FLOATS[(r >> 12) % (sizeof FZ_EDGE_FLOATS / sizeof FZ_EDGE_FLOATS[0])];
+            memcpy(&data[at + off], &v, 4u); /* little-endian host, as the CAN payload */
+            break;
+        }
+        p = next;
+    }
+    return size;
 }

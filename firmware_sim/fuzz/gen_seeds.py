@@ -247,6 +247,12 @@ def co_node_seeds(eds_path):
     seeds["run_table_kind"] = (operational_enabled() + block_download(0x2002, 0, table)
                                + write_u(0x2001, 1, 2, 1) + write_u(0x2001, 5, 64, 4) + write_u(0x2001, 7, 0, 4) + write_f32(0x2001, 3, 1.0)
                                + start_run() + steps(300) + write_u(0x2010, 1, 2, 1) + upload(0x2010, 5))
+    # the same run with the table sent segmented (no CRC): the structure-aware mutator's
+    # table values then reach the drive (a block download with a changed sample fails its CRC)
+    seeds["run_table_kind_segmented"] = (operational_enabled() + segmented_download(0x2002, 0, table[:32])
+                                         + write_u(0x2001, 1, 2, 1) + write_u(0x2001, 5, 8, 4)
+                                         + write_u(0x2001, 7, 0, 4) + write_f32(0x2001, 3, 1.0)
+                                         + start_run() + steps(64) + upload(0x2030, 4))
     seeds["run_multisine"] = (operational_enabled() + write_u(0x2001, 1, 3, 1) + write_u(0x2001, 5, 256, 4) + write_u(0x2001, 7, 0, 4)
                               + write_u(0x2001, 10, 40, 4) + write_f32(0x2001, 3, 0.5) + start_run()
                               + steps(1200) + upload(0x2020, 3))

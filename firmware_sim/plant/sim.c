@@ -18,6 +18,7 @@ int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table
     sim->storage.rec_capacity = cfg->rec_capacity;
     sim->storage.table_buf = table_buf;
     sim->storage.table_capacity = cfg->table_capacity;
+    sim->storage.table_stage_buf = sim->table_stage;
     sim->storage.fs_hz = (float)cfg->fs_hz;
     drv_status_t st = drv_init(&sim->drv, &sim->storage);
     if (st != DRV_OK) {

@@ -31,6 +31,7 @@ typedef struct {
     uint64_t steps;          /* controller steps so far */
     float *owned_rec;        /* buffers allocated by sim_new (NULL with sim_init) */
     float *owned_table;
+    float table_stage[DRV_TABLE_MAX]; /* the drive's download staging buffer */
 } sim_t;
 
 /* Caller-provided buffers: rec_buf of cfg->rec_capacity floats, table_buf of

@@ -99,7 +99,8 @@ __attribute__((noinline)) void bench_fw_drive_steps(drv_t *drv, uint32_t n)
 static int bench_instr(int argc, char **argv)
 {
     drv_t drv;
-    drv_storage_t st = {rec_buf, (uint32_t)(sizeof rec_buf / sizeof rec_buf[0]), tab_buf, 8192u, 2560.0f};
+    static float stage_buf[8192];
+    drv_storage_t st = {rec_buf, (uint32_t)(sizeof rec_buf / sizeof rec_buf[0]), tab_buf, 8192u, 2560.0f, stage_buf};
     if (drv_init(&drv, &st) != DRV_OK) {
         return 2;
     }

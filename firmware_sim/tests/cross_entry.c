@@ -8,6 +8,7 @@
 
 static float cross_rec[4096];
 static float cross_table[8192];
+static float cross_stage[8192];
 static drv_t cross_drv;
 static uint8_t cross_bytes[64];
 
@@ -15,7 +16,7 @@ void cross_entry(void);
 
 void cross_entry(void)
 {
-    drv_storage_t st = {cross_rec, 4096u, cross_table, 8192u, 2560.0f};
+    drv_storage_t st = {cross_rec, 4096u, cross_table, 8192u, 2560.0f, cross_stage};
     drv_meas_t m = {0.0f, 0.0f};
     float f;
     uint32_t u;
@@ -31,6 +32,7 @@ void cross_entry(void)
     (void)drv_table_commit(&cross_drv, 64u);
     (void)drv_table_read(&cross_drv, 0u, cross_bytes, 64u);
     (void)drv_table_size_bytes(&cross_drv);
+    (void)drv_table_generation(&cross_drv);
     (void)drv_run_start(&cross_drv);
     (void)drv_step(&cross_drv, &m);
     (void)drv_rec_size_bytes(&cross_drv);

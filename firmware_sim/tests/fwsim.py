@@ -19,7 +19,7 @@ PARAMS_H = os.path.join(FW, "build", "gen", "od_params.h")
 
 DRV_OK = 0
 STATUS = ["OK", "NO_PARAM", "READ_ONLY", "NOT_FINITE", "RANGE_HIGH", "RANGE_LOW", "STATE",
-          "NO_FIT", "LENGTH", "GENERAL"]
+          "NO_FIT", "LENGTH", "GENERAL", "INCOMPATIBLE"]
 SIG_BITS = {"reference": 0, "plant_input": 1, "motor_angle": 2, "load_angle": 3, "error": 4}
 
 

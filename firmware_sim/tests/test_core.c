@@ -17,11 +17,12 @@
 
 static float rec_buf[REC_CAP];
 static float tab_buf[TAB_CAP];
+static float stage_buf[TAB_CAP];
 
 static drv_t make_drv(uint32_t rec_cap)
 {
     drv_t d;
-    drv_storage_t st = {rec_buf, rec_cap, tab_buf, TAB_CAP, FS};
+    drv_storage_t st = {rec_buf, rec_cap, tab_buf, TAB_CAP, FS, stage_buf};
     drv_status_t s = drv_init(&d, &st);
     TH_EQ(s, DRV_OK);
     return d;
@@ -203,13 +204,18 @@ static void test_drv_param_validation_keeps_old_value(void)
     TH_EQ(drv_set_target(&d, NAN), DRV_E_NOT_FINITE);
     /* bad storage */
     drv_t d2;
-    drv_storage_t bad = {rec_buf, REC_CAP, tab_buf, 9000u, FS};
+    drv_storage_t bad = {rec_buf, REC_CAP, tab_buf, 9000u, FS, stage_buf};
     TH_EQ(drv_init(&d2, &bad), DRV_E_RANGE_HIGH);
     bad.table_capacity = TAB_CAP;
     bad.fs_hz = NAN;
     TH_EQ(drv_init(&d2, &bad), DRV_E_NOT_FINITE);
     bad.fs_hz = -1.0f;
     TH_EQ(drv_init(&d2, &bad), DRV_E_RANGE_LOW);
+    bad.fs_hz = FS;
+    bad.table_stage_buf = NULL; /* a table needs its staging buffer */
+    TH_EQ(drv_init(&d2, &bad), DRV_E_GENERAL);
+    bad.table_stage_buf = tab_buf;
+    TH_EQ(drv_init(&d2, &bad), DRV_E_GENERAL);
 }
 
 /* ---------------- generator ---------------- */
@@ -295,7 +301,7 @@ static void test_table_write_checks(void)
     TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_TABLE), DRV_OK);
     TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 16u), DRV_OK);
     drv_enable(&d, true);
-    TH_EQ(drv_run_start(&d), DRV_E_STATE);
+    TH_EQ(drv_run_start(&d), DRV_E_INCOMPATIBLE);
     uint32_t why;
     TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &why), DRV_OK);
     TH_EQ(why, DRV_STOP_BAD_CONFIG);
@@ -305,6 +311,100 @@ static void test_table_write_checks(void)
     TH_EQ(drv_table_commit(&d, sizeof t), DRV_E_STATE);
     TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 16u), DRV_E_STATE);
     TH_EQ(drv_set_f32(&d, DRV_P_KFC, 0.25f), DRV_OK); /* controller tunable while running */
+}
+
+/* A failed download keeps the previous table (issue 10, finding 14); the generation counts
+ * changes of the content (finding 4). */
+static void test_table_kept_until_commit(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    float a[4] = {0.1f, 0.2f, 0.3f, 0.4f}, b[8] = {1, 2, 3, 4, 5, 6, 7, NAN}, back[4];
+    TH_EQ(drv_table_generation(&d), 0u);
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)a, sizeof a), DRV_OK);
+    TH_EQ(drv_table_commit(&d, sizeof a), DRV_OK);
+    TH_EQ(drv_table_generation(&d), 1u);
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)b, 12u), DRV_OK); /* a download under way */
+    TH_EQ(drv_table_size_bytes(&d), sizeof a);
+    TH_EQ(drv_table_read(&d, 0u, (uint8_t *)back, sizeof back), DRV_OK);
+    TH_ASSERT(memcmp(back, a, sizeof a) == 0);
+    TH_EQ(drv_table_write(&d, 12u, (const uint8_t *)&b[3], sizeof b - 12u), DRV_OK);
+    TH_EQ(drv_table_commit(&d, sizeof b), DRV_E_NOT_FINITE); /* the download fails */
+    TH_EQ(drv_table_size_bytes(&d), sizeof a);
+    TH_EQ(drv_table_read(&d, 0u, (uint8_t *)back, sizeof back), DRV_OK);
+    TH_ASSERT(memcmp(back, a, sizeof a) == 0);
+    TH_EQ(drv_table_generation(&d), 1u);
+    uint32_t len;
+    TH_EQ(drv_get_u32(&d, DRV_P_TABLE_LENGTH, &len), DRV_OK);
+    TH_EQ(len, 4u);
+    /* and the kept table still plays */
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_TABLE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 4u), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 1.0f), DRV_OK);
+    drv_enable(&d, true);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    step0(&d);
+    float ref;
+    TH_EQ(drv_get_f32(&d, DRV_P_MEAS_REFERENCE, &ref), DRV_OK);
+    TH_NEAR(ref, 0.1f, 0.0);
+    drv_run_abort(&d, DRV_STOP_ABORT_CMD);
+    /* a multisine run start rewrites the table: a new generation */
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_MULTISINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 128u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_K_MAX, 40u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    TH_EQ(drv_table_generation(&d), 2u);
+}
+
+/* Issue 10, finding 1: tables whose samples or central differences overflow float32 are
+ * refused at commit; table x amplitude overflowing is refused at the run start; and
+ * whatever gets through, a non-finite controller sum is a fault with output 0. */
+static void test_overflowing_inputs_refused_and_output_fault(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    float t1[4] = {3e38f, 0.0f, -3e38f, 0.0f}; /* t[2] - t[0] = -6e38: -inf */
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t1, sizeof t1), DRV_OK);
+    TH_EQ(drv_table_commit(&d, sizeof t1), DRV_E_NOT_FINITE);
+    TH_EQ(drv_table_size_bytes(&d), 0u);
+    float t2[4] = {3e38f, 3e38f, 3e38f, 3e38f}; /* finite, but amplitude 2 overflows */
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t2, sizeof t2), DRV_OK);
+    TH_EQ(drv_table_commit(&d, sizeof t2), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_TABLE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 4u), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 2.0f), DRV_OK);
+    drv_enable(&d, true);
+    TH_EQ(drv_run_start(&d), DRV_E_INCOMPATIBLE);
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_BAD_CONFIG);
+    float t3[4] = {1e36f, 1e36f, -1e36f, 1e36f}; /* difference x velocity gain overflows */
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t3, sizeof t3), DRV_OK);
+    TH_EQ(drv_table_commit(&d, sizeof t3), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 1.0f), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_E_INCOMPATIBLE); /* 2560 / 2 * 2e36 > FLT_MAX */
+    /* accepted inputs whose controller sum overflows (Kp 1e5 x 3e38 rad): fault, output 0 */
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 1.0f), DRV_OK);
+    TH_EQ(drv_table_write(&d, 0u, (const uint8_t *)t2, sizeof t2), DRV_OK);
+    TH_EQ(drv_table_commit(&d, sizeof t2), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KP, 1.0e5f), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KV, 0.0f), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    for (int k = 0; k < 16; k++) {
+        float u = step0(&d);
+        TH_ASSERT(isfinite(u));
+        TH_NEAR(u, 0.0, 0.0);
+    }
+    TH_ASSERT(drv_fault(&d));
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_FAULT);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_OUTPUT_FAULT);
+    float u_meas;
+    TH_EQ(drv_get_f32(&d, DRV_P_MEAS_PLANT_INPUT, &u_meas), DRV_OK);
+    TH_NEAR(u_meas, 0.0, 0.0);
+    /* cleared by enable, the controller state starts from zero (no NaN left in it) */
+    drv_enable(&d, true);
+    TH_ASSERT(!drv_fault(&d));
+    TH_ASSERT(isfinite(step0(&d)));
 }
 
 /* ---------------- run control ---------------- */
@@ -404,15 +504,15 @@ static void test_run_refusals(void)
     TH_EQ(drv_set_u32(&d3, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
     TH_EQ(drv_set_u32(&d3, DRV_P_EXC_PERIOD, 64u), DRV_OK);
     TH_EQ(drv_set_u32(&d3, DRV_P_EXC_SINE_CYCLES, 32u), DRV_OK);
-    TH_EQ(drv_run_start(&d3), DRV_E_STATE);
+    TH_EQ(drv_run_start(&d3), DRV_E_INCOMPATIBLE); /* at Nyquist */
     TH_EQ(drv_get_u32(&d3, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
     TH_EQ(v, DRV_STOP_BAD_CONFIG);
     TH_EQ(drv_set_u32(&d3, DRV_P_EXC_KIND, DRV_EXC_MULTISINE), DRV_OK);
     TH_EQ(drv_set_u32(&d3, DRV_P_EXC_PERIOD, 100u), DRV_OK); /* not a power of two */
-    TH_EQ(drv_run_start(&d3), DRV_E_STATE);
+    TH_EQ(drv_run_start(&d3), DRV_E_INCOMPATIBLE);
     TH_EQ(drv_set_u32(&d3, DRV_P_EXC_PERIOD, 128u), DRV_OK);
     TH_EQ(drv_set_u32(&d3, DRV_P_MS_K_MAX, 64u), DRV_OK); /* k_max >= N/2 */
-    TH_EQ(drv_run_start(&d3), DRV_E_STATE);
+    TH_EQ(drv_run_start(&d3), DRV_E_INCOMPATIBLE);
     TH_EQ(drv_set_u32(&d3, DRV_P_MS_K_MAX, 63u), DRV_OK);
     TH_EQ(drv_run_start(&d3), DRV_OK);
     TH_EQ(drv_get_u32(&d3, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
@@ -722,6 +822,8 @@ int main(void)
     TH_RUN(test_sine_exactly_periodic);
     TH_RUN(test_table_playback_bit_exact);
     TH_RUN(test_table_write_checks);
+    TH_RUN(test_table_kept_until_commit);
+    TH_RUN(test_overflowing_inputs_refused_and_output_fault);
     TH_RUN(test_run_exact_sample_counts);
     TH_RUN(test_run_refusals);
     TH_RUN(test_enable_safe_stop_fault);

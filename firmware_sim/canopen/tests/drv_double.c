@@ -168,8 +168,11 @@ drv_status_t drv_table_commit(drv_t *d, uint32_t total)
     }
     d->table_bytes = total;
     d->u[DRV_P_TABLE_LENGTH] = total / 4u;
+    d->table_generation++;
     return DRV_OK;
 }
+
+uint32_t drv_table_generation(const drv_t *d) { return d->table_generation; }
 
 uint32_t drv_table_size_bytes(const drv_t *d) { return d->table_bytes; }
 

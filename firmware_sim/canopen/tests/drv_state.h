@@ -18,6 +18,7 @@ typedef struct {
     uint32_t rec_bytes;       /* size of the (synthetic) recorder data */
     uint8_t table[32768];
     uint32_t table_bytes;     /* committed */
+    uint32_t table_generation;
     float target_rad;
     float motor_rad, reference_rad, velocity_rad_s;
     int safe_stops, enables, disables;

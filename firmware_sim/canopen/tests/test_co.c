@@ -629,6 +629,65 @@ static void test_heartbeat(void)
     CHECK(e && co_get_u16(e->data) == 0 && g_n.ram.error_register == 0);
 }
 
+/* Issue 10, finding 2: a write to the producer heartbeat time (0x1017) reset every consumer
+ * to inactive, so a host lost afterwards was never noticed. */
+static void test_producer_write_keeps_the_consumer_armed(void)
+{
+    setup();
+    CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 200u, 4) == 0);
+    nmt(0x01);
+    enable_402();
+    uint8_t hb = 5;
+    rx(0x77F, &hb, 1);
+    CHECK(sdo_write(0x2010, 1, 1, 1) == 0 && g_drv.run_state == DRV_RUN_SETTLING);
+    advance_ms(100);
+    rx(0x77F, &hb, 1);
+    CHECK(sdo_write(0x1017, 0, 50, 2) == 0); /* the host changes the drive's heartbeat */
+    CHECK(g_n.hbc[0].active);
+    g_ntx = 0;
+    advance_ms(250); /* then dies */
+    CHECK(g_drv.run_state == DRV_RUN_ABORTED && g_drv.last_error == DRV_STOP_HEARTBEAT);
+    const co_frame_t *e = last_id(0x85);
+    CHECK(e && co_get_u16(e->data) == CO_EMCY_HEARTBEAT);
+    CHECK(count_id(0x705) >= 4); /* the producer runs with its new period */
+    /* rewriting the consumer itself restarts only that consumer */
+    rx(0x77F, &hb, 1);
+    CHECK(g_n.hbc[0].active);
+    CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 300u, 4) == 0);
+    CHECK(!g_n.hbc[0].active && !g_n.hbc[0].timed_out);
+}
+
+/* Issue 10, finding 4: an upload of the table (0x2002) must abort when the table changes
+ * under it (a multisine run start rebuilds it in place), as the recorder's upload does. */
+static void test_table_upload_aborts_when_the_table_changes(void)
+{
+    setup();
+    for (uint32_t i = 0; i < 64; i++) {
+        g_drv.table[i] = (uint8_t)i;
+    }
+    g_drv.table_bytes = 64;
+    uint8_t up[8] = {0x40, 0x02, 0x20, 0, 0, 0, 0, 0};
+    const co_frame_t *f = sdo(up);
+    CHECK(f && f->data[0] == 0x41 && co_get_u32(&f->data[4]) == 64);
+    uint8_t s0[8] = {0x60, 0, 0, 0, 0, 0, 0, 0};
+    f = sdo(s0);
+    CHECK(f && (f->data[0] & 0xE0) == 0x00 && f->data[1] == 0 && f->data[7] == 6);
+    g_drv.table_generation++; /* same size, new content */
+    uint8_t s1[8] = {0x70, 0, 0, 0, 0, 0, 0, 0};
+    f = sdo(s1);
+    CHECK(abort_code(f) == CO_SDO_AB_GENERAL && co_get_u16(&f->data[1]) == 0x2002);
+    /* block upload too */
+    uint8_t bu[8] = {0xA4, 0x02, 0x20, 0, 4, 0, 0, 0};
+    f = sdo(bu);
+    CHECK(f && f->data[0] == 0xC6);
+    uint8_t start[8] = {0xA3, 0, 0, 0, 0, 0, 0, 0};
+    sdo(start);
+    g_drv.table_generation++;
+    uint8_t ack[8] = {0xA2, 4, 4, 0, 0, 0, 0, 0};
+    f = sdo(ack);
+    CHECK(abort_code(f) == CO_SDO_AB_GENERAL);
+}
+
 static uint16_t sw(void)
 {
     uint32_t v = 0;
@@ -759,6 +818,8 @@ int main(void)
     test_block_upload_zero_length();
     test_block_download();
     test_heartbeat();
+    test_producer_write_keeps_the_consumer_armed();
+    test_table_upload_aborts_when_the_table_changes();
     test_402();
     test_pdo();
     printf("%d passed, %d failed\n", g_pass, g_fail);
