@@ -33,7 +33,7 @@ static uint16_t statusword_of(co402_state_t s)
 
 static void update_statusword(co_node_t *n)
 {
-    uint16_t sw = statusword_of(n->s402);
+    uint16_t sw = statusword_of(n->cia402.state);
     sw |= 0x0200u; /* remote: controlled over CANopen */
     if (n->ram.error_register != 0u) {
         sw |= 0x0080u; /* warning */
@@ -48,11 +48,11 @@ static bool enabled_in(co402_state_t s)
 
 static void set_state(co_node_t *n, co402_state_t s)
 {
-    co402_state_t old = n->s402;
+    co402_state_t old = n->cia402.state;
     if (s == old) {
         return;
     }
-    n->s402 = s;
+    n->cia402.state = s;
     if (s == CO402_QUICK_STOP_ACTIVE && co_node_run_active(n)) {
         drv_safe_stop(n->drv, DRV_STOP_DISABLED); /* stop the excitation, hold position */
     }
@@ -64,26 +64,21 @@ static void set_state(co_node_t *n, co402_state_t s)
 
 void co_402_init(co_node_t *n)
 {
-    if (enabled_in(n->s402)) {
+    if (enabled_in(n->cia402.state)) {
         drv_enable(n->drv, false);
     }
-    n->s402 = CO402_SWITCH_ON_DISABLED; /* NOT READY is passed through at once */
-    n->cw_fault_reset_prev = false;
-    n->fault_prev = drv_fault(n->drv);
+    n->cia402.state = CO402_SWITCH_ON_DISABLED; /* NOT READY is passed through at once */
+    n->cia402.cw_fault_reset_prev = false;
+    n->cia402.fault_prev = drv_fault(n->drv);
     update_statusword(n);
 }
 
-uint32_t co_402_check_mode(int8_t mode)
-{
-    return (mode == CO402_MODE_CSP || mode == CO402_MODE_EXCITATION) ? 0u : CO_SDO_AB_INVALID_VALUE;
-}
-
-void co_402_controlword(co_node_t *n, uint16_t cw)
+static void co_402_controlword(co_node_t *n, uint16_t cw)
 {
     bool fault_reset = (cw & 0x0080u) != 0u;
-    bool edge = fault_reset && !n->cw_fault_reset_prev;
-    n->cw_fault_reset_prev = fault_reset;
-    co402_state_t s = n->s402;
+    bool edge = fault_reset && !n->cia402.cw_fault_reset_prev;
+    n->cia402.cw_fault_reset_prev = fault_reset;
+    co402_state_t s = n->cia402.state;
     if (s == CO402_FAULT) {
         if (edge) {
             set_state(n, CO402_SWITCH_ON_DISABLED);
@@ -136,7 +131,7 @@ void co_402_controlword(co_node_t *n, uint16_t cw)
 
 void co_402_fault(co_node_t *n)
 {
-    if (n->s402 == CO402_FAULT) {
+    if (n->cia402.state == CO402_FAULT) {
         return;
     }
     set_state(n, CO402_FAULT);
@@ -152,15 +147,66 @@ void co_402_process(co_node_t *n)
 {
     /* a drive fault (latched in the drive, e.g. a non-finite measurement) -> FAULT */
     bool fault = drv_fault(n->drv);
-    if (fault && !n->fault_prev) {
+    if (fault && !n->cia402.fault_prev) {
         co_402_fault(n);
     }
-    n->fault_prev = fault;
-    if (n->s402 != CO402_FAULT && (n->ram.error_register & CO_ERR_REG_MANUFACTURER) && !fault) {
+    n->cia402.fault_prev = fault;
+    if (n->cia402.state != CO402_FAULT && (n->ram.error_register & CO_ERR_REG_MANUFACTURER) && !fault) {
         co_emcy_send(n, CO_EMCY_NO_ERROR, 0u, CO_ERR_REG_MANUFACTURER, NULL); /* reset */
     }
     update_statusword(n);
 }
+
+/* ---- write hooks (configs/od.yaml `hook:`) ---- */
+
+static void controlword_written(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
+{
+    (void)e;
+    co_402_controlword(n, (uint16_t)raw);
+}
+
+static uint32_t mode_check(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
+{
+    (void)n;
+    (void)e;
+    int8_t mode = (int8_t)(uint8_t)raw;
+    return (mode == CO402_MODE_CSP || mode == CO402_MODE_EXCITATION) ? 0u : CO_SDO_AB_INVALID_VALUE;
+}
+
+static void mode_written(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
+{
+    (void)e;
+    (void)raw;
+    n->ram.mode_display = n->ram.mode;
+}
+
+static void target_written(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
+{
+    (void)e;
+    /* 1 urad per unit; the drive checks the value */
+    (void)drv_set_target(n->drv, (float)(int32_t)raw * 1.0e-6f);
+}
+
+/* 0x2010:1: 1 starts a run (only in NMT OPERATIONAL and OPERATION ENABLED), 2 aborts it. */
+static uint32_t run_command_store(co_node_t *n, const co_od_entry_t *e, uint32_t cmd)
+{
+    (void)e;
+    if (cmd == 1u) {
+        if (n->nmt != CO_NMT_OPERATIONAL || n->cia402.state != CO402_OPERATION_ENABLED) {
+            return CO_SDO_AB_DATA_DEV_STATE;
+        }
+        return co_od_abort_from_drv(drv_run_start(n->drv));
+    }
+    if (cmd == 2u) {
+        drv_run_abort(n->drv, DRV_STOP_ABORT_CMD);
+    }
+    return 0u;
+}
+
+const co_od_hook_t co_hook_controlword = {NULL, NULL, controlword_written};
+const co_od_hook_t co_hook_mode_of_operation = {mode_check, NULL, mode_written};
+const co_od_hook_t co_hook_target_position = {NULL, NULL, target_written};
+const co_od_hook_t co_hook_run_command = {NULL, run_command_store, NULL};
 
 static int32_t to_micro(float v)
 {

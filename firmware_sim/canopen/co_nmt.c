@@ -12,12 +12,11 @@ void co_nmt_boot(co_node_t *n)
     n->nmt = CO_NMT_INITIALISING;
     co_od_reset_ram(n, 0x1000u, 0x1FFFu);
     co_sdo_init(&n->sdo);
-    co_pdo_init(n);
-    memset(n->hbc, 0, sizeof n->hbc);
+    co_pdo_init(&n->pdo);
+    co_hb_init(&n->hb, n->now_us);
     n->ram.error_register = 0u;
     uint8_t zero = 0u;
     (void)co_node_send(n, (uint16_t)(0x700u + n->cfg.node_id), &zero, 1u);
-    n->hb_last_us = n->now_us;
     n->nmt = CO_NMT_PRE_OPERATIONAL;
 }
 
@@ -76,9 +75,18 @@ void co_nmt_rx(co_node_t *n, const co_frame_t *f)
     }
 }
 
-uint32_t co_hb_check_consumer(const co_node_t *n, uint32_t value)
+void co_hb_init(co_hb_t *hb, uint32_t now_us)
+{
+    memset(hb, 0, sizeof *hb);
+    hb->producer_last_us = now_us;
+}
+
+/* ---- write hooks (configs/od.yaml `hook:`) ---- */
+
+static uint32_t hb_consumer_check(co_node_t *n, const co_od_entry_t *e, uint32_t value)
 {
     (void)n;
+    (void)e;
     if ((value >> 24) != 0u) {
         return CO_SDO_AB_INVALID_VALUE; /* reserved bits */
     }
@@ -89,22 +97,28 @@ uint32_t co_hb_check_consumer(const co_node_t *n, uint32_t value)
     return 0u;
 }
 
-/* 0x1017 written: the producer restarts its period (as CANopenNode). The consumers are
- * not touched: a producer write must never disarm the host watchdog. */
-void co_hb_producer_changed(co_node_t *n)
-{
-    n->hb_last_us = n->now_us;
-}
-
 /* 0x1016:sub written: that consumer starts over (monitoring resumes with the next
  * heartbeat of the configured node); the others keep running. */
-void co_hb_consumer_changed(co_node_t *n, uint8_t sub)
+static void hb_consumer_written(co_node_t *n, const co_od_entry_t *e, uint32_t value)
 {
-    if (sub >= 1u && sub <= CO_NUM_HB_CONSUMERS) {
-        n->hbc[sub - 1u].active = false;
-        n->hbc[sub - 1u].timed_out = false;
+    (void)value;
+    if (e->sub >= 1u && e->sub <= CO_NUM_HB_CONSUMERS) {
+        n->hb.consumer[e->sub - 1u].active = false;
+        n->hb.consumer[e->sub - 1u].timed_out = false;
     }
 }
+
+/* 0x1017 written: the producer restarts its period (as CANopenNode). The consumers are
+ * not touched: a producer write must never disarm the host watchdog. */
+static void hb_producer_written(co_node_t *n, const co_od_entry_t *e, uint32_t value)
+{
+    (void)e;
+    (void)value;
+    n->hb.producer_last_us = n->now_us;
+}
+
+const co_od_hook_t co_hook_hb_consumer = {hb_consumer_check, NULL, hb_consumer_written};
+const co_od_hook_t co_hook_hb_producer = {NULL, NULL, hb_producer_written};
 
 void co_hb_rx(co_node_t *n, const co_frame_t *f)
 {
@@ -117,7 +131,7 @@ void co_hb_rx(co_node_t *n, const co_frame_t *f)
         if ((cfg & 0xFFFFu) == 0u || ((cfg >> 16) & 0xFFu) != node) {
             continue;
         }
-        co_hb_consumer_t *c = &n->hbc[i];
+        co_hb_consumer_t *c = &n->hb.consumer[i];
         c->last_us = n->now_us;
         c->active = true;
         if (c->timed_out) {
@@ -130,14 +144,14 @@ void co_hb_rx(co_node_t *n, const co_frame_t *f)
 void co_hb_process(co_node_t *n)
 {
     uint16_t period_ms = n->ram.hb_producer_ms;
-    if (period_ms != 0u && (uint32_t)(n->now_us - n->hb_last_us) >= (uint32_t)period_ms * 1000u) {
+    if (period_ms != 0u && (uint32_t)(n->now_us - n->hb.producer_last_us) >= (uint32_t)period_ms * 1000u) {
         uint8_t st = (uint8_t)n->nmt;
         (void)co_node_send(n, (uint16_t)(0x700u + n->cfg.node_id), &st, 1u);
-        n->hb_last_us = n->now_us;
+        n->hb.producer_last_us = n->now_us;
     }
     for (uint32_t i = 0u; i < CO_NUM_HB_CONSUMERS; i++) {
         uint32_t cfg = n->ram.hb_consumer[i];
-        co_hb_consumer_t *c = &n->hbc[i];
+        co_hb_consumer_t *c = &n->hb.consumer[i];
         uint32_t time_ms = cfg & 0xFFFFu;
         if (time_ms == 0u || !c->active) {
             continue;

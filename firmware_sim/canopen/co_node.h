@@ -145,6 +145,27 @@ typedef struct {
     uint32_t last_us;
 } co_hb_consumer_t;
 
+/* Heartbeat producer (0x1017) and consumers (0x1016): co_nmt.c. */
+typedef struct {
+    uint32_t producer_last_us;
+    co_hb_consumer_t consumer[CO_NUM_HB_CONSUMERS > 0 ? CO_NUM_HB_CONSUMERS : 1];
+} co_hb_t;
+
+/* PDOs: co_pdo.c (their parameters live in co_od_ram_t, declared by od.yaml). */
+typedef struct {
+    co_tpdo_state_t tpdo[CO_NUM_TPDO > 0 ? CO_NUM_TPDO : 1];
+    bool rpdo_length_error[CO_NUM_RPDO > 0 ? CO_NUM_RPDO : 1]; /* EMCY 0x8210 sent, not yet reset */
+} co_pdo_t;
+
+/* CiA 402 power state machine: co_402.c. */
+typedef struct {
+    co402_state_t state;
+    bool cw_fault_reset_prev;
+    bool fault_prev;
+} co_402_t;
+
+/* The node: one state struct per module (each with its init / process functions below),
+ * the object values (ram) and the integrator's configuration. */
 typedef struct co_node {
     co_cfg_t cfg;
     drv_t *drv;
@@ -152,17 +173,10 @@ typedef struct co_node {
     co_nmt_state_t nmt;
     uint32_t now_us;
     bool time_valid;
-    /* heartbeat producer */
-    uint32_t hb_last_us;
-    co_hb_consumer_t hbc[CO_NUM_HB_CONSUMERS > 0 ? CO_NUM_HB_CONSUMERS : 1];
-    /* SDO server */
+    co_hb_t hb;
     co_sdo_t sdo;
-    /* PDO */
-    co_tpdo_state_t tpdo[CO_NUM_TPDO > 0 ? CO_NUM_TPDO : 1];
-    /* CiA 402 */
-    co402_state_t s402;
-    bool cw_fault_reset_prev;
-    bool fault_prev;
+    co_pdo_t pdo;
+    co_402_t cia402;
     /* statistics */
     uint32_t tx_dropped;
     uint32_t rx_frames;
@@ -199,11 +213,9 @@ uint32_t co_od_abort_from_drv(drv_status_t st);
 void co_nmt_rx(co_node_t *n, const co_frame_t *f);
 void co_nmt_set_state(co_node_t *n, co_nmt_state_t s);
 void co_nmt_boot(co_node_t *n);
+void co_hb_init(co_hb_t *hb, uint32_t now_us);
 void co_hb_rx(co_node_t *n, const co_frame_t *f);
 void co_hb_process(co_node_t *n);
-void co_hb_producer_changed(co_node_t *n);
-void co_hb_consumer_changed(co_node_t *n, uint8_t sub);
-uint32_t co_hb_check_consumer(const co_node_t *n, uint32_t value);
 
 /* co_sdo.c */
 void co_sdo_init(co_sdo_t *s);
@@ -212,11 +224,10 @@ void co_sdo_process(co_node_t *n);
 uint16_t co_sdo_crc16(uint16_t crc, const uint8_t *data, uint32_t len); /* CRC-16 CCITT (XMODEM) */
 
 /* co_pdo.c */
-void co_pdo_init(co_node_t *n);
+void co_pdo_init(co_pdo_t *pdo);
 void co_pdo_rx(co_node_t *n, const co_frame_t *f);
 void co_pdo_process(co_node_t *n);
 void co_pdo_on_operational(co_node_t *n);
-uint32_t co_pdo_check_write(co_node_t *n, const co_od_entry_t *e, uint32_t value);
 
 /* co_emcy.c */
 void co_emcy_send(co_node_t *n, uint16_t code, uint8_t set_reg, uint8_t clear_reg,
@@ -224,10 +235,8 @@ void co_emcy_send(co_node_t *n, uint16_t code, uint8_t set_reg, uint8_t clear_re
 
 /* co_402.c */
 void co_402_init(co_node_t *n);
-void co_402_controlword(co_node_t *n, uint16_t cw);
 void co_402_process(co_node_t *n);
 void co_402_refresh(co_node_t *n);
 void co_402_fault(co_node_t *n);
-uint32_t co_402_check_mode(int8_t mode);
 
 #endif /* CO_NODE_H */

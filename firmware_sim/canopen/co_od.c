@@ -1,7 +1,8 @@
 /*
  * co_od.c - object dictionary search and typed read / write: routes each entry to the
  * CANopen layer's RAM, the drive's parameters (drv_get_/drv_set_), the simulation hook or a
- * DOMAIN handler, and applies the write side effects of communication objects.
+ * DOMAIN handler. The side effects of a write are the entry's write hook (declared in
+ * configs/od.yaml, defined by the module that owns them); nothing here depends on an index.
  */
 #include <string.h>
 
@@ -242,60 +243,6 @@ uint32_t co_od_read(co_node_t *n, const co_od_entry_t *e, uint8_t *dst, uint32_t
     return 0u;
 }
 
-/* Side effects and cross-checks of writes to communication and CiA 402 objects, before the
- * value is stored. Returns an abort code or 0. */
-static uint32_t check_comm_write(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
-{
-    if (e->index == 0x1016u) {
-        return co_hb_check_consumer(n, raw);
-    }
-    if (e->index >= 0x1400u && e->index <= 0x1BFFu) {
-        return co_pdo_check_write(n, e, raw);
-    }
-    if (e->index == 0x6060u) {
-        return co_402_check_mode((int8_t)(uint8_t)raw);
-    }
-    return 0u;
-}
-
-static void after_comm_write(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
-{
-    switch (e->index) {
-    case 0x1016u:
-        co_hb_consumer_changed(n, e->sub);
-        break;
-    case 0x1017u:
-        co_hb_producer_changed(n);
-        break;
-    case 0x6040u:
-        co_402_controlword(n, (uint16_t)raw);
-        break;
-    case 0x6060u:
-        n->ram.mode_display = n->ram.mode;
-        break;
-    case 0x607Au:
-        /* 1 urad per unit; the drive checks the value */
-        (void)drv_set_target(n->drv, (float)(int32_t)raw * 1.0e-6f);
-        break;
-    default:
-        break;
-    }
-}
-
-static uint32_t write_run_command(co_node_t *n, uint32_t cmd)
-{
-    if (cmd == 1u) {
-        if (n->nmt != CO_NMT_OPERATIONAL || n->s402 != CO402_OPERATION_ENABLED) {
-            return CO_SDO_AB_DATA_DEV_STATE;
-        }
-        return co_od_abort_from_drv(drv_run_start(n->drv));
-    }
-    if (cmd == 2u) {
-        drv_run_abort(n->drv, DRV_STOP_ABORT_CMD);
-    }
-    return 0u;
-}
-
 uint32_t co_od_write(co_node_t *n, const co_od_entry_t *e, const uint8_t *src, uint32_t len)
 {
     if (!(e->access & CO_ACC_W)) {
@@ -330,29 +277,31 @@ uint32_t co_od_write(co_node_t *n, const co_od_entry_t *e, const uint8_t *src, u
     if (e->type == CO_T_BOOLEAN && raw > 1u) {
         return CO_SDO_AB_VALUE_HIGH;
     }
-    switch (e->src) {
-    case CO_SRC_RAM: {
-        uint32_t ab = check_comm_write(n, e, raw);
+    const co_od_hook_t *hook = e->hook;
+    uint32_t ab = 0u;
+    if (hook != NULL && hook->check != NULL) {
+        ab = hook->check(n, e, raw);
         if (ab != 0u) {
             return ab;
         }
+    }
+    if (hook != NULL && hook->store != NULL) {
+        ab = hook->store(n, e, raw);
+    } else if (e->src == CO_SRC_RAM) {
         ram_set(n, e, raw);
-        after_comm_write(n, e, raw);
-        return 0u;
+    } else if (e->src == CO_SRC_PARAM && e->type == CO_T_REAL32) {
+        float f;
+        memcpy(&f, &raw, 4u);
+        ab = co_od_abort_from_drv(drv_set_f32(n->drv, (drv_param_id_t)e->ref, f));
+    } else if (e->src == CO_SRC_PARAM) {
+        ab = co_od_abort_from_drv(drv_set_u32(n->drv, (drv_param_id_t)e->ref, raw));
+    } else {
+        ab = CO_SDO_AB_READONLY;
     }
-    case CO_SRC_PARAM:
-        if (e->ref == (uint16_t)DRV_P_RUN_COMMAND) {
-            return write_run_command(n, raw);
-        }
-        if (e->type == CO_T_REAL32) {
-            float f;
-            memcpy(&f, &raw, 4u);
-            return co_od_abort_from_drv(drv_set_f32(n->drv, (drv_param_id_t)e->ref, f));
-        }
-        return co_od_abort_from_drv(drv_set_u32(n->drv, (drv_param_id_t)e->ref, raw));
-    default:
-        return CO_SDO_AB_READONLY;
+    if (ab == 0u && hook != NULL && hook->written != NULL) {
+        hook->written(n, e, raw);
     }
+    return ab;
 }
 
 uint32_t co_od_domain_size(co_node_t *n, const co_od_entry_t *e, uint32_t *size)

@@ -61,7 +61,23 @@ typedef struct {
 
 typedef enum { CO_DOMAIN_TABLE = 0, CO_DOMAIN_RECORDER = 1 } co_domain_id_t;
 
-typedef struct {
+struct co_node;
+typedef struct co_od_entry co_od_entry_t;
+
+/* A named write hook (od.yaml `hook: NAME` -> the generated table points at co_hook_NAME,
+ * defined by the CANopen module that owns the side effect; an unimplemented name fails the
+ * link). As CANopenNode's OD extensions: the object's write side effects live with the
+ * module, not in a switch on the index. Every member may be NULL.
+ *   check   before the value is stored: an abort code refuses the write, 0 accepts it;
+ *   store   stores / acts instead of the default (RAM field or drive parameter);
+ *   written after a successful store: the side effects. */
+typedef struct co_od_hook {
+    uint32_t (*check)(struct co_node *n, const co_od_entry_t *e, uint32_t raw);
+    uint32_t (*store)(struct co_node *n, const co_od_entry_t *e, uint32_t raw);
+    void (*written)(struct co_node *n, const co_od_entry_t *e, uint32_t raw);
+} co_od_hook_t;
+
+struct co_od_entry {
     uint16_t index;
     uint8_t sub;
     uint8_t type;   /* CO_T_* */
@@ -73,7 +89,8 @@ typedef struct {
     int64_t low, high;
     uint32_t def; /* default / constant, raw bits (REAL32 as IEEE 754 bits) */
     const char *str;
-} co_od_entry_t;
+    const co_od_hook_t *hook; /* write hook, NULL if the object has none */
+};
 
 /* Size in bytes of a fixed-size CiA type; 0 for strings and domains. */
 uint8_t co_od_type_size(uint8_t type);

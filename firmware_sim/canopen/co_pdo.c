@@ -10,15 +10,15 @@
 #define PDO_NOT_VALID 0x80000000u
 #define PDO_EXTENDED 0x20000000u
 
-void co_pdo_init(co_node_t *n)
+void co_pdo_init(co_pdo_t *pdo)
 {
-    memset(n->tpdo, 0, sizeof n->tpdo);
+    memset(pdo, 0, sizeof *pdo);
 }
 
 void co_pdo_on_operational(co_node_t *n)
 {
     for (uint32_t i = 0u; i < CO_NUM_TPDO; i++) {
-        n->tpdo[i].force = true;
+        n->pdo.tpdo[i].force = true;
     }
 }
 
@@ -42,7 +42,8 @@ static const co_od_entry_t *map_target(uint32_t value, bool rpdo)
     return e;
 }
 
-uint32_t co_pdo_check_write(co_node_t *n, const co_od_entry_t *e, uint32_t value)
+/* Write hook `pdo` (every PDO communication / mapping entry): CiA 301's rules. */
+static uint32_t pdo_check(co_node_t *n, const co_od_entry_t *e, uint32_t value)
 {
     uint16_t base = (uint16_t)(e->index & 0xFE00u);
     uint32_t i = e->index & 0x01FFu;
@@ -59,6 +60,9 @@ uint32_t co_pdo_check_write(co_node_t *n, const co_od_entry_t *e, uint32_t value
 #endif
     bool valid = (comm->cob_id & PDO_NOT_VALID) == 0u;
     if (base == 0x1400u || base == 0x1800u) {
+        if (e->sub == 3u && !rpdo && valid && value != comm->inhibit_100us) {
+            return CO_SDO_AB_INVALID_VALUE; /* CiA 301: inhibit time only while not valid */
+        }
         if (e->sub != 1u || value == comm->cob_id) {
             return 0u;
         }
@@ -71,10 +75,6 @@ uint32_t co_pdo_check_write(co_node_t *n, const co_od_entry_t *e, uint32_t value
         }
         if (valid_new && cob_id_restricted(value & 0x7FFu)) {
             return CO_SDO_AB_INVALID_VALUE;
-        }
-        if (!rpdo) {
-            n->tpdo[i].force = valid_new;
-            n->tpdo[i].sent_once = false;
         }
         return 0u;
     }
@@ -106,6 +106,18 @@ uint32_t co_pdo_check_write(co_node_t *n, const co_od_entry_t *e, uint32_t value
     }
     return 0u;
 }
+
+/* A TPDO's COB-ID written: a (newly) valid TPDO is sent once at the next processing. */
+static void pdo_written(co_node_t *n, const co_od_entry_t *e, uint32_t value)
+{
+    uint32_t i = e->index & 0x01FFu;
+    if ((e->index & 0xFE00u) == 0x1800u && e->sub == 1u && i < CO_NUM_TPDO) {
+        n->pdo.tpdo[i].force = (value & PDO_NOT_VALID) == 0u;
+        n->pdo.tpdo[i].sent_once = false;
+    }
+}
+
+const co_od_hook_t co_hook_pdo = {pdo_check, NULL, pdo_written};
 
 void co_pdo_rx(co_node_t *n, const co_frame_t *f)
 {
@@ -170,7 +182,7 @@ void co_pdo_process(co_node_t *n)
     }
     for (uint32_t i = 0u; i < CO_NUM_TPDO; i++) {
         const co_pdo_comm_t *comm = &n->ram.tpdo_comm[i];
-        co_tpdo_state_t *st = &n->tpdo[i];
+        co_tpdo_state_t *st = &n->pdo.tpdo[i];
         if (comm->cob_id & PDO_NOT_VALID) {
             continue;
         }

@@ -131,11 +131,11 @@ static void process(void)
 {
     bool was_timed_out[CO_NUM_HB_CONSUMERS];
     for (unsigned i = 0; i < CO_NUM_HB_CONSUMERS; i++) {
-        was_timed_out[i] = g_node.hbc[i].timed_out;
+        was_timed_out[i] = g_node.hb.consumer[i].timed_out;
     }
     co_node_process(&g_node, g_now);
     for (unsigned i = 0; i < CO_NUM_HB_CONSUMERS; i++) {
-        if (!was_timed_out[i] && g_node.hbc[i].timed_out) {
+        if (!was_timed_out[i] && g_node.hb.consumer[i].timed_out) {
             fz_check(!co_node_run_active(&g_node), "run still active after heartbeat loss");
             uint32_t reason = 0;
             (void)drv_get_u32(sim_drv(&g_sim), DRV_P_RUN_LAST_ERROR, &reason);

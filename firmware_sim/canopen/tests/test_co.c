@@ -607,7 +607,7 @@ static void test_heartbeat(void)
     CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 200u, 4) == 0);
     nmt(0x01);
     enable_402();
-    CHECK(g_n.s402 == CO402_OPERATION_ENABLED && g_drv.enabled);
+    CHECK(g_n.cia402.state == CO402_OPERATION_ENABLED && g_drv.enabled);
     uint8_t hb = 5;
     rx(0x77F, &hb, 1);
     CHECK(sdo_write(0x2010, 1, 1, 1) == 0 && g_drv.run_state == DRV_RUN_SETTLING);
@@ -643,7 +643,7 @@ static void test_producer_write_keeps_the_consumer_armed(void)
     advance_ms(100);
     rx(0x77F, &hb, 1);
     CHECK(sdo_write(0x1017, 0, 50, 2) == 0); /* the host changes the drive's heartbeat */
-    CHECK(g_n.hbc[0].active);
+    CHECK(g_n.hb.consumer[0].active);
     g_ntx = 0;
     advance_ms(250); /* then dies */
     CHECK(g_drv.run_state == DRV_RUN_ABORTED && g_drv.last_error == DRV_STOP_HEARTBEAT);
@@ -652,9 +652,9 @@ static void test_producer_write_keeps_the_consumer_armed(void)
     CHECK(count_id(0x705) >= 4); /* the producer runs with its new period */
     /* rewriting the consumer itself restarts only that consumer */
     rx(0x77F, &hb, 1);
-    CHECK(g_n.hbc[0].active);
+    CHECK(g_n.hb.consumer[0].active);
     CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 300u, 4) == 0);
-    CHECK(!g_n.hbc[0].active && !g_n.hbc[0].timed_out);
+    CHECK(!g_n.hb.consumer[0].active && !g_n.hb.consumer[0].timed_out);
 }
 
 /* Issue 10, finding 4: an upload of the table (0x2002) must abort when the table changes
