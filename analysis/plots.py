@@ -56,13 +56,15 @@ def _db10(x):
         return 10 * np.log10(np.where(np.asarray(x) > 0, x, np.nan))
 
 
-def figure3(result, title=None):
+def figure3(result, title=None, unit="unit"):
     """Figure 3: output spectrum of a multisine experiment (returns the Figure).
 
     Parameters
     ----------
     result : fftune.analysis.bla.BLAResult
     title : str, optional
+    unit : str
+        Unit of the output signal (levels in dB re 1 ``unit`` amplitude).
     """
     fig, (ax,) = _figure()
     ax.plot(result.freq, result.output_db, "k+", ms=5, label="output at excited lines (BLA)")
@@ -77,22 +79,29 @@ def figure3(result, title=None):
     if result.even_bins.size:
         ax.plot(result.even_freq, result.even_db, "^", mfc="none", color="tab:blue", ms=4,
                 label="non-excited even lines")
-    if result.odd_noise_db is not None and (result.odd_bins.size or result.even_bins.size):
-        ax.plot(np.concatenate([result.odd_freq, result.even_freq]),
-                np.concatenate([result.odd_noise_db, result.even_noise_db]), "_", color="0.5",
-                ms=4, label="noise at detection lines")
+    nonexc = getattr(result, "nonexcited_bins", None)
+    if nonexc is not None and nonexc.size and not (result.odd_bins.size or result.even_bins.size):
+        ax.plot(nonexc * result.fs / result.n_period, result.nonexcited_db, "s", mfc="none",
+                color="tab:purple", ms=3, label=f"non-excited lines (no odd/even split: "
+                                                  f"{result.grid} grid)")
+    if nonexc is not None and nonexc.size and result.nonexcited_noise_db is not None:
+        ax.plot(nonexc * result.fs / result.n_period, result.nonexcited_noise_db, "_",
+                color="0.5", ms=4, label="noise at non-excited lines")
+    if getattr(result, "plant_db", None) is not None and nonexc.size:
+        ax.plot(nonexc * result.fs / result.n_period, result.plant_db, "x", color="tab:orange",
+                ms=3, label="plant-referred level at non-excited lines")
     ax.set_xscale("log")
     ax.set_xlabel("frequency (Hz)")
-    ax.set_ylabel("amplitude (dB re 1 unit)")
+    ax.set_ylabel(f"amplitude (dB re 1 {unit})")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="best")
     ax.set_title(title or "Output spectrum: BLA, nonlinear and noise levels")
     return fig
 
 
-def plot_output_spectrum(result, path, title=None):
+def plot_output_spectrum(result, path, title=None, unit="unit"):
     """:func:`figure3` written to ``path``; returns the path."""
-    return _save(figure3(result, title), path)
+    return _save(figure3(result, title, unit), path)
 
 
 def figure_bla(result, title=None):
@@ -122,12 +131,14 @@ def plot_bla(result, path, title=None):
     return _save(figure_bla(result, title), path)
 
 
-def figure4(levels, title=None):
+def figure4(levels, title=None, g_unit="unit/unit", level_unit="unit"):
     """Figure 4: |G_BLA| vs frequency for each excitation level (colour = rms).
 
     Parameters
     ----------
     levels : fftune.analysis.bla.BLALevels
+    g_unit, level_unit : str
+        Unit of the BLA (output per input, e.g. "rad/V") and of the excitation rms.
     """
     from matplotlib import colormaps
 
@@ -137,9 +148,9 @@ def figure4(levels, title=None):
     span = np.ptp(np.log(rms)) or 1.0
     for i, g in enumerate(levels.G):
         c = cmap(float((np.log(rms[i]) - np.log(rms).min()) / span))
-        ax_m.plot(levels.freq, _db20(g), color=c, lw=0.8, label=f"rms {rms[i]:.3g}")
+        ax_m.plot(levels.freq, _db20(g), color=c, lw=0.8, label=f"{rms[i]:.3g} {level_unit} rms")
         ax_p.plot(levels.freq, np.degrees(np.unwrap(np.angle(g))), color=c, lw=0.8)
-    ax_m.set_ylabel("|G_BLA| (dB)")
+    ax_m.set_ylabel(f"|G_BLA| (dB re 1 {g_unit})")
     ax_p.set_ylabel("phase (deg)")
     ax_p.set_xlabel("frequency (Hz)")
     for ax in (ax_m, ax_p):
@@ -150,13 +161,15 @@ def figure4(levels, title=None):
     return fig
 
 
-def plot_bla_levels(levels, path, title=None):
+def plot_bla_levels(levels, path, title=None, g_unit="unit/unit", level_unit="unit"):
     """:func:`figure4` written to ``path``."""
-    return _save(figure4(levels, title), path)
+    return _save(figure4(levels, title, g_unit, level_unit), path)
 
 
-def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=0, title=None):
-    """Figure 5: |H_k| vs amplitude, mean (solid) and standard deviation (dashed).
+def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=0, title=None, unit="unit",
+            h_unit="unit/unit"):
+    """Figure 5: |H_k| vs the sine's rms amplitude (peak / sqrt 2, as the paper), mean
+    (solid) and standard deviation (dashed).
 
     Parameters
     ----------
@@ -172,6 +185,7 @@ def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=0, title=None):
     if H.ndim != 2:
         raise InputError(f"plot_hosidf_amplitude: expected H shaped (L, K), got {H.shape}")
     order = np.argsort(amp)
+    amp = amp / np.sqrt(2.0)                  # peak -> rms
     fig, (ax_m, ax_p) = _figure(rows=2, height=3.0)
     for k in harmonics:
         if k > H.shape[-1]:
@@ -179,9 +193,9 @@ def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=0, title=None):
         line, = ax_m.plot(amp[order], _db20(H[order, k - 1]), "-", label=f"H_{k}")
         ax_m.plot(amp[order], _db20(std[order, k - 1]), "--", color=line.get_color(), lw=0.8)
         ax_p.plot(amp[order], np.degrees(np.angle(H[order, k - 1])), "-", color=line.get_color())
-    ax_m.set_ylabel("|H_k| (dB)")
+    ax_m.set_ylabel(f"|H_k| (dB re 1 {h_unit})")
     ax_p.set_ylabel("phase (deg)")
-    ax_p.set_xlabel("amplitude")
+    ax_p.set_xlabel(f"sine amplitude ({unit} rms)")
     for ax in (ax_m, ax_p):
         ax.set_xscale("log")
         ax.grid(True, which="both", alpha=0.3)
@@ -194,9 +208,9 @@ def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=0, title=None):
 
 
 def plot_hosidf_amplitude(result, path, harmonics=(1, 3, 5, 7), frequency_index=0,
-                          title=None):
+                          title=None, unit="unit", h_unit="unit/unit"):
     """:func:`figure5` written to ``path``."""
-    return _save(figure5(result, harmonics, frequency_index, title), path)
+    return _save(figure5(result, harmonics, frequency_index, title, unit, h_unit), path)
 
 
 def figure_hosidf_harmonics(result, title=None):
@@ -263,10 +277,10 @@ def figure7(k_fc, H, ratio=None, *, k_star=None, harmonics=(3, 5, 7), H_std=None
         ax_p.plot(k_fc, np.degrees(np.angle(H[:, k - 1])), "-o", ms=3, color=line.get_color())
     ratio = odd_ratio(H, harmonics) if ratio is None else np.asarray(ratio, dtype=float)[order]
     ax_r.plot(k_fc, 100 * ratio, "k-o", ms=3)
-    ax_m.set_ylabel("|H_k|")
+    ax_m.set_ylabel("|H_k| (rad/rad)")
     ax_p.set_ylabel("phase (deg)")
     ax_r.set_ylabel("odd NL / linear (%)")
-    ax_r.set_xlabel("K_fc")
+    ax_r.set_xlabel("K_fc (V)")
     ax_m.legend(fontsize=7)
     for ax in (ax_m, ax_p, ax_r):
         ax.grid(True, alpha=0.3)
@@ -309,9 +323,9 @@ def figure9(fs, reference, outputs, errors=None, title=None):
         if err.shape != t.shape:
             raise InputError(f"figure9: error {label!r} has {err.size} samples, expected {t.size}")
         ax_y.plot(t, y, lw=1, label=label)
-        ax_e.plot(t, err, lw=1, label=f"{label} (rms {np.sqrt(np.mean(err ** 2)):.3g})")
-    ax_y.set_ylabel("output")
-    ax_e.set_ylabel("error")
+        ax_e.plot(t, err, lw=1, label=f"{label} (rms {np.sqrt(np.mean(err ** 2)):.3g} rad)")
+    ax_y.set_ylabel("motor angle (rad)")
+    ax_e.set_ylabel("tracking error (rad)")
     ax_e.set_xlabel("time (s)")
     for ax in (ax_y, ax_e):
         ax.grid(True, alpha=0.3)

@@ -55,7 +55,7 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
     write_results(out_dir, results)
     figs = {}
     if figures:
-        figs = make_figures(out_dir, detect_levels, hos, tune_data)
+        figs = make_figures(out_dir, detect_levels, hos, tune_data, results)
     write_html(out_dir, results, figs)
     return results
 

@@ -15,18 +15,73 @@ def write_results(out_dir, results):
     return path
 
 
-def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None):
-    """The paper's Figures 3, 4, 5, 7 and 9 as PNG files via :mod:`fftune.analysis.plots`.
+def _db(v):
+    return "n/a" if v is None else f"{v:+.1f} dB"
 
-    Returns ``{figure name: file name}`` for the figures that the available data allow.
+
+def figure_conclusions(results, detect_levels=None, tune_data=None):
+    """One line per figure, computed from the data: {figure name: text}."""
+    import numpy as np
+    out = {}
+    d = (results or {}).get("detect")
+    if d and detect_levels is not None:
+        for tag, i in (("lowest", 0), ("highest", -1)):
+            lv = d["levels"][i]
+            s = lv["summary_db"]
+            out[f"figure3_{tag}"] = (
+                f"{lv['rms_requested']:g} V rms: nonlinear re output {_db(s.get('line_median_nl_re_output_db'))}, "
+                f"noise re nonlinear {_db(s.get('line_median_noise_re_nl_db'))} (per-line medians); "
+                + (f"odd lines {_db(s.get('odd_line_median_re_noise_db'))}, even "
+                   f"{_db(s.get('even_line_median_re_noise_db'))} re noise; "
+                   if s.get("parity_classifiable") else "")
+                + lv["verdict"])
+        g = np.abs(detect_levels.G)
+        f_peak = float(detect_levels.freq[int(np.argmax(g[-1] * detect_levels.freq ** 2))])
+        out["figure4"] = (f"the BLA changes by up to {d.get('bla_max_change_over_levels_db') or 0:.1f} dB "
+                          f"over the levels; resonance (peak of |G| f^2) at {f_peak:.3g} Hz, "
+                          f"line spacing {detect_levels.freq[1] - detect_levels.freq[0]:.3g} Hz")
+    q = (results or {}).get("quantify")
+    if q:
+        out["figure5"] = (f"largest odd HOSIDF {100 * q['max_odd_relative_level']:.3g} % of H_1, "
+                          f"largest even {100 * q['max_even_relative_level']:.3g} %")
+    t = (results or {}).get("tune")
+    if t and tune_data is not None:
+        k, H = np.asarray(tune_data["k_sweep"]), np.asarray(tune_data["H_sweep"])
+        ks = tune_data["k_star"]
+        below, above = k < ks, k > ks
+        if below.any() and above.any():
+            turn = abs(np.degrees(np.angle(H[above][0, 2] / H[below][-1, 2])))
+            out["figure7"] = (f"H_3 turns by {turn:.0f} deg across K_fc* = {ks:.4g} V (the paper: "
+                              f"180 deg); ratio {t['ratio_at_zero']:.3g} at K_fc = 0, "
+                              f"{t['ratio_at_k_fc_star']:.3g} at K_fc*")
+        e = t["rms_error_rad"]
+        where = "above" if (e["sweep_min_at_k_fc"] or 0) > ks else "not above"
+        out["figure9"] = (f"rms error {e['k_fc_0']:.3g} rad at K_fc = 0, {e['k_fc_star']:.3g} rad at "
+                          f"K_fc*, smallest {e['sweep_min']:.3g} rad at K_fc = {e['sweep_min_at_k_fc']:.4g} V "
+                          f"({where} K_fc*)"
+                          + (f"; with K_v* {e['k_fc_star_k_v_star']:.3g} rad"
+                             if e.get("k_fc_star_k_v_star") is not None else ""))
+    return out
+
+
+def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=None):
+    """The paper's Figures 3 (lowest and highest level), 4, 5, 7 and 9 as PNG files via
+    :mod:`fftune.analysis.plots`, each caption ending with a conclusion computed from the
+    data (:func:`figure_conclusions`).
+
+    Returns ``{figure name: (file name, caption)}`` for the figures the data allow.
     """
     import matplotlib
     matplotlib.use("Agg")
     from fftune.analysis import plots
 
     made = {}
+    concl = figure_conclusions(results, detect_levels, tune_data)
 
-    def save(name, fig, caption):
+    def save(name, fig, caption, key=None):
+        key = key or name.split("_")[0]
+        if concl.get(key):
+            caption = f"{caption} {concl[key]}."
         fname = f"{name}.png"
         tmp = os.path.join(out_dir, f".tmp-{fname}")
         fig.savefig(tmp, dpi=110, bbox_inches="tight")
@@ -36,14 +91,24 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None):
         made[name] = (fname, caption)
 
     if detect_levels is not None:
-        top = detect_levels.results[-1]
-        save("figure3_output_spectrum", plots.figure3(top),
-             "Figure 3: output spectrum of the multisine experiment at the highest level: "
-             "BLA output, nonlinear and noise levels, non-excited odd and even lines.")
-        save("figure4_bla_vs_level", plots.figure4(detect_levels),
+        unit_in = "V"
+        d = (results or {}).get("detect") or {}
+        if d.get("inject") == "reference":
+            unit_in = "rad"
+        for tag, i in (("lowest", 0), ("highest", -1)):
+            res = detect_levels.results[i]
+            rms = detect_levels.rms[i]
+            save(f"figure3_output_spectrum_{tag}",
+                 plots.figure3(res, title=f"Output spectrum at the {tag} level "
+                                          f"({rms:.3g} {unit_in} rms)", unit="rad"),
+                 f"Figure 3 ({tag} level): output spectrum of the multisine experiment: BLA "
+                 f"output, nonlinear and noise levels, non-excited odd and even lines and the "
+                 f"plant-referred level there.", key=f"figure3_{tag}")
+        save("figure4_bla_vs_level", plots.figure4(detect_levels, g_unit=f"rad/{unit_in}",
+                                                   level_unit=unit_in),
              "Figure 4: BLA as a function of frequency and excitation level.")
     if hos is not None:
-        save("figure5_hosidf_vs_amplitude", plots.figure5(hos),
+        save("figure5_hosidf_vs_amplitude", plots.figure5(hos, unit="rad", h_unit="rad/rad"),
              "Figure 5: HOSIDFs vs amplitude (mean and standard deviation over repeats).")
     if tune_data is not None:
         save("figure7_tuning", plots.figure7(tune_data["k_sweep"], tune_data["H_sweep"],
@@ -108,9 +173,16 @@ def key_numbers(results):
     d = results.get("detect")
     if d:
         rows.append(("detection verdict", d["verdict"]))
+        for tag, lv in (("lowest", d["levels"][0]), ("highest", d["levels"][-1])):
+            s = lv["summary_db"]
+            rows.append((f"per line, {tag} level ({lv['rms_requested']:g} rms): nonlinear re output "
+                         f"/ noise re nonlinear (median)",
+                         f"{_fmt(s.get('line_median_nl_re_output_db'), ' dB')} / "
+                         f"{_fmt(s.get('line_median_noise_re_nl_db'), ' dB')}"))
         top = d["levels"][-1]["summary_db"]
-        for k in ("nl_re_output_db", "odd_re_even_db", "noise_re_nl_db"):
-            rows.append((f"{k} (highest level)", _fmt(top.get(k), " dB")))
+        if top.get("parity_classifiable"):
+            rows.append(("per line, highest level: odd re even (median)",
+                         _fmt(top.get("line_median_odd_re_even_db"), " dB")))
     q = results.get("quantify")
     if q:
         rows.append(("largest odd HOSIDF level re H_1", _fmt(q["max_odd_relative_level"])))

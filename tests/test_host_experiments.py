@@ -163,12 +163,16 @@ def test_pipeline_writes_results_figures_and_report(tmp_path):
     saved = yaml.safe_load(open(tmp_path / "results.yaml"))
     assert saved["tune"]["k_fc_star"] == results["tune"]["k_fc_star"]
     assert saved["experiments"]["measured"] > 0
-    for name in ("figure3_output_spectrum", "figure4_bla_vs_level", "figure5_hosidf_vs_amplitude",
+    for name in ("figure3_output_spectrum_lowest", "figure3_output_spectrum_highest",
+                 "figure4_bla_vs_level", "figure5_hosidf_vs_amplitude",
                  "figure7_tuning", "figure9_time_response"):
         png = tmp_path / f"{name}.png"
         assert png.exists() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     html = (tmp_path / "report.html").read_text()
     assert "figure7_tuning.png" in html and f"{results['tune']['k_fc_star']:.4g}" in html
+    # each figure's caption ends with a conclusion computed from the data
+    assert "H_3 turns by" in html and "the BLA changes by up to" in html
+    assert results["detect"]["levels"][0]["verdict"].split(";")[0] in html
 
 
 def test_drive_rate_mismatch_is_named(tmp_path):
