@@ -28,6 +28,7 @@ def enable_402(node):
 
 def configure_sine_run(node, period=2048, settle=0, record=1, amplitude=0.5, cycles=1,
                        signals=0x07):
+    node.sdo[0x6060].raw = -1          # runs start only in the excitation-run mode
     ex = node.sdo["Excitation"]
     ex["Kind"].raw = 1
     ex["Amplitude"].raw = amplitude

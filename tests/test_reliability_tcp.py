@@ -222,6 +222,7 @@ def test_controller_output_saturated_over_a_whole_recording(node, fc_smooth):
     w(0x2001, 7, "<I", 0)
     w(0x2001, 8, "<I", 2)
     w(0x2020, 1, "<I", 0x02 | 0x04)  # plant input + motor angle
+    w(0x6060, 0, "<b", -1)      # runs start in the excitation-run mode only
     w(0x2010, 1, "<B", 1)
     deadline = time.monotonic() + 30
     while node.sdo.upload(0x2010, 2)[0] not in (3, 4, 5):

@@ -167,10 +167,15 @@ static void controlword_written(co_node_t *n, const co_od_entry_t *e, uint32_t r
 
 static uint32_t mode_check(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
 {
-    (void)n;
     (void)e;
     int8_t mode = (int8_t)(uint8_t)raw;
-    return (mode == CO402_MODE_CSP || mode == CO402_MODE_EXCITATION) ? 0u : CO_SDO_AB_INVALID_VALUE;
+    if (mode != CO402_MODE_CSP && mode != CO402_MODE_EXCITATION) {
+        return CO_SDO_AB_INVALID_VALUE;
+    }
+    if (mode != n->ram.mode && co_node_run_active(n)) {
+        return CO_SDO_AB_DATA_DEV_STATE; /* a run ends before the mode changes */
+    }
+    return 0u;
 }
 
 static void mode_written(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
@@ -187,12 +192,14 @@ static void target_written(co_node_t *n, const co_od_entry_t *e, uint32_t raw)
     (void)drv_set_target(n->drv, (float)(int32_t)raw * 1.0e-6f);
 }
 
-/* 0x2010:1: 1 starts a run (only in NMT OPERATIONAL and OPERATION ENABLED), 2 aborts it. */
+/* 0x2010:1: 1 starts a run (only in NMT OPERATIONAL, OPERATION ENABLED and the
+ * excitation-run mode -1; in mode 8 the drive only follows 0x607A), 2 aborts it. */
 static uint32_t run_command_store(co_node_t *n, const co_od_entry_t *e, uint32_t cmd)
 {
     (void)e;
     if (cmd == 1u) {
-        if (n->nmt != CO_NMT_OPERATIONAL || n->cia402.state != CO402_OPERATION_ENABLED) {
+        if (n->nmt != CO_NMT_OPERATIONAL || n->cia402.state != CO402_OPERATION_ENABLED ||
+            n->ram.mode != CO402_MODE_EXCITATION) {
             return CO_SDO_AB_DATA_DEV_STATE;
         }
         return co_od_abort_from_drv(drv_run_start(n->drv));

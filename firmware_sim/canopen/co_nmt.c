@@ -136,7 +136,7 @@ void co_hb_rx(co_node_t *n, const co_frame_t *f)
         c->active = true;
         if (c->timed_out) {
             c->timed_out = false;
-            co_emcy_send(n, CO_EMCY_NO_ERROR, 0u, CO_ERR_REG_COMM, NULL);
+            co_emcy_reset_comm(n);
         }
     }
 }

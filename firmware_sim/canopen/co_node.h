@@ -117,6 +117,7 @@ typedef struct {
     uint8_t last_req[8];
     co_frame_t last_resp;
     bool have_last;
+    uint32_t last_resp_us;
     /* block transfer */
     uint8_t blksize;
     uint8_t seqno;       /* download: last good seqno; upload: segments sent in this block */
@@ -232,6 +233,8 @@ void co_pdo_on_operational(co_node_t *n);
 /* co_emcy.c */
 void co_emcy_send(co_node_t *n, uint16_t code, uint8_t set_reg, uint8_t clear_reg,
                   const uint8_t mfr[5]);
+/* A communication error went away: EMCY 0x0000, communication bit cleared if none remains. */
+void co_emcy_reset_comm(co_node_t *n);
 
 /* co_402.c */
 void co_402_init(co_node_t *n);

@@ -367,6 +367,9 @@ uint32_t co_od_domain_begin(co_node_t *n, const co_od_entry_t *e, uint32_t size,
     if (size_known && size > n->cfg.table_capacity_bytes) {
         return CO_SDO_AB_DATA_LONG;
     }
+    if (size_known && size == 0u) {
+        return CO_SDO_AB_DATA_SHORT; /* an empty DOMAIN: nothing to commit */
+    }
     return 0u;
 }
 
@@ -386,8 +389,11 @@ uint32_t co_od_domain_commit(co_node_t *n, const co_od_entry_t *e, uint32_t tota
     if (e->ref != CO_DOMAIN_TABLE) {
         return CO_SDO_AB_GENERAL;
     }
-    if (total == 0u || (total % 4u) != 0u) {
+    if ((total % 4u) != 0u) {
         return CO_SDO_AB_TYPE_MISMATCH; /* whole float32 samples only */
+    }
+    if (total < 8u) {
+        return CO_SDO_AB_DATA_SHORT; /* empty, or one sample: a table has at least two */
     }
     return co_od_abort_from_drv(drv_table_commit(n->drv, total));
 }

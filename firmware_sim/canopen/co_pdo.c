@@ -135,9 +135,17 @@ void co_pdo_rx(co_node_t *n, const co_frame_t *f)
             bytes += (map->entry[k] & 0xFFu) / 8u;
         }
         if (f->len < bytes) {
-            uint8_t mfr[5] = {(uint8_t)i, f->len, (uint8_t)bytes, 0, 0};
-            co_emcy_send(n, CO_EMCY_PDO_LENGTH, CO_ERR_REG_COMM | CO_ERR_REG_GENERIC, 0u, mfr);
+            /* EMCY once per error episode (as CANopenNode); reset by the next correct one */
+            if (!n->pdo.rpdo_length_error[i]) {
+                n->pdo.rpdo_length_error[i] = true;
+                uint8_t mfr[5] = {(uint8_t)i, f->len, (uint8_t)bytes, 0, 0};
+                co_emcy_send(n, CO_EMCY_PDO_LENGTH, CO_ERR_REG_COMM | CO_ERR_REG_GENERIC, 0u, mfr);
+            }
             return;
+        }
+        if (n->pdo.rpdo_length_error[i]) {
+            n->pdo.rpdo_length_error[i] = false;
+            co_emcy_reset_comm(n);
         }
         uint32_t off = 0u;
         for (uint32_t k = 0u; k < map->count && k < CO_PDO_MAX_ENTRIES; k++) {

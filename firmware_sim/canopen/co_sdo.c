@@ -2,6 +2,15 @@
  * co_sdo.c - SDO server (CiA 301): expedited, segmented, block upload and block download
  * with CRC-16 CCITT, abort codes, timeout. One server channel (0x600+id / 0x580+id).
  *
+ * Repeated requests (a client retrying after a lost response), one rule:
+ *  - inside a segmented transfer the toggle bit is checked as CiA 301 says: a segment whose
+ *    toggle is not alternated aborts the transfer with 0x05030000 (upload and download);
+ *  - after a transfer completed, an exact repeat of its last request (the expedited
+ *    download, the final download or upload segment, the block download end) within the
+ *    SDO timeout is answered with the same response and NOT executed again: the client
+ *    learns that its write (or run start) was done, and nothing is done twice;
+ *  - an upload initiate is always executed again (a repeated read returns the present value).
+ *
  * DOMAIN objects are streamed from / to the drive (no copy of the whole object); block
  * upload re-reads data from the drive on a retransmission, so it needs no block buffer.
  */
@@ -52,6 +61,7 @@ static bool send_resp(co_node_t *n, const uint8_t d[8])
     s->last_resp.len = 8u;
     s->last_resp.id = (uint16_t)(0x580u + n->cfg.node_id);
     s->have_last = true;
+    s->last_resp_us = n->now_us;
     return co_node_send(n, s->last_resp.id, d, 8u);
 }
 
@@ -253,12 +263,7 @@ static void download_segment(co_node_t *n, const uint8_t *r)
     co_sdo_t *s = &n->sdo;
     uint8_t t = r[0] & 0x10u;
     if (t != s->toggle) {
-        /* the client repeated the previous segment because our answer was lost */
-        if (s->have_last && memcmp(r, s->last_req, 8u) == 0) {
-            (void)co_node_send(n, s->last_resp.id, s->last_resp.data, 8u);
-            return;
-        }
-        abort_transfer(n, s->index, s->sub, CO_SDO_AB_TOGGLE);
+        abort_transfer(n, s->index, s->sub, CO_SDO_AB_TOGGLE); /* CiA 301, also for a repeat */
         return;
     }
     uint32_t len = 7u - ((r[0] >> 1) & 0x07u);
@@ -283,11 +288,7 @@ static void upload_segment(co_node_t *n, const uint8_t *r)
     co_sdo_t *s = &n->sdo;
     uint8_t t = r[0] & 0x10u;
     if (t != s->toggle) {
-        if (s->have_last && s->offset > 0u) {
-            (void)co_node_send(n, s->last_resp.id, s->last_resp.data, 8u);
-            return;
-        }
-        abort_transfer(n, s->index, s->sub, CO_SDO_AB_TOGGLE);
+        abort_transfer(n, s->index, s->sub, CO_SDO_AB_TOGGLE); /* CiA 301, also for a repeat */
         return;
     }
     uint32_t left = s->size - s->offset;
@@ -561,6 +562,21 @@ static void handle_initiate(co_node_t *n, const uint8_t *r)
     }
 }
 
+/* An exact repeat of the last request of a completed transfer, within the SDO timeout, that
+ * completed a download or an upload's last segment (not an upload initiate: a read is
+ * executed again). */
+static bool is_replayable_repeat(const co_node_t *n, const uint8_t *r)
+{
+    const co_sdo_t *s = &n->sdo;
+    uint32_t timeout = n->cfg.sdo_timeout_us != 0u ? n->cfg.sdo_timeout_us : 1000000u;
+    if (!s->have_last || memcmp(r, s->last_req, 8u) != 0 ||
+        (uint32_t)(n->now_us - s->last_resp_us) > timeout) {
+        return false;
+    }
+    uint8_t ccs = r[0] >> 5;
+    return ccs == 0u || ccs == 3u || (ccs == 1u && (r[0] & 0x02u)) || (ccs == 6u && (r[0] & 0x01u));
+}
+
 void co_sdo_rx(co_node_t *n, const co_frame_t *f)
 {
     co_sdo_t *s = &n->sdo;
@@ -603,6 +619,7 @@ void co_sdo_rx(co_node_t *n, const co_frame_t *f)
     case SDO_BDL_END:
         if (ccs == 6u) {
             block_download_end(n, r);
+            memcpy(s->last_req, r, 8u);
             return;
         }
         break;
@@ -634,9 +651,14 @@ void co_sdo_rx(co_node_t *n, const co_frame_t *f)
         abort_transfer(n, s->index, s->sub, CO_SDO_AB_CMD);
         return;
     }
+    if (s->state == SDO_IDLE && is_replayable_repeat(n, r)) {
+        (void)co_node_send(n, s->last_resp.id, s->last_resp.data, 8u); /* see the header */
+        return;
+    }
     if (s->state == SDO_IDLE && (ccs == 0u || ccs == 3u)) {
-        /* a segment with no transfer in progress */
-        abort_transfer(n, co_get_u16(&r[1]), r[3], CO_SDO_AB_CMD);
+        /* a segment with no transfer in progress: its bytes 1-3 are data, not a
+         * multiplexer; the abort names the last transfer's object (as CANopenNode) */
+        abort_transfer(n, s->index, s->sub, CO_SDO_AB_CMD);
         return;
     }
     /* a new initiate replaces whatever transfer was in progress */

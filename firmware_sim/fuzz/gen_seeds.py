@@ -156,8 +156,9 @@ def block_upload(index, sub, size, blksize=127, retransmit=False, pressure=False
 
 
 def operational_enabled():
-    """NMT start and CiA 402 to OPERATION ENABLED (shutdown, switch on, enable)."""
-    out = nmt(0x01) + wait_us(1000)
+    """NMT start, mode -1 (excitation runs) and CiA 402 to OPERATION ENABLED (shutdown,
+    switch on, enable)."""
+    out = nmt(0x01) + wait_us(1000) + write_u(0x6060, 0, 0xFF, 1)
     for cw in (0x06, 0x07, 0x0F):
         out += write_u(0x6040, 0, cw, 2) + wait_us(1000)
     return out

@@ -57,6 +57,7 @@ def start():
 
 def record(node, periods=129, n=2048):
     node.nmt.state = "OPERATIONAL"
+    node.sdo[0x6060].raw = -1                    # excitation-run mode
     for cw in (0x06, 0x07, 0x0F):
         node.sdo[0x6040].raw = cw
     ex = node.sdo["Excitation"]
