@@ -6,6 +6,7 @@ User errors (:class:`fftune.analysis.errors.FftuneError`) are printed as one lin
 """
 import argparse
 import importlib
+import signal
 import sys
 
 from fftune.analysis.errors import FftuneError
@@ -33,6 +34,15 @@ def build_parser():
     return parser
 
 
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread like KeyboardInterrupt for Ctrl-C, so that every
+    ``with`` / ``finally`` runs (the drive client stops the run and disables the drive)."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -40,13 +50,23 @@ def main(argv=None):
         parser.print_help()
         return 2
     try:
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread (an embedding program): its own signal handling
+        previous = None
+    try:
         return int(args.func(args) or 0)
+    except Terminated:
+        print("fftune: terminated", file=sys.stderr)
+        return 143
     except FftuneError as exc:
         print(f"fftune: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print("fftune: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

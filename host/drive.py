@@ -10,7 +10,9 @@ drive watches the host's (object 0x1016), the client watches the drive's and its
 Every failure a user can cause or meet (unreachable bus, wrong node id, SDO abort, timeout,
 run stopped by the drive) is raised as one :class:`fftune.analysis.errors.FftuneError` line.
 """
+import contextlib
 import logging
+import signal
 import socket
 import struct
 import threading
@@ -44,20 +46,30 @@ def quiet_can_loggers():
     logging.getLogger("canopen").setLevel(logging.CRITICAL)
 
 
-def add_bus_arguments(parser):
-    """python-can's option names (as in ``python -m can.logger``) plus the drive's."""
+def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_PORT):
+    """python-can's option names (as in ``python -m can.logger``) plus the drive's.
+
+    ``drive_side``: for ``fftune sim`` (the drive itself): ``--bitrate`` is the simulated
+    bus's bit rate, ``--host``/``--port`` the server's address, no ``--eds``.
+    """
     g = parser.add_argument_group("CAN bus (python-can options)")
     g.add_argument("-i", "--interface", default="socketcand",
-                   help="python-can interface: socketcand (default), socketcan, pcan, kvaser, virtual, ...")
+                   help="socketcand (default) or socketcan" if drive_side else
+                   "python-can interface: socketcand (default), socketcan, pcan, kvaser, virtual, ...")
     g.add_argument("-c", "--channel", default=None,
                    help="channel (socketcand: the bus name served, default can0; socketcan: vcan0 ...)")
-    g.add_argument("-b", "--bitrate", type=int, default=None, help="bit rate in bit/s")
+    g.add_argument("-b", "--bitrate", type=int, default=None,
+                   help="simulate a classic CAN bus of this bit rate (socketcand only; default: "
+                        "frames pass at once)" if drive_side else "bit rate in bit/s")
     g.add_argument("--host", default=DEFAULT_SOCKETCAND_HOST,
-                   help=f"socketcand server (default {DEFAULT_SOCKETCAND_HOST}, the simulated drive)")
-    g.add_argument("--port", type=int, default=DEFAULT_SOCKETCAND_PORT,
-                   help=f"socketcand TCP port (default {DEFAULT_SOCKETCAND_PORT})")
+                   help=f"socketcand address to bind (default {DEFAULT_SOCKETCAND_HOST})" if drive_side else
+                   f"socketcand server (default {DEFAULT_SOCKETCAND_HOST}, the simulated drive)")
+    g.add_argument("--port", type=int, default=port_default,
+                   help=f"socketcand TCP port (default {port_default if port_default else 'a free one'})")
     g.add_argument("--node-id", type=int, default=None, help="drive node id (default: config, else 1)")
-    g.add_argument("--eds", default=None, help="the drive's EDS (default: config, else the firmware_sim build's)")
+    if not drive_side:
+        g.add_argument("--eds", default=None,
+                       help="the drive's EDS (default: config, else the firmware_sim build's)")
 
 
 @dataclass
@@ -174,6 +186,33 @@ class _BusErrorListener:
         pass
 
 
+@contextlib.contextmanager
+def _signals_deferred(signums=(signal.SIGINT, signal.SIGTERM)):
+    """Hold SIGINT / SIGTERM while the block runs (main thread only: elsewhere Python
+    delivers no signals anyway), then act on the first one that came, as it would have."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending = []
+    saved = {}
+    for signum in signums:
+        try:
+            saved[signum] = signal.signal(signum, lambda sig, frame: pending.append(sig))
+        except (ValueError, OSError):
+            pass
+    try:
+        yield
+    finally:
+        for signum, handler in saved.items():
+            signal.signal(signum, handler)
+        if pending:
+            handler = saved.get(pending[0])
+            if callable(handler):
+                handler(pending[0], None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(pending[0])
+
+
 class DriveClient:
     """A connected drive. Use as a context manager, or call :meth:`close`.
 
@@ -206,6 +245,9 @@ class DriveClient:
         self._hb_task = None
         self._bootups = 0
         self._last_hb = None
+        self._run_active = False      # a run may be going on the drive (started by us)
+        self._enabled = False         # we enabled the drive (CiA 402)
+        self._transfer_open = False   # an SDO transfer may be half done (interrupted)
         self.network = None
         try:
             self.node = canopen.BaseNode402(opts.node_id, opts.eds)
@@ -282,23 +324,48 @@ class DriveClient:
         self.write(0x1016, 1, consumer)
 
     def close(self):
+        """Leave the drive safe, then disconnect: abort a transfer the host may have left
+        half done, stop a run, disable the drive (CiA 402 shutdown: power stage off), stop
+        the host heartbeat. The drive's heartbeat consumer (0x1016) stays armed, so a host
+        that dies without reaching this point still stops the drive within the consumer
+        time. Ctrl-C / SIGTERM arriving meanwhile are held until the cleanup is done (it is
+        bounded: at most three short SDO requests)."""
         if self.network is None:
             return
-        try:
-            if self._hb_task is not None:
-                try:
-                    # Tell the drive to stop watching before the host heartbeat ends.
-                    self.node.sdo.RESPONSE_TIMEOUT = 0.3
-                    self.node.sdo.MAX_RETRIES = 1
-                    self.node.sdo.download(0x1016, 1, struct.pack("<L", 0))
-                except Exception:
-                    pass
-                self._hb_task.stop()
-                self._hb_task = None
-            self.network.disconnect()
-        except Exception:
-            pass
-        self.network = None
+        with _signals_deferred():
+            try:
+                self._leave_safe()
+            except Exception:
+                pass  # the bus is gone: the armed consumer stops the drive
+            try:
+                if self._hb_task is not None:
+                    self._hb_task.stop()
+                    self._hb_task = None
+                self.network.disconnect()
+            except Exception:
+                pass
+            self.network = None
+
+    def _leave_safe(self):
+        """Stop a run and disable the drive, each step tried even if another fails."""
+        if not (self._run_active or self._enabled):
+            return
+        sdo = self.node.sdo
+        sdo.RESPONSE_TIMEOUT = min(0.3, self.sdo_timeout_s)
+        sdo.MAX_RETRIES = 1
+        steps = []
+        if self._transfer_open:
+            steps.append(lambda: sdo.abort(0x08000000))  # general error: reset the server's transfer
+        cmd = PARAMS["run_command"]
+        steps.append(lambda: sdo.download(cmd.index, cmd.subindex, struct.pack("<B", 2)))  # stop
+        if self._enabled and 0x6040 in self.node.object_dictionary:
+            steps.append(lambda: sdo.download(0x6040, 0, struct.pack("<H", 0x0006)))  # shutdown
+        for step in steps:
+            try:
+                step()
+            except Exception as exc:
+                logger.debug("cleanup step failed: %s", exc)
+        self._run_active = self._enabled = self._transfer_open = False
 
     def __enter__(self):
         if self.network is None:
@@ -323,8 +390,11 @@ class DriveClient:
         import can
         from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
+        self._transfer_open = True
         try:
-            return fn()
+            result = fn()
+            self._transfer_open = False
+            return result
         except SdoAbortedError as exc:
             raise FftuneError(f"{what} {self._describe_obj(index, sub)} on node {self.opts.node_id}: "
                               f"{sdo_abort_text(exc)}") from None
@@ -428,6 +498,7 @@ class DriveClient:
     def enable(self):
         """NMT OPERATIONAL and CiA 402 OPERATION ENABLED in the excitation-run mode."""
         node = self.node
+        self._enabled = True  # from the first attempt on: close() disables again
         try:
             node.nmt.state = "PRE-OPERATIONAL"
             node.setup_402_state_machine(read_pdos=True)
@@ -474,6 +545,7 @@ class DriveClient:
         counter0 = int(self.get("run_counter"))
         boots0 = self._bootups
         t_start = time.time()
+        self._run_active = True  # (also if the start's answer is lost): close() stops it
         self.set("run_command", 1)
         total = int(self.get("run_total"))
         deadline = time.monotonic() + self.run_timeout_s
@@ -487,8 +559,10 @@ class DriveClient:
                 if self._bootups != boots0:
                     raise FftuneError(f"node {self.opts.node_id} rebooted during the run (boot-up seen)")
                 if state == 3 and int(self.get("run_counter")) != counter0:
+                    self._run_active = False
                     break
                 if state in (4, 5):
+                    self._run_active = False
                     reason = int(self.get("run_last_error"))
                     raise FftuneError(f"run stopped by the drive: state {RUN_STATES[state]}, reason "
                                       f"{reason} ({STOP_REASONS.get(reason, 'unknown')})")

@@ -104,7 +104,9 @@ def test_heartbeats_are_configured_both_ways(peer, eds):
                 if msg is not None and msg.arbitration_id == 0x77E and bytes(msg.data) == b"\x05":
                     beats += 1
             assert beats >= 3
-        assert node.sdo[0x1016][1].raw == 0                # consumer off again on close
+        # the consumer stays armed after close (issue 10 item 3): a host that dies without
+        # closing must still be noticed by the drive
+        assert node.sdo[0x1016][1].raw == (0x7E << 16) | 200
     finally:
         spy.shutdown()
 
