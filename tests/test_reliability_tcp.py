@@ -9,6 +9,7 @@ output saturated at u_max over a whole recording.
 """
 import math
 import random
+import re
 import socket
 import struct
 import time
@@ -86,18 +87,24 @@ def test_random_bytes_overlong_lines_and_stalled_half_lines(drive):
     stalled.sock.sendall(b"< send 601 8 40 00 10")  # half a line, then nothing
     noisy = RawClient(drive.port)
     raw = socket.create_connection(("127.0.0.1", drive.port), timeout=3)  # never handshakes
+
+    def raw_send(data):  # the server closes it SCD_HANDSHAKE_US after connecting (3 s)
+        try:
+            raw.sendall(data)
+            return len(data)
+        except (BrokenPipeError, ConnectionResetError):
+            return 0
     sent = 0
     for k in range(40):
         blob = bytes(rng.getrandbits(8) for _ in range(8192))
         noisy.sock.sendall(blob)
-        raw.sendall(blob)
-        sent += 2 * len(blob)
+        sent += len(blob) + raw_send(blob)
         if k % 10 == 0:
             # over-long commands: 100x the line buffer, with and without the closing '>'
             noisy.sock.sendall(b"< send 601 8 " + b"ff " * (SCD_LINE_MAX * 30) + b">")
-            raw.sendall(b"<" + b"x" * (SCD_LINE_MAX * 100))
+            raw_send(b"<" + b"x" * (SCD_LINE_MAX * 100))
             assert _device_type_ok(good), "a well-behaved client got no answer"
-    assert sent > 600_000
+    assert sent > 330_000
     assert _device_type_ok(good)
     # after the garbage, a complete command on the noisy connection is understood again
     noisy.sock.sendall(b">")
@@ -110,6 +117,87 @@ def test_random_bytes_overlong_lines_and_stalled_half_lines(drive):
     for c in (good, stalled, noisy):
         c.close()
     raw.close()
+
+
+def _stop_line(drive):
+    drive.stop(check=True)
+    line = [ln for ln in drive.log().splitlines() if ln.startswith("drive_sim: stopped:")]
+    assert line, drive.log()
+    return line[-1]
+
+
+def test_silent_connections_do_not_lock_out_new_clients(drive):
+    """Eight TCP connections that never say a word fill every slot; a new client still
+    gets in (the longest-silent unhandshaken one is evicted), and a silent connection is
+    closed once its handshake time (3 s) is over."""
+    silent = [socket.create_connection(("127.0.0.1", drive.port), timeout=5)
+              for _ in range(SCD_MAX_CLIENTS)]
+    for s in silent:
+        assert s.recv(6) == b"< hi >"
+    time.sleep(0.3)  # > SCD_EVICT_IDLE_US: all eight are idle in their handshake
+    newcomer = RawClient(drive.port)
+    assert _device_type_ok(newcomer), "a new client is locked out by silent connections"
+    # the one evicted sees its connection closed at once; the others within the 3 s timeout
+    t0 = time.monotonic()
+    closed = 0
+    for s in silent:
+        s.settimeout(max(0.1, 5.0 - (time.monotonic() - t0)))
+        try:
+            closed += s.recv(100) == b""
+        except (socket.timeout, ConnectionResetError):
+            closed += 0
+        s.close()
+    assert closed == SCD_MAX_CLIENTS, f"{closed} of {SCD_MAX_CLIENTS} silent connections closed"
+    assert _device_type_ok(newcomer), "the handshaken client was dropped with the silent ones"
+    newcomer.close()
+    line = _stop_line(drive)
+    assert "1 evicted in their handshake, 7 handshake timeouts" in line, line
+
+
+def test_handshaken_clients_are_never_evicted(drive):
+    """Eviction takes only connections still in their handshake: with eight clients in
+    rawmode (silent, but handshaken) the ninth is refused, the eight keep working."""
+    clients = [RawClient(drive.port) for _ in range(SCD_MAX_CLIENTS)]
+    time.sleep(0.3)
+    extra = socket.create_connection(("127.0.0.1", drive.port), timeout=3)
+    assert extra.recv(100) == b""
+    extra.close()
+    for cli in clients:
+        assert _device_type_ok(cli)
+        cli.close()
+
+
+def test_silent_clients_in_their_grace_cause_no_busy_loop(drive):
+    """Frames queued for clients in their 200 ms handshake grace cannot be written; the
+    server must not ask poll for POLLOUT then (it returned at once, again and again: a
+    busy loop of ~100 000 passes a second). Idle, drive_sim wakes about once a millisecond
+    (CANopen timers) plus once per frame or connection."""
+    cfg = RawClient(drive.port)
+    cfg.send_frame(0x601, [0x2B, 0x17, 0x10, 0x00, 5, 0, 0, 0])  # heartbeat every 5 ms
+    assert cfg.expect_message(2.0) is not None
+    cfg.close()
+    t0 = time.monotonic()
+    socks = []
+    while time.monotonic() - t0 < 1.5:
+        if len(socks) >= 6:
+            socks.pop(0).close()
+        s = socket.create_connection(("127.0.0.1", drive.port), timeout=3)
+        assert s.recv(6) == b"< hi >"
+        s.sendall(b"< open can0 >")
+        assert s.recv(6) == b"< ok >"
+        s.sendall(b"< rawmode >")
+        assert s.recv(6) == b"< ok >"
+        socks.append(s)  # silent from here on: in its grace, heartbeats queue up for it
+        time.sleep(0.1)
+    for s in socks:
+        s.close()
+    elapsed_ms = (time.monotonic() - t0) * 1000.0 + 1000.0  # + start-up and stop
+    line = _stop_line(drive)
+    passes = int(re.search(r"(\d+) bus passes", line).group(1))
+    # once per ms, plus frames (heartbeats 1 per 5 ms) and connection events: far below
+    # a busy loop's count
+    assert passes < 3 * elapsed_ms, f"{passes} bus passes in about {elapsed_ms:.0f} ms: {line}"
+    print(f"{passes} bus passes in about {elapsed_ms:.0f} ms with silent clients in their grace")
 
 
 def test_client_that_never_reads_does_not_block_the_bus(drive):

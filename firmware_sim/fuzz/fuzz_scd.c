@@ -46,11 +46,13 @@ static void fz_check(bool ok, const char *what)
     }
 }
 
-static void on_frame(void *ctx, const scd_frame_t *f)
+static void on_frame(void *ctx, int client, const scd_frame_t *f)
 {
     (void)ctx;
     fz_check(f->len <= 8u, "frame longer than 8 bytes");
     fz_check(f->ext ? f->id <= 0x1FFFFFFFu : f->id <= 0x7FFu, "identifier range");
+    fz_check(client >= 0 && client < SCD_MAX_CLIENTS, "client index range");
+    scd_broadcast(&g_srv, f, client, 0u); /* as drive_sim does without a bus model */
 }
 
 /* Read what the server sent to client i and check its framing. */

@@ -3,7 +3,7 @@
  * slave (canopen/co_node.h) on a socketcand TCP server or a SocketCAN interface.
  *
  *   drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N]
- *             [--node-id N] [--config FILE] [--realtime] [--quiet]
+ *             [--node-id N] [--config FILE] [--realtime] [--bitrate B] [--quiet]
  *
  * Timing. CANopen timers (heartbeat, SDO timeout, PDO inhibit / event) always run on
  * CLOCK_MONOTONIC wall time.
@@ -15,7 +15,15 @@
  *  - --realtime: one step per controller period against absolute CLOCK_MONOTONIC
  *    deadlines (clock_nanosleep TIMER_ABSTIME); a step that starts more than one period
  *    late counts as an overrun (printed at exit); more than 100 periods behind re-bases
- *    the schedule instead of catching up.
+ *    the schedule instead of catching up. Bus work is bounded per control period: after
+ *    each step the bus is serviced in passes of bounded work (at most SCD_RT_READ bytes
+ *    per client per pass) only while the next deadline is more than RT_MARGIN away, so
+ *    a flood of frames slows the bus (TCP flow control holds the senders back), not the
+ *    controller.
+ * Bus model (--bitrate B, socketcand only): frames of the drive and of every client share
+ * one simulated classic CAN bus at B bit/s (port/cbus.h: bit-exact frame length with
+ * stuffing, arbitration by identifier); a frame reaches the others when its last bit has
+ * been sent, time-stamped with that moment. Without --bitrate frames pass at once.
  * Readiness: one line on stdout, e.g.
  *   drive_sim: listening on socketcand 127.0.0.1:29536, node 1
  */
@@ -29,6 +37,7 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "cbus.h"
 #include "co_node.h"
 #include "plant_config.h"
 #include "scd.h"
@@ -44,7 +53,13 @@ typedef struct {
     const char *config;
     bool realtime;
     bool quiet;
+    int bitrate; /* 0: no bus model */
 } opts_t;
+
+#define SCD_RT_READ 256u              /* --realtime: bytes read per client per bus pass */
+#define SCD_RT_WRITE 4096u            /* --realtime: bytes written per client per bus pass */
+#define SCD_BUS_READ 1024u            /* --bitrate: at most ~100 frames per read */
+#define CBUS_PAUSE_AT (CBUS_QUEUE / 2u) /* a client's bus queue this full: stop reading it */
 
 typedef struct {
     opts_t o;
@@ -54,10 +69,15 @@ typedef struct {
     float *table_buf;
     co_node_t node;
     scd_server_t *scd;
+    cbus_t *bus;           /* NULL without --bitrate */
+    int64_t realtime_offset_us; /* CLOCK_REALTIME - CLOCK_MONOTONIC (frame time stamps) */
     int can_fd;
     uint64_t now_us;
+    uint64_t tx_time_ns;   /* bus time at which the node's next frame is queued */
     uint64_t steps;
     uint64_t overruns;
+    uint64_t bus_passes;   /* bus service passes (poll + handle + flush) */
+    uint64_t bus_late;     /* --realtime: periods whose bus work ran into the next deadline */
 } app_t;
 
 static volatile sig_atomic_t g_stop;
@@ -68,18 +88,23 @@ static void on_signal(int sig)
     g_stop = 1;
 }
 
-static uint64_t mono_us(void)
+static uint64_t mono_ns(void)
 {
     struct timespec ts;
     clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (uint64_t)ts.tv_sec * 1000000u + (uint64_t)ts.tv_nsec / 1000u;
+    return (uint64_t)ts.tv_sec * 1000000000u + (uint64_t)ts.tv_nsec;
+}
+
+static uint64_t mono_us(void)
+{
+    return mono_ns() / 1000u;
 }
 
 static int usage_error(const char *msg, const char *arg)
 {
     fprintf(stderr, "drive_sim: error: %s%s%s\n", msg, arg ? ": " : "", arg ? arg : "");
     fprintf(stderr, "usage: drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N] "
-                    "[--node-id N] [--config FILE] [--realtime] [--quiet]\n");
+                    "[--node-id N] [--config FILE] [--realtime] [--bitrate B] [--quiet]\n");
     return 2;
 }
 
@@ -148,21 +173,31 @@ static int parse_args(opts_t *o, int argc, char **argv)
         } else if (strcmp(a, "--config") == 0 && v) {
             o->config = v;
             i++;
+        } else if (strcmp(a, "--bitrate") == 0 && v) {
+            if (!parse_int(v, CBUS_BITRATE_MIN, CBUS_BITRATE_MAX, &o->bitrate)) {
+                return usage_error("--bitrate must be 10000..1000000 bit/s", v);
+            }
+            i++;
         } else if (strcmp(a, "--realtime") == 0) {
             o->realtime = true;
         } else if (strcmp(a, "--quiet") == 0) {
             o->quiet = true;
         } else if (strcmp(a, "--help") == 0 || strcmp(a, "-h") == 0) {
             printf("usage: drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N] "
-                   "[--node-id N] [--config FILE] [--realtime] [--quiet]\n"
+                   "[--node-id N] [--config FILE] [--realtime] [--bitrate B] [--quiet]\n"
                    "  --can      bus (default socketcand:127.0.0.1:29536; --port 0 picks a free port)\n"
                    "  --node-id  CANopen node id 1..127 (default 1)\n"
                    "  --config   plant / controller configuration (configs/plant_*.yaml; default: built-in twomass)\n"
-                   "  --realtime step at the controller rate on absolute deadlines (default: free-run)\n");
+                   "  --realtime step at the controller rate on absolute deadlines (default: free-run)\n"
+                   "  --bitrate  model a classic CAN bus of B bit/s shared by all nodes (socketcand only;\n"
+                   "             default: frames pass at once)\n");
             exit(0);
         } else {
             return usage_error("unknown or incomplete option", a);
         }
+    }
+    if (o->bitrate != 0 && o->socketcan) {
+        return usage_error("--bitrate models the socketcand bus; a SocketCAN interface has its own bit rate", NULL);
     }
     return 0;
 }
@@ -177,7 +212,10 @@ static bool tx_hook(void *ctx, const co_frame_t *f)
     if (app->o.socketcan) {
         return sockcan_write(app->can_fd, &sf);
     }
-    scd_broadcast(app->scd, &sf, -1, app->now_us);
+    if (app->bus) {
+        return cbus_submit(app->bus, 0, &sf, app->tx_time_ns); /* full queue: not sent (counted) */
+    }
+    scd_broadcast(app->scd, &sf, -1, 0u);
     return true;
 }
 
@@ -197,9 +235,8 @@ static void reset_hook(void *ctx)
     }
 }
 
-static void rx_hook(void *ctx, const scd_frame_t *f)
+static void node_rx(app_t *app, const scd_frame_t *f)
 {
-    app_t *app = ctx;
     if (f->ext) {
         return; /* CANopen uses 11-bit identifiers */
     }
@@ -208,36 +245,106 @@ static void rx_hook(void *ctx, const scd_frame_t *f)
     co_node_rx(&app->node, &cf);
 }
 
+/* A frame from socketcand client `client` (or, with client -1, from SocketCAN). */
+static void rx_hook(void *ctx, int client, const scd_frame_t *f)
+{
+    app_t *app = ctx;
+    if (app->bus && client >= 0) {
+        if (!cbus_submit(app->bus, 1 + client, f, app->tx_time_ns)) {
+            return; /* (not reached: reading pauses well before the queue is full) */
+        }
+        if (cbus_queued(app->bus, 1 + client) >= CBUS_PAUSE_AT) {
+            app->scd->client[client].rx_paused = true; /* TCP flow control holds it back */
+        }
+        return;
+    }
+    node_rx(app, f);
+    if (client >= 0) {
+        scd_broadcast(app->scd, f, client, 0u); /* the other clients: one bus */
+    }
+}
+
+/* The bus model delivers a frame whose last bit has been sent (at end_ns). */
+static void deliver_hook(void *ctx, int src, const scd_frame_t *f, uint64_t end_ns)
+{
+    app_t *app = ctx;
+    uint64_t saved = app->tx_time_ns;
+    app->tx_time_ns = end_ns; /* the node answers as soon as the frame is in */
+    if (src != 0) {
+        node_rx(app, f);
+    }
+    uint64_t stamp_us = (uint64_t)((int64_t)(end_ns / 1000u) + app->realtime_offset_us);
+    scd_broadcast(app->scd, f, src - 1, stamp_us);
+    app->tx_time_ns = saved;
+}
+
 /* ---- bus service ---- */
 
-static void service_bus(app_t *app, int timeout_ms)
+/* One bus pass: wait up to timeout_ns for the bus (bounded by the bus model's and the
+ * server's next event), handle what is ready, run the CANopen timers, write output.
+ * Returns the number of ready descriptors. */
+static int service_bus(app_t *app, uint64_t timeout_ns)
 {
     struct pollfd pfd[1 + SCD_MAX_CLIENTS];
     int n;
+    uint64_t now_ns = mono_ns();
+    app->bus_passes++;
     if (app->o.socketcan) {
         pfd[0].fd = app->can_fd;
         pfd[0].events = POLLIN;
         pfd[0].revents = 0;
         n = 1;
     } else {
-        n = scd_pollfds(app->scd, pfd);
+        if (app->bus) {
+            for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
+                scd_client_t *c = &app->scd->client[i];
+                if (c->fd < 0 && cbus_queued(app->bus, 1 + i) > 0u) {
+                    cbus_flush_source(app->bus, 1 + i); /* its client went away */
+                }
+                if (c->rx_paused && cbus_queued(app->bus, 1 + i) < CBUS_PAUSE_AT / 2u) {
+                    c->rx_paused = false;
+                }
+            }
+            uint64_t ev = cbus_next_event_ns(app->bus);
+            if (ev != UINT64_MAX) {
+                timeout_ns = ev > now_ns ? (ev - now_ns < timeout_ns ? ev - now_ns : timeout_ns) : 0u;
+            }
+        }
+        uint64_t wake_us = scd_next_wakeup_us(app->scd);
+        if (wake_us != UINT64_MAX) {
+            uint64_t now_us = now_ns / 1000u;
+            uint64_t dt = wake_us > now_us ? (wake_us - now_us) * 1000u : 0u;
+            timeout_ns = dt < timeout_ns ? dt : timeout_ns;
+        }
+        n = scd_pollfds(app->scd, pfd, now_ns / 1000u);
     }
-    int r = poll(pfd, (nfds_t)n, timeout_ms);
-    app->now_us = mono_us();
+    struct timespec ts = {(time_t)(timeout_ns / 1000000000u), (long)(timeout_ns % 1000000000u)};
+    int r = ppoll(pfd, (nfds_t)n, &ts, NULL);
+    now_ns = mono_ns();
+    app->now_us = now_ns / 1000u;
+    app->tx_time_ns = now_ns;
     if (r > 0) {
         if (app->o.socketcan) {
             scd_frame_t f;
             for (int k = 0; k < 256 && sockcan_read(app->can_fd, &f) == 1; k++) {
-                rx_hook(app, &f);
+                rx_hook(app, -1, &f);
             }
         } else {
             scd_handle(app->scd, pfd, n, app->now_us, rx_hook, app);
         }
     }
+    if (app->bus) {
+        cbus_advance(app->bus, now_ns, deliver_hook, app);
+    }
     co_node_process(&app->node, (uint32_t)app->now_us);
+    if (app->bus) {
+        cbus_advance(app->bus, now_ns, deliver_hook, app); /* (the node's timers may have sent) */
+    }
     if (!app->o.socketcan) {
+        scd_expire(app->scd, app->now_us);
         scd_flush(app->scd, app->now_us);
     }
+    return r;
 }
 
 static void loop_free_run(app_t *app)
@@ -252,11 +359,11 @@ static void loop_free_run(app_t *app)
                     app->steps++;
                 }
             } while (mono_us() < until && co_node_run_active(&app->node));
-            service_bus(app, 0);
+            service_bus(app, 0u);
             continue;
         }
         /* idle: simulated time holds; wake for the bus or the 1 ms CANopen timer tick */
-        service_bus(app, 1);
+        service_bus(app, 1000000u);
     }
 }
 
@@ -282,7 +389,19 @@ static void loop_realtime(app_t *app)
         }
         sim_step(&app->sim);
         app->steps++;
-        service_bus(app, 0);
+        /* bus work in bounded passes while the next deadline is far enough away (at least
+         * one pass per period, so the bus is never starved) */
+        uint64_t deadline_ns = (uint64_t)next.tv_sec * 1000000000u + (uint64_t)next.tv_nsec + period_ns;
+        uint64_t margin_ns = period_ns / 4u;
+        while (!g_stop) {
+            int ready = service_bus(app, 0u);
+            if (ready <= 0 || mono_ns() + margin_ns >= deadline_ns) {
+                break;
+            }
+        }
+        if (mono_ns() > deadline_ns) {
+            app->bus_late++;
+        }
     }
 }
 
@@ -321,6 +440,21 @@ int main(int argc, char **argv)
             fprintf(stderr, "drive_sim: error: %s\n", app.scd ? err : "out of memory");
             return 2;
         }
+        if (app.o.realtime) {
+            app.scd->read_budget = SCD_RT_READ;
+            app.scd->write_budget = SCD_RT_WRITE;
+        }
+        if (app.o.bitrate != 0) {
+            app.bus = calloc(1, sizeof *app.bus);
+            if (app.bus == NULL || cbus_init(app.bus, (uint32_t)app.o.bitrate) != 0) {
+                fprintf(stderr, "drive_sim: error: %s\n", app.bus ? "bad --bitrate" : "out of memory");
+                return 2;
+            }
+            app.scd->read_budget = SCD_BUS_READ;
+            struct timespec rt;
+            clock_gettime(CLOCK_REALTIME, &rt);
+            app.realtime_offset_us = ((int64_t)rt.tv_sec * 1000000 + rt.tv_nsec / 1000) - (int64_t)mono_us();
+        }
     }
     struct sigaction sa;
     memset(&sa, 0, sizeof sa);
@@ -340,12 +474,17 @@ int main(int argc, char **argv)
     cc.app_ctx = &app;
     cc.table_capacity_bytes = app.cfg.table_capacity * 4u;
     app.now_us = mono_us();
+    app.tx_time_ns = app.now_us * 1000u;
     co_node_init(&app.node, &cc, sim_drv(&app.sim), (uint32_t)app.now_us);
 
     if (app.o.socketcan) {
         printf("drive_sim: listening on socketcan %s, node %d\n", app.o.ifname, app.o.node_id);
     } else {
-        printf("drive_sim: listening on socketcand %s:%d, node %d\n", app.o.host, bound, app.o.node_id);
+        printf("drive_sim: listening on socketcand %s:%d, node %d", app.o.host, bound, app.o.node_id);
+        if (app.bus) {
+            printf(", CAN bus model %d bit/s", app.o.bitrate);
+        }
+        printf("\n");
     }
     fflush(stdout);
 
@@ -357,13 +496,22 @@ int main(int argc, char **argv)
 
     if (!app.o.quiet) {
         fprintf(stderr,
-                "drive_sim: stopped: %llu steps, %llu overruns, %u frames received, %u sent, %u not sent",
+                "drive_sim: stopped: %llu steps, %llu overruns, %u frames received, %u sent, %u not sent, %llu bus passes, "
+                "%llu periods with bus work past the next deadline",
                 (unsigned long long)app.steps, (unsigned long long)app.overruns, (unsigned)app.node.rx_frames,
-                (unsigned)app.node.tx_frames, (unsigned)app.node.tx_dropped);
+                (unsigned)app.node.tx_frames, (unsigned)app.node.tx_dropped, (unsigned long long)app.bus_passes,
+                (unsigned long long)app.bus_late);
         if (app.scd) {
-            fprintf(stderr, ", socketcand: %llu frames dropped at full client buffers, %llu bad commands, %llu refused connections",
+            fprintf(stderr, ", socketcand: %llu frames dropped at full client buffers, %llu bad commands, %llu refused connections"
+                            ", %llu evicted in their handshake, %llu handshake timeouts",
                     (unsigned long long)app.scd->dropped, (unsigned long long)app.scd->garbage,
-                    (unsigned long long)app.scd->refused);
+                    (unsigned long long)app.scd->refused, (unsigned long long)app.scd->evicted,
+                    (unsigned long long)app.scd->handshake_timeouts);
+        }
+        if (app.bus) {
+            fprintf(stderr, ", CAN bus model: %llu frames, %llu bits at %d bit/s, %llu dropped at full queues",
+                    (unsigned long long)app.bus->frames, (unsigned long long)app.bus->bits, app.o.bitrate,
+                    (unsigned long long)app.bus->dropped);
         }
         fprintf(stderr, "\n");
     }

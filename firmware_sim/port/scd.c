@@ -24,6 +24,9 @@ static void client_reset(scd_client_t *c)
     c->out_head = 0;
     c->out_len = 0;
     c->frames_after_us = 0;
+    c->accepted_us = 0;
+    c->last_rx_us = 0;
+    c->rx_paused = false;
     c->dropped = 0;
 }
 
@@ -31,6 +34,7 @@ int scd_open(scd_server_t *s, const char *host, int port, int *bound_port, char 
 {
     memset(s, 0, sizeof *s);
     s->listen_fd = -1;
+    s->read_budget = SCD_READ_BUDGET;
     for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
         client_reset(&s->client[i]);
     }
@@ -76,7 +80,12 @@ void scd_close(scd_server_t *s)
     }
 }
 
-int scd_pollfds(const scd_server_t *s, struct pollfd *pfd)
+static bool output_held(const scd_client_t *c, uint64_t now_us)
+{
+    return c->stage == 2 && now_us < c->frames_after_us;
+}
+
+int scd_pollfds(const scd_server_t *s, struct pollfd *pfd, uint64_t now_us)
 {
     int n = 0;
     pfd[n].fd = s->listen_fd;
@@ -89,7 +98,10 @@ int scd_pollfds(const scd_server_t *s, struct pollfd *pfd)
             continue;
         }
         pfd[n].fd = c->fd;
-        pfd[n].events = POLLIN | (c->out_len > 0 ? POLLOUT : 0);
+        /* POLLOUT only for output flush_out would write: during the grace it writes
+         * nothing, and poll would return at once, again and again (a busy loop) */
+        pfd[n].events = (short)((c->rx_paused ? 0 : POLLIN) |
+                                (c->out_len > 0 && !output_held(c, now_us) ? POLLOUT : 0));
         pfd[n].revents = 0;
         n++;
     }
@@ -104,19 +116,69 @@ static void drop_client(scd_client_t *c)
     client_reset(c);
 }
 
-/* Write as much of the output buffer as the socket takes. */
-static void flush_out(scd_client_t *c, uint64_t now_us)
+uint64_t scd_next_wakeup_us(const scd_server_t *s)
+{
+    uint64_t t = UINT64_MAX;
+    for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
+        const scd_client_t *c = &s->client[i];
+        if (c->fd >= 0 && c->out_len > 0 && c->stage == 2 && c->frames_after_us != 0 && c->frames_after_us < t) {
+            t = c->frames_after_us;
+        }
+    }
+    return t;
+}
+
+void scd_expire(scd_server_t *s, uint64_t now_us)
+{
+    for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
+        scd_client_t *c = &s->client[i];
+        if (c->fd >= 0 && c->stage != 2 && now_us - c->accepted_us > SCD_HANDSHAKE_US) {
+            drop_client(c);
+            s->handshake_timeouts++;
+        }
+    }
+}
+
+/* A slot for a new connection: a free one, else the longest-silent client still in its
+ * handshake if silent for SCD_EVICT_IDLE_US (evicted), else -1. */
+static int free_slot(scd_server_t *s, uint64_t now_us)
+{
+    int victim = -1;
+    for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
+        const scd_client_t *c = &s->client[i];
+        if (c->fd < 0) {
+            return i;
+        }
+        if (c->stage != 2 && now_us - c->last_rx_us >= SCD_EVICT_IDLE_US &&
+            (victim < 0 || c->last_rx_us < s->client[victim].last_rx_us)) {
+            victim = i;
+        }
+    }
+    if (victim >= 0) {
+        drop_client(&s->client[victim]);
+        s->evicted++;
+    }
+    return victim;
+}
+
+/* Write as much of the output buffer as the socket takes (at most budget bytes, 0: no
+ * limit). */
+static void flush_out(scd_client_t *c, uint64_t now_us, size_t budget)
 {
     if (c->fd < 0 || c->out_len == 0) {
         return;
     }
-    if (c->stage == 2 && now_us < c->frames_after_us) {
+    if (output_held(c, now_us)) {
         return; /* grace after "< ok >": python-can reads the handshake with one recv() */
     }
-    while (c->out_len > 0) {
+    size_t written = 0;
+    while (c->out_len > 0 && (budget == 0u || written < budget)) {
         size_t first = c->out_len;
         if (c->out_head + first > SCD_OUT_BUF) {
             first = SCD_OUT_BUF - c->out_head;
+        }
+        if (budget != 0u && first > budget - written) {
+            first = budget - written;
         }
         ssize_t w = send(c->fd, &c->out[c->out_head], first, MSG_NOSIGNAL | MSG_DONTWAIT);
         if (w < 0) {
@@ -128,11 +190,14 @@ static void flush_out(scd_client_t *c, uint64_t now_us)
         }
         c->out_head = (c->out_head + (size_t)w) % SCD_OUT_BUF;
         c->out_len -= (size_t)w;
+        written += (size_t)w;
         if ((size_t)w < first) {
             return;
         }
     }
-    c->out_head = 0;
+    if (c->out_len == 0) {
+        c->out_head = 0;
+    }
 }
 
 static bool queue_out(scd_client_t *c, const char *text, size_t len)
@@ -243,10 +308,15 @@ int scd_parse_send(const char *cmd, size_t len, scd_frame_t *f)
     return 0;
 }
 
-static void format_frame(const scd_frame_t *f, char *buf, size_t cap, size_t *len)
+static void format_frame(const scd_frame_t *f, uint64_t stamp_us, char *buf, size_t cap, size_t *len)
 {
     struct timeval tv;
-    gettimeofday(&tv, NULL);
+    if (stamp_us == 0u) {
+        gettimeofday(&tv, NULL);
+    } else {
+        tv.tv_sec = (time_t)(stamp_us / 1000000u);
+        tv.tv_usec = (suseconds_t)(stamp_us % 1000000u);
+    }
     static const char hx[] = "0123456789ABCDEF";
     char data[17];
     for (uint8_t i = 0; i < f->len && i < 8; i++) {
@@ -259,11 +329,11 @@ static void format_frame(const scd_frame_t *f, char *buf, size_t cap, size_t *le
     *len = n > 0 ? (size_t)n : 0;
 }
 
-void scd_broadcast(scd_server_t *s, const scd_frame_t *f, int except, uint64_t now_us)
+void scd_broadcast(scd_server_t *s, const scd_frame_t *f, int except, uint64_t stamp_us)
 {
     char buf[80];
     size_t len;
-    format_frame(f, buf, sizeof buf, &len);
+    format_frame(f, stamp_us, buf, sizeof buf, &len);
     for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
         scd_client_t *c = &s->client[i];
         if (i == except || c->fd < 0 || c->stage != 2) {
@@ -274,7 +344,7 @@ void scd_broadcast(scd_server_t *s, const scd_frame_t *f, int except, uint64_t n
             s->dropped++;
         }
     }
-    (void)now_us; /* written by scd_flush, batched per main-loop pass */
+    /* written by scd_flush, batched per main-loop pass */
 }
 
 static void command(scd_server_t *s, int ci, const char *cmd, size_t len, uint64_t now_us,
@@ -295,8 +365,7 @@ static void command(scd_server_t *s, int ci, const char *cmd, size_t len, uint64
             s->garbage++;
             return;
         }
-        rx(ctx, &f);
-        scd_broadcast(s, &f, ci, now_us);
+        rx(ctx, ci, &f);
         return;
     }
     if (c->stage == 0 && len > 5 && memcmp(cmd, "open ", 5) == 0) {
@@ -325,8 +394,9 @@ static void command(scd_server_t *s, int ci, const char *cmd, size_t len, uint64
 static void read_client(scd_server_t *s, int ci, uint64_t now_us, scd_rx_fn rx, void *ctx)
 {
     scd_client_t *c = &s->client[ci];
-    char buf[4096];
-    ssize_t r = recv(c->fd, buf, sizeof buf, MSG_DONTWAIT);
+    char buf[SCD_READ_BUDGET];
+    size_t want = s->read_budget > 0u && s->read_budget < sizeof buf ? s->read_budget : sizeof buf;
+    ssize_t r = recv(c->fd, buf, want, MSG_DONTWAIT);
     if (r == 0 || (r < 0 && errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) {
         drop_client(c);
         return;
@@ -341,6 +411,7 @@ void scd_feed(scd_server_t *s, int ci, const char *buf, size_t r, uint64_t now_u
 {
     scd_client_t *c = &s->client[ci];
     c->frames_after_us = 0; /* the client spoke: the handshake is over for it */
+    c->last_rx_us = now_us;
     for (size_t i = 0; i < r && c->fd >= 0; i++) {
         char ch = buf[i];
         if (!c->in_cmd) {
@@ -390,13 +461,7 @@ void scd_handle(scd_server_t *s, const struct pollfd *pfd, int npfd, uint64_t no
             if (fd < 0) {
                 continue;
             }
-            int slot = -1;
-            for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
-                if (s->client[i].fd < 0) {
-                    slot = i;
-                    break;
-                }
-            }
+            int slot = free_slot(s, now_us);
             if (slot < 0) {
                 s->refused++;
                 close(fd);
@@ -406,6 +471,8 @@ void scd_handle(scd_server_t *s, const struct pollfd *pfd, int npfd, uint64_t no
             (void)setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
             client_reset(&s->client[slot]);
             s->client[slot].fd = fd;
+            s->client[slot].accepted_us = now_us;
+            s->client[slot].last_rx_us = now_us;
             reply(&s->client[slot], "< hi >");
             continue;
         }
@@ -422,7 +489,7 @@ void scd_handle(scd_server_t *s, const struct pollfd *pfd, int npfd, uint64_t no
                 read_client(s, i, now_us, rx, ctx);
             }
             if (c->fd >= 0 && (pfd[k].revents & POLLOUT)) {
-                flush_out(c, now_us);
+                flush_out(c, now_us, s->write_budget);
             }
             break;
         }
@@ -432,6 +499,6 @@ void scd_handle(scd_server_t *s, const struct pollfd *pfd, int npfd, uint64_t no
 void scd_flush(scd_server_t *s, uint64_t now_us)
 {
     for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
-        flush_out(&s->client[i], now_us);
+        flush_out(&s->client[i], now_us, s->write_budget);
     }
 }
