@@ -1,8 +1,11 @@
 """``fftune demo`` (``make demo``): the whole pipeline against the simulated drive.
 
-Starts ``drive_sim`` on a free loopback socketcand port, runs detect -> quantify -> tune
-with ``configs/demo.yaml`` through the CANopen client exactly as ``fftune run`` does, stops
-the drive (also on an error or Ctrl-C) and leaves everything in ``out/demo/``.
+Starts ``drive_sim`` on a free loopback socketcand port (or on the bus the options name:
+``-i socketcan -c vcan0``, ``-i socketcand --host H --port P``; ``--bitrate B`` or the
+configuration's ``sim.bitrate``: behind a simulated CAN bus of B bit/s), runs detect ->
+quantify -> tune with ``configs/demo.yaml`` through the CANopen client exactly as ``fftune
+run`` does, stops the drive (also on an error or Ctrl-C) and leaves everything in
+``out/demo/``.
 """
 import os
 import shutil
@@ -10,8 +13,8 @@ import time
 
 from fftune.host.commands import DEFAULT_CONFIG
 from fftune.host.config import check_output_dir, load_config
-from fftune.host.drive import BusOptions, DriveClient
-from fftune.host.sim import DEFAULT_PLANT, derived_plant, start_drive_sim
+from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
+from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
 
 
 def add_parser(sub):
@@ -26,6 +29,9 @@ def add_parser(sub):
     p.add_argument("--out", default=None, help="output directory (default: the configuration's); "
                    "an earlier one is kept as <out>.previous")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--realtime", action="store_true",
+                   help="the simulated drive steps at its controller rate (default: as fast as it can)")
+    add_bus_arguments(p, drive_side=True, port_default=0)
     p.set_defaults(func=run)
 
 
@@ -46,6 +52,8 @@ def run(args):
 
     t0 = time.monotonic()
     cfg = load_config(args.config)
+    bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
+    check_bus(args.interface, args.channel, bitrate)  # before anything is moved or written
     out = check_output_dir(_set_aside_previous(args.out or cfg["output"]))
     d = cfg["drive"]
     plant = args.plant or cfg["sim"]["plant"] or DEFAULT_PLANT
@@ -60,11 +68,18 @@ def run(args):
         plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
                               where=f"{args.config}: key 'sim.overrides'")
         shown += " with sim.overrides -> " + os.path.relpath(plant)
-    sim = start_drive_sim(plant, node_id=d["node_id"], log_path=os.path.join(out, "drive_sim.log"))
+    node_id = args.node_id if args.node_id is not None else d["node_id"]
+    sim = start_drive_sim(plant, host=args.host, port=args.port, node_id=node_id,
+                          log_path=os.path.join(out, "drive_sim.log"), interface=args.interface,
+                          channel=args.channel, bitrate=bitrate, realtime=args.realtime)
     try:
-        print(f"fftune demo: drive_sim ({shown}) listening on 127.0.0.1:{sim.port}", flush=True)
-        opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
-                          node_id=d["node_id"], eds=d["eds"] or None)
+        bus = f", CAN bus model {bitrate} bit/s" if bitrate else ""
+        print(f"fftune demo: drive_sim ({shown}) listening on {sim.describe()}{bus}", flush=True)
+        if sim.interface == "socketcan":
+            opts = BusOptions(interface="socketcan", channel=sim.channel, node_id=node_id, eds=d["eds"] or None)
+        else:
+            opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
+                              node_id=node_id, eds=d["eds"] or None)
         if opts.eds is None:
             from fftune.host.odmap import DEFAULT_EDS
             opts.eds = DEFAULT_EDS

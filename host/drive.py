@@ -229,6 +229,14 @@ class DriveClient:
         watches the host with 4x this time. 0 switches both off.
     host_node_id : int
         Node id under which the host produces its heartbeat.
+
+    Attributes
+    ----------
+    time_account : dict
+        Accumulated over the session: ``runs`` completed, ``excitation_s`` (their settle +
+        recorded periods at fs: the physical minimum), ``run_wait_s`` (wall time from the
+        start command to the end of each run), ``transfer_s`` (wall time of every other
+        SDO transfer: parameters, read-back, uploads).
     """
 
     def __init__(self, opts, *, sdo_timeout_s=2.0, sdo_retries=2, heartbeat_ms=100,
@@ -248,6 +256,9 @@ class DriveClient:
         self._run_active = False      # a run may be going on the drive (started by us)
         self._enabled = False         # we enabled the drive (CiA 402)
         self._transfer_open = False   # an SDO transfer may be half done (interrupted)
+        self._waiting_for_run = False
+        # Where the session's time goes (fftune.host.pipeline's time budget): see time_account.
+        self.time_account = {"runs": 0, "excitation_s": 0.0, "run_wait_s": 0.0, "transfer_s": 0.0}
         self.network = None
         try:
             self.node = canopen.BaseNode402(opts.node_id, opts.eds)
@@ -391,6 +402,7 @@ class DriveClient:
         from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
         self._transfer_open = True
+        t0 = time.monotonic()
         try:
             result = fn()
             self._transfer_open = False
@@ -408,6 +420,9 @@ class DriveClient:
             # the bus itself failed (e.g. the socketcand server, the drive, went away)
             raise FftuneError(f"{what} {self._describe_obj(index, sub)} on node {self.opts.node_id}: "
                               f"connection lost ({type(exc).__name__}: {exc}) on {self.opts.describe()}") from None
+        finally:
+            if not self._waiting_for_run:  # (polls during a run overlap the excitation)
+                self.time_account["transfer_s"] += time.monotonic() - t0
 
     def _var(self, index, sub):
         obj = self.node.sdo[index]
@@ -547,6 +562,8 @@ class DriveClient:
         t_start = time.time()
         self._run_active = True  # (also if the start's answer is lost): close() stops it
         self.set("run_command", 1)
+        t_wait = time.monotonic()
+        self._waiting_for_run = True
         total = int(self.get("run_total"))
         deadline = time.monotonic() + self.run_timeout_s
         bar = tqdm(total=total, desc=desc, unit="sample", unit_scale=True, leave=False,
@@ -574,6 +591,8 @@ class DriveClient:
                 time.sleep(0.02)
         finally:
             bar.close()
+            self._waiting_for_run = False
+            self.time_account["run_wait_s"] += time.monotonic() - t_wait
         t_end = time.time()
         params = self.read_parameters()
         if self._bootups != boots0:
@@ -591,6 +610,8 @@ class DriveClient:
             raise FftuneError(f"recording from node {self.opts.node_id}: {len(data)} bytes, expected "
                               f"{expected_samples} samples x {nsig} signals x 4 bytes = "
                               f"{expected_samples * nsig * 4}")
+        self.time_account["runs"] += 1
+        self.time_account["excitation_s"] += (int(params["exc_settle_periods"]) + rec_periods) * n / float(params["fs"])
         arr = np.frombuffer(data, dtype="<f4").reshape(expected_samples, nsig)
         sig = {name: arr[:, i].astype(np.float64) for i, name in enumerate(order)}
         return RunRecord(signals=sig, parameters=params, fs_hz=float(params["fs"]),

@@ -13,6 +13,27 @@ from fftune.host import experiments as ex
 from fftune.host.report import make_figures, write_html, write_results
 
 STEPS = ("detect", "quantify", "tune")
+BUDGET_KEYS = ("excitation", "bus", "host", "wall", "drive_wait")
+
+
+def time_budget(account_before, account_after, wall_s):
+    """Where a step's wall time went, from two snapshots of ``DriveClient.time_account``.
+
+    Returns a dict (seconds, rounded to ms): ``excitation`` = settle + recorded periods at
+    fs of the runs measured (the physical minimum, whatever the drive's speed); ``bus`` =
+    SDO transfers outside the runs (parameters, read-back, uploads); ``host`` = the rest
+    (analysis, files, polling latency): ``wall - bus - min(excitation, drive_wait)``;
+    ``wall``; ``drive_wait`` = measured time from each start command to the run's end
+    (shorter than ``excitation`` when the simulated drive free-runs faster than real time,
+    longer by the polling latency on a real-time drive). Runs resumed from captures
+    cost neither excitation nor bus.
+    """
+    d = {k: account_after.get(k, 0.0) - account_before.get(k, 0.0)
+         for k in ("excitation_s", "transfer_s", "run_wait_s")}
+    host = wall_s - d["transfer_s"] - min(d["excitation_s"], d["run_wait_s"])
+    out = {"excitation": d["excitation_s"], "bus": d["transfer_s"], "host": max(0.0, host),
+           "wall": wall_s, "drive_wait": d["run_wait_s"]}
+    return {k: round(v, 3) for k, v in out.items()}
 
 
 def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
@@ -27,11 +48,14 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
                   "plant_truth": session.truth},
     }
     detect_levels = hos = tune_data = None
+    account = getattr(drive, "time_account", None)  # a live drive client (not a CAN-log replay)
+    budgets = {}
     for step in steps:
         if not cfg[step]["enabled"]:
             log(f"{step}: disabled in the configuration")
             continue
         t = time.monotonic()
+        account_before = dict(account) if account is not None else None
         before = session.counts["measured"] + session.counts["resumed"]
         if step == "detect":
             results["detect"], detect_levels = ex.detect(session)
@@ -49,6 +73,11 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
         n_runs = session.counts["measured"] + session.counts["resumed"] - before
         results.setdefault("timing_s", {})[step] = round(time.monotonic() - t, 2)
         results.setdefault("runs", {})[step] = n_runs
+        if account is not None:
+            budgets[step] = time_budget(account_before, account, time.monotonic() - t)
+    if budgets:
+        total = {k: round(sum(b[k] for b in budgets.values()), 3) for k in BUDGET_KEYS}
+        results["time_budget_s"] = dict(budgets, total=total)
     results["experiments"] = dict(session.counts)
     results["finished"] = datetime.datetime.now().isoformat(timespec="seconds")
     results["wall_time_s"] = round(time.monotonic() - t0, 2)
@@ -66,4 +95,17 @@ def summary_lines(results, out_dir):
     lines = [f"fftune results in {os.path.relpath(out_dir)}/ (results.yaml, report.html, captures/)"]
     for label, text in key_numbers(results):
         lines.append(f"  {label}: {text}")
+    lines += time_budget_lines(results)
+    return lines
+
+
+def time_budget_lines(results):
+    """The time budget of results.yaml as terminal lines (none without one)."""
+    budget = results.get("time_budget_s")
+    if not budget:
+        return []
+    lines = ["  time budget [s]       excitation      bus     host     wall  (drive waited)"]
+    for step, b in budget.items():
+        lines.append(f"    {step:<18} {b['excitation']:>9.1f} {b['bus']:>8.1f} {b['host']:>8.1f} "
+                     f"{b['wall']:>8.1f}  ({b['drive_wait']:.1f})")
     return lines

@@ -16,14 +16,22 @@ from fftune.analysis.errors import FftuneError
 from fftune.host.resources import config_path, drive_sim_path
 
 DEFAULT_PLANT = config_path("plant_twomass.yaml")
-_LISTEN = re.compile(r"listening\D*?(?:[\d.]+:)?(\d{2,5})\b", re.IGNORECASE)
+_LISTEN = re.compile(r"listening on (?:socketcand [\d.]+:(\d+)|socketcan (\S+?)),", re.IGNORECASE)
+SIM_INTERFACES = ("socketcand", "socketcan")
 
 
 class SimulatedDrive:
-    """A running ``drive_sim``; ``host``/``port`` is its socketcand server."""
+    """A running ``drive_sim``: on socketcand, ``host``/``port`` is its server; on
+    SocketCAN, ``channel`` is the interface (``port`` None)."""
 
-    def __init__(self, proc, host, port, log_path):
+    def __init__(self, proc, host, port, log_path, interface="socketcand", channel=None):
         self.proc, self.host, self.port, self.log_path = proc, host, port, log_path
+        self.interface, self.channel = interface, channel
+
+    def describe(self):
+        if self.interface == "socketcan":
+            return f"SocketCAN {self.channel}"
+        return f"socketcand {self.host}:{self.port}"
 
     def stop(self, timeout_s=3.0):
         if self.proc.poll() is None:
@@ -44,30 +52,65 @@ class SimulatedDrive:
         self.stop()
 
 
-def drive_sim_command(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_id=1, extra=()):
-    return [drive_sim_path(), "--can", f"socketcand:{host}:{port}", "--config", plant_config,
-            "--node-id", str(node_id), *extra]
+def check_bus(interface, channel=None, bitrate=None):
+    """A one-line FftuneError for bus options the simulated drive cannot serve."""
+    if interface not in SIM_INTERFACES:
+        raise FftuneError(f"the simulated drive speaks socketcand or SocketCAN (-i socketcand | "
+                          f"-i socketcan -c IFNAME), not -i {interface}")
+    if interface == "socketcan" and not channel:
+        raise FftuneError("the simulated drive on SocketCAN needs its interface: -c vcan0 "
+                          "(set up with: modprobe vcan; ip link add dev vcan0 type vcan; ip link set up vcan0)")
+    if bitrate is not None:
+        if interface != "socketcand":
+            raise FftuneError(f"--bitrate {bitrate}: the bus model is part of drive_sim's socketcand "
+                              f"server; a SocketCAN interface ({channel}) has its own bit rate")
+        if isinstance(bitrate, bool) or not isinstance(bitrate, int) or not 10_000 <= bitrate <= 1_000_000:
+            raise FftuneError(f"--bitrate {bitrate}: a classic CAN bus runs at 10000 .. 1000000 bit/s")
+
+
+def _bus_spec(interface, host, port, channel):
+    return f"socketcand:{host}:{port}" if interface == "socketcand" else f"socketcan:{channel}"
+
+
+def drive_sim_command(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_id=1, extra=(),
+                      interface="socketcand", channel=None, bitrate=None, realtime=False):
+    """drive_sim's command line (see firmware_sim/port/main.c)."""
+    check_bus(interface, channel, bitrate)
+    cmd = [drive_sim_path(), "--can", _bus_spec(interface, host, port, channel), "--config", plant_config,
+           "--node-id", str(node_id)]
+    if bitrate is not None:
+        cmd += ["--bitrate", str(bitrate)]
+    if realtime:
+        cmd.append("--realtime")
+    return cmd + list(extra)
 
 
 def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_id=1,
-                    extra=(), startup_timeout_s=10.0, log_path=None):
+                    extra=(), startup_timeout_s=10.0, log_path=None, interface="socketcand",
+                    channel=None, bitrate=None, realtime=False):
     """Start ``drive_sim`` and wait for its 'listening' line (the bound port)."""
     drive_sim_path()  # a one-line error when it is missing
     if not os.path.exists(plant_config):
         raise FftuneError(f"plant configuration not found: {plant_config}")
-    cmd = drive_sim_command(plant_config, host, port, node_id, extra)
+    cmd = drive_sim_command(plant_config, host, port, node_id, extra, interface=interface,
+                            channel=channel, bitrate=bitrate, realtime=realtime)
     log = open(log_path, "w") if log_path else subprocess.DEVNULL
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, bufsize=1)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE if not log_path else log,
+                            text=True, bufsize=1)
     if log_path:
         log.close()
     deadline = time.monotonic() + startup_timeout_s
     seen = []
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            rest = proc.stdout.read()
-            seen.append(rest)
+            seen.append(proc.stdout.read())
+            if proc.stderr:
+                seen.append(proc.stderr.read())
+            elif log_path:
+                with open(log_path, encoding="utf-8", errors="replace") as fh:
+                    seen.append(fh.read())
             raise FftuneError(f"drive_sim exited with code {proc.returncode} before listening: "
-                              f"{' '.join(cmd)}: {''.join(seen).strip()[-300:]}")
+                              f"{' '.join(cmd)}: {' '.join(''.join(seen).split())[-300:]}")
         ready, _, _ = select.select([proc.stdout], [], [], 0.1)
         if not ready:
             continue
@@ -75,9 +118,11 @@ def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_i
         seen.append(line)
         m = _LISTEN.search(line)
         if m:
-            # Keep draining stdout so that drive_sim never blocks on a full pipe.
+            # Keep draining stdout (and stderr) so that drive_sim never blocks on a full pipe.
             _drain(proc)
-            return SimulatedDrive(proc, host, int(m.group(1)), log_path)
+            if m.group(1):
+                return SimulatedDrive(proc, host, int(m.group(1)), log_path)
+            return SimulatedDrive(proc, None, None, log_path, interface="socketcan", channel=m.group(2))
     proc.kill()
     proc.wait()
     raise FftuneError(f"drive_sim printed no 'listening' line within {startup_timeout_s:g} s: "
@@ -87,24 +132,28 @@ def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_i
 def _drain(proc):
     import threading
 
-    def pump():
+    def pump(stream):
         try:
-            for _ in proc.stdout:
+            for _ in stream:
                 pass
         except (ValueError, OSError):
             pass
-    threading.Thread(target=pump, daemon=True, name="drive_sim-stdout").start()
+    for stream in (proc.stdout, proc.stderr):
+        if stream is not None:
+            threading.Thread(target=pump, args=(stream,), daemon=True, name="drive_sim-output").start()
 
 
 def add_parser(sub):
+    from fftune.host.drive import add_bus_arguments
+
     p = sub.add_parser("sim", help="start the simulated drive (drive_sim) in the foreground",
                        description="Run firmware_sim's drive_sim as a CANopen node on a "
-                                   "socketcand server; stop it with Ctrl-C.")
+                                   "socketcand server (default 127.0.0.1:29536) or on a SocketCAN "
+                                   "interface (-i socketcan -c vcan0); stop it with Ctrl-C. The "
+                                   "host then connects with the same bus options.")
     p.add_argument("--plant", default=DEFAULT_PLANT, help="plant configuration (default %(default)s)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default %(default)s)")
-    p.add_argument("--port", type=int, default=29536, help="socketcand TCP port (default %(default)s)")
-    p.add_argument("--node-id", type=int, default=1)
     p.add_argument("--realtime", action="store_true", help="step at the controller rate")
+    add_bus_arguments(p, drive_side=True)
     p.set_defaults(func=_run)
 
 
@@ -112,8 +161,9 @@ def _run(args):
     exe = drive_sim_path()
     if not os.path.exists(args.plant):
         raise FftuneError(f"plant configuration not found: {args.plant}")
-    extra = ["--realtime"] if args.realtime else []
-    cmd = drive_sim_command(args.plant, args.host, args.port, args.node_id, extra)
+    cmd = drive_sim_command(args.plant, args.host, args.port, args.node_id if args.node_id is not None else 1,
+                            interface=args.interface, channel=args.channel, bitrate=args.bitrate,
+                            realtime=args.realtime)
     sys.stdout.flush()
     sys.stderr.flush()
     # Become drive_sim: signals (Ctrl-C, kill) reach the simulator itself, no orphan.

@@ -1,6 +1,9 @@
 """Host-in-the-loop over virtual SocketCAN: the drive and `fftune tune` both on vcan0
 inside the qemu guest (tests/vmguest.py), compared with the same configuration over
-socketcand on this machine. Skipped, with the reason, where qemu or the kernel is missing."""
+socketcand on this machine. The guest runs exactly the README's two commands, one for the
+drive and one for the host: `fftune sim -i socketcan -c vcan0` and `fftune tune -i
+socketcan -c vcan0 ...` (the guest's init has set up vcan0 as the README says). Skipped,
+with the reason, where qemu or the kernel is missing."""
 import os
 import time
 
@@ -15,7 +18,6 @@ from vmguest import guest_available, run_sections
 pytestmark = pytest.mark.vm
 
 PLANT = os.path.join(REPO, "configs", "plant_twomass.yaml")
-DRIVE_SIM = os.path.join(REPO, "firmware_sim", "build", "drive_sim")
 FFTUNE = os.path.join(REPO, ".venv", "bin", "fftune")
 
 # Small: Python in the TCG guest is 20-40x slower than here (short records: the guest's
@@ -38,7 +40,7 @@ wait_can_receivers() {
         _i=$((_i + 1)); [ "$_i" -gt 600 ] && return 1; sleep 0.1
     done
 }
-@DRIVE_SIM@ --can socketcan:vcan0 --node-id 1 --config @PLANT@ > "$SECTION_OUT/drive_sim.out" 2>&1 &
+@FFTUNE@ sim -i socketcan -c vcan0 --plant @PLANT@ > "$SECTION_OUT/drive_sim.out" 2>&1 &
 sim_pid=$!
 wait_can_receivers vcan0 1 || exit 3
 @FFTUNE@ tune -i socketcan -c vcan0 --config "$FFTUNE_VM_JOB/tiny.yaml" --out /tmp/vmout \
@@ -47,7 +49,7 @@ status=$?
 cp /tmp/vmout/results.yaml "$SECTION_OUT/results.yaml" 2>/dev/null
 kill "$sim_pid"; wait "$sim_pid"
 exit $status
-'''.replace("@DRIVE_SIM@", DRIVE_SIM).replace("@PLANT@", PLANT).replace("@FFTUNE@", FFTUNE)
+'''.replace("@PLANT@", PLANT).replace("@FFTUNE@", FFTUNE)
 
 
 def test_tuning_over_vcan_in_the_guest_matches_socketcand(tmp_path):
