@@ -9,7 +9,7 @@ PY     := $(CURDIR)/$(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 FW     := $(MAKE) --no-print-directory -C firmware_sim PYTHON=$(PY)
 
-.PHONY: help setup firmware demo test bench cross fuzz system-deps clean
+.PHONY: help setup firmware demo test bench cross fuzz system-deps clean mutation
 
 help:
 	@echo "make setup        venv (.venv) with pinned deps + firmware_sim build (other targets do it)"
@@ -17,6 +17,7 @@ help:
 	@echo "make test         every test, C and Python"
 	@echo "make bench        benchmarks, printing their figures"
 	@echo "make cross        deployable C for Cortex-M4F (arm-none-eabi-gcc), with sizes"
+	@echo "make mutation     mutation testing (C harness + cosmic-ray), scores per module; long, resumable"
 	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils, valgrind, octave"
 	@echo "make clean"
 
@@ -54,6 +55,20 @@ cross:
 
 fuzz: setup
 	@$(FW) fuzz
+
+# Mutation testing (docs/testing.md): the deployable C with tools/mutation/cmut.py, the
+# analysis package with cosmic-ray (pinned in tools/mutation/requirements.txt, installed
+# into .venv here). Each half runs at most MUTATION_BUDGET seconds; results are kept in
+# build/mutation/ and the next call continues with the mutants not run yet.
+MUTATION_BUDGET ?= 3600
+mutation: setup $(VENV)/.mutation-tools
+	@$(PY) tools/mutation/cmut.py --budget $(MUTATION_BUDGET)
+	@echo
+	@$(PY) tools/mutation/pymut.py --budget $(MUTATION_BUDGET)
+
+$(VENV)/.mutation-tools: tools/mutation/requirements.txt $(STAMP)
+	$(VENV)/bin/python -m pip install -q --disable-pip-version-check -r tools/mutation/requirements.txt
+	@touch $@
 
 system-deps:
 	@[ "$$(id -u)" = 0 ] || { echo "make system-deps: must run as root (uses apt-get)" >&2; exit 1; }

@@ -34,7 +34,7 @@ def test_var_nl_equals_known_stochastic_distortion_variance(known_reference):
     d_rms = 0.3 * u_dft[0]                                             # E|D|^2 = d_rms^2
     s2_s = d_rms ** 2 / u_dft[0] ** 2
     ratios, noise_ratios = [], []
-    for seed in range(20):
+    for seed in range(8):
         rng = np.random.default_rng(seed)
         spec = np.zeros((m, n // 2 + 1), complex)
         spec[:, excited] = g0 * np.fft.rfft(one, axis=-1)[:, excited]
@@ -52,9 +52,9 @@ def test_var_nl_equals_known_stochastic_distortion_variance(known_reference):
 
 def test_var_nl_matches_monte_carlo_spread_of_wiener_system():
     """Wiener system (low-pass, then v + 0.4 v^3): var_nl of M realizations against the
-    spread of the single-realization estimate G_m over 240 realizations."""
+    spread of the single-realization estimate G_m over 180 realizations."""
     n, k_max, m = 512, 120, 6
-    excited, one = _multisine_table(240, n, k_max, seed=17)
+    excited, one = _multisine_table(180, n, k_max, seed=17)
     h = np.zeros(n // 2 + 1, complex)
     k = np.arange(n // 2 + 1)
     h[:] = 1.0 / (1.0 + 1j * k / 60.0)                                # first-order low-pass
@@ -62,17 +62,17 @@ def test_var_nl_matches_monte_carlo_spread_of_wiener_system():
     x *= 1.5 / np.std(x)
     y = x + 0.4 * x ** 3
     g_single = (np.fft.rfft(y, axis=-1)[:, excited]
-                / np.fft.rfft(one, axis=-1)[:, excited])                          # (240, E)
+                / np.fft.rfft(one, axis=-1)[:, excited])                          # (180, E)
     spread = np.mean(np.abs(g_single - g_single.mean(axis=0)) ** 2, axis=0)        # s2_S per line
     ratios = []
-    for start in range(0, 240, m):
+    for start in range(0, 180, m):
         sl = slice(start, start + m)
         u = np.repeat(one[sl][:, None, :], 2, axis=1)
         yy = np.repeat(y[sl][:, None, :], 2, axis=1)
         yy = yy + 1e-6 * np.random.default_rng(start).standard_normal(yy.shape)
         res = robust_bla(u, yy, excited_bins=excited)
         ratios.append(np.mean(res.var_nl) / np.mean(spread))
-    # 40 independent estimates of the mean nonlinear variance: their mean is within 10 %
+    # 30 independent estimates of the mean nonlinear variance: their mean is within 10 %
     assert np.mean(ratios) == pytest.approx(1.0, abs=0.1)
     # and the distortion is far above the measurement noise (a meaningful check)
     assert np.mean(spread) > 1e4 * np.mean(res.var_noise) * m

@@ -110,6 +110,39 @@ static void test_ctl_setters_reject_and_keep(void)
     TH_EQ(ctl_init(&c, NAN), CTL_E_NOT_FINITE);
 }
 
+/* ctl.h's promises after ctl_init (all gains 0, u_max 0, tau_d 0) and at its edges: a
+ * small fs, a smoothing width below 1 rad/s, a denormal width (pure sign) and the reset
+ * that forgets the last error (found missing by mutation testing: docs/testing.md). */
+static void test_ctl_init_defaults_reset_and_edges(void)
+{
+    ctl_t c;
+    TH_EQ(ctl_init(&c, 0.5f), CTL_OK); /* any fs > 0 */
+    TH_EQ(ctl_init(&c, FS), CTL_OK);
+    TH_NEAR(ctl_step(&c, 0.3f, 0.7f, 1.0f), 0.0, 0.0); /* u_max 0: no output at all */
+    TH_EQ(ctl_set_u_max(&c, 100.0f), CTL_OK);
+    TH_NEAR(ctl_step(&c, 0.3f, 0.7f, 0.0f), 0.0, 0.0); /* kp, kd, kfc, kv all 0 */
+    TH_NEAR(ctl_step(&c, -0.4f, -0.2f, 0.0f), 0.0, 0.0);
+    /* kd alone: tau_d starts at 0, the plain backward difference kd (e[n] - e[n-1]) / T */
+    TH_EQ(ctl_init(&c, FS), CTL_OK);
+    TH_EQ(ctl_set_u_max(&c, 1000.0f), CTL_OK);
+    TH_EQ(ctl_set_kd(&c, 0.01f), CTL_OK);
+    (void)ctl_step(&c, 0.0f, 0.0f, 0.0f);
+    TH_NEAR(ctl_step(&c, 0.1f, 0.0f, 0.0f), 0.01 * 0.1 * FS, 1e-4);
+    /* reset: the next step has no derivative kick from the error before the reset */
+    TH_EQ(ctl_set_kp(&c, 2.0f), CTL_OK);
+    (void)ctl_step(&c, 0.5f, 0.0f, 0.0f);
+    ctl_reset(&c);
+    TH_NEAR(ctl_step(&c, 0.5f, 0.0f, 0.0f), 1.0, 1e-6);
+    TH_NEAR(ctl_step(&c, 0.5f, 0.0f, 0.0f), 1.0, 1e-6);
+    /* smoothing width 0.5 rad/s (below 1): clamp(v / 0.5, -1, 1) */
+    TH_EQ(ctl_set_fc_smooth(&c, 0.5f), CTL_OK);
+    TH_NEAR(ctl_ff_sign(&c, 0.25f), 0.5, 1e-7);
+    /* a denormal width: 1/w overflows, the pure sign is used */
+    TH_EQ(ctl_set_fc_smooth(&c, 1e-45f), CTL_OK);
+    TH_NEAR(ctl_ff_sign(&c, 0.5f), 1.0, 0.0);
+    TH_NEAR(ctl_ff_sign(&c, 0.0f), 0.0, 0.0);
+}
+
 /* ---------------- drive parameters ---------------- */
 
 static void test_drv_defaults_from_od(void)
@@ -658,6 +691,89 @@ static void test_ms_lines_and_period_vectors(void)
     }
 }
 
+/* The documented ranges of ms.h at their edges (each limit on both sides), the line
+ * counts of one-line bands, and ms_build's argument checks (found missing by mutation
+ * testing: docs/testing.md). */
+static void test_ms_check_and_build_edges(void)
+{
+    ms_design_t d = {64u, 1u, 25u, 0u, 1u, 0u};
+    TH_EQ(ms_check(&d), MS_OK);
+    d.n = MS_N_MIN;
+    d.k_max = 7u;
+    TH_EQ(ms_check(&d), MS_OK);
+    d.n = MS_N_MIN / 2u;
+    d.k_max = 3u;
+    TH_EQ(ms_check(&d), MS_E_N);
+    d.n = MS_N_MAX;
+    TH_EQ(ms_check(&d), MS_OK);
+    d.n = 2u * MS_N_MAX;
+    TH_EQ(ms_check(&d), MS_E_N);
+    d.n = 48u;
+    TH_EQ(ms_check(&d), MS_E_N); /* not a power of two */
+    d.n = 64u;
+    d.k_min = 0u;
+    TH_EQ(ms_check(&d), MS_E_BAND);
+    d.k_min = 31u;
+    d.k_max = 31u; /* N/2 - 1: the highest line allowed */
+    TH_EQ(ms_check(&d), MS_OK);
+    d.k_max = 32u;
+    TH_EQ(ms_check(&d), MS_E_BAND);
+    d.k_min = 6u;
+    d.k_max = 5u;
+    TH_EQ(ms_check(&d), MS_E_BAND);
+    TH_EQ(ms_candidate_count(&d), 0u); /* called on its own with an empty band */
+    /* one-line bands: k_min = k_max odd gives one line; even gives none */
+    d.k_min = 5u;
+    d.k_max = 5u;
+    TH_EQ(ms_candidate_count(&d), 1u);
+    TH_EQ(ms_excited_count(&d), 1u);
+    TH_EQ(ms_check(&d), MS_OK);
+    d.k_min = 4u;
+    d.k_max = 4u;
+    TH_EQ(ms_candidate_count(&d), 0u);
+    TH_EQ(ms_check(&d), MS_E_NO_LINES);
+    /* group: 0 or 2 .. MS_G_MAX */
+    d.k_min = 1u;
+    d.k_max = 25u;
+    d.group = 1u;
+    TH_EQ(ms_check(&d), MS_E_GROUP);
+    d.group = MS_G_MAX;
+    TH_EQ(ms_check(&d), MS_OK);
+    d.group = MS_G_MAX + 1u;
+    TH_EQ(ms_check(&d), MS_E_GROUP);
+    /* ms_build: rms finite and >= 0 (0 allowed: a zero period), buffer of >= N floats,
+     * and every sample written (also the DC bin of the packed spectrum) */
+    static float buf[65];
+    d.group = 0u;
+    TH_EQ(ms_build(&d, NAN, buf, 64u), MS_E_RMS);
+    TH_EQ(ms_build(&d, INFINITY, buf, 64u), MS_E_RMS);
+    TH_EQ(ms_build(&d, -1.0f, buf, 64u), MS_E_RMS);
+    TH_EQ(ms_build(&d, 1.0f, buf, 63u), MS_E_CAPACITY);
+    TH_EQ(ms_build(&d, 1.0f, NULL, 64u), MS_E_CAPACITY);
+    for (int i = 0; i < 65; i++) {
+        buf[i] = 1000.0f;
+    }
+    TH_EQ(ms_build(&d, 0.0f, buf, 64u), MS_OK);
+    double worst = 0.0;
+    for (int i = 0; i < 64; i++) {
+        worst = fmax(worst, fabs(buf[i]));
+    }
+    TH_NEAR(worst, 0.0, 0.0);
+    TH_NEAR(buf[64], 1000.0, 0.0); /* nothing written past N */
+    for (int i = 0; i < 65; i++) {
+        buf[i] = 1000.0f;
+    }
+    TH_EQ(ms_build(&d, 1.0f, buf, 65u), MS_OK);
+    double mean = 0.0, power = 0.0;
+    for (int i = 0; i < 64; i++) {
+        mean += buf[i] / 64.0;
+        power += (double)buf[i] * buf[i] / 64.0;
+    }
+    TH_NEAR(mean, 0.0, 1e-6);      /* no line at DC */
+    TH_NEAR(power, 1.0, 1e-5);     /* rms 1 */
+    TH_NEAR(buf[64], 1000.0, 0.0);
+}
+
 static void test_ms_through_drive(void)
 {
     /* the drive builds the period at run start; recorded reference = rms * unit period */
@@ -817,6 +933,7 @@ int main(void)
     TH_RUN(test_ctl_law_pd_filtered_derivative);
     TH_RUN(test_ctl_feedforward_and_saturation);
     TH_RUN(test_ctl_setters_reject_and_keep);
+    TH_RUN(test_ctl_init_defaults_reset_and_edges);
     TH_RUN(test_drv_defaults_from_od);
     TH_RUN(test_drv_param_validation_keeps_old_value);
     TH_RUN(test_sine_exactly_periodic);
@@ -830,6 +947,7 @@ int main(void)
     TH_RUN(test_plant_input_injection);
     TH_RUN(test_ms_prng_vectors);
     TH_RUN(test_ms_lines_and_period_vectors);
+    TH_RUN(test_ms_check_and_build_edges);
     TH_RUN(test_ms_through_drive);
     TH_RUN(test_fft_inverse_complex_small);
     TH_RUN(test_random_api_sequences_keep_invariants);

@@ -1,0 +1,290 @@
+#!/usr/bin/env python3
+"""Mutation testing of the analysis package with cosmic-ray (pinned in
+tools/mutation/requirements.txt; `make mutation` installs it into .venv).
+
+For each module a fast, focused test selection runs against every mutant (pytest -x: the
+first failing test kills it). cosmic-ray edits the module file in place, so it works on a
+scratch copy of the package (build/mutation/py/<module>/pkg, first on PYTHONPATH, which
+takes precedence over the editable install): the checkout is never touched, and a run
+stopped at any point (time budget, Ctrl-C) leaves nothing mutated behind.
+
+Resumable: the cosmic-ray session (build/mutation/py/<module>/session.sqlite) keeps every
+result; a later run continues with the pending mutants. It starts over when the module or
+its tests change (a hash of them is kept beside the session).
+
+Usage: pymut.py [--budget SECONDS] [--module NAME ...] [--report-only]
+"""
+import argparse
+import hashlib
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import ROOT, ModuleReport, Mutant, MutationError, fail, load_equivalents, print_report  # noqa: E402
+
+WORK = ROOT / "build" / "mutation" / "py"
+
+# module -> the tests that exercise it, fastest and most discriminating first (pytest -x)
+MODULES = {
+    # the 150-seed Monte Carlo check of the known-reference variances (the slowest test by
+    # far) is left out for time; the known-reference var_nl test covers the same lines
+    "bla": ("analysis/bla.py", ["tests/test_analysis_bla.py", "tests/test_analysis_bla_mutants.py",
+                                "--deselect=tests/test_analysis_bla.py::"
+                                "test_known_reference_variances_match_monte_carlo_spread"]),
+    "hosidf": ("analysis/hosidf.py", ["tests/test_analysis_hosidf_mutants.py",
+                                      "tests/test_analysis_hosidf.py"]),
+    "tuning": ("analysis/tuning.py", ["tests/test_analysis_tuning_mutants.py",
+                                      "tests/test_analysis_tuning.py"]),
+    "multisine": ("analysis/multisine.py", ["tests/test_analysis_multisine.py"]),
+}
+
+# The operators kept: one natural mutation per site, as a reader would write it. cosmic-ray
+# also replaces every binary operator by all eleven others (shifts and bit operations on
+# floats only raise TypeError) and every comparison by all the others; those add cost, not
+# information, and are skipped.
+KEEP_OPERATORS = re.compile(
+    r"core/(ReplaceBinaryOperator_(Add_Sub|Sub_Add|Mul_Div|Div_Mul|Pow_Mul|FloorDiv_Div|Mod_FloorDiv)"
+    r"|ReplaceComparisonOperator_(Lt_LtE|LtE_Lt|Gt_GtE|GtE_Gt|Eq_NotEq|NotEq_Eq|Is_IsNot|IsNot_Is"
+    r"|In_NotIn|NotIn_In)"
+    r"|ReplaceUnaryOperator_Delete_(USub|Not|Invert)"
+    r"|NumberReplacer|AddNot|ReplaceAndWithOr|ReplaceOrWithAnd|ReplaceTrueWithFalse"
+    r"|ReplaceFalseWithTrue|ZeroIterationForLoop|RemoveDecorator|ReplaceBreakWithContinue"
+    r"|ReplaceContinueWithBreak|ExceptionReplacer)$")
+
+
+def _venv_bin(name):
+    return str(Path(sys.executable).parent / name)
+
+
+def _digest(paths):
+    h = hashlib.sha256()
+    for p in [p for p in paths if not p.startswith("-")]:
+        h.update(p.encode())
+        h.update((ROOT / p).read_bytes())
+    h.update(KEEP_OPERATORS.pattern.encode())
+    return h.hexdigest()
+
+
+def _refresh_scratch(mod_dir):
+    """A fresh copy of src/fftune + analysis/ as the package fftune (undoes any leftover)."""
+    pkg = mod_dir / "pkg" / "fftune"
+    if pkg.exists():
+        shutil.rmtree(pkg)
+    shutil.copytree(ROOT / "src" / "fftune", pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "analysis", pkg / "analysis", ignore=shutil.ignore_patterns("__pycache__"))
+    return mod_dir / "pkg"
+
+
+FORKSERVER = Path(__file__).resolve().parent / "forkserver.py"
+
+
+def _pytest_args(tests):
+    return ["-x", "-q", "-p", "no:cacheprovider", "-W", "ignore", "--timeout=300",
+            f"--rootdir={ROOT}"] + [t if t.startswith("-") else str(ROOT / t) for t in tests]
+
+
+def _test_command(tests, socket_path=None):
+    """pytest on the selection; through the fork server when one is given."""
+    if socket_path is None:
+        return " ".join([sys.executable, "-m", "pytest"] + _pytest_args(tests))
+    return " ".join([sys.executable, str(FORKSERVER), "run", str(socket_path)] + _pytest_args(tests))
+
+
+def _start_forkserver(mod_dir, pkg_root):
+    sock = mod_dir / "fork.sock"
+    proc = subprocess.Popen([sys.executable, str(FORKSERVER), "serve", str(sock)], cwd=ROOT,
+                            env=_env(pkg_root), stdout=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    if proc.stdout.readline().strip() != "forkserver: ready":
+        proc.kill()
+        raise MutationError("mutation: the pytest fork server did not start")
+    return proc
+
+
+def _env(pkg_root):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(pkg_root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env["PYTHONDONTWRITEBYTECODE"] = "1"
+    return env
+
+
+def _prepare(name, force=False):
+    """Session for one module: (re)initialised when the module or its tests changed."""
+    module, tests = MODULES[name]
+    mod_dir = WORK / name
+    mod_dir.mkdir(parents=True, exist_ok=True)
+    session, stamp, config = mod_dir / "session.sqlite", mod_dir / "digest", mod_dir / "config.toml"
+    digest = _digest([module] + tests)
+    pkg_root = _refresh_scratch(mod_dir)
+    fresh = force or not session.exists() or not stamp.exists() or stamp.read_text() != digest
+    if not fresh:
+        return session, config, pkg_root
+    for p in (session, stamp):
+        p.unlink(missing_ok=True)
+    env = _env(pkg_root)
+    # baseline: the selection must pass on the unmutated code, its time sets the timeout
+    t0 = time.monotonic()
+    base = subprocess.run(_test_command(tests).split(), cwd=ROOT, env=env,
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    elapsed = time.monotonic() - t0
+    if base.returncode != 0:
+        tail = base.stdout.strip().splitlines()[-1:] or ["(no output)"]
+        raise MutationError(f"mutation: {name}: the tests fail on the unmutated code "
+                            f"({' '.join(tests)}): {tail[0]}")
+    timeout = max(30.0, 5.0 * elapsed)
+    target = pkg_root / "fftune" / "analysis" / Path(module).name
+    config.write_text(
+        "[cosmic-ray]\n"
+        f'module-path = "{target}"\n'
+        f"timeout = {timeout:.0f}\n"
+        "excluded-modules = []\n"
+        f'test-command = "{_test_command(tests, mod_dir / "fork.sock")}"\n\n'
+        "[cosmic-ray.distributor]\n"
+        'name = "local"\n')
+    init = subprocess.run([_venv_bin("cosmic-ray"), "init", str(config), str(session)], cwd=ROOT,
+                          env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if init.returncode != 0:
+        raise MutationError(f"mutation: {name}: cosmic-ray init failed: "
+                            f"{init.stdout.strip().splitlines()[-1:]}")
+    _skip_unkept_operators(session)
+    stamp.write_text(digest)
+    print(f"mutation: {name}: new session, baseline tests {elapsed:.1f} s, timeout {timeout:.0f} s",
+          flush=True)
+    return session, config, pkg_root
+
+
+def _skip_unkept_operators(session):
+    from cosmic_ray.work_db import WorkDB, use_db
+    from cosmic_ray.work_item import WorkerOutcome, WorkResult
+
+    with use_db(str(session), WorkDB.Mode.open) as db:
+        skip = [item.job_id for item in db.work_items
+                if not all(KEEP_OPERATORS.match(m.operator_name) for m in item.mutations)]
+        if skip:
+            db.set_multiple_results(skip, WorkResult(worker_outcome=WorkerOutcome.SKIPPED,
+                                                     output="operator not in the kept set"))
+
+
+def _exec(name, session, config, pkg_root, deadline):
+    """cosmic-ray exec until done or the deadline (then its process group is stopped)."""
+    left = deadline - time.monotonic()
+    if left <= 5:
+        return False
+    server = _start_forkserver(WORK / name, pkg_root)
+    proc = subprocess.Popen([_venv_bin("cosmic-ray"), "exec", str(config), str(session)], cwd=ROOT,
+                            env=_env(pkg_root), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        _, err = proc.communicate(timeout=left)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+        _refresh_scratch(WORK / name)          # the job in progress may have left its mutation
+        return False
+    except KeyboardInterrupt:
+        os.killpg(proc.pid, signal.SIGKILL)
+        _refresh_scratch(WORK / name)
+        raise
+    finally:
+        server.terminate()
+        server.wait()
+    if proc.returncode != 0:
+        raise MutationError(f"mutation: {name}: cosmic-ray exec failed: "
+                            f"{(err or '').strip().splitlines()[-1:]}")
+    return True
+
+
+def _diff_lines(diff):
+    minus = [ln[1:].strip() for ln in (diff or "").splitlines()
+             if ln.startswith("-") and not ln.startswith("---")]
+    plus = [ln[1:].strip() for ln in (diff or "").splitlines()
+            if ln.startswith("+") and not ln.startswith("+++")]
+    return " / ".join(minus), " / ".join(plus)
+
+
+def report(name):
+    from cosmic_ray.work_db import WorkDB, use_db
+    from cosmic_ray.work_item import TestOutcome, WorkerOutcome
+
+    module, _ = MODULES[name]
+    rep = ModuleReport(module)
+    session = WORK / name / "session.sqlite"
+    if not session.exists():
+        rep.note = "not run yet"
+        return rep
+    source = (ROOT / module).read_text(encoding="utf-8").splitlines()
+    with use_db(str(session), WorkDB.Mode.open) as db:
+        results = dict(db.results)
+        for item in db.work_items:
+            spec = item.mutations[0]
+            line = spec.start_pos[0]
+            res = results.get(item.job_id)
+            if res is not None and res.worker_outcome == WorkerOutcome.SKIPPED:
+                continue
+            original = source[line - 1].strip() if line <= len(source) else ""
+            if res is None:
+                outcome, mutated = "pending", ""
+            else:
+                o, mutated = _diff_lines(res.diff)
+                original = o or original
+                if res.worker_outcome in (WorkerOutcome.EXCEPTION, WorkerOutcome.NO_TEST) \
+                        or res.test_outcome == TestOutcome.INCOMPETENT:
+                    outcome = "not-viable"
+                elif res.test_outcome == TestOutcome.SURVIVED:
+                    outcome = "survived"
+                else:
+                    outcome = "killed"
+            rep.mutants.append(Mutant(Path(module).name, line, spec.operator_name.split("/")[-1],
+                                      original, mutated, outcome))
+    return rep
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--module", action="append", choices=sorted(MODULES),
+                    help="only this module (repeatable); default: all")
+    ap.add_argument("--budget", type=float, default=float(os.environ.get("MUTATION_BUDGET", 3600)),
+                    help="seconds for this run, all modules together (default 3600; "
+                         "pending mutants are run by the next call)")
+    ap.add_argument("--report-only", action="store_true", help="print the scores, run nothing")
+    ap.add_argument("--restart", action="store_true", help="discard the sessions, start over")
+    args = ap.parse_args(argv)
+    names = args.module or list(MODULES)
+    # a stop by SIGTERM (or SIGINT, ignored in background jobs) cleans up like Ctrl-C
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        import cosmic_ray  # noqa: F401
+    except ImportError:
+        fail("mutation: cosmic-ray is not installed in this Python "
+             f"({sys.executable}): pip install -r tools/mutation/requirements.txt")
+    try:
+        equivalents = load_equivalents()
+        if not args.report_only:
+            deadline = time.monotonic() + args.budget
+            for name in names:
+                session, config, pkg_root = _prepare(name, force=args.restart)
+                print(f"mutation: {name}: running (budget left "
+                      f"{max(0, deadline - time.monotonic()):.0f} s)", flush=True)
+                _exec(name, session, config, pkg_root, deadline)
+        print_report([report(n) for n in names], equivalents)
+    except MutationError as exc:
+        fail(str(exc))
+    except KeyboardInterrupt:
+        print("mutation: stopped; the results so far are kept, run again to continue",
+              file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
