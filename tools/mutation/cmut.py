@@ -189,10 +189,8 @@ def _prepare_tree():
         shutil.rmtree(objs)
     objs.mkdir(parents=True)
     for src in sorted(fw.glob("core/*.c")) + sorted(fw.glob("plant/*.c")) + \
-            sorted(fw.glob("canopen/co_*.c")) + [fw / "canopen/tests/drv_double.c",
-                                                fw / "canopen/tests/test_co.c",
-                                                fw / "build/gen/od_table.c",
-                                                fw / "tests/test_core.c", fw / "tests/test_plant.c"]:
+            sorted(fw.glob("canopen/co_*.c")) + sorted(fw.glob("canopen/tests/*.c")) + \
+            [fw / "build/gen/od_table.c", fw / "tests/test_core.c", fw / "tests/test_plant.c"]:
         rel = src.relative_to(fw).as_posix()
         err = _compile(rel, fw / rel, _obj(rel))
         if err:
@@ -225,8 +223,8 @@ def _link(program, replace=None):
     """Link a test program from the baseline objects, one of them replaced."""
     fw = TREE / "firmware_sim"
     if program == "co_test":
-        rels = [p.relative_to(fw).as_posix() for p in sorted(fw.glob("canopen/co_*.c"))] + \
-            ["canopen/tests/drv_double.c", "canopen/tests/test_co.c", "build/gen/od_table.c"]
+        rels = [p.relative_to(fw).as_posix() for p in sorted(fw.glob("canopen/co_*.c")) +
+                sorted(fw.glob("canopen/tests/*.c"))] + ["build/gen/od_table.c"]
     else:
         rels = [p.relative_to(fw).as_posix() for p in sorted(fw.glob("core/*.c")) + sorted(fw.glob("plant/*.c"))]
         rels.append(f"tests/{program}.c")
