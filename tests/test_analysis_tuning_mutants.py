@@ -34,3 +34,163 @@ def test_illinois_search_needs_few_evaluations_on_one_sided_objective(name):
     assert res.n_evaluations == len(calls)
     # Illinois: 11 evaluations here; halving the wrong end takes 39, no halving 20
     assert res.n_evaluations <= 14, res.history
+
+
+# --- the rest of what mutation testing found untested (docs/testing.md) ------------------
+
+import re  # noqa: E402
+
+from scipy.optimize import minimize_scalar  # noqa: E402
+
+from fftune.analysis.errors import InputError  # noqa: E402
+from fftune.analysis.tuning import (RatioMinimizer, odd_ratio, reference_phases,  # noqa: E402
+                                    signed_odd_ratio)
+
+
+def _rotated_hosidf(scale, phases, k_max=7):
+    """H_1 = 2 and H_k = scale / k exp(j phi_k) for odd k >= 3 (arbitrary phases)."""
+    h = np.zeros(k_max, complex)
+    h[0] = 2.0
+    for k, phi in zip((3, 5, 7), phases):
+        h[k - 1] = scale / k * np.exp(1j * phi)
+    return h
+
+
+def test_objectives_are_vectorised_and_use_the_reference_phase():
+    phases = np.array([0.7, -1.9, 2.6])                 # not 0 or pi: a rotation matters
+    stack = np.stack([_rotated_hosidf(s, phases) for s in (0.3, -0.1, 0.05)])   # (3, 7)
+    np.testing.assert_allclose(reference_phases(stack[0]), phases, atol=1e-15)
+    expected = np.array([np.mean([s / 3, s / 5, s / 7]) / 2 for s in (0.3, -0.1, 0.05)])
+    np.testing.assert_allclose(signed_odd_ratio(stack, phases), expected, rtol=1e-12)
+    per_row = [odd_ratio(h) for h in stack]
+    np.testing.assert_allclose(odd_ratio(stack), per_row, rtol=1e-15)
+    with pytest.raises(InputError, match=re.escape("H holds only 7 harmonics")):
+        odd_ratio(stack, harmonics=(3, 9))
+
+
+def test_search_argument_checks_and_defaults():
+    for bad in (0.0, -1e-3):
+        with pytest.raises(InputError, match="xtol must be > 0"):
+            SignedRootSearch(0.0, 1.0, xtol=bad)
+    with pytest.raises(InputError, match="max_evaluations must be >= 3"):
+        RatioMinimizer(0.0, 1.0, max_evaluations=2)
+    assert RatioMinimizer(0.0, 1.0, max_evaluations=3).max_evaluations == 3
+    assert SignedRootSearch(0.0, 2.0).xtol == pytest.approx(2e-4)
+    assert RatioMinimizer(0.0, 2.0).xtol == pytest.approx(2e-3)
+    # default caps: 20 experiments for the minimiser, 12 for the root search
+    capped = RatioMinimizer(0.0, 1.0, xtol=1e-12).run(lambda k: abs(k - 0.3137) ** 0.3)
+    assert capped.n_evaluations == 20 and not capped.converged
+    slow = SignedRootSearch(0.0, 1.0, xtol=1e-12).run(lambda k: np.cbrt(0.3 - k))
+    assert slow.n_evaluations <= 12 and (slow.converged or slow.n_evaluations == 12)
+
+
+def test_tell_accepts_only_the_value_asked():
+    search = SignedRootSearch(100.0, 300.0)
+    k = search.ask()
+    assert k == 100.0
+    search.tell(k + 5e-11, 1.0)                         # within 1e-12 |k|: the same point
+    search = SignedRootSearch(1e-3, 1.0)
+    search.tell(1e-3 + 5e-13, 1.0)                      # within 1e-12 absolute near 0
+    search = SignedRootSearch(0.5, 1.0)
+    with pytest.raises(InputError, match="asked"):
+        search.tell(0.5 * (1 + 1e-6), 1.0)
+    done = SignedRootSearch(0.0, 1.0)
+    assert done.run(lambda k: 0.4 - k).converged and done.done
+    with pytest.raises(InputError, match="finished"):
+        done.ask()
+    with pytest.raises(InputError, match="finished"):
+        done.tell(0.4, 0.0)
+
+
+def test_result_before_and_during_the_search():
+    search = RatioMinimizer(0.2, 0.6)
+    res = search.result                                   # nothing measured yet
+    assert res.k_fc == pytest.approx(0.4) and res.uncertainty == pytest.approx(0.2)
+    assert not res.converged and res.reason == "running" and res.n_evaluations == 0
+    search = SignedRootSearch(0.2, 0.6)
+    res = search.result
+    assert (res.k_fc, res.uncertainty, res.n_evaluations) == (pytest.approx(0.4),
+                                                              pytest.approx(0.2), 0)
+    search.tell(search.ask(), 0.3)
+    assert search.result.uncertainty == pytest.approx(0.2)           # no bracket yet
+    search.tell(search.ask(), -0.1)
+    res = search.result
+    assert res.k_fc == 0.6 and not res.converged                     # the smaller |s| so far
+
+
+def test_converging_on_the_last_allowed_evaluation_is_converged():
+    res = SignedRootSearch(0.0, 1.0, max_evaluations=3).run(lambda k: 0.4 - k)
+    assert res.converged and res.n_evaluations == 3 and res.k_fc == pytest.approx(0.4)
+
+
+def test_ratio_minimizer_follows_brent_fmin_as_scipy():
+    """The same algorithm as scipy's bounded minimize_scalar (Forsythe, Malcolm, Moler
+    fmin) on r^2: the same experiments in the same order."""
+    assert RatioMinimizer(0.0, 1.0).ask() == pytest.approx((3 - np.sqrt(5)) / 2, rel=1e-15)
+    objectives = [lambda k: abs(k - 0.3) + 0.01, lambda k: np.sqrt(3 * (k - 0.1157) ** 2 + 0.02),
+                  lambda k: np.exp(2 * (k - 0.6)) - 2 * (k - 0.6), lambda k: abs(k - 0.93) ** 0.7]
+    for objective in objectives:
+        for xtol in (1e-3, 1e-5):
+            ours = []
+            res = RatioMinimizer(0.0, 1.0, xtol=xtol, max_evaluations=200).run(
+                lambda k: (ours.append(k), objective(k))[1])
+            ref = []
+            minimize_scalar(lambda k: (ref.append(k), objective(k) ** 2)[1], bounds=(0.0, 1.0),
+                            method="bounded", options={"xatol": xtol, "maxiter": 200})
+            assert len(ours) == len(ref)
+            np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-9)
+            assert res.converged and res.k_fc == min(res.history, key=lambda kv: kv[1])[0]
+
+
+def _illinois_reference(f, a, b, xtol, max_evaluations):
+    """Textbook Illinois (Dowell and Jarratt 1971) with the documented stopping rules."""
+    fa, fb = f(a), f(b)
+    xs, side, c_prev = [a, b], 0, None
+    while len(xs) < max_evaluations:
+        c = (a * fb - b * fa) / (fb - fa)
+        fc = f(c)
+        xs.append(c)
+        if fc == 0:
+            break
+        if np.sign(fc) == np.sign(fb):
+            b, fb = c, fc
+            if side == -1:
+                fa /= 2
+            side = -1
+        else:
+            a, fa = c, fc
+            if side == +1:
+                fb /= 2
+            side = +1
+        if abs(b - a) <= 2 * xtol or (c_prev is not None and abs(c - c_prev) <= xtol):
+            break
+        c_prev = c
+    return xs
+
+
+@pytest.mark.parametrize("objective", [
+    lambda k: np.exp(3 * (0.37 - k)) - 1, lambda k: 1 - np.exp(3 * (k - 0.63)),
+    lambda k: np.tanh(5 * (0.37 - k)) + 0.3 * (0.37 - k) ** 3, lambda k: 0.2 - k ** 3,
+    lambda k: np.cbrt(0.55 - k)])
+def test_signed_root_search_follows_textbook_illinois(objective):
+    res = SignedRootSearch(0.0, 1.0, xtol=1e-7, max_evaluations=40).run(objective)
+    ref = _illinois_reference(objective, 0.0, 1.0, 1e-7, 40)
+    np.testing.assert_allclose([k for k, _ in res.history], ref, rtol=0, atol=1e-12)
+
+
+def test_signed_root_search_uncertainty():
+    # bracket [c, 1] after the third experiment: half of it is below the last step
+    f = lambda k: np.tanh(3 * (0.8 - k))                               # noqa: E731
+    res = SignedRootSearch(0.0, 1.0, max_evaluations=3).run(f)
+    c = res.history[-1][0]
+    assert f(c) > 0 and res.k_fc == c
+    assert res.uncertainty == pytest.approx((1.0 - c) / 2, rel=1e-12)
+    # bracket [0, c] with c near 1: the last step |c - 1| is the smaller one
+    g = lambda k: np.exp(3 * (0.75 - k)) - 1                           # noqa: E731
+    res = SignedRootSearch(0.0, 1.0, max_evaluations=3).run(g)
+    c = res.history[-1][0]
+    assert g(c) < 0 and res.uncertainty == pytest.approx(1.0 - c, rel=1e-12)
+    # a root at an end of the bracket: exact, zero uncertainty
+    for lo, hi in ((0.25, 1.0), (0.0, 0.25)):
+        res = SignedRootSearch(lo, hi).run(lambda k: 0.25 - k)
+        assert res.converged and res.k_fc == 0.25 and res.uncertainty == 0.0
