@@ -256,12 +256,20 @@ def _run_tests(programs, replace, timeout):
 # --------------------------------------------------------------------------- driver
 
 def _digest(module):
+    """What a module's results depend on: every source linked into its test programs, the
+    tests, the generator inputs and this harness."""
+    if module.startswith("canopen/"):
+        globs = ["canopen/*.c", "canopen/*.h", "canopen/tests/*", "core/drv.h", "tools/odgen.py"]
+        extra = [ROOT / "configs" / "od.yaml"]
+    else:
+        globs = ["core/*.c", "core/*.h", "plant/*.c", "plant/*.h", "tests/test_core.c",
+                 "tests/test_plant.c", "tests/th.h", "tools/odgen.py"]
+        extra = [ROOT / "configs" / "od.yaml", ROOT / "tests" / "vectors" / "multisine_vectors.json"]
     h = hashlib.sha256()
-    for p in [FW / module] + sorted(FW.glob("tests/*.c")) + sorted(FW.glob("tests/*.h")) + \
-            sorted(FW.glob("canopen/tests/*")) + [Path(__file__)]:
+    for p in sorted({q for g in globs for q in FW.glob(g)}) + extra + [Path(__file__)]:
         if p.is_file():
+            h.update(p.as_posix().encode())
             h.update(p.read_bytes())
-    h.update((ROOT / "tests" / "vectors" / "multisine_vectors.json").read_bytes())
     return h.hexdigest()
 
 
@@ -269,8 +277,8 @@ def _state_path(module):
     return WORK / (module.replace("/", "__") + ".json")
 
 
-def _load_state(module, restart):
-    path, digest = _state_path(module), _digest(module)
+def _load_state(module, restart, digest):
+    path = _state_path(module)
     if not restart and path.exists():
         state = json.loads(path.read_text())
         if state.get("digest") == digest:
@@ -278,8 +286,8 @@ def _load_state(module, restart):
     return {"digest": digest, "results": {}}
 
 
-def run_module(module, deadline, restart):
-    state = _load_state(module, restart)
+def run_module(module, deadline, restart, digest):
+    state = _load_state(module, restart, digest)
     fw = TREE / "firmware_sim"
     source = (fw / module).read_text()
     lines = source.split("\n")
@@ -359,13 +367,14 @@ def main(argv=None):
                 fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
                 raise MutationError(f"mutation: another C mutation run uses {WORK} (one at a time)")
+            digests = {m: _digest(m) for m in modules}   # of the code copied just below
             _prepare_tree()
             for module in modules:
                 if time.monotonic() > deadline:
                     break
                 print(f"mutation: {module}: running (budget left "
                       f"{max(0, deadline - time.monotonic()):.0f} s)", flush=True)
-                run_module(module, deadline, args.restart)
+                run_module(module, deadline, args.restart, digests[module])
         print_report([report(m) for m in modules], equivalents)
     except MutationError as exc:
         fail(str(exc))
