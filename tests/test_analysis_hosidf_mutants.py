@@ -97,7 +97,8 @@ def test_off_grid_message_names_the_first_bad_record():
     t = np.arange(n)
     rows = [np.sin(2 * np.pi * k * t / n) for k in (10, 20.4, 30.4)]   # records 1 and 2 bad
     u = np.stack(rows).reshape(3, 1, 1, n)
-    with pytest.raises(InputError, match=re.escape("record (1, 0)")):
+    with pytest.raises(InputError, match=re.escape("record (1, 0) has its sine off the DFT grid")
+                       + ".*near 20 Hz"):
         hosidf(u, u, fs=float(n), n_harmonics=3)
 
 
@@ -124,7 +125,7 @@ def test_harmonic_at_exactly_nyquist_is_refused():
     n = 64
     u = tone([(4, 1.0)], n)
     assert hosidf(u, u, fs=64.0, n_harmonics=7).H.shape == (7,)       # 7 * 4 = 28 < 32
-    with pytest.raises(InputError, match=re.escape("at or above fs/2 = 32 Hz")):
+    with pytest.raises(InputError, match=re.escape("the sine at 4 Hz lies at or above fs/2 = 32 Hz")):
         hosidf(u, u, fs=64.0, n_harmonics=8)                           # 8 * 4 = 32
 
 
@@ -143,3 +144,42 @@ def test_repeat_std_equals_numpy_complex_std():
         warnings.simplefilter("error")
         res = hosidf(u[:1], y[:1], fs=float(n), n_harmonics=4)
     assert np.all(np.isnan(res.H_std))
+
+
+def test_keyword_only_options_and_defaults():
+    u = tone([(3, 1.0)], 64)
+    assert hosidf(u, u).H.shape == (7,)                             # K = 7 by default
+    with pytest.raises(TypeError):
+        hosidf(u, u, 64.0)                                          # fs is keyword-only
+
+
+def test_repeats_at_different_frequencies_are_refused():
+    n = 64
+    u = np.concatenate([tone([(5, 1.0)], n), tone([(6, 1.0)], n)])  # R = 2
+    with pytest.raises(InputError, match="different frequencies"):
+        hosidf(u, u, fs=float(n), n_harmonics=3)
+
+
+def test_leakage_test_at_the_line_below_nyquist():
+    n = 64
+    # peak at N/2 - 1, a neighbour signal below it, nothing at Nyquist: not leakage
+    u = tone([(31, 1.0), (30, 0.2)], n)
+    assert hosidf(u, u, fs=float(n), n_harmonics=1).bin == 31
+
+
+def test_given_f0_tolerance_near_bin_one_and_the_record_named():
+    n = 256
+    fs = float(n)                                   # f0 in Hz = bins
+    one = tone([(1, 1.0)], n)
+    with pytest.raises(InputError, match="not on a DFT line"):
+        hosidf(one, one, fs=fs, f0=1 + 1.5e-6, n_harmonics=3)      # 1.5e-6 bins off: refused
+    assert hosidf(one, one, fs=fs, f0=1 - 9.999995e-7, n_harmonics=3).bin == 1
+    rec = np.stack([tone([(1, 1.0)], n)[0], tone([(7, 1.0)], n)[0],
+                    tone([(9, 1.0)], n)[0]]).reshape(3, 1, 1, n)
+    # the first bad record is named, whatever the good ones look like
+    for first, name in (((1 + 1.5e-6), "(0, 0)"), (1 - 9.999995e-7, "(1, 0)"), (1.0, "(1, 0)")):
+        with pytest.raises(InputError, match=re.escape(f"(record {name})")):
+            hosidf(rec, rec, fs=fs, f0=[first, 7.3, 9.3], n_harmonics=3)
+    big = np.stack([tone([(100, 1.0)], n * 16)[0], tone([(7, 1.0)], n * 16)[0]]).reshape(2, 1, 1, -1)
+    with pytest.raises(InputError, match=re.escape("(record (1, 0))")):
+        hosidf(big, big, fs=fs * 16, f0=[100.00005, 7.3], n_harmonics=3)
