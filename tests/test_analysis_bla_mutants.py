@@ -76,3 +76,33 @@ def test_var_nl_matches_monte_carlo_spread_of_wiener_system():
     assert np.mean(ratios) == pytest.approx(1.0, abs=0.1)
     # and the distortion is far above the measurement noise (a meaningful check)
     assert np.mean(spread) > 1e4 * np.mean(res.var_noise) * m
+
+
+# --- input checks and helpers that mutation testing found untested (docs/testing.md) -----
+
+import warnings  # noqa: E402
+
+from fftune.analysis.bla import to_db  # noqa: E402
+from fftune.analysis.errors import InputError  # noqa: E402
+
+
+def test_to_db_values_and_no_warning_for_zero_or_negative():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = to_db([100.0, 0.0, -1.0, 1e-3])
+    np.testing.assert_allclose(out[[0, 3]], [20.0, -30.0], rtol=1e-12)
+    assert np.isnan(out[1]) and np.isnan(out[2])
+    assert to_db(None) is None
+
+
+def test_excited_bins_and_period_length_are_checked():
+    n = 64
+    excited, one = _multisine_table(2, n, 20, seed=1)
+    u = np.repeat(one[:, None, :], 2, axis=1)
+    robust_bla(u, u, excited_bins=[1, n // 2 - 1])                   # the extreme valid bins
+    for bad in ([0, 5], [5, n // 2], [0, n // 2]):                   # DC, Nyquist, both
+        with pytest.raises(InputError, match="bins must lie in 1 .. 31"):
+            robust_bla(u, u, excited_bins=bad)
+    three = np.ones((2, 2, 3))
+    with pytest.raises(InputError, match="N = 3 is too small"):
+        robust_bla(three, three)
