@@ -131,7 +131,9 @@ static void test_ctl_init_defaults_reset_and_edges(void)
     /* reset: the next step has no derivative kick from the error before the reset */
     TH_EQ(ctl_set_kp(&c, 2.0f), CTL_OK);
     (void)ctl_step(&c, 0.5f, 0.0f, 0.0f);
+    TH_NEAR(c.u_unsat, 2.0 * 0.5 + 0.01 * (0.5 - 0.1) * FS, 1e-3); /* last output, unsaturated */
     ctl_reset(&c);
+    TH_NEAR(c.u_unsat, 0.0, 0.0); /* no last output after a reset */
     TH_NEAR(ctl_step(&c, 0.5f, 0.0f, 0.0f), 1.0, 1e-6);
     TH_NEAR(ctl_step(&c, 0.5f, 0.0f, 0.0f), 1.0, 1e-6);
     /* smoothing width 0.5 rad/s (below 1): clamp(v / 0.5, -1, 1) */
