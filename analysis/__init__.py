@@ -23,6 +23,12 @@ Higher order sinusoidal input describing functions
 --------------------------------------------------
 hosidf                 -- H_1 .. H_K with mean and standard deviation over repeats.
 
+Line statistics (what the drive accumulates instead of recording)
+-----------------------------------------------------------------
+harmonic_stats         -- per-period DFT at k f0: mean and variance over periods, in float64.
+parse_stats            -- the drive's statistics upload (object 0x2041).
+hosidf_from_stats      -- the HOSIDFs of :func:`hosidf` from line statistics.
+
 Feed-forward tuning
 -------------------
 odd_ratio              -- rms of |H_3|, |H_5|, |H_7| over |H_1| (objective).
@@ -47,6 +53,7 @@ from fftune.analysis.hosidf import HosidfResult, hosidf
 from fftune.analysis.multisine import (Multisine, crest_factor, design_multisine,
                                        drive_multisine, multisine_realizations,
                                        random_odd_multisine)
+from fftune.analysis.stats import HarmonicStats, harmonic_stats, hosidf_from_stats, parse_stats
 from fftune.analysis.tuning import (RatioMinimizer, SignedRootSearch, TuningResult,
                                     odd_ratio, signed_odd_ratio)
 
@@ -56,6 +63,7 @@ __all__ = [
     "robust_bla", "bla_levels", "detect_excited_lines", "BLAResult", "BLALevels",
     "TransientWarning",
     "hosidf", "HosidfResult",
+    "harmonic_stats", "parse_stats", "hosidf_from_stats", "HarmonicStats",
     "odd_ratio", "signed_odd_ratio", "RatioMinimizer", "SignedRootSearch", "TuningResult",
     "read_run", "write_run", "load_experiment", "export_mat", "export_csv",
     "FftuneError", "InputError",

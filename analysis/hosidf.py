@@ -21,7 +21,7 @@ import scipy.fft
 
 from fftune.analysis.errors import InputError
 
-__all__ = ["HosidfResult", "hosidf"]
+__all__ = ["HosidfResult", "hosidf", "hosidf_from_lines"]
 
 
 @dataclass
@@ -170,16 +170,43 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
         raise InputError(f"harmonic K = {n_harmonics} of the sine at {worst * fs / n:g} Hz lies "
                          f"at or above fs/2 = {fs / 2:g} Hz: lower --harmonics")
 
-    harmonics = np.arange(1, n_harmonics + 1)
     U1 = np.take_along_axis(U, k0[..., None], axis=-1)[..., 0]
-    if np.any(U1 == 0):
-        raise InputError("input u: zero power at the sine frequency")
     del U
     Y = scipy.fft.rfft(y.sum(axis=-2), axis=-1)
-    Yk = np.take_along_axis(Y, k0[..., None] * harmonics, axis=-1)
+    Yk = np.take_along_axis(Y, k0[..., None] * np.arange(1, n_harmonics + 1), axis=-1)
     del Y
+    return hosidf_from_lines(U1, Yk, k0[..., 0], n=n, n_blocks=n_blocks, fs=fs)
+
+
+def hosidf_from_lines(U1, Yk, bins, *, n, n_blocks, fs):
+    """HOSIDFs from the DFT lines of sine experiments (the last step of :func:`hosidf`;
+    :mod:`fftune.analysis.stats` calls it with the drive's on-board line statistics).
+
+    Parameters
+    ----------
+    U1 : array_like of complex, shape (..., R)
+        Input DFT at the sine's bin, summed over the P blocks of N samples (any common
+        scale of U1 and Yk gives the same H; ``amplitude`` uses this one).
+    Yk : array_like of complex, shape (..., R, K)
+        Output DFT at the bins k x bin, k = 1 .. K, summed the same way.
+    bins : array_like of int, shape (...)
+        The sine's bin in a block of N samples.
+    n, n_blocks : int
+        N and P.
+    fs : float
+        Sample rate (Hz).
+
+    Returns
+    -------
+    HosidfResult
+    """
+    U1 = np.asarray(U1, dtype=complex)
+    Yk = np.asarray(Yk, dtype=complex)
+    if np.any(U1 == 0) or not np.isfinite(U1).all():
+        raise InputError("input u: zero power at the sine frequency")
     if not np.isfinite(Yk).all():
         raise InputError("output y: contains NaN or inf")
+    harmonics = np.arange(1, Yk.shape[-1] + 1)
     H_rep = Yk * np.exp(-1j * harmonics * np.angle(U1)[..., None]) / np.abs(U1)[..., None]
     H = H_rep.mean(axis=-2)
     n_rep = H_rep.shape[-2]
@@ -189,6 +216,6 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
     else:
         H_std = np.full(H.shape, np.nan)
     amplitude = (2.0 * np.abs(U1) / (n * n_blocks)).mean(axis=-1)
-    bins = k0[..., 0]
+    bins = np.asarray(bins)
     return HosidfResult(harmonics=harmonics, f0=bins * fs / n, bin=bins, amplitude=amplitude,
                         H=H, H_std=H_std, H_repeats=H_rep, fs=float(fs))

@@ -15,7 +15,9 @@ import numpy as np
 
 from fftune.analysis import capture as _capture
 from fftune.analysis.errors import FftuneError
+from fftune.analysis.stats import HarmonicStats
 from fftune.host import __version__
+from fftune.host.atomic import write_atomic
 from fftune.host.drive import RunRecord
 
 LAYOUT = ("one float32 value per sample from the drive's recorder, stored as float64; "
@@ -52,16 +54,28 @@ class CaptureStore:
     def path(self, key):
         return os.path.join(self.dir, f"{key}.h5")
 
+    def stats_path(self, key):
+        """The on-drive statistics of run ``key`` (JSON, beside or instead of the .h5)."""
+        return os.path.join(self.dir, f"{key}.stats.json")
+
     def load(self, key, request):
-        """The RunRecord captured under ``key`` with ``request``, or None if not captured."""
-        path = self.path(key)
-        if not os.path.exists(path):
-            return None
-        run = _capture.read_run(path)
-        if not _same_request(run.meta.get("metadata", {}).get("request", {}), _jsonable(request)):
-            raise FftuneError(f"{path}: captured with other parameters than this session asks "
-                              f"for (another configuration?); use another --out or remove the file")
-        return record_from_capture(run)
+        """The RunRecord captured under ``key`` with ``request``, or None if not captured.
+        Raw samples and/or the drive's statistics, as captured."""
+        path, spath = self.path(key), self.stats_path(key)
+        rec = None
+        if os.path.exists(path):
+            run = _capture.read_run(path)
+            if not _same_request(run.meta.get("metadata", {}).get("request", {}), _jsonable(request)):
+                raise FftuneError(f"{path}: captured with other parameters than this session asks "
+                                  f"for (another configuration?); use another --out or remove the file")
+            rec = record_from_capture(run)
+        if os.path.exists(spath):
+            srec = _load_stats(spath, request)
+            if rec is None:
+                rec = srec
+            else:
+                rec.stats = srec.stats
+        return rec
 
     def save(self, key, rec, *, experiment, request, config, identity, level_index=0,
              realization=0):
@@ -95,10 +109,44 @@ class CaptureStore:
                 "layout": LAYOUT,
             },
         }
+        if rec.stats is not None:
+            doc = {"format": "fftune-stats", "version": 1, "meta": _jsonable(meta),
+                   "stats": rec.stats.to_dict()}
+            try:
+                write_atomic(self.stats_path(key), json.dumps(doc, indent=1), overwrite=False)
+            except FileExistsError:
+                raise FftuneError(f"{self.stats_path(key)}: exists; captures are never overwritten") from None
+        if not rec.signals:
+            return  # statistics only (capture: stats)
         try:
             _capture.write_run(self.path(key), rec.signals, meta)
         except FileExistsError:
             raise FftuneError(f"{self.path(key)}: exists; captures are never overwritten") from None
+
+
+def _load_stats(path, request):
+    """A RunRecord without samples from a ``.stats.json`` capture."""
+    try:
+        with open(path, "r", encoding="utf-8") as fh:
+            doc = json.load(fh)
+        meta = doc["meta"]
+        stats = HarmonicStats.from_dict(doc["stats"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise FftuneError(f"{path}: not a readable statistics capture ({exc})") from None
+    extra = meta.get("metadata", {})
+    if not _same_request(extra.get("request", {}), _jsonable(request)):
+        raise FftuneError(f"{path}: captured with other parameters than this session asks "
+                          f"for (another configuration?); use another --out or remove the file")
+
+    def ts(s):
+        return datetime.datetime.fromisoformat(s).timestamp() if s else 0.0
+    return RunRecord(signals={}, parameters=meta.get("parameters", {}), fs_hz=float(meta["fs_hz"]),
+                     period_samples=int(meta["n_period"]),
+                     settle_periods=int(extra.get("drive_settle_periods", 0)),
+                     record_periods=int(meta["record_periods"]),
+                     run_counter=int(extra.get("run_counter", 0)),
+                     t_start=ts(meta.get("started_at")), t_end=ts(meta.get("finished_at")), meta=meta,
+                     stats=stats)
 
 
 def _iso(t):

@@ -18,6 +18,8 @@ from fftune.analysis.errors import FftuneError
 
 INJECTION_POINTS = ("reference", "plant_input")
 SIGNAL_NAMES = ("reference", "plant_input", "motor_angle", "load_angle", "error")
+# What a run uploads: the recorded samples, the drive's line statistics, or both.
+CAPTURE_MODES = ("raw", "stats", "both")
 
 # Defaults; every key a user may set appears here (unknown keys are refused).
 DEFAULTS = {
@@ -73,6 +75,8 @@ DEFAULTS = {
         "periods": 2,
         "settle_periods": 2,
         "harmonics": 7,
+        # raw | stats | both; None: stats on a real drive or a simulated bus with a bitrate
+        "capture": None,
         "sweep": {"k_fc_max": 1.0, "points": 11},
         "search": {"method": "root", "max_experiments": 8, "k_fc_max": None, "xtol_v": None},
         "viscous": {"enabled": True, "k_v_max": 1.0, "max_experiments": 8},
@@ -274,6 +278,8 @@ def validate(raw, path="<config>"):
     _number(cfg, path, "tune.periods", low=1, high=1000, integer=True)
     _number(cfg, path, "tune.settle_periods", low=0, high=1000, integer=True)
     _number(cfg, path, "tune.harmonics", low=7, high=50, integer=True)
+    if t["capture"] is not None:
+        _choice(cfg, path, "tune.capture", CAPTURE_MODES)
     _number(cfg, path, "tune.sweep.k_fc_max", low=0, high=100, low_inclusive=False)
     _number(cfg, path, "tune.sweep.points", low=3, high=200, integer=True)
     _choice(cfg, path, "tune.search.method", ("root", "brent"))

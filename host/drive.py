@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fftune.analysis.errors import FftuneError
+from fftune.analysis.stats import STAT_K_MAX, STAT_SIG_MAX
+from fftune.host.config import CAPTURE_MODES
 from fftune.host.odmap import (DEFAULT_EDS, PARAMS, RUN_STATES, SIGNAL_BITS, STOP_REASONS,
                                 check_drive_profile)
 
@@ -109,6 +111,22 @@ class BusOptions:
         return f"interface {self.interface}, channel {self.channel}"
 
 
+def stats_parameters(stats):
+    """Drive parameters (``stat_harmonics``, ``stat_signals``, ``stat_power``) for a
+    statistics request ``{"harmonics": K, "signals": [names], "power": [names]}``."""
+    def bits(names, key):
+        m = 0
+        for name in names or ():
+            if name not in SIGNAL_BITS:
+                raise FftuneError(f"statistics: key '{key}': unknown signal {name!r} (expected one of "
+                                  f"{', '.join(SIGNAL_BITS)})")
+            m |= 1 << SIGNAL_BITS[name]
+        return m
+    return {"stat_harmonics": int(stats.get("harmonics", 0)),
+            "stat_signals": bits(stats.get("signals"), "signals"),
+            "stat_power": bits(stats.get("power"), "power")}
+
+
 @dataclass
 class RunRecord:
     """One completed run: the recorded signals and what the drive was set to."""
@@ -123,6 +141,8 @@ class RunRecord:
     t_start: float                # POSIX time
     t_end: float
     meta: dict = field(default_factory=dict)
+    # on-drive line statistics (fftune.analysis.stats.HarmonicStats) when captured
+    stats: object = None
 
 
 def sdo_abort_text(exc):
@@ -534,8 +554,9 @@ class DriveClient:
 
     # ---- runs -------------------------------------------------------------------------
     def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"),
-            desc="run"):
-        """Set ``parameters``, start a run, wait for it, upload and check the recording.
+            desc="run", capture="raw", stats=None):
+        """Set ``parameters``, start a run, wait for it, upload and check the recording
+        and/or the drive's line statistics.
 
         Parameters
         ----------
@@ -545,23 +566,34 @@ class DriveClient:
             Recorder signals (``fftune.host.odmap.SIGNAL_BITS``).
         desc : str
             Progress bar label.
+        capture : {'raw', 'stats', 'both'}
+            Upload the recording, the statistics (object 0x2041, one small upload; nothing
+            is recorded), or both.
+        stats : dict, optional
+            With ``capture`` 'stats' or 'both': ``{"harmonics": K, "signals": [names],
+            "power": [names]}`` (:func:`stats_parameters`).
 
         Returns
         -------
         RunRecord
+            ``signals`` empty with ``capture='stats'``; ``stats`` set unless 'raw'.
         """
         from tqdm import tqdm
 
+        if capture not in CAPTURE_MODES:
+            raise FftuneError(f"capture mode {capture!r}: expected one of {', '.join(CAPTURE_MODES)}")
         mask = 0
-        for name in signals:
-            mask |= 1 << SIGNAL_BITS[name]
+        if capture != "stats":
+            for name in signals:
+                mask |= 1 << SIGNAL_BITS[name]
         order = [n for n, b in sorted(SIGNAL_BITS.items(), key=lambda kv: kv[1]) if mask >> b & 1]
         self.set_parameters(dict(parameters, rec_signals=mask))
+        self._set_stats(stats if capture != "raw" else None)
         counter0 = int(self.get("run_counter"))
         boots0 = self._bootups
         t_start = time.time()
         self._run_active = True  # (also if the start's answer is lost): close() stops it
-        self.set("run_command", 1)
+        self._start_run(stats if capture != "raw" else None, parameters)
         t_wait = time.monotonic()
         self._waiting_for_run = True
         total = int(self.get("run_total"))
@@ -600,7 +632,8 @@ class DriveClient:
                               "its recording is lost")
         n = int(params["exc_period"])
         rec_periods = int(params["exc_record_periods"])
-        data = self.upload_recording()
+        run_stats = self.upload_stats() if capture != "raw" else None
+        data = self.upload_recording() if capture != "stats" else b""
         if self._bootups != boots0:
             raise FftuneError(f"node {self.opts.node_id} rebooted during the run (boot-up seen); "
                               "its recording is lost")
@@ -614,10 +647,67 @@ class DriveClient:
         self.time_account["excitation_s"] += (int(params["exc_settle_periods"]) + rec_periods) * n / float(params["fs"])
         arr = np.frombuffer(data, dtype="<f4").reshape(expected_samples, nsig)
         sig = {name: arr[:, i].astype(np.float64) for i, name in enumerate(order)}
+        if run_stats is not None and run_stats.periods != rec_periods:
+            raise FftuneError(f"statistics from node {self.opts.node_id}: {run_stats.periods} periods "
+                              f"accumulated, the run recorded {rec_periods}")
         return RunRecord(signals=sig, parameters=params, fs_hz=float(params["fs"]),
                          period_samples=n, settle_periods=int(params["exc_settle_periods"]),
                          record_periods=rec_periods, run_counter=int(self.get("run_counter")),
-                         t_start=t_start, t_end=t_end)
+                         t_start=t_start, t_end=t_end, stats=run_stats)
+
+    # ---- on-drive statistics (object 0x2040 / 0x2041, firmware_sim/core/stat.h) ----------
+    def _set_stats(self, stats):
+        """Write the statistics configuration (all off for None); a value beyond what the
+        drive holds comes back as its SDO abort, with the limit named."""
+        if "stat_harmonics" not in PARAMS or 0x2040 not in self.node.object_dictionary:
+            if stats is None:
+                return
+            raise FftuneError(f"node {self.opts.node_id}: its EDS has no statistics object 0x2040 "
+                              f"(capture: stats needs firmware with on-drive statistics)")
+        values = stats_parameters(stats) if stats is not None else \
+            {"stat_harmonics": 0, "stat_signals": 0, "stat_power": 0}
+        limits = {"stat_harmonics": f"the drive holds at most {STAT_K_MAX} harmonics",
+                  "stat_signals": f"the drive holds harmonic statistics of at most {STAT_SIG_MAX} signals",
+                  "stat_power": "signal bits 0 .. 4"}
+        for name, value in values.items():
+            try:
+                self.set(name, value)
+            except FftuneError as exc:
+                raise FftuneError(f"statistics: {exc} ({limits[name]})") from None
+
+    def _start_run(self, stats, parameters):
+        """Run command 1; a refusal for the statistics names the limit (last stop reason)."""
+        try:
+            self.set("run_command", 1)
+        except FftuneError as exc:
+            if stats is None or "stat_harmonics" not in PARAMS:
+                raise
+            reason = int(self.get("run_last_error"))
+            if reason == 9:
+                k, c, n = int(stats["harmonics"]), int(parameters.get("exc_sine_cycles", 0)), \
+                    int(parameters.get("exc_period", 0))
+                raise FftuneError(f"statistics: harmonic K = {k} of the sine at bin {c} is line {k * c}, "
+                                  f"at or above N/2 = {n / 2:g} (fs/2), the highest line the drive "
+                                  f"can accumulate: {exc}") from None
+            if reason == 10:
+                raise FftuneError(f"statistics: harmonic statistics need a sine run (exc_kind 1): "
+                                  f"{exc}") from None
+            raise
+
+    def upload_stats(self):
+        """The drive's statistics of the last run (0x2041, a few hundred bytes at most) as
+        :class:`fftune.analysis.stats.HarmonicStats`."""
+        from fftune.analysis.stats import parse_stats
+
+        index, sub = 0x2041, 0
+
+        def do():
+            return self.node.sdo.upload(index, sub)
+        data = self._sdo_call("upload of", index, sub, do)
+        try:
+            return parse_stats(data)
+        except FftuneError as exc:
+            raise FftuneError(f"statistics from node {self.opts.node_id}: {exc}") from None
 
     def _check_heartbeat(self):
         if not self.heartbeat_ms or self._last_hb is None:

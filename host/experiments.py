@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from fftune.analysis.hosidf import hosidf as _hosidf_estimate  # (fftune.analysis.hosidf is the function)
+from fftune.analysis.stats import hosidf_from_stats
 from fftune.analysis import tuning as _tuning
 from fftune.analysis.bla import bla_levels, estimate_quantisation_step, level_verdict
 from fftune.analysis.errors import FftuneError
@@ -60,17 +61,31 @@ class Session:
         ctl = {k: v for k, v in cfg["drive"]["controller"].items() if v is not None}
         self.controller = {"tau_d" if k == "tau_d" else k: v for k, v in ctl.items()}
 
-    def run(self, experiment, key, request, level_index=0, realization=0, extra_signals=None):
+    def capture_mode(self, step):
+        """'raw', 'stats' or 'both' for ``step`` (key ``<step>.capture``; unset: statistics
+        on a real drive or a simulated bus of limited bitrate, raw samples otherwise)."""
+        mode = self.cfg.get(step, {}).get("capture")
+        if mode:
+            return mode
+        bus_model = (self.cfg.get("sim") or {}).get("bitrate")
+        return "stats" if (self.truth is None or bus_model) else "raw"
+
+    def run(self, experiment, key, request, level_index=0, realization=0, extra_signals=None,
+            stats=None):
         """The run ``key`` of ``experiment`` with drive parameters ``request``, measured or
         loaded from an earlier capture with the same request. ``extra_signals`` (name ->
         array of the record's length, e.g. the excitation the drive generated but does
-        not record) are stored in the capture beside the recorded ones, as float32."""
+        not record) are stored in the capture beside the recorded ones, as float32.
+        ``stats`` (``fftune.host.drive.stats_parameters``) asks the drive for its line
+        statistics when the step's capture mode is 'stats' or 'both'."""
         request = dict(self.controller, **request)
         rec = self.store.load(key, request)
         if rec is not None:
             self.counts["resumed"] += 1
             return rec
-        rec = self.drive.run(request, desc=key)
+        capture = self.capture_mode(experiment) if stats else "raw"
+        kwargs = {"capture": capture, "stats": stats} if capture != "raw" else {}
+        rec = self.drive.run(request, desc=key, **kwargs)
         for name, values in (extra_signals or {}).items():
             rec.signals[name] = np.asarray(values, dtype=np.float32).astype(np.float64)
         self.store.save(key, rec, experiment=experiment, request=request, config=self.cfg,
@@ -335,16 +350,27 @@ class _TuneProbe:
         req = sine_request(inject="reference", amplitude_peak=c["amplitude_rad"], n=self.n,
                            cycles=self.cycles, settle=c["settle_periods"], periods=c["periods"],
                            kfc=kfc, kv=kv)
-        rec = self.s.run("tune", key, req)
-        r = _blocks(rec.signals["reference"], self.n)[None]
-        y = _blocks(rec.signals["motor_angle"], self.n)[None]
-        hos = _hosidf_estimate(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
-                             f0=c["frequency_hz"])
+        rec = self.s.run("tune", key, req, stats={"harmonics": c["harmonics"],
+                                                  "signals": ["reference", "motor_angle"],
+                                                  "power": ["error"]})
+        if rec.stats is not None:
+            # the drive's line statistics: the same H and rms as from the samples
+            # (fftune.analysis.stats; docs/analysis.md), from a ~200-byte upload
+            hos = hosidf_from_stats(rec.stats, rec.stats, u_name="reference",
+                                    y_name="motor_angle", fs=self.s.fs_hz, n=self.n,
+                                    cycles=self.cycles, n_harmonics=c["harmonics"])
+            rms_error = rec.stats.rms("error")
+        else:
+            r = _blocks(rec.signals["reference"], self.n)[None]
+            y = _blocks(rec.signals["motor_angle"], self.n)[None]
+            hos = _hosidf_estimate(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
+                                   f0=c["frequency_hz"])
+            rms_error = float(np.sqrt(np.mean(rec.signals["error"] ** 2)))
         H = hos.H
         point = {
             "kfc": float(np.float32(kfc)), "kv": float(np.float32(kv)), "H": H,
             "ratio": float(_tuning.odd_ratio(H)),
-            "rms_error": float(np.sqrt(np.mean(rec.signals["error"] ** 2))),
+            "rms_error": rms_error,
             "record": rec,
         }
         self.points[(tag, point["kfc"], point["kv"])] = point

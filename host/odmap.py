@@ -24,6 +24,8 @@ STOP_REASONS = {
     4: "recorder too small for the run", 5: "inconsistent excitation parameters",
     6: "NMT left OPERATIONAL", 7: "non-finite measurement (fault)",
     8: "controller output not finite (fault)",
+    9: "statistics line above fs/2 (harmonics x sine cycles >= N/2)",
+    10: "harmonic statistics asked for a run without a sine",
 }
 EXC_KINDS = {"none": 0, "sine": 1, "table": 2, "multisine": 3}
 INJECT = {"reference": 0, "plant_input": 1}

@@ -120,6 +120,9 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
         if tune_data.get("p_kv") is not None:
             p = tune_data["p_kv"]
             recs.append((f"K_fc* and K_v* = {p['kv']:.4g} V s/rad", p))
+        if any(not p["record"].signals for _, p in recs):
+            # capture: stats uploads no samples; the time response needs raw (capture: both)
+            return made
         save("figure9_time_response", plots.figure9(
             fs, tune_data["p0"]["record"].signals["reference"],
             {label: p["record"].signals["motor_angle"] for label, p in recs},

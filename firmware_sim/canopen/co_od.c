@@ -321,13 +321,20 @@ uint32_t co_od_domain_size(co_node_t *n, const co_od_entry_t *e, uint32_t *size)
         *size = drv_table_size_bytes(n->drv);
         return 0u;
     }
+    if (e->ref == CO_DOMAIN_STATS) {
+        if (co_node_run_active(n)) {
+            return CO_SDO_AB_DATA_DEV_STATE; /* being accumulated */
+        }
+        *size = drv_stat_size_bytes(n->drv);
+        return 0u;
+    }
     return CO_SDO_AB_GENERAL;
 }
 
 uint32_t co_od_domain_generation(co_node_t *n, const co_od_entry_t *e)
 {
     uint32_t counter = 0u;
-    if (e->ref == CO_DOMAIN_RECORDER) {
+    if (e->ref == CO_DOMAIN_RECORDER || e->ref == CO_DOMAIN_STATS) {
         (void)drv_get_u32(n->drv, DRV_P_RUN_COUNTER, &counter);
     } else if (e->ref == CO_DOMAIN_TABLE) {
         counter = drv_table_generation(n->drv); /* a multisine run start rewrites it */
@@ -343,6 +350,11 @@ uint32_t co_od_domain_read(co_node_t *n, const co_od_entry_t *e, uint32_t off, u
             return CO_SDO_AB_DATA_DEV_STATE;
         }
         st = drv_rec_read(n->drv, off, dst, len);
+    } else if (e->ref == CO_DOMAIN_STATS) {
+        if (co_node_run_active(n)) {
+            return CO_SDO_AB_DATA_DEV_STATE;
+        }
+        st = drv_stat_read(n->drv, off, dst, len);
     } else if (e->ref == CO_DOMAIN_TABLE) {
         st = drv_table_read(n->drv, off, dst, len);
     } else {

@@ -74,6 +74,7 @@ drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
     gen_init(&drv->gen);
     run_init(&drv->run);
     (void)rec_init(&drv->rec, storage->rec_buf, storage->rec_capacity);
+    stat_init(&drv->stat);
     drv->exc_kind = DRV_EXC_NONE;
     drv->exc_inject = DRV_INJECT_REFERENCE;
     drv->run_inject = DRV_INJECT_REFERENCE;
@@ -144,6 +145,7 @@ static bool drv_exc_param(drv_param_id_t id)
     case DRV_P_EXC_PERIOD: case DRV_P_EXC_SINE_CYCLES: case DRV_P_EXC_SETTLE_PERIODS:
     case DRV_P_EXC_RECORD_PERIODS: case DRV_P_MS_K_MIN: case DRV_P_MS_K_MAX: case DRV_P_MS_GROUP:
     case DRV_P_MS_SEED: case DRV_P_MS_REALIZATION: case DRV_P_REC_SIGNALS:
+    case DRV_P_STAT_HARMONICS: case DRV_P_STAT_SIGNALS: case DRV_P_STAT_POWER:
         return true;
     default:
         return false;
@@ -219,6 +221,11 @@ drv_status_t drv_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value)
     case DRV_P_REC_CAPACITY: v = drv->rec.capacity; break;
     case DRV_P_REC_SAMPLES: v = drv->rec.samples; break;
     case DRV_P_REC_BYTES: v = rec_size_bytes(&drv->rec); break;
+    case DRV_P_STAT_HARMONICS: v = drv->stat.k; break;
+    case DRV_P_STAT_SIGNALS: v = drv->stat.hmask; break;
+    case DRV_P_STAT_POWER: v = drv->stat.pmask; break;
+    case DRV_P_STAT_PERIODS: v = drv->stat.periods; break;
+    case DRV_P_STAT_BYTES: v = stat_size_bytes(&drv->stat); break;
     default: return DRV_E_NO_PARAM;
     }
     *value = v;
@@ -263,6 +270,12 @@ drv_status_t drv_set_u32(drv_t *drv, drv_param_id_t id, uint32_t value)
     case DRV_P_MS_REALIZATION: drv->ms_realization = value; return DRV_OK;
     case DRV_P_REC_SIGNALS:
         return rec_set_signals(&drv->rec, value) == 0 ? DRV_OK : DRV_E_RANGE_HIGH;
+    case DRV_P_STAT_HARMONICS:
+        return stat_set_harmonics(&drv->stat, value) == STAT_OK ? DRV_OK : DRV_E_RANGE_HIGH;
+    case DRV_P_STAT_SIGNALS: /* more than STAT_SIG_MAX signals: more than the drive holds */
+        return stat_set_signals(&drv->stat, value) == STAT_OK ? DRV_OK : DRV_E_RANGE_HIGH;
+    case DRV_P_STAT_POWER:
+        return stat_set_power(&drv->stat, value) == STAT_OK ? DRV_OK : DRV_E_RANGE_HIGH;
     case DRV_P_RUN_COMMAND:
         if (value == 1u) {
             return drv_run_start(drv);
@@ -353,6 +366,11 @@ drv_status_t drv_run_start(drv_t *drv)
     if (!rec_fits(&drv->rec, (uint32_t)record)) {
         return drv_refuse(drv, DRV_STOP_NO_FIT, DRV_E_NO_FIT);
     }
+    switch (stat_check(&drv->stat, n, drv->exc_kind == DRV_EXC_SINE ? drv->exc_sine_cycles : 0u)) {
+    case STAT_OK: break;
+    case STAT_E_NYQUIST: return drv_refuse(drv, DRV_STOP_STAT_NYQUIST, DRV_E_INCOMPATIBLE);
+    default: return drv_refuse(drv, DRV_STOP_STAT_NOT_SINE, DRV_E_INCOMPATIBLE);
+    }
     int gst = 0;
     switch (drv->exc_kind) {
     case DRV_EXC_SINE:
@@ -380,6 +398,7 @@ drv_status_t drv_run_start(drv_t *drv)
         return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
     }
     rec_clear(&drv->rec);
+    stat_begin(&drv->stat, n);
     drv->run_inject = drv->exc_inject;
     (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);
     return DRV_OK;
@@ -500,6 +519,7 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
         if (run_tick(&drv->run) == RUN_TICK_RECORD) {
             const float sig[REC_NUM_SIGNALS] = {ref, u, motor, drv->load, e};
             rec_push(&drv->rec, sig);
+            stat_push(&drv->stat, sig, drv->gen.sin_last, drv->gen.cos_last);
         }
         if (!run_active(&drv->run)) {
             gen_stop(&drv->gen);
@@ -508,7 +528,17 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
     return u;
 }
 
-/* ---- recorder and table byte streams ---- */
+/* ---- recorder, statistics and table byte streams ---- */
+
+uint32_t drv_stat_size_bytes(const drv_t *drv)
+{
+    return stat_size_bytes(&drv->stat);
+}
+
+drv_status_t drv_stat_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    return stat_read(&drv->stat, offset, dst, len) == 0 ? DRV_OK : DRV_E_LENGTH;
+}
 
 uint32_t drv_rec_size_bytes(const drv_t *drv)
 {

@@ -54,7 +54,9 @@ typedef enum {
     DRV_STOP_BAD_CONFIG = 5,     /* refused: excitation parameters inconsistent */
     DRV_STOP_NMT = 6,            /* NMT left OPERATIONAL */
     DRV_STOP_MEAS_FAULT = 7,     /* (added by core) non-finite measurement: FAULT, output 0 */
-    DRV_STOP_OUTPUT_FAULT = 8    /* controller output not finite (overflow / NaN): FAULT, output 0 */
+    DRV_STOP_OUTPUT_FAULT = 8,   /* controller output not finite (overflow / NaN): FAULT, output 0 */
+    DRV_STOP_STAT_NYQUIST = 9,   /* refused: statistics harmonic K x sine cycles >= N / 2 */
+    DRV_STOP_STAT_NOT_SINE = 10  /* refused: harmonic statistics asked for a run without a sine */
 } drv_stop_reason_t;
 
 /* Excitation kinds (EXC_KIND) and injection points (EXC_INJECT). */
@@ -155,5 +157,9 @@ void drv_get_monitor(const drv_t *drv, drv_monitor_t *mon);
  * derivative): output 0 from that step on, run FAULT, the controller state reset. Cleared by
  * drv_enable(drv, true) (CiA 402 fault reset + enable). */
 bool drv_fault(const drv_t *drv);
+
+/* On-drive run statistics (stat.h): the byte stream of object 0x2041, valid after DONE. */
+uint32_t drv_stat_size_bytes(const drv_t *drv);
+drv_status_t drv_stat_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
 
 #endif /* DRV_H */

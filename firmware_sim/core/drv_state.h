@@ -12,12 +12,14 @@
 #include "gen.h"
 #include "rec.h"
 #include "run.h"
+#include "stat.h"
 
 typedef struct {
     ctl_t ctl;
     gen_t gen;
     run_t run;
     rec_t rec;
+    stat_t stat;
 
     float fs_hz;
     float *table_buf;        /* the table in use (committed) */

@@ -17,6 +17,8 @@ void gen_init(gen_t *gen)
     gen->offset = 0.0f;
     gen->quarter_step = 0.0f;
     gen->vel_gain = 0.0f;
+    gen->sin_last = 0.0f;
+    gen->cos_last = 1.0f;
     gen->table = NULL;
 }
 

@@ -31,6 +31,7 @@ typedef struct {
     uint32_t cycles;   /* sine cycles per period */
     float amp, offset;
     float quarter_step;/* (pi/2) / n: angle per unit of 4 p mod n */
+    float sin_last, cos_last; /* sine: sin, cos of 2 pi p / n of the last sample (stat.h) */
     float vel_gain;    /* sine: amp 2 pi cycles fs / n; table: amp fs / 2 */
     const float *table;
 } gen_t;
@@ -76,6 +77,8 @@ static inline void gen_next(gen_t *gen, float *w, float *w_dot)
     case GEN_SINE: {
         float s, c;
         gen_sincos_index(gen->phase, gen->n, gen->quarter_step, &s, &c);
+        gen->sin_last = s;
+        gen->cos_last = c;
         *w = gen->offset + gen->amp * s;
         *w_dot = gen->vel_gain * c;
         gen->phase += gen->cycles;

@@ -23,7 +23,7 @@ int rec_init(rec_t *rec, float *buf, uint32_t capacity)
 
 int rec_set_signals(rec_t *rec, uint32_t mask)
 {
-    if (mask == 0u || (mask & ~REC_SIGNAL_MASK) != 0u) {
+    if ((mask & ~REC_SIGNAL_MASK) != 0u) { /* 0: record nothing (statistics only) */
         return -1;
     }
     rec->signals = mask;

@@ -24,7 +24,7 @@ typedef struct {
 
 /* buf may be NULL only with capacity 0. Selection starts at 0x07. */
 int rec_init(rec_t *rec, float *buf, uint32_t capacity);
-/* 1 .. 0x1F; returns -1 (unchanged) otherwise. */
+/* 0 .. 0x1F (0: nothing recorded, statistics only); returns -1 (unchanged) otherwise. */
 int rec_set_signals(rec_t *rec, uint32_t mask);
 /* Would `samples` samples of the present selection fit? (no overflow) */
 bool rec_fits(const rec_t *rec, uint32_t samples);

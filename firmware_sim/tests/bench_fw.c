@@ -4,6 +4,8 @@
  *   bench_fw rate CONFIG          closed-loop steps/s: plant + drive, free run, median of 5
  *   bench_fw instr table LEN N    N drive steps (controller + generator + recorder, no
  *   bench_fw instr sine N         plant) inside bench_fw_drive_steps, for callgrind
+ *   bench_fw instr sine-stats N   the sine with the harmonic statistics on (K = 8, 3 signals:
+ *                                 reference, plant input, motor angle; power of the error)
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -106,13 +108,14 @@ static int bench_instr(int argc, char **argv)
     }
     uint32_t n, len = 0u;
     int table = strcmp(argv[2], "table") == 0;
+    int stats = strcmp(argv[2], "sine-stats") == 0;
     if (table && argc == 5) {
         len = (uint32_t)strtoul(argv[3], NULL, 10);
         n = (uint32_t)strtoul(argv[4], NULL, 10);
-    } else if (!table && strcmp(argv[2], "sine") == 0 && argc == 4) {
+    } else if (!table && (stats || strcmp(argv[2], "sine") == 0) && argc == 4) {
         n = (uint32_t)strtoul(argv[3], NULL, 10);
     } else {
-        fprintf(stderr, "usage: bench_fw instr table LEN N | bench_fw instr sine N\n");
+        fprintf(stderr, "usage: bench_fw instr table LEN N | bench_fw instr sine N | bench_fw instr sine-stats N\n");
         return 2;
     }
     drv_enable(&drv, true);
@@ -134,6 +137,13 @@ static int bench_instr(int argc, char **argv)
     (void)drv_set_u32(&drv, DRV_P_EXC_KIND, table ? DRV_EXC_TABLE : DRV_EXC_SINE);
     (void)drv_set_u32(&drv, DRV_P_EXC_PERIOD, period);
     (void)drv_set_u32(&drv, DRV_P_EXC_SETTLE_PERIODS, 0u);
+    if (stats && (drv_set_u32(&drv, DRV_P_STAT_HARMONICS, STAT_K_MAX) != DRV_OK ||
+                  drv_set_u32(&drv, DRV_P_STAT_SIGNALS, DRV_SIG_REFERENCE | DRV_SIG_PLANT_INPUT |
+                                                          DRV_SIG_MOTOR_ANGLE) != DRV_OK ||
+                  drv_set_u32(&drv, DRV_P_STAT_POWER, DRV_SIG_ERROR) != DRV_OK)) {
+        fprintf(stderr, "bench_fw: statistics refused\n");
+        return 2;
+    }
     uint32_t rec_periods = (n + period - 1u) / period + 1u;
     if (drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, rec_periods) != DRV_OK) {
         fprintf(stderr, "bench_fw: %u steps need %u periods of %u: more than EXC_RECORD_PERIODS allows\n",
@@ -148,6 +158,11 @@ static int bench_instr(int argc, char **argv)
     uint32_t state;
     (void)drv_get_u32(&drv, DRV_P_RUN_STATE, &state);
     printf("steps %u, run state %u\n", (unsigned)n, (unsigned)state);
+    if (stats) {
+        uint32_t periods;
+        (void)drv_get_u32(&drv, DRV_P_STAT_PERIODS, &periods);
+        printf("statistics: %u periods accumulated\n", (unsigned)periods);
+    }
     if (state != DRV_RUN_RECORDING) {
         fprintf(stderr, "bench_fw: the run was not recording through all measured steps\n");
         return 2;
@@ -163,6 +178,6 @@ int main(int argc, char **argv)
     if (argc >= 3 && strcmp(argv[1], "instr") == 0) {
         return bench_instr(argc, argv);
     }
-    fprintf(stderr, "usage: bench_fw rate CONFIG | bench_fw instr table LEN N | bench_fw instr sine N\n");
+    fprintf(stderr, "usage: bench_fw rate CONFIG | bench_fw instr table LEN N | bench_fw instr sine[-stats] N\n");
     return 2;
 }

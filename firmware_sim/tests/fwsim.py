@@ -66,6 +66,8 @@ def load_lib():
         "drv_set_target": (ctypes.c_int, [vp, f32]),
         "drv_rec_size_bytes": (u32, [vp]),
         "drv_rec_read": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
+        "drv_stat_size_bytes": (u32, [vp]),
+        "drv_stat_read": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
         "drv_table_size_bytes": (u32, [vp]),
         "drv_table_read": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
         "drv_table_write": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
@@ -173,6 +175,13 @@ class FwSim:
         self._check(self.lib.drv_rec_read(self.drv, 0, buf, size), "rec read")
         data = np.frombuffer(buf.raw[:size], dtype="<f4").reshape(-1, len(names))
         return data, names
+
+    def stats_bytes(self):
+        """The statistics data (object 0x2041) as bytes (fftune.analysis.stats.parse_stats)."""
+        size = self.lib.drv_stat_size_bytes(self.drv)
+        buf = ctypes.create_string_buffer(max(size, 1))
+        self._check(self.lib.drv_stat_read(self.drv, 0, buf, size), "stat read")
+        return buf.raw[:size]
 
     def table(self):
         size = self.lib.drv_table_size_bytes(self.drv)

@@ -149,6 +149,21 @@ drv_status_t drv_rec_read(const drv_t *d, uint32_t off, uint8_t *dst, uint32_t l
     return DRV_OK;
 }
 
+/* statistics: 8 synthetic bytes (the header of an empty statistics stream) */
+uint32_t drv_stat_size_bytes(const drv_t *d) { (void)d; return 8u; }
+
+drv_status_t drv_stat_read(const drv_t *d, uint32_t off, uint8_t *dst, uint32_t len)
+{
+    (void)d;
+    if ((uint64_t)off + len > 8u) {
+        return DRV_E_LENGTH;
+    }
+    for (uint32_t i = 0; i < len; i++) {
+        dst[i] = (uint8_t)(off + i);
+    }
+    return DRV_OK;
+}
+
 drv_status_t drv_table_write(drv_t *d, uint32_t off, const uint8_t *src, uint32_t len)
 {
     if (active(d)) {

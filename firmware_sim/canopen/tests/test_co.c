@@ -277,7 +277,7 @@ static void test_abort_codes(void)
     CHECK(sdo_write(0x2000, 1, f2u(2e5f), 4) == CO_SDO_AB_VALUE_HIGH);
     CHECK(sdo_write(0x2000, 1, f2u(-1.0f), 4) == CO_SDO_AB_VALUE_LOW);
     CHECK(sdo_write(0x2001, 1, 9, 1) == CO_SDO_AB_VALUE_HIGH);      /* table limit 0..3 */
-    CHECK(sdo_write(0x2020, 1, 0, 4) == CO_SDO_AB_VALUE_LOW);       /* signals 1..0x1F */
+    CHECK(sdo_write(0x2020, 1, 0x20, 4) == CO_SDO_AB_VALUE_HIGH);   /* signals 0..0x1F */
     CHECK(sdo_write(0x6060, 0, 3, 1) == CO_SDO_AB_INVALID_VALUE);   /* mode 3 unsupported */
     CHECK(sdo_write(0x6060, 0, 9, 1) == CO_SDO_AB_VALUE_HIGH);
     CHECK(sdo_write(0x6060, 0, 0xFE, 1) == CO_SDO_AB_VALUE_LOW);    /* -2 */

@@ -1,0 +1,232 @@
+"""Line statistics of sine runs: what the drive accumulates instead of recording samples.
+
+A sine run at bin c of a period of N samples (c cycles per period), P recorded periods.
+For a signal x and the harmonics k = 1 .. K the per-period DFT
+
+    X_p[k] = sum_{n=0}^{N-1} x_p[n] exp(-j 2 pi k c n / N)      (numpy rfft at bin k c)
+
+has the mean over periods  mean[k] = (1/P) sum_p X_p[k]  and the period-to-period variance
+var[k] = sum_p |X_p[k] - mean[k]|^2 / (P - 1). For the power signals: the mean and the mean
+square of x over the recorded samples. These are sufficient for the HOSIDFs (the mean of
+the input at k = 1 and of the output at k = 1 .. K: ``hosidf`` sums the P blocks before
+its DFT, which is P x mean), their period-to-period spread, and the rms tracking error.
+
+The drive computes them in float32 while the run records (firmware_sim/core/stat.h,
+object 0x2041, docs/firmware.md); :func:`harmonic_stats` computes the same numbers from
+raw samples in float64, so a run captured both ways can be compared (``capture: both``).
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fftune.analysis.errors import InputError
+from fftune.analysis.hosidf import hosidf_from_lines
+
+__all__ = ["SIGNAL_BITS", "HarmonicStats", "parse_stats", "harmonic_stats", "hosidf_from_stats",
+           "relative_difference", "STAT_K_MAX", "STAT_SIG_MAX"]
+
+# Signal numbers of the drive (firmware_sim/core/drv.h DRV_SIG_*), the bit order of the data.
+SIGNAL_BITS = {"reference": 0, "plant_input": 1, "motor_angle": 2, "load_angle": 3, "error": 4}
+STAT_K_MAX = 8      # harmonics the drive holds (stat.h)
+STAT_SIG_MAX = 3    # signals with harmonic statistics the drive holds
+
+
+@dataclass
+class HarmonicStats:
+    """Line statistics of one sine run.
+
+    Attributes
+    ----------
+    periods : int
+        P, the periods accumulated.
+    harmonics : int
+        K.
+    mean : dict
+        Signal name -> complex array (K,): mean over periods of the per-period DFT at
+        k c, k = 1 .. K (unnormalised sum over N samples).
+    var : dict
+        Signal name -> array (K,): sum_p |X_p - mean|^2 / (P - 1); NaN when P < 2.
+    power_mean, power_msq : dict
+        Signal name -> mean and mean square over the recorded samples.
+    """
+
+    periods: int
+    harmonics: int
+    mean: dict = field(default_factory=dict)
+    var: dict = field(default_factory=dict)
+    power_mean: dict = field(default_factory=dict)
+    power_msq: dict = field(default_factory=dict)
+
+    def rms(self, name):
+        """Root mean square of a power signal."""
+        return float(np.sqrt(self.power_msq[name]))
+
+    def to_dict(self):
+        """A YAML/JSON-ready dict (complex as [re, im] pairs); :meth:`from_dict` inverts it."""
+        return {"periods": int(self.periods), "harmonics": int(self.harmonics),
+                "mean": {k: [[float(z.real), float(z.imag)] for z in v] for k, v in self.mean.items()},
+                "var": {k: [float(x) for x in v] for k, v in self.var.items()},
+                "power_mean": {k: float(v) for k, v in self.power_mean.items()},
+                "power_msq": {k: float(v) for k, v in self.power_msq.items()}}
+
+    @classmethod
+    def from_dict(cls, d):
+        try:
+            return cls(periods=int(d["periods"]), harmonics=int(d["harmonics"]),
+                       mean={k: np.array([complex(a, b) for a, b in v]) for k, v in d["mean"].items()},
+                       var={k: np.asarray(v, dtype=float) for k, v in d["var"].items()},
+                       power_mean={k: float(v) for k, v in d["power_mean"].items()},
+                       power_msq={k: float(v) for k, v in d["power_msq"].items()})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"statistics: malformed statistics block ({exc})") from None
+
+
+def _names(mask):
+    return [n for n, b in sorted(SIGNAL_BITS.items(), key=lambda kv: kv[1]) if mask >> b & 1]
+
+
+def parse_stats(data):
+    """The drive's statistics data (object 0x2041, little-endian) as :class:`HarmonicStats`.
+
+    Layout: u32 P; u8 K, u8 harmonic signal mask, u8 power signal mask, u8 0; per harmonic
+    signal (bit order), per k: f32 mean re, f32 mean im, f32 variance (0 when P < 2); per
+    power signal: f32 mean, f32 mean square.
+
+    Raises
+    ------
+    InputError
+        Too short, inconsistent length, or more than the drive can hold.
+    """
+    data = bytes(data)
+    if len(data) < 8:
+        raise InputError(f"statistics data: {len(data)} bytes, need at least the 8-byte header")
+    periods = int.from_bytes(data[0:4], "little")
+    k, hmask, pmask = data[4], data[5], data[6]
+    hs, ps = _names(hmask), _names(pmask)
+    if k > STAT_K_MAX or len(hs) > STAT_SIG_MAX or (hmask | pmask) > 0x1F:
+        raise InputError(f"statistics data: header K = {k}, masks 0x{hmask:02X}/0x{pmask:02X} "
+                         f"beyond what the drive holds (K <= {STAT_K_MAX}, <= {STAT_SIG_MAX} signals)")
+    expected = 8 + 12 * k * len(hs) + 8 * len(ps)
+    if len(data) != expected:
+        raise InputError(f"statistics data: {len(data)} bytes, the header (K = {k}, "
+                         f"{len(hs)} harmonic and {len(ps)} power signals) needs {expected}")
+    f = np.frombuffer(data[8:], dtype="<f4").astype(np.float64)
+    out = HarmonicStats(periods=periods, harmonics=k)
+    pos = 0
+    for name in hs:
+        blk = f[pos:pos + 3 * k].reshape(k, 3)
+        pos += 3 * k
+        out.mean[name] = blk[:, 0] + 1j * blk[:, 1]
+        out.var[name] = blk[:, 2] if periods > 1 else np.full(k, np.nan)
+    for name in ps:
+        out.power_mean[name] = float(f[pos])
+        out.power_msq[name] = float(f[pos + 1])
+        pos += 2
+    return out
+
+
+def harmonic_stats(signals, *, n, cycles, harmonics, power=()):
+    """The drive's line statistics computed from raw samples, in float64.
+
+    Parameters
+    ----------
+    signals : dict
+        Name -> array of P x N samples (the recorded periods).
+    n : int
+        Period N in samples.
+    cycles : int
+        Sine cycles per period (its bin c).
+    harmonics : int
+        K; the lines k c, k = 1 .. K, must lie below N / 2.
+    power : sequence of str
+        Names whose mean and mean square are also wanted (may include names not among the
+        harmonic ones; all must be in ``signals``).
+
+    Returns
+    -------
+    HarmonicStats
+        Harmonic statistics for every name in ``signals``.
+    """
+    n, cycles, harmonics = int(n), int(cycles), int(harmonics)
+    if cycles < 1 or harmonics < 1 or 2 * harmonics * cycles >= n:
+        raise InputError(f"harmonic statistics: line K c = {harmonics} x {cycles} must lie in "
+                         f"1 .. N/2 - 1 = {n // 2 - 1}")
+    bins = cycles * np.arange(1, harmonics + 1)
+    out = HarmonicStats(periods=0, harmonics=harmonics)
+    for name, x in signals.items():
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim != 1 or x.size == 0 or x.size % n:
+            raise InputError(f"signal '{name}': {x.size} samples is not a whole number of "
+                             f"periods of N = {n}")
+        blocks = x.reshape(-1, n)
+        X = np.fft.rfft(blocks, axis=-1)[:, bins]        # (P, K)
+        p = blocks.shape[0]
+        out.periods = p
+        out.mean[name] = X.mean(axis=0)
+        d = X - out.mean[name]
+        out.var[name] = (np.sum(d.real ** 2 + d.imag ** 2, axis=0) / (p - 1)) if p > 1 else \
+            np.full(harmonics, np.nan)
+    for name in power:
+        if name not in signals:
+            raise InputError(f"power statistics: no signal '{name}'")
+        x = np.asarray(signals[name], dtype=np.float64)
+        out.power_mean[name] = float(x.mean())
+        out.power_msq[name] = float(np.mean(x ** 2))
+    return out
+
+
+def hosidf_from_stats(u_stats, y_stats, *, u_name, y_name, fs, n, cycles, n_harmonics=None):
+    """HOSIDFs from line statistics: the same :class:`fftune.analysis.hosidf.HosidfResult`
+    as :func:`fftune.analysis.hosidf.hosidf` on the raw samples of the same runs.
+
+    Parameters
+    ----------
+    u_stats, y_stats : HarmonicStats or nested sequences of them
+        Per experiment (any leading axes, last axis the R repeats); usually the same
+        objects (one run holds both signals).
+    u_name, y_name : str
+        Input and output signal names.
+    fs : float
+        Sample rate (Hz).
+    n, cycles : int
+        Period N and the sine's bin c.
+    n_harmonics : int, optional
+        K (default: all the statistics hold).
+
+    Returns
+    -------
+    HosidfResult
+    """
+    us = np.asarray(u_stats, dtype=object)
+    ys = np.asarray(y_stats, dtype=object)
+    if us.ndim == 0:
+        us, ys = us.reshape(1), ys.reshape(1)
+    if us.shape != ys.shape:
+        raise InputError(f"statistics: input shape {us.shape} differs from output {ys.shape}")
+    flat_u, flat_y = us.ravel(), ys.ravel()
+    k = n_harmonics or min(s.harmonics for s in flat_y)
+    for s_u, s_y in zip(flat_u, flat_y):
+        if u_name not in s_u.mean:
+            raise InputError(f"statistics: no harmonic statistics of the input '{u_name}'")
+        if y_name not in s_y.mean:
+            raise InputError(f"statistics: no harmonic statistics of the output '{y_name}'")
+        if s_y.harmonics < k:
+            raise InputError(f"statistics: {s_y.harmonics} harmonics recorded, {k} asked for")
+    periods = {int(s.periods) for s in flat_y}
+    if len(periods) != 1 or 0 in periods:
+        raise InputError(f"statistics: runs with different or zero period counts {sorted(periods)}")
+    p = periods.pop()
+    # the sum over periods (= P x mean) is what hosidf's block sum gives
+    U1 = np.array([s.mean[u_name][0] for s in flat_u]).reshape(us.shape) * p
+    Yk = np.array([s.mean[y_name][:k] for s in flat_y]).reshape(ys.shape + (k,)) * p
+    bins = np.full(us.shape[:-1], int(cycles))
+    return hosidf_from_lines(U1, Yk, bins, n=int(n), n_blocks=p, fs=fs)
+
+
+def relative_difference(a, b, scale=None):
+    """max |a - b| / scale, scale = max |b| unless given: the relative difference of two
+    sets of lines on the scale of the largest (how the acceptance of the drive's float32
+    statistics against float64 is stated)."""
+    a, b = np.asarray(a), np.asarray(b)
+    s = np.max(np.abs(b)) if scale is None else scale
+    return float(np.max(np.abs(a - b)) / s) if s > 0 else float(np.max(np.abs(a - b)))
