@@ -37,6 +37,8 @@ void cross_entry(void)
     (void)drv_step(&cross_drv, &m);
     (void)drv_rec_size_bytes(&cross_drv);
     (void)drv_rec_read(&cross_drv, 0u, cross_bytes, 4u);
+    (void)drv_stat_size_bytes(&cross_drv);
+    (void)drv_stat_read(&cross_drv, 0u, cross_bytes, 4u);
     drv_get_monitor(&cross_drv, &mon);
     (void)drv_fault(&cross_drv);
     drv_run_abort(&cross_drv, DRV_STOP_ABORT_CMD);
