@@ -96,7 +96,8 @@ def profile_objects(path=OD_YAML):
         od = yaml.safe_load(fh)
     out = [(index, None, name) for index, name in sorted(STANDARD_PROFILE_OBJECTS.items())]
     for obj in od.get("objects", []):
-        if not 0x2000 <= obj["index"] <= 0x5FFF or obj.get("sim_only"):
+        if not 0x2000 <= obj["index"] <= 0x5FFF or obj.get("sim_only") \
+                or obj.get("profile") == "optional":
             continue
         out.append((obj["index"], None, obj["name"]))
         for sub in obj.get("sub", []):
