@@ -6,6 +6,8 @@
  *   bench_fw instr sine N         plant) inside bench_fw_drive_steps, for callgrind
  *   bench_fw instr sine-stats N   the sine with the harmonic statistics on (K = 8, 3 signals:
  *                                 reference, plant input, motor angle; power of the error)
+ *   bench_fw fft N                the per-period spectra of a multisine run's 3 signals:
+ *                                 2 complex FFTs of N points (u + j y, r) inside bench_fw_fft
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -13,6 +15,7 @@
 #include <time.h>
 
 #include "drv.h"
+#include "fft.h"
 #include "sim.h"
 
 static double clock_s(clockid_t id)
@@ -170,8 +173,34 @@ static int bench_instr(int argc, char **argv)
     return 0;
 }
 
+/* The measured region for callgrind (--toggle-collect=bench_fw_fft): one period's spectra
+ * of 3 real signals, packed two per complex FFT (u + j y, r + j 0). */
+static float fft_buf[2u * 2u * 8192u];
+__attribute__((noinline)) int bench_fw_fft(float *a, uint32_t n);
+__attribute__((noinline)) int bench_fw_fft(float *a, uint32_t n)
+{
+    return (fft_inverse_complex(a, n) && fft_inverse_complex(a + 2u * n, n)) ? 0 : 2;
+}
+
+static int bench_fft(uint32_t n)
+{
+    if (!fft_is_pow2(n) || n < 4u || n > 8192u) {
+        fprintf(stderr, "bench_fw: fft N: a power of two in 4 .. 8192\n");
+        return 2;
+    }
+    for (uint32_t i = 0; i < 4u * n; i++) {
+        fft_buf[i] = (float)(i % 101u) * 0.01f - 0.5f;
+    }
+    int st = bench_fw_fft(fft_buf, n);
+    printf("fft: 2 complex FFTs of %u points, status %d\n", (unsigned)n, st);
+    return st;
+}
+
 int main(int argc, char **argv)
 {
+    if (argc == 3 && strcmp(argv[1], "fft") == 0) {
+        return bench_fft((uint32_t)strtoul(argv[2], NULL, 10));
+    }
     if (argc >= 3 && strcmp(argv[1], "rate") == 0) {
         return bench_rate(argv[2]);
     }
