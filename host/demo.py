@@ -53,6 +53,7 @@ def run(args):
     t0 = time.monotonic()
     cfg = load_config(args.config)
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
+    cfg["sim"]["bitrate"] = bitrate  # the steps' default capture follows it (Session.capture_mode)
     check_bus(args.interface, args.channel, bitrate)  # before anything is moved or written
     out = check_output_dir(_set_aside_previous(args.out or cfg["output"]))
     d = cfg["drive"]
