@@ -188,8 +188,10 @@ def hosidf_from_stats(u_stats, y_stats, *, u_name, y_name, fs, n, cycles, n_harm
         Input and output signal names.
     fs : float
         Sample rate (Hz).
-    n, cycles : int
-        Period N and the sine's bin c.
+    n : int
+        Period N.
+    cycles : int or array_like of int
+        The sine's bin c, broadcast over the leading axes (all but the repeats).
     n_harmonics : int, optional
         K (default: all the statistics hold).
 
@@ -219,7 +221,7 @@ def hosidf_from_stats(u_stats, y_stats, *, u_name, y_name, fs, n, cycles, n_harm
     # the sum over periods (= P x mean) is what hosidf's block sum gives
     U1 = np.array([s.mean[u_name][0] for s in flat_u]).reshape(us.shape) * p
     Yk = np.array([s.mean[y_name][:k] for s in flat_y]).reshape(ys.shape + (k,)) * p
-    bins = np.full(us.shape[:-1], int(cycles))
+    bins = np.broadcast_to(np.asarray(cycles, dtype=np.int64), us.shape[:-1]).copy()
     return hosidf_from_lines(U1, Yk, bins, n=int(n), n_blocks=p, fs=fs)
 
 

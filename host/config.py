@@ -64,6 +64,8 @@ DEFAULTS = {
         "periods": 1,
         "settle_periods": 2,
         "harmonics": 7,
+        # raw | stats | both; None: stats on a real drive or a simulated bus with a bitrate
+        "capture": None,
         "k_fc": 0.0,
         "k_v": 0.0,
     },
@@ -267,6 +269,8 @@ def validate(raw, path="<config>"):
     _number(cfg, path, "quantify.periods", low=1, high=1000, integer=True)
     _number(cfg, path, "quantify.settle_periods", low=0, high=1000, integer=True)
     _number(cfg, path, "quantify.harmonics", low=1, high=50, integer=True)
+    if q["capture"] is not None:
+        _choice(cfg, path, "quantify.capture", CAPTURE_MODES)
     _number(cfg, path, "quantify.k_fc", low=0, high=100)
     _number(cfg, path, "quantify.k_v", low=0, high=100)
 

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from fftune.analysis.hosidf import hosidf as _hosidf_estimate  # (fftune.analysis.hosidf is the function)
-from fftune.analysis.stats import hosidf_from_stats
+from fftune.analysis.stats import harmonic_stats, hosidf_from_stats
 from fftune.analysis import tuning as _tuning
 from fftune.analysis.bla import bla_levels, estimate_quantisation_step, level_verdict
 from fftune.analysis.errors import FftuneError
@@ -295,20 +295,33 @@ def quantify(session):
         raise FftuneError(f"{src}: key 'quantify.harmonics': {c['harmonics']} x "
                           f"{max(c['frequencies_hz']):g} Hz is above fs/2 = {fs / 2:g} Hz")
     in_name = "reference" if c["inject"] == "reference" else "plant_input"
-    U = np.zeros((len(c["rms_levels"]), len(cycles), c["repeats"], c["periods"], n))
-    Y = np.zeros_like(U)
+    shape = (len(c["rms_levels"]), len(cycles), c["repeats"])
+    want = {"harmonics": c["harmonics"], "signals": [in_name, "motor_angle"]}
+    recs = np.empty(shape, dtype=object)
     for ai, rms in enumerate(c["rms_levels"]):
         for fi, cyc in enumerate(cycles):
             for rep in range(c["repeats"]):
                 req = sine_request(inject=c["inject"], amplitude_peak=rms * math.sqrt(2), n=n,
                                    cycles=cyc, settle=c["settle_periods"], periods=c["periods"],
                                    kfc=c["k_fc"], kv=c["k_v"])
-                rec = session.run("quantify", f"quantify-A{ai:02d}-F{fi:03d}-R{rep:02d}", req,
-                                  level_index=ai, realization=rep)
-                U[ai, fi, rep] = _blocks(rec.signals[in_name], n)
-                Y[ai, fi, rep] = _blocks(rec.signals["motor_angle"], n)
-    f0 = np.broadcast_to(np.asarray(c["frequencies_hz"])[None, :], U.shape[:2])
-    hos = _hosidf_estimate(U, Y, fs=fs, n_harmonics=c["harmonics"], f0=f0)
+                recs[ai, fi, rep] = session.run("quantify", f"quantify-A{ai:02d}-F{fi:03d}-R{rep:02d}",
+                                                req, level_index=ai, realization=rep, stats=want)
+    f0 = np.broadcast_to(np.asarray(c["frequencies_hz"])[None, :], shape[:2])
+    if any(r.stats is not None for r in recs.flat):
+        # the drive's line statistics (runs resumed from raw captures: the same numbers
+        # from their samples, fftune.analysis.stats.harmonic_stats)
+        st = np.empty(shape, dtype=object)
+        for idx, r in np.ndenumerate(recs):
+            st[idx] = r.stats if r.stats is not None else harmonic_stats(
+                {k: r.signals[k] for k in want["signals"]}, n=n, cycles=cycles[idx[1]],
+                harmonics=c["harmonics"])
+        cyc_arr = np.broadcast_to(np.asarray(cycles)[None, :], shape[:2])
+        hos = hosidf_from_stats(st, st, u_name=in_name, y_name="motor_angle", fs=fs, n=n,
+                                cycles=cyc_arr, n_harmonics=c["harmonics"])
+    else:
+        U = np.stack([_blocks(r.signals[in_name], n) for r in recs.flat]).reshape(shape + (-1, n))
+        Y = np.stack([_blocks(r.signals["motor_angle"], n) for r in recs.flat]).reshape(shape + (-1, n))
+        hos = _hosidf_estimate(U, Y, fs=fs, n_harmonics=c["harmonics"], f0=f0)
     mag = np.abs(hos.H)
     h1 = mag[..., 0]
     odd_rel = np.sqrt(np.sum(mag[..., 2::2] ** 2, axis=-1)) / h1

@@ -175,3 +175,30 @@ def test_harmonic_stats_checks_its_input():
     np.testing.assert_allclose(st.mean["x"], [32, 0], atol=1e-12)
     np.testing.assert_allclose(st.var["x"], [0, 0], atol=1e-20)
     assert abs(st.power_msq["x"] - 0.5) < 1e-12
+
+
+def test_capture_key_is_checked_naming_the_key():
+    from fftune.analysis.errors import FftuneError
+    from fftune.host.config import validate
+    assert validate({"tune": {"capture": "stats"}})["tune"]["capture"] == "stats"
+    assert validate({})["quantify"]["capture"] is None          # auto
+    with pytest.raises(FftuneError, match=r"c\.yaml: key 'tune\.capture': expected one of raw, stats, both"):
+        validate({"tune": {"capture": "samples"}}, "c.yaml")
+    with pytest.raises(FftuneError, match=r"key 'quantify\.capture'"):
+        validate({"quantify": {"capture": 1}}, "c.yaml")
+
+
+def test_capture_mode_follows_the_bus():
+    from fftune.host.experiments import Session
+
+    class S:  # only what capture_mode reads
+        capture_mode = Session.capture_mode
+    s = S()
+    s.cfg, s.truth = {"tune": {"capture": None}, "sim": {"bitrate": None}}, {"sim_fc_volt": 0.1}
+    assert s.capture_mode("tune") == "raw"            # simulated drive, no bus model
+    s.cfg["sim"]["bitrate"] = 1_000_000
+    assert s.capture_mode("tune") == "stats"          # behind a bus model
+    s.cfg["sim"]["bitrate"], s.truth = None, None
+    assert s.capture_mode("tune") == "stats"          # a real drive
+    s.cfg["tune"]["capture"] = "both"
+    assert s.capture_mode("tune") == "both"           # the configuration decides
