@@ -18,6 +18,9 @@ Best Linear Approximation
 robust_bla             -- robust BLA with total, noise and nonlinear variances.
 bla_levels             -- robust BLA at several excitation levels.
 detect_excited_lines   -- excited DFT bins of a periodic multisine.
+robust_bla_spectra     -- the same from per-period spectra at the band's lines.
+classify_grid          -- which odd/even claims an excitation grid allows.
+level_verdict          -- the cause a level's detection supports (plant, saturation ...).
 
 Higher order sinusoidal input describing functions
 --------------------------------------------------
@@ -45,7 +48,8 @@ Plots live in :mod:`fftune.analysis.plots` (imported on demand: matplotlib is sl
 
 from fftune import __version__  # noqa: F401  (one version: the distribution's)
 from fftune.analysis.bla import (BLALevels, BLAResult, TransientWarning, bla_levels,
-                                 detect_excited_lines, robust_bla)
+                                 classify_grid, detect_excited_lines, level_verdict,
+                                 robust_bla, robust_bla_spectra)
 from fftune.analysis.capture import (export_csv, export_mat, load_experiment, read_run,
                                      write_run)
 from fftune.analysis.errors import FftuneError, InputError
@@ -60,7 +64,8 @@ from fftune.analysis.tuning import (RatioMinimizer, SignedRootSearch, TuningResu
 __all__ = [
     "random_odd_multisine", "design_multisine", "multisine_realizations", "drive_multisine",
     "crest_factor", "Multisine",
-    "robust_bla", "bla_levels", "detect_excited_lines", "BLAResult", "BLALevels",
+    "robust_bla", "robust_bla_spectra", "bla_levels", "detect_excited_lines",
+    "classify_grid", "level_verdict", "BLAResult", "BLALevels",
     "TransientWarning",
     "hosidf", "HosidfResult",
     "harmonic_stats", "parse_stats", "hosidf_from_stats", "HarmonicStats",

@@ -328,6 +328,13 @@ def _abs2_sum(z, axis):
     return s[..., 0::2] + s[..., 1::2]
 
 
+def _spread2(z):
+    """Mean over axis 0 of a (P, K) array, and its deviations and their sum of |.|^2."""
+    mean = np.add.reduce(z, axis=0) / z.shape[0]
+    dev = z - mean
+    return mean, dev, _abs2_sum(dev, axis=0)
+
+
 def _spread(z):
     """Mean over axis 1 and sum over axis 1 of |z - mean|^2."""
     mean = z.mean(axis=1)
@@ -373,15 +380,6 @@ def _locate_bad(arrays):
     for name, arr in arrays:
         if arr is not None and not np.isfinite(arr).all():
             raise InputError(f"{name}: contains NaN or inf")
-
-
-def _band_spectra(x, lines):
-    """DFT values (numpy rfft scaling) of every period at ``lines``: (M, T+P, L) complex,
-    one realization at a time (the full spectrum of one realization only)."""
-    out = np.empty(x.shape[:2] + (lines.size,), dtype=np.complex128)
-    for m in range(x.shape[0]):
-        out[m] = np.take(scipy.fft.rfft(x[m], axis=-1), lines, axis=-1)
-    return out
 
 
 def classify_grid(excited_bins, n_period):
@@ -572,16 +570,26 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     else:
         excited = _validate_lines(excited_bins, n)
     band = np.arange(excited[0], excited[-1] + 1)
-    spectra = [_band_spectra(x, band) if x is not None else None for x in (u, y, r)]
-    if not all(np.isfinite(s).all() for s in spectra if s is not None):
-        _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
-        raise InputError("non-finite result (overflow in the input data?)")
     # resolution of the recorded numbers: float32 records round to 2^-24 of the value
-    f32 = y.dtype == np.float32 or np.array_equal(y, y.astype(np.float32))
+    sample = y.reshape(-1)[::97]          # a sample of the values is enough to tell
+    f32 = y.dtype == np.float32 or np.array_equal(sample, sample.astype(np.float32))
     y_rounding = float(np.max(np.abs(y))) * (2.0 ** -24 if f32 else 2.0 ** -53)
-    res = robust_bla_spectra(*spectra, bins=band, n_period=n, fs=fs, settle_periods=settle,
-                             excited_bins=excited, warn_transient=False,
-                             y_quantisation_step=y_quantisation_step, y_rounding=y_rounding)
+
+    def one_realization(m):
+        return tuple(None if x is None else
+                     np.take(scipy.fft.rfft(x[m], axis=-1), band, axis=-1).astype(np.complex128, copy=False)
+                     for x in (u, y, r))
+
+    try:
+        res = robust_bla_spectra(None, None, bins=band, n_period=n, fs=fs, settle_periods=settle,
+                                 excited_bins=excited, warn_transient=False,
+                                 y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
+                                 _get=one_realization, _shape=(n_real, n_total),
+                                 _known_ref=r is not None)
+    except InputError as exc:
+        if "non-finite" in str(exc) or "zero power" in str(exc):
+            _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
+        raise
     if detected_here:
         res.notes.insert(0, f"excited lines found from the spectrum of "
                             f"{'r' if r is not None else 'u'}: {excited.size} lines "
@@ -595,7 +603,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
 
 def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0,
                        excited_bins, warn_transient=True, y_quantisation_step=None,
-                       y_rounding=0.0):
+                       y_rounding=0.0, _get=None, _shape=None, _known_ref=False):
     """The robust BLA of :func:`robust_bla` from per-period spectra.
 
     Parameters
@@ -627,15 +635,17 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     """
     n = int(n_period)
     bins = np.asarray(bins, dtype=np.int64).reshape(-1)
-    U, Y = np.asarray(U), np.asarray(Y)
-    R = None if R is None else np.asarray(R)
-    for name, arr in (("U", U), ("Y", Y), ("R", R)):
-        if arr is not None and (arr.ndim != 3 or arr.shape[2] != bins.size
-                                or arr.shape != U.shape):
-            raise InputError(f"spectra {name}: expected shape (M, T+P, {bins.size}) like U "
-                             f"{U.shape}, got {arr.shape}")
+    if _get is None:     # public use: whole arrays; robust_bla passes one realization at a time
+        U, Y = np.asarray(U), np.asarray(Y)
+        R = None if R is None else np.asarray(R)
+        for name, arr in (("U", U), ("Y", Y), ("R", R)):
+            if arr is not None and (arr.ndim != 3 or arr.shape[2] != bins.size
+                                    or arr.shape != U.shape):
+                raise InputError(f"spectra {name}: expected shape (M, T+P, {bins.size}) like "
+                                 f"U {U.shape}, got {arr.shape}")
+        _shape = U.shape[:2]
     excited = _validate_lines(excited_bins, n)
-    n_real, n_total, _ = U.shape
+    n_real, n_total = _shape
     settle = int(settle_periods)
     if not 0 <= settle < n_total:
         raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1}")
@@ -646,7 +656,6 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
         raise InputError(f"spectra: bins must hold every line {band[0]} .. {band[-1]} "
                          f"between the lowest and the highest excited line")
     is_exc = np.isin(band, excited)
-    ie, idet = pos[is_exc], pos[~is_exc]
     det_bins = band[~is_exc]
     gridinfo = classify_grid(excited, n)
     if gridinfo["parity"]:
@@ -671,15 +680,60 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
                 f"{', '.join(f'{excited[i] * fs / n:g} Hz' for i in low[:5])}"
                 f"{' ...' if low.size > 5 else ''} (wrong excited lines?)")
 
-    Y_exc = Y[:, :, ie]
-    Us, Ys = U[:, settle:, :], Y[:, settle:, :]
-    U_e, Y_e = Us[:, :, ie], Ys[:, :, ie]
-    check_power("input u", _abs2_sum(U_e, axis=1).sum(axis=0))
+    known_ref = R is not None if _get is None else _known_ref
+    if _get is None:
+        def _get(m):
+            return U[m][:, pos], Y[m][:, pos], None if R is None else R[m][:, pos]
+    # Per realization (its (T+P, lines) spectra stay in cache): reductions over the
+    # periods only, (M, lines)-sized results. The plant-referred residual Y - g U at the
+    # non-excited lines follows from the period means, sums of squares and the U-Y
+    # cross sum, so it needs no per-period array either.
+    exc_i = np.flatnonzero(is_exc)
+    det_i = np.flatnonzero(~is_exc)
+    n_exc, n_det = exc_i.size, det_i.size
+    c = np.complex128
+    Y_exc = np.empty((n_real, n_total, n_exc), c)
+    u_power = np.zeros(n_exc)
+    U_mean_e, Y_mean_e = np.empty((n_real, n_exc), c), np.empty((n_real, n_exc), c)
+    yd, ud = np.empty((n_real, n_det), c), np.empty((n_real, n_det), c)
+    yd_ss, ud_ss = np.empty((n_real, n_det)), np.empty((n_real, n_det))
+    yud = np.empty((n_real, n_det), c)
+    xd, xd_ss, xe = (np.empty((n_real, n_det), c), np.empty((n_real, n_det)),
+                     np.empty((n_real, n_exc), c))
+    if not known_ref:
+        G_m, G_ss = np.empty((n_real, n_exc), c), np.empty((n_real, n_exc))
+    else:
+        R_mean = np.empty((n_real, n_exc), c)
+        U_m, Y_m = np.empty((n_real, n_exc), c), np.empty((n_real, n_exc), c)
+        su2, sy2 = np.empty((n_real, n_exc)), np.empty((n_real, n_exc))
+        syu = np.empty((n_real, n_exc), c)
+    for m in range(n_real):
+        Um, Ym, Rm = _get(m)
+        Y_exc[m] = Ym[:, exc_i]
+        U_e, Y_e = Um[settle:, exc_i], Ym[settle:, exc_i]
+        u_power += _abs2_sum(U_e, axis=0)
+        U_mean_e[m] = np.add.reduce(U_e, axis=0) / n_per
+        Y_mean_e[m] = np.add.reduce(Y_e, axis=0) / n_per
+        U_d, Y_d = Um[settle:, det_i], Ym[settle:, det_i]
+        ud[m], dU, ud_ss[m] = _spread2(U_d)
+        yd[m], dY, yd_ss[m] = _spread2(Y_d)
+        yud[m] = np.einsum("pk,pk->k", dY, np.conj(dU))
+        if Rm is None:
+            xd[m], xd_ss[m], xe[m] = ud[m], ud_ss[m], U_mean_e[m]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                G = Y_e / U_e
+            G_m[m], _, G_ss[m] = _spread2(G)
+        else:
+            xd[m], _, xd_ss[m] = _spread2(Rm[settle:, det_i])
+            R_mean[m] = xe[m] = np.add.reduce(Rm[settle:, exc_i], axis=0) / n_per
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rot = np.conj(R_mean[m] / np.abs(R_mean[m]))
+            U_m[m], dU, su2[m] = _spread2(U_e * rot)
+            Y_m[m], dY, sy2[m] = _spread2(Y_e * rot)
+            syu[m] = np.einsum("pk,pk->k", dY, np.conj(dU))
+    check_power("input u", u_power)
     notes = []
-    if R is None:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            G_mp = Y_e / U_e
-        G_m, G_ss = _spread(G_mp)
+    if not known_ref:
         check_finite(G_m)
         G = G_m.mean(axis=0)
         var_total = var_noise = None
@@ -687,16 +741,9 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
             var_total = _abs2_sum((G_m - G)[:, None, :], axis=0)[0] / (n_real * (n_real - 1))
         if n_per >= 2:
             var_noise = G_ss.sum(axis=0) / (n_per * (n_per - 1)) / n_real ** 2
-        u_level = np.mean(np.abs(U_e.mean(axis=1)) ** 2, axis=0)
+        u_level = np.mean(np.abs(U_mean_e) ** 2, axis=0)
     else:
-        R_mean = R[:, settle:, :][:, :, ie].mean(axis=1)
         check_power("reference r", np.sum(np.abs(R_mean) ** 2, axis=0))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rot = np.conj(R_mean / np.abs(R_mean))[:, None, :]
-        Un, Yn = U_e * rot, Y_e * rot
-        U_m, su2 = _spread(Un)
-        Y_m, sy2 = _spread(Yn)
-        syu = np.einsum("mpk,mpk->mk", Yn - Y_m[:, None, :], np.conj(Un - U_m[:, None, :]))
         U_bar, Y_bar = U_m.mean(axis=0), Y_m.mean(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
             G = Y_bar / U_bar
@@ -732,23 +779,21 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
         notes.append(gridinfo["note"])
 
     # Figure 3 view (levels as squared line amplitudes, scale2)
-    output_power = scale2 * np.mean(np.abs(Y_e.mean(axis=1)) ** 2, axis=0)
+    output_power = scale2 * np.mean(np.abs(Y_mean_e) ** 2, axis=0)
     u_level = scale2 * u_level
     nl_power = None if var_nl is None else var_nl * u_level
     noise_power = None if var_noise is None else n_real * var_noise * u_level
 
     rounding_floor = 4.0 * (2.0 * float(y_rounding)) ** 2 / 12.0 / n
 
-    def line_levels(Z, floor=0.0):
+    def line_levels(mean, ss, floor=0.0):
         """Level (mean over m of |period mean|^2) and noise of the period mean (plus a
-        rounding floor)."""
-        mean, ss = _spread(Z)
+        rounding floor) from the period means and sums of squared deviations."""
         level = scale2 * np.mean(np.abs(mean) ** 2, axis=0)
         noise = None if n_per < 2 else scale2 * ss.mean(axis=0) / (n_per * (n_per - 1)) + floor
         return level, noise
 
-    Y_d = Ys[:, :, idet]
-    det_power, det_noise = line_levels(Y_d, rounding_floor)
+    det_power, det_noise = line_levels(yd, yd_ss, rounding_floor)
     check_finite(output_power, det_power)
     sel = lambda a, s: None if a is None else a[s]        # noqa: E731
     odd_power, even_power = det_power[odd_sel], det_power[even_sel]
@@ -759,15 +804,15 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     # (drive output saturation, the loop) leaves nothing; a plant nonlinearity, sensor
     # quantisation or noise remain. The interpolation error (leave-one-out) is added to
     # what is expected there without plant distortion.
-    U_d = Us[:, :, idet]
     plant_power = plant_expected = plant_bound = None
-    if det_bins.size:
+    if det_bins.size and excited.size >= 5:
         g_det, loo = _interp_frf(freq, G, det_bins * fs / n)
-        E_d = Y_d - g_det * U_d
-        plant_power, plant_noise = line_levels(E_d, rounding_floor)
+        e_mean = yd - g_det * ud
+        e_ss = yd_ss + np.abs(g_det) ** 2 * ud_ss - 2 * np.real(np.conj(g_det) * yud)
+        plant_power, plant_noise = line_levels(e_mean, np.maximum(e_ss, 0.0), rounding_floor)
         nb = np.clip(np.searchsorted(excited, det_bins), 1, excited.size - 1)
         rel = np.maximum(loo[nb - 1], loo[nb])
-        plant_bound = scale2 * rel ** 2 * np.mean(np.abs(g_det * U_d.mean(axis=1)) ** 2, axis=0)
+        plant_bound = scale2 * rel ** 2 * np.mean(np.abs(g_det * ud) ** 2, axis=0)
         if plant_noise is not None:
             plant_expected = plant_noise + plant_bound
     quant_floor = None
@@ -834,13 +879,12 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     summary["quantisation_floor_db"] = None if quant_floor is None else float(to_db(quant_floor))
 
     # the excitation itself at the non-excited lines (a distorted actuator force, ...)
-    X = R if R is not None else U
-    xname = "reference r" if R is not None else "input u"
+    xname = "reference r" if known_ref else "input u"
     summary["excitation_nonexcited_re_excited_db"] = None
     summary["excitation_distorted"] = None
     if det_bins.size:
-        x_det, x_noise = line_levels(X[:, settle:, :][:, :, idet])
-        x_exc = scale2 * np.mean(np.abs(X[:, settle:, :][:, :, ie].mean(axis=1)) ** 2, axis=0)
+        x_det, x_noise = line_levels(xd, xd_ss)
+        x_exc = scale2 * np.mean(np.abs(xe) ** 2, axis=0)
         rel_db = float(np.median(to_db(np.maximum(x_det, 1e-300))) - np.median(to_db(x_exc)))
         summary["excitation_nonexcited_re_excited_db"] = rel_db
         if x_noise is not None:
@@ -874,7 +918,7 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
         odd_bins=odd_bins, odd_db=to_db(odd_power), odd_noise_db=to_db(odd_noise),
         even_bins=even_bins, even_db=to_db(even_power), even_noise_db=to_db(even_noise),
         summary=summary, transient=transient, n_realizations=n_real, n_periods=n_per,
-        settle_periods=settle, known_reference=R is not None, notes=notes,
+        settle_periods=settle, known_reference=known_ref, notes=notes,
         grid=gridinfo["grid"], nonexcited_bins=det_bins, nonexcited_db=to_db(det_power),
         nonexcited_noise_db=to_db(det_noise), plant_db=to_db(plant_power),
         plant_expected_db=to_db(plant_expected), quantisation_floor_db=summary["quantisation_floor_db"])
@@ -990,8 +1034,12 @@ def level_verdict(summary, saturation_fraction=None, level=None):
     # lines that are nonlinear in the loop but not referred to the plant: say why
     loop_only = [cls for cls in classes if states[cls] == "no" and
                  summary.get("nl_detected" if cls == "nonexcited" else f"{cls}_detected")]
+    if loop and all(s is None for s in states.values()):
+        return {"causes": ["cannot tell"],
+                "text": "nonlinear distortion in the loop; no plant-referred figures (they need "
+                        ">= 5 excited lines and P >= 2) to say whether it comes from the plant"}
     if not plant_yes and "cannot tell" not in causes and not loop_only:
-        loop_only = [classes[0]]
+        loop_only = ["nonexcited"]
     if loop_only:
         which = " and ".join("non-excited" if c == "nonexcited" else c for c in loop_only)
         if sat > 0:

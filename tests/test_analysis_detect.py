@@ -228,3 +228,10 @@ def test_verdict_texts_name_the_cause():
     assert v["causes"] == ["cannot tell"] and "3 of 20" in v["text"]
     v = level_verdict(dict(s, odd_detected=False, nl_detected=False), 0.0)
     assert v["causes"] == ["linear"]
+
+
+def test_no_plant_referred_figures_means_cannot_tell_not_a_cause():
+    s = {"odd_detected": True, "even_detected": False, "nl_detected": True,
+         "parity_classifiable": True, "quantisation_floor_db": None}
+    v = level_verdict(s, 0.01)
+    assert v["causes"] == ["cannot tell"] and "plant-referred" in v["text"]
