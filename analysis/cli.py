@@ -293,7 +293,7 @@ def run_bla(args):
     if s["parity_classifiable"]:
         for kind in ("odd", "even"):
             over = s[f"{kind}_lines_over_noise_6db"]
-            print(f"    {kind} non-excited re noise   : "
+            print(f"    {(kind + ' non-excited re noise').ljust(30)}: "
                   f"{_fmt_db(s[f'{kind}_line_median_re_noise_db'])} "
                   f"({'n/a' if over is None else over} of {s[f'{kind}_lines']} lines 6 dB over)")
         print(f"    odd re even                   : {_fmt_db(s['line_median_odd_re_even_db'])}")
