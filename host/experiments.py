@@ -127,15 +127,13 @@ def _saturation_fraction(u, u_max):
     return float(np.mean(u >= u_max * (1 - 1e-6)))
 
 
-def _session_u_max(session):
-    """u_max in V: the configuration's controller.u_max, else the drive's object."""
-    u_max = session.controller.get("u_max")
-    if u_max is None:
-        try:
-            u_max = float(session.drive.get("u_max"))
-        except Exception:                   # a replayed log without it: not evaluated
-            u_max = None
-    return u_max
+def _run_u_max(session, rec):
+    """u_max in V: read back with the run (its parameters), else the configuration's
+    controller.u_max, else None (the saturation fraction is then not evaluated)."""
+    value = (getattr(rec, "parameters", None) or {}).get("u_max")
+    if value is None:
+        value = session.controller.get("u_max")
+    return None if value is None else float(value)
 
 
 def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
@@ -260,6 +258,7 @@ def detect(session):
                 extra = {"excitation": np.tile(one, c["periods"])}
             rec = session.run("detect", f"detect-L{li:02d}-M{m:02d}", req, level_index=li,
                               realization=m, extra_signals=extra)
+            u_max = _run_u_max(session, rec)
             u_m.append(_blocks(rec.signals["plant_input"], n))
             y_m.append(_blocks(rec.signals["motor_angle"], n))
             r_name = "reference" if c["inject"] == "reference" else "excitation"
@@ -269,7 +268,7 @@ def detect(session):
         r_lv.append(np.stack(r_m))
     results, levels = detect_analysis(
         u_lv, y_lv, r_lv, fs=fs, excited_bins=lines.excited, rms_levels=c["rms_levels"],
-        unit="V" if c["inject"] == "plant_input" else "rad", u_max=_session_u_max(session),
+        unit="V" if c["inject"] == "plant_input" else "rad", u_max=u_max,
         y_quantisation_step=c.get("encoder_step_rad"))
     head = {"inject": c["inject"], "fs_hz": fs, "period_samples": n, "k_min": k_min,
             "k_max": k_max}

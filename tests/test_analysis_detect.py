@@ -235,3 +235,12 @@ def test_no_plant_referred_figures_means_cannot_tell_not_a_cause():
          "parity_classifiable": True, "quantisation_floor_db": None}
     v = level_verdict(s, 0.01)
     assert v["causes"] == ["cannot tell"] and "plant-referred" in v["text"]
+
+
+def test_encoder_step_key_is_validated_naming_the_key():
+    from fftune.analysis.errors import FftuneError
+    from fftune.host.config import validate
+    with pytest.raises(FftuneError, match=r"c.yaml: key 'detect.encoder_step_rad'"):
+        validate({"detect": {"encoder_step_rad": -1.0}}, "c.yaml")
+    cfg = validate({"detect": {"encoder_step_rad": 0.00314}}, "c.yaml")
+    assert cfg["detect"]["encoder_step_rad"] == 0.00314

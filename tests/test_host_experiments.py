@@ -115,6 +115,10 @@ def test_detect_sees_odd_but_not_even_distortion(tmp_path):
     assert r["levels"][0]["summary_db"]["odd_re_even_db"] > 20
     assert "odd nonlinearity" in r["verdict"] and "no even" in r["verdict"]
     assert session.counts["measured"] == 2 * 3
+    # u_max as read back with the runs; the fake drive's 1 and 3 V rms never reach 10 V
+    assert r["u_max_v"] == 10.0
+    assert [lv["saturation_fraction"] for lv in r["levels"]] == [0.0, 0.0]
+    assert all(lv["causes"] == ["plant odd nonlinearity"] for lv in r["levels"])
 
 
 def test_quantify_off_grid_frequency_is_refused_naming_the_key(tmp_path):
