@@ -335,12 +335,6 @@ def _spread2(z):
     return mean, dev, _abs2_sum(dev, axis=0)
 
 
-def _spread(z):
-    """Mean over axis 1 and sum over axis 1 of |z - mean|^2."""
-    mean = z.mean(axis=1)
-    return mean, _abs2_sum(z - mean[:, None, :], axis=1)
-
-
 def _transient(Y_exc, settle, n_periods):
     """Compare each period's output at the excited lines with the steady state.
 
