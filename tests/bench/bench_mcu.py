@@ -1,0 +1,94 @@
+"""Benchmark: the drive on the Cortex-M4F (processor-in-the-loop build, firmware_sim/port/mcu).
+
+- Instructions per drv_step on the M4 (arm-none-eabi-gcc -O2, fpv4-sp-d16): pil_bench.elf
+  under qemu-system-arm -icount shift=0 (every instruction 1 ns of virtual time; SysTick
+  counts it at 168 MHz, so instructions = ticks / 0.168, exact). drv_step alone:
+  controller + generator + recorder of 3 signals, no plant, 5000 steps in a recording run.
+- Beside it the x86-64 count of the same workload by callgrind (build/bench_fw instr).
+- The PIL interrupt's work per step (sim_step: the double-precision plant in software
+  floating point + drv_step), mean and worst, against the 65625 cycles of one 2560 Hz period.
+- Flash and RAM of build/mcu/pil.elf (make pil).
+Instruction counts do not depend on the machine's load; they are not M4 cycles (the M4
+needs about 1-1.3 cycles per instruction, more for loads, divisions and branches).
+Skipped with the reason when qemu-system-arm or arm-none-eabi-gcc is missing.
+"""
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
+FW = os.path.join(ROOT, "firmware_sim")
+BUILD = os.path.join(FW, "build")
+STEPS = 5000
+TICKS_PER_INSTRUCTION = 0.168  # 168 MHz SysTick, 1 ns per instruction (icount shift=0)
+WORKLOADS = (("drv_step_table_64", ["table", "64"]), ("drv_step_table_2048", ["table", "2048"]),
+             ("drv_step_sine", ["sine"]))
+
+
+def make(*targets):
+    subprocess.run(["make", "--no-print-directory", "-C", FW, f"PYTHON={sys.executable}", *targets],
+                   check=True, stdout=subprocess.DEVNULL)
+
+
+def m4_counts():
+    out = subprocess.run(["qemu-system-arm", "-M", "netduinoplus2", "-display", "none", "-nodefaults",
+                          "-kernel", os.path.join(BUILD, "mcu", "pil_bench.elf"),
+                          "-semihosting-config", "enable=on,target=native", "-icount", "shift=0",
+                          "-serial", "stdio"], check=True, capture_output=True, text=True, timeout=300).stdout
+    if "BENCH done" not in out or "error" in out or "WRAPPED" in out:
+        raise SystemExit(f"bench_mcu: pil_bench.elf failed:\n{out}")
+    res = {}
+    for name, ticks, steps in re.findall(r"^BENCH (\S+) ticks (\d+) steps (\d+)", out, re.M):
+        res[name] = int(ticks) / TICKS_PER_INSTRUCTION / int(steps)
+    res["slow_steps"] = int(re.search(r"closed_loop_slow_steps (\d+)", out).group(1))
+    return res
+
+
+def x86_counts():
+    if shutil.which("valgrind") is None:
+        return {}
+    res = {}
+    for name, args in WORKLOADS:
+        cg = os.path.join(BUILD, f"callgrind.mcu.{name}.out")
+        subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={cg}",
+                        "--toggle-collect=bench_fw_drive_steps*", os.path.join(BUILD, "bench_fw"), "instr",
+                        *args, str(STEPS)], check=True, capture_output=True)
+        with open(cg) as f:
+            text = f.read()
+        ir = int(re.search(r"^(?:summary|totals):\s*(\d+)", text, re.M).group(1))
+        res[name] = ir / STEPS
+    return res
+
+
+def sizes():
+    out = subprocess.run(["make", "--no-print-directory", "-C", FW, f"PYTHON={sys.executable}", "pil"],
+                         check=True, capture_output=True, text=True).stdout
+    return re.search(r"^pil: .*$", out, re.M).group(0)
+
+
+def main():
+    missing = [t for t in ("qemu-system-arm", "arm-none-eabi-gcc") if shutil.which(t) is None]
+    if missing:
+        print(f"bench_mcu: skipped: {', '.join(missing)} not installed (sudo make system-deps)")
+        return 0
+    make("core-all", "pil", "pil-bench")
+    m4 = m4_counts()
+    x86 = x86_counts()
+    print(f"drv_step instructions per controller step (controller + generator + recorder of 3 signals, "
+          f"no plant; {STEPS} steps):")
+    for name, _ in WORKLOADS:
+        x = f"{x86[name]:.0f}" if name in x86 else "n/a (valgrind not installed)"
+        print(f"  {name[9:]:>10}: Cortex-M4F (qemu -icount) {m4[name]:.0f}   x86-64 (callgrind) {x}")
+    period = 168e6 / 2560
+    print(f"PIL control interrupt (sim_step: software-double plant + drv_step, sine run of 4096 steps): "
+          f"mean {m4['closed_loop_total']:.0f}, worst {m4['closed_loop_worst']:.0f} instructions per step "
+          f"({m4['slow_steps']} steps on the plant's RK4 event path); one 2560 Hz period = {period:.0f} cycles "
+          f"at 168 MHz")
+    print(sizes())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
