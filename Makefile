@@ -9,7 +9,7 @@ PY     := $(CURDIR)/$(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 FW     := $(MAKE) --no-print-directory -C firmware_sim PYTHON=$(PY)
 
-.PHONY: help setup firmware demo test bench cross fuzz system-deps clean mutation
+.PHONY: help setup firmware demo test bench cross pil pil-run fuzz system-deps clean mutation
 
 help:
 	@echo "make setup        venv (.venv) with pinned deps + firmware_sim build (other targets do it)"
@@ -17,6 +17,8 @@ help:
 	@echo "make test         every test, C and Python"
 	@echo "make bench        benchmarks, printing their figures"
 	@echo "make cross        deployable C for Cortex-M4F (arm-none-eabi-gcc), with sizes"
+	@echo "make pil          the drive for an STM32F405 (Cortex-M4F, qemu netduinoplus2) with configs/pil.yaml's plant, with sizes"
+	@echo "make pil-run      pil + start it in qemu-system-arm; prints its SLCAN channel (socket://127.0.0.1:PORT)"
 	@echo "make mutation     mutation testing (C harness + cosmic-ray), scores per module; long, resumable"
 	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils, valgrind, octave"
 	@echo "make clean"
@@ -53,6 +55,13 @@ cross:
 	@command -v arm-none-eabi-gcc >/dev/null 2>&1 || { echo "make cross: arm-none-eabi-gcc not found (install: sudo make system-deps, package gcc-arm-none-eabi)" >&2; exit 1; }
 	@$(MAKE) --no-print-directory -C firmware_sim cross PYTHON=$(PYTHON)
 
+pil: setup
+	@command -v arm-none-eabi-gcc >/dev/null 2>&1 || { echo "make pil: arm-none-eabi-gcc not found (install: sudo make system-deps, packages gcc-arm-none-eabi libnewlib-arm-none-eabi)" >&2; exit 1; }
+	@$(FW) pil
+
+pil-run: pil
+	@$(PY) firmware_sim/port/mcu/pil_run.py
+
 fuzz: setup
 	@$(FW) fuzz
 
@@ -76,7 +85,7 @@ system-deps:
 	apt-get update -qq
 	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
 	    python3-venv gcc make gcc-arm-none-eabi libnewlib-arm-none-eabi \
-	    qemu-system-x86 linux-image-amd64 busybox-static cpio kmod \
+	    qemu-system-x86 qemu-system-arm linux-image-amd64 busybox-static cpio kmod \
 	    can-utils clang llvm libclang-rt-14-dev valgrind octave >/dev/null
 
 clean:

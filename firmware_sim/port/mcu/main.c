@@ -36,6 +36,10 @@
 
 #define PIL_BAUD 115200u
 #define PIL_TXQ 2048u /* power of two */
+/* Room the SDO server's frames leave free in the transmit ring: an SDO block upload fills
+ * the ring in one co_node_process call (back-pressure), and the heartbeat, TPDOs and EMCY
+ * that follow in the same call must still fit (as on a CAN bus, where they find a gap). */
+#define PIL_TXQ_RESERVE 128u
 /* a partial SLCAN line older than this is dropped (the sender went away mid-line) */
 #define PIL_PARTIAL_LINE_US 1000000u
 
@@ -129,7 +133,8 @@ static bool pil_tx(void *ctx, const co_frame_t *f)
     if (n == 0u) {
         return true; /* not a valid frame: nothing to send */
     }
-    if (!txq_put(&g_txq, text, n)) {
+    uint32_t reserve = (f->id == 0x580u + PIL_NODE_ID) ? PIL_TXQ_RESERVE : 0u;
+    if (n + reserve > txq_free(&g_txq) || !txq_put(&g_txq, text, n)) {
         pil_stats.tx_queue_full++;
         g_tx_refused = true;
         return false;

@@ -1,7 +1,11 @@
 /* slcan.c - see slcan.h. */
 #include "slcan.h"
 
+#include <stddef.h>
 #include <string.h>
+
+/* tests/test_mcu_pil.py reads the statistics of the running MCU at this offset */
+_Static_assert(offsetof(slcan_t, frames_in) == 32u, "slcan_t statistics moved");
 
 #define SLCAN_CR '\r'
 #define SLCAN_BEL '\a'
