@@ -8,6 +8,9 @@
 - The PIL interrupt's work per step (sim_step: the double-precision plant in software
   floating point + drv_step), mean and worst, against the 65625 cycles of one 2560 Hz period.
 - Flash and RAM of build/mcu/pil.elf (make pil).
+- The SLCAN link (qemu's UART model moves one byte at a time): expedited SDO reads per
+  second and the block-upload rate of a recording, through python-can's slcan interface
+  and the host's DriveClient (wall clock: depends on the machine's load).
 Instruction counts do not depend on the machine's load; they are not M4 cycles (the M4
 needs about 1-1.3 cycles per instruction, more for loads, divisions and branches).
 Skipped with the reason when qemu-system-arm or arm-none-eabi-gcc is missing.
@@ -21,9 +24,9 @@ import sys
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
 FW = os.path.join(ROOT, "firmware_sim")
 BUILD = os.path.join(FW, "build")
-STEPS = 5000
+STEPS = 4000
 TICKS_PER_INSTRUCTION = 0.168  # 168 MHz SysTick, 1 ns per instruction (icount shift=0)
-WORKLOADS = (("drv_step_table_64", ["table", "64"]), ("drv_step_table_2048", ["table", "2048"]),
+WORKLOADS = (("drv_step_table_64", ["table", "64"]), ("drv_step_table_1024", ["table", "1024"]),
              ("drv_step_sine", ["sine"]))
 
 
@@ -68,6 +71,34 @@ def sizes():
     return re.search(r"^pil: .*$", out, re.M).group(0)
 
 
+def link_rates():
+    """SDO round trips and block-upload bytes per wall second over the SLCAN link."""
+    import importlib.util
+    import time
+
+    sys.path.insert(0, os.path.join(ROOT, "tests"))
+    from fftune.host.drive import BusOptions, DriveClient
+    from fftune.host.odmap import DEFAULT_EDS
+    spec = importlib.util.spec_from_file_location("pil_run", os.path.join(FW, "port", "mcu", "pil_run.py"))
+    pil = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pil)
+    with pil.start() as target:
+        with DriveClient(BusOptions(interface="slcan", channel=target.channel, eds=DEFAULT_EDS),
+                         heartbeat_ms=500, progress=False) as c:
+            c.enable()
+            c.run({"exc_kind": 1, "exc_period": 2048, "exc_sine_cycles": 1, "exc_amplitude": 0.3,
+                   "exc_settle_periods": 0, "exc_record_periods": 1, "exc_inject": 0})
+            n = 100
+            t0 = time.monotonic()
+            for _ in range(n):
+                c.read(0x1000, 0)
+            sdo_per_s = n / (time.monotonic() - t0)
+            t0 = time.monotonic()
+            data = c.upload_recording()
+            upload_s = time.monotonic() - t0
+    return sdo_per_s, len(data), upload_s
+
+
 def main():
     missing = [t for t in ("qemu-system-arm", "arm-none-eabi-gcc") if shutil.which(t) is None]
     if missing:
@@ -87,6 +118,10 @@ def main():
           f"({m4['slow_steps']} steps on the plant's RK4 event path); one 2560 Hz period = {period:.0f} cycles "
           f"at 168 MHz")
     print(sizes())
+    sdo_per_s, nbytes, upload_s = link_rates()
+    print(f"SLCAN link (qemu UART, python-can slcan, wall clock, machine load included): "
+          f"{sdo_per_s:.0f} expedited SDO reads/s (2 frames each); block upload of {nbytes} bytes in "
+          f"{upload_s:.2f} s = {nbytes / upload_s / 1024:.1f} KiB/s ({nbytes / 7 / upload_s:.0f} frames/s)")
     return 0
 
 

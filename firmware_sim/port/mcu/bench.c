@@ -6,7 +6,7 @@
  * count of the same workload (firmware_sim/tests/bench_fw.c instr).
  *
  * Workloads (as bench_fw instr): drv_step alone (controller + generator + recorder of 3
- * signals, no plant) with a 64- and a 2048-sample table and with the sine generator;
+ * signals, no plant) with a 64- and a 1024-sample table and with the sine generator;
  * then the processor-in-the-loop interrupt's work (sim_step: the double-precision plant in
  * software floating point + drv_step) per step over a sine run of the PIL configuration.
  * Output on USART1 (the serial console), one line per figure; exit by semihosting.
@@ -20,11 +20,12 @@
 #include "sim.h"
 #include "uart.h"
 
-#define BENCH_STEPS 5000u
-#define BENCH_TABLE 2048u /* RAM: 3 signals x (5000 + 2048) samples + the table fit 128 KiB */
+#define BENCH_STEPS 4000u
+#define BENCH_TABLE 1024u /* RAM: 3 signals x (4000 + 2048) samples, table + staging, sim_t fit 128 KiB */
 
-static float g_rec[(BENCH_STEPS + BENCH_TABLE) * 3u];
+static float g_rec[(BENCH_STEPS + 2048u) * 3u]; /* also the sine: period 2048 */
 static float g_tab[BENCH_TABLE];
+static float g_stage[BENCH_TABLE];
 static sim_t g_sim;
 static uart_t g_uart;
 
@@ -104,7 +105,7 @@ static void report(const char *what, uint32_t ticks, uint32_t steps, int wrapped
 static void bench_drive(const char *what, uint32_t table_len)
 {
     static drv_t drv;
-    drv_storage_t st = {g_rec, (uint32_t)(sizeof g_rec / sizeof g_rec[0]), g_tab, BENCH_TABLE, 2560.0f};
+    drv_storage_t st = {g_rec, (uint32_t)(sizeof g_rec / sizeof g_rec[0]), g_tab, BENCH_TABLE, 2560.0f, g_stage};
     if (drv_init(&drv, &st) != DRV_OK) {
         put("BENCH error drv_init\n");
         return;
@@ -151,7 +152,10 @@ static void bench_drive(const char *what, uint32_t table_len)
 static void bench_closed_loop(void)
 {
     char err[4];
-    if (sim_init(&g_sim, &pil_config, g_rec, g_tab, err, sizeof err) != 0) {
+    plant_config_t cfg = pil_config; /* the PIL plant and controller, in this program's buffers */
+    cfg.rec_capacity = (uint32_t)(sizeof g_rec / sizeof g_rec[0]);
+    cfg.table_capacity = BENCH_TABLE;
+    if (sim_init(&g_sim, &cfg, g_rec, g_tab, err, sizeof err) != 0) {
         put("BENCH error sim_init\n");
         return;
     }
@@ -204,7 +208,7 @@ int mcu_main(void)
 {
     uart_init(&g_uart, 115200u);
     bench_drive("drv_step_table_64", 64u);
-    bench_drive("drv_step_table_2048", 2048u);
+    bench_drive("drv_step_table_1024", 1024u);
     bench_drive("drv_step_sine", 0u);
     bench_closed_loop();
     put("BENCH done\n");

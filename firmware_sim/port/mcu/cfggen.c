@@ -20,8 +20,9 @@
 
 /* on the MCU: SysTick reload = cpu clock / fs must be a whole number of cycles */
 #define CFGGEN_CPU_HZ 168000000.0
-/* RAM budget of the recorder + table on the 128 KiB part (the rest: stack, node, sim) */
-#define CFGGEN_BUF_MAX_FLOATS 27648u
+/* RAM budget of the recorder + table on the 128 KiB part (the rest: sim_t with the drive's
+ * 32 KiB table staging buffer, stack, node, link buffers; the linker script checks the sum) */
+#define CFGGEN_BUF_MAX_FLOATS 20480u
 
 static int fail(const char *msg, const char *arg)
 {
