@@ -183,3 +183,30 @@ def test_bad_input_on_the_link_leaves_the_mcu_serving(pil):
         assert bad_lines >= 4 and overlong_lines >= 1 and frames_in > 100
         assert target.read_words(fault_addr, 1) == [0]
         assert target.alive()
+
+
+def test_launcher_prints_the_channel_and_stops_qemu_on_sigterm(pil):
+    import signal
+    import subprocess
+    import sys
+    proc = subprocess.Popen([sys.executable, pil.__file__], stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        m = re.search(r"socket://127\.0\.0\.1:(\d+)", line)
+        assert m, line
+        s = _raw(int(m.group(1)))
+        s.sendall(b"V\rN\r")
+        assert b"V1013\rNPIL1\r" in _read_until(s, rb"NPIL1\r")
+        s.close()
+        qemu = subprocess.run(["pgrep", "-P", str(proc.pid), "qemu-system-arm"], capture_output=True, text=True)
+        qemu_pids = [int(p) for p in qemu.stdout.split()]
+        assert len(qemu_pids) == 1, "qemu is not the launcher's child"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+        assert not os.path.exists(f"/proc/{qemu_pids[0]}"), "qemu outlived its launcher"
+        with pytest.raises(OSError):
+            _raw(int(m.group(1))).close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

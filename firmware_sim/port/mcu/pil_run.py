@@ -150,6 +150,11 @@ def main(argv=None):
     ap.add_argument("--shift", type=int, default=3, help="-icount shift: 2^N ns per instruction (default 3)")
     ap.add_argument("--align", action="store_true", help="icount align=on: never run ahead of the wall clock")
     args = ap.parse_args(argv)
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt  # SIGTERM ends qemu as Ctrl-C does
+
+    signal.signal(signal.SIGTERM, on_term)
     try:
         target = start(args.elf, args.shift, args.align)
     except PilError as exc:
