@@ -7,12 +7,14 @@ as ``socket://127.0.0.1:PORT``:
     python firmware_sim/port/mcu/pil_run.py            # prints the channel, runs until Ctrl-C
     fftune tune -i slcan -c socket://127.0.0.1:PORT --config configs/pil.yaml
 
-Time: ``-icount shift=N`` makes every guest instruction take 2^N ns of virtual time, so the
-guest's timing is a function of its instruction stream, not of the host's load (shift 3 =
-125 M instructions per second, about what a 168 MHz Cortex-M4F executes). While the guest
-waits (WFI) virtual time follows the host clock, so the 2560 Hz control interrupt and the
-CANopen timers run at about real time, as the host's heartbeat and SDO timeouts need.
-``--align`` adds ``align=on``: qemu also sleeps when the guest runs ahead of the wall clock.
+Time: with ``-icount`` virtual time comes from the instruction count. The default
+``shift=auto`` lets qemu adjust the rate so that virtual time keeps up with the host clock:
+the 2560 Hz control interrupt and the CANopen timers then run at about real time, as the
+host's heartbeat and SDO timeouts need. A fixed ``--shift N`` (2^N ns per instruction)
+makes virtual time lag the wall clock while the UART model sends (each byte a blocking
+write), which on a loaded machine silenced the drive's heartbeat for seconds. The recorded
+samples do not depend on the shift. ``--align`` adds ``align=on``: qemu also sleeps when
+the guest runs ahead of the wall clock.
 
 Functions for programs and tests: :func:`start` returns a :class:`PilTarget` (``port``,
 ``channel``, ``stop()``, context manager).
@@ -92,9 +94,9 @@ class PilTarget:
         self.stop()
 
 
-def qemu_command(elf, shift=3, align=False, extra=()):
+def qemu_command(elf, shift="auto", align=False, extra=()):
     """The qemu-system-arm command line (UART on an ephemeral loopback port, QMP on stdio)."""
-    icount = f"shift={int(shift)}" + (",align=on" if align else "")
+    icount = f"shift={shift if shift == 'auto' else int(shift)}" + (",align=on" if align else "")
     return [QEMU, "-M", MACHINE, "-display", "none", "-nodefaults", "-kernel", elf,
             "-icount", icount,
             "-chardev", "socket,id=link,host=127.0.0.1,port=0,server=on,wait=off,nodelay=on",
@@ -117,7 +119,7 @@ def _qmp(proc, command, deadline):
     raise PilError(f"qemu did not answer QMP {command}")
 
 
-def start(elf=DEFAULT_ELF, shift=3, align=False, extra=(), startup_timeout_s=10.0):
+def start(elf=DEFAULT_ELF, shift="auto", align=False, extra=(), startup_timeout_s=10.0):
     """Start qemu with the drive; returns a :class:`PilTarget` once the port is known."""
     if shutil.which(QEMU) is None:
         raise PilError(f"{QEMU} not found (install: sudo make system-deps, package qemu-system-arm)")
@@ -147,7 +149,9 @@ def start(elf=DEFAULT_ELF, shift=3, align=False, extra=(), startup_timeout_s=10.
 def main(argv=None):
     ap = argparse.ArgumentParser(description="Run the processor-in-the-loop drive in qemu-system-arm.")
     ap.add_argument("--elf", default=DEFAULT_ELF, help="firmware (default: build/mcu/pil.elf)")
-    ap.add_argument("--shift", type=int, default=3, help="-icount shift: 2^N ns per instruction (default 3)")
+    ap.add_argument("--shift", default="auto",
+                    help="-icount shift: 2^N ns per instruction, or auto (default: qemu keeps virtual time "
+                         "with the host clock, as a host talking to the drive needs)")
     ap.add_argument("--align", action="store_true", help="icount align=on: never run ahead of the wall clock")
     args = ap.parse_args(argv)
 
