@@ -158,3 +158,66 @@ def co_node(drive_sim):
     net, node = attach_node(drive_sim)
     yield net, node
     net.disconnect()
+
+
+# --------------------------------------------------------------------------- test run layout
+# `make test` runs pytest-xdist workers with --dist loadgroup (tests/README is the Makefile):
+# tests that share something that is not per-test go into one xdist group, so one worker
+# runs them in order:
+# - "qemu_guest": every `vm`-marked test; their guest sections run in ONE boot
+#   (vm_session below), and that worker starts them first: they are the longest pole.
+# - "firmware_build": tests that run make in firmware_sim/ (fixed output files there).
+# - "<module>:<fixtures>": tests sharing module-scoped fixtures of their module.
+# Without xdist the markers do nothing and the order is the same.
+_GROUP_OF_MODULE = {"test_firmware_cross": "firmware_build"}
+
+
+def _module_name(item):
+    return item.module.__name__.rsplit(".", 1)[-1] if getattr(item, "module", None) else ""
+
+
+def _module_fixture_group(item):
+    """Tests that use the same module-scoped fixtures of their own module (a drive_sim
+    session, a tuned pipeline, a built wheel: seconds to minutes each) form one group, so
+    the fixture is made once, not once per worker; other tests are scheduled one by one."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return None
+    path = item.nodeid.split("::", 1)[0]
+    names = sorted(name for name, defs in info.name2fixturedefs.items()
+                   if defs and defs[-1].scope in ("module", "package")
+                   and defs[-1].baseid == path)
+    return f"{path}:{'+'.join(names)}" if names else None
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    vm_items = [item for item in items if item.get_closest_marker("vm")]
+    if vm_items:
+        from vmguest import SharedGuestSession
+        limit = SharedGuestSession(item.module for item in vm_items).timeout_s()
+    for item in vm_items:
+        item.add_marker(pytest.mark.xdist_group("qemu_guest"))
+        if item.get_closest_marker("timeout") is None:
+            # the first vm test's set-up runs the whole shared guest session
+            item.add_marker(pytest.mark.timeout(limit))
+    for item in items:
+        if item.get_closest_marker("vm"):
+            continue
+        group = _GROUP_OF_MODULE.get(_module_name(item)) or _module_fixture_group(item)
+        if group:
+            item.add_marker(pytest.mark.xdist_group(group))
+    # the guest session first (stable sort keeps the collection order otherwise)
+    items.sort(key=lambda item: 0 if item.get_closest_marker("vm") else 1)
+
+
+@pytest.fixture(scope="session")
+def vm_session(request):
+    """ONE qemu guest boot for the sections (``VM_SECTIONS``) of every VM test module
+    of this run (tests/vmguest.py SharedGuestSession; docs/vm-testing.md)."""
+    from vmguest import SharedGuestSession
+    modules = []
+    for item in request.session.items:
+        if item.get_closest_marker("vm") and getattr(item, "module", None) is not None:
+            modules.append(item.module)
+    return SharedGuestSession(modules)

@@ -5,7 +5,6 @@ drive and one for the host: `fftune sim -i socketcan -c vcan0` and `fftune tune 
 socketcan -c vcan0 ...` (the guest's init has set up vcan0 as the README says). Skipped,
 with the reason, where qemu or the kernel is missing."""
 import os
-import time
 
 import pytest
 import yaml
@@ -13,7 +12,6 @@ import yaml
 from fftune.host.cli import main
 from fftune.host.sim import start_drive_sim
 from host_fixtures import REPO, drive_sim_missing_reason
-from vmguest import guest_available, run_sections
 
 pytestmark = pytest.mark.vm
 
@@ -52,21 +50,21 @@ exit $status
 '''.replace("@PLANT@", PLANT).replace("@FFTUNE@", FFTUNE)
 
 
-def test_tuning_over_vcan_in_the_guest_matches_socketcand(tmp_path):
-    ok, reason = guest_available()
-    if not ok:
-        pytest.skip(f"SocketCAN qemu guest unavailable: {reason}")
-    missing = drive_sim_missing_reason()
-    if missing:
-        pytest.skip(missing)
-    text = yaml.safe_dump(TINY)
-    t0 = time.monotonic()
-    sections, whole = run_sections({"tune": SECTION}, files={"tiny.yaml": text},
-                                   section_timeout=420, timeout=480)
-    guest_s = time.monotonic() - t0
-    print(f"guest session (boot + drive_sim + fftune tune over vcan0): {guest_s:.0f} s")
+# One section of the guest boot all VM test modules share (tests/vmguest.py).
+VM_SECTIONS = {"tune": SECTION}
+VM_SECTION_TIMEOUT_S = 420
+VM_FILES = {"tiny.yaml": yaml.safe_dump(TINY)}
+
+
+def vm_skip_reason():
+    return drive_sim_missing_reason()
+
+
+def test_tuning_over_vcan_in_the_guest_matches_socketcand(tmp_path, vm_session, request):
+    sections, whole = vm_session.results(request.module)
+    text = VM_FILES["tiny.yaml"]
     sec = sections["tune"]
-    assert sec.returncode == 0, f"guest run failed ({guest_s:.0f} s): {sec.output}\n{sec.files}\n{whole.describe()}"
+    assert sec.returncode == 0, f"guest run failed: {sec.output}\n{sec.files}\n{whole.describe()}"
     vm = yaml.safe_load(sec.files["results.yaml"])
     # The same on this machine over socketcand.
     cfg = tmp_path / "tiny.yaml"

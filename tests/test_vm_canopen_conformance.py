@@ -10,11 +10,11 @@ suite.
 """
 import os
 import re
-from pathlib import Path
+import shlex
 
 import pytest
 
-from vmguest import REPO_ROOT, VENV_PYTHON, guest_available, run_in_guest
+from vmguest import REPO_ROOT, VENV_PYTHON
 
 pytestmark = pytest.mark.vm
 
@@ -46,31 +46,40 @@ def test_summary_parser_reads_pytest_summary_lines():
     assert pytest_summary_counts("no summary here") == {}
 
 
-# The host test outlives the guest's own limits (inner pytest, then qemu's hard limit).
-@pytest.mark.timeout(GUEST_PYTEST_TIMEOUT_S + 240)
-def test_canopen_conformance_suite_passes_over_vcan0_in_the_guest():
-    ok, reason = guest_available()
-    if not ok:
-        pytest.skip(f"SocketCAN qemu guest unavailable: {reason}")
-    if not SUITE:
-        pytest.skip("no tests/test_canopen_*.py (the CANopen conformance suite) yet")
-    if not VENV_PYTHON.exists():
-        pytest.skip(f"{VENV_PYTHON} missing (make setup)")
+def _guest_pytest_command():
     args = [str(VENV_PYTHON), "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rfEs",
             "--durations=10", *[str(p.relative_to(REPO_ROOT)) for p in SUITE]]
     if os.environ.get("FFTUNE_VM_CONFORMANCE_ALL") != "1":
         args[3:3] = ["-p", "pytest_bus_only"]
-    result = run_in_guest(args, cwd=REPO_ROOT, timeout=GUEST_PYTEST_TIMEOUT_S,
-                          env={"FFTUNE_TEST_CAN": "socketcan:vcan0", "PYTHONPATH": str(VM_DIR)})
+    return (f"cd {shlex.quote(str(REPO_ROOT))} && FFTUNE_TEST_CAN=socketcan:vcan0 "
+            f"PYTHONPATH={shlex.quote(str(VM_DIR))} " + " ".join(map(shlex.quote, args)))
+
+
+# One section of the guest boot all VM test modules share (tests/vmguest.py).
+VM_SECTIONS = {"conformance": _guest_pytest_command()}
+VM_SECTION_TIMEOUT_S = GUEST_PYTEST_TIMEOUT_S
+
+
+def vm_skip_reason():
+    if not SUITE:
+        return "no tests/test_canopen_*.py (the CANopen conformance suite) yet"
+    if not VENV_PYTHON.exists():
+        return f"{VENV_PYTHON} missing (make setup)"
+    return None
+
+
+def test_canopen_conformance_suite_passes_over_vcan0_in_the_guest(vm_session, request):
+    sections, whole = vm_session.results(request.module)
+    run = sections["conformance"]
     # The whole guest output, kept for a look after the run (build/ is ignored by git).
     log = REPO_ROOT / "build" / "vm" / "last-conformance.log"
     log.parent.mkdir(parents=True, exist_ok=True)
-    log.write_text(result.describe())
-    counts = pytest_summary_counts(result.stdout)
+    log.write_text(run.output + "\n" + whole.describe())
+    counts = pytest_summary_counts(run.output)
     # shown with -s / -rA: the guest's slowest tests and what it deselected, with reasons
-    print(f"guest conformance run: {counts}, {result.duration_s:.0f} s boot-run-poweroff\n"
-          + "\n".join(result.stdout.splitlines()[-40:]))
-    assert counts, "no pytest summary line from the guest: " + result.describe()
-    assert counts.get("failed", 0) == 0 and counts.get("errors", 0) == 0, result.describe()
-    assert counts.get("passed", 0) > 0, result.describe()
-    assert result.returncode == 0, result.describe()
+    print(f"guest conformance run: {counts}, shared boot {whole.duration_s:.0f} s\n"
+          + "\n".join(run.output.splitlines()[-40:]))
+    assert counts, "no pytest summary line from the guest: " + run.output + whole.describe()
+    assert counts.get("failed", 0) == 0 and counts.get("errors", 0) == 0, run.output
+    assert counts.get("passed", 0) > 0, run.output
+    assert run.returncode == 0, run.output + whole.describe()

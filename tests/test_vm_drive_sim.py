@@ -1,6 +1,6 @@
 """drive_sim as a CANopen node on vcan0 inside the qemu guest, talked to with can-utils.
 
-One guest boot: candump records the bus, drive_sim starts with ``--can socketcan:vcan0``,
+In the guest boot all VM test modules share (tests/vmguest.py): candump records the bus, drive_sim starts with ``--can socketcan:vcan0``,
 cansend issues raw CiA 301 requests. The expected bytes come from CiA 301 (frame layouts,
 abort codes) and from the node's EDS read by python-canopen, not from our own code.
 """
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from vmguest import REPO_ROOT, SH_WAIT_CAN_RECEIVERS, guest_available, run_sections
+from vmguest import REPO_ROOT, SH_WAIT_CAN_RECEIVERS
 
 pytestmark = pytest.mark.vm
 
@@ -48,15 +48,17 @@ exit $status
 '''.replace("DRIVE_SIM", str(DRIVE_SIM))
 
 
+VM_SECTIONS = {"exchange": EXCHANGE}
+VM_SECTION_TIMEOUT_S = 150
+
+
+def vm_skip_reason():
+    return None if DRIVE_SIM.exists() else f"{DRIVE_SIM} not built (make setup)"
+
+
 @pytest.fixture(scope="module")
-def session():
-    ok, reason = guest_available()
-    if not ok:
-        pytest.skip(f"SocketCAN qemu guest unavailable: {reason}")
-    if not DRIVE_SIM.exists():
-        pytest.skip(f"{DRIVE_SIM} not built (make setup)")
-    sections, whole = run_sections({"exchange": EXCHANGE}, section_timeout=150, timeout=200)
-    assert whole.returncode == 0, "guest session failed: " + whole.describe()
+def session(vm_session, request):
+    sections, whole = vm_session.results(request.module)
     exchange = sections["exchange"]
     assert exchange.returncode == 0, (exchange.output + str(exchange.files)
                                       + whole.describe())

@@ -1,14 +1,14 @@
 """SocketCAN on vcan0 inside the qemu guest: the link, can-utils, python-can's socketcan.
 
-One guest boot for the whole module (tests/vmguest.py run_sections); each test checks one
-section of that session. Skipped, with the reason, where qemu or the Debian kernel with
+Its sections run in the one guest boot all VM test modules share (tests/vmguest.py
+SharedGuestSession, fixture vm_session); each test checks one section. Skipped, with the reason, where qemu or the Debian kernel with
 vcan are not installed.
 """
 import json
 
 import pytest
 
-from vmguest import SH_WAIT_CAN_RECEIVERS, VENV_PYTHON, guest_available, run_sections
+from vmguest import SH_WAIT_CAN_RECEIVERS, VENV_PYTHON
 
 pytestmark = pytest.mark.vm
 
@@ -40,7 +40,7 @@ with open(os.path.join(os.environ["SECTION_OUT"], "result.json"), "w") as f:
     json.dump(result, f)
 '''
 
-SECTIONS = {
+VM_SECTIONS = {
     "link": "ip -details link show vcan0",
     "candump": SH_WAIT_CAN_RECEIVERS + r'''
 candump -L -n 1 vcan0 > "$SECTION_OUT/dump.log" &
@@ -53,15 +53,13 @@ wait $pid
 }
 
 
+VM_SECTION_TIMEOUT_S = 150
+VM_FILES = {"python_can_check.py": PYTHON_CAN_CHECK}
+
+
 @pytest.fixture(scope="module")
-def session():
-    ok, reason = guest_available()
-    if not ok:
-        pytest.skip(f"SocketCAN qemu guest unavailable: {reason}")
-    sections, whole = run_sections(SECTIONS, section_timeout=150, timeout=360,
-                                   files={"python_can_check.py": PYTHON_CAN_CHECK})
-    assert whole.returncode == 0, "guest session failed: " + whole.describe()
-    return sections, whole
+def session(vm_session, request):
+    return vm_session.results(request.module)
 
 
 def test_guest_boots_with_vcan0_up(session):
