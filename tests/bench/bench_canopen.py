@@ -122,6 +122,25 @@ def raw_burst(host, port, count=20000):
     return seen, dt
 
 
+def timed_out_is_skip(measure, what, emulated):
+    """``measure()``, or None with the reason printed when, under qemu's software emulation,
+    the node aborted it with SDO abort 0x05040000 (drive_sim waits 1 s for the client's next
+    frame, the CiA 301 SDO timeout, and Python in the TCG guest sometimes takes longer;
+    docs/vm-testing.md) or python-canopen saw no answer in time. On the host (socketcand)
+    both are real failures and are raised."""
+    from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+    try:
+        return measure()
+    except (SdoAbortedError, SdoCommunicationError) as exc:
+        code = getattr(exc, "code", None)
+        if not emulated or code not in (0x05040000, None):
+            raise
+        print(f"  {what}: skipped: {exc} (python-canopen under qemu software emulation did "
+              f"not keep up: the node's 1 s SDO timeout, or no answer seen within "
+              f"{10.0:g} s; a figure of the host's load, not of the node)")
+        return None
+
+
 def main():
     if not os.path.exists(DRIVE_SIM):
         sys.exit(f"bench_canopen: {DRIVE_SIM} not built (make setup)")
@@ -131,26 +150,47 @@ def main():
         net.NOTIFIER_CYCLE = 0.1
         net.connect(**kw)
         node = canopen.RemoteNode(1, EDS)
-        node.sdo.RESPONSE_TIMEOUT = 2.0
+        emulated = kw["interface"] != "socketcand"
+        # python-canopen's own wait for an answer: in the TCG guest its receive thread can
+        # be descheduled for seconds on a loaded host (the node answers in < 1 ms)
+        node.sdo.RESPONSE_TIMEOUT = 10.0 if emulated else 2.0
         net.add_node(node)
         default_kib = 1032 if kw["interface"] == "socketcand" else 64
         kib = int(os.environ.get("FFTUNE_BENCH_CANOPEN_KIB", default_kib))
-        size = record(node, periods=max(1, kib * 1024 // (2048 * 4)))
+        size = timed_out_is_skip(lambda: record(node, periods=max(1, kib * 1024 // (2048 * 4))),
+                                 "recording set-up", emulated)
+        if size is None:
+            print("bench_canopen: no figures from this transport (see the line above)")
+            net.disconnect()
+            return
         print(f"transport: {kw['interface']}; recording: {size} bytes ({size / 2**20:.2f} MiB)")
-        runs = [block_upload(node) for _ in range(3)]
+        runs = []
+        for _ in range(3):
+            got = timed_out_is_skip(lambda: block_upload(node), "block upload", emulated)
+            if got is not None:
+                runs.append(got)
         assert all(n == size for n, _ in runs)
         rates = [n / dt for n, dt in runs]
-        block = statistics.median(rates)
-        n_seg, t_seg = segmented_upload(node, min(size, 256 * 1024))
-        seg = n_seg / t_seg
-        print(f"recorder block upload (python-canopen, CRC): median {block / 1e3:.1f} kB/s "
-              f"(runs: {', '.join(f'{r / 1e3:.1f}' for r in rates)}); target >= 150 kB/s: "
-              f"{'met' if block >= 150e3 else 'NOT met'}")
-        print(f"  segmented upload, same object, same run: {seg / 1e3:.1f} kB/s "
-              f"(block / segmented = {block / seg:.1f}x)")
-        print(f"  1 Mbit/s CAN carries at most ~{CAN_1M_PAYLOAD_BPS / 1e3:.0f} kB/s of block payload: "
-              f"block upload here = {block / CAN_1M_PAYLOAD_BPS:.1f}x that")
-        print(f"  block upload segments sent by the node: {block / 7:.0f} frames/s")
+        block = statistics.median(rates) if rates else None
+        # segmented: one request/answer per 7 bytes; under emulation a few KiB already take
+        # tens of seconds
+        seg_limit = min(size, 8 * 1024 if emulated else 256 * 1024)
+        got = timed_out_is_skip(lambda: segmented_upload(node, seg_limit), "segmented upload",
+                                emulated)
+        seg = None if got is None else got[0] / got[1]
+        if block is not None:
+            print(f"recorder block upload (python-canopen, CRC): median {block / 1e3:.1f} kB/s "
+                  f"(runs: {', '.join(f'{r / 1e3:.1f}' for r in rates)}); target >= 150 kB/s: "
+                  f"{'met' if block >= 150e3 else 'NOT met'}"
+                  + (" (qemu software emulation: not comparable)" if emulated else ""))
+        if seg is not None:
+            ratio = f" (block / segmented = {block / seg:.1f}x)" if block is not None else ""
+            print(f"  segmented upload, same object, same run, first {seg_limit // 1024} KiB: "
+                  f"{seg / 1e3:.1f} kB/s{ratio}")
+        if block is not None:
+            print(f"  1 Mbit/s CAN carries at most ~{CAN_1M_PAYLOAD_BPS / 1e3:.0f} kB/s of block "
+                  f"payload: block upload here = {block / CAN_1M_PAYLOAD_BPS:.1f}x that")
+            print(f"  block upload segments sent by the node: {block / 7:.0f} frames/s")
         net.disconnect()
         if kw["interface"] == "socketcand":
             frames = []
