@@ -166,10 +166,12 @@ def co_node(drive_sim):
 # runs them in order:
 # - "qemu_guest": every `vm`-marked test; their guest sections run in ONE boot
 #   (vm_session below), and that worker starts them first: they are the longest pole.
-# - "firmware_build": tests that run make in firmware_sim/ (fixed output files there).
+# - "firmware_build": tests that run make in firmware_sim/ (core-cross, pil, pil-test:
+#   fixed output files there, which two workers must not write at once).
 # - "<module>:<fixtures>": tests sharing module-scoped fixtures of their module.
 # Without xdist the markers do nothing and the order is the same.
-_GROUP_OF_MODULE = {"test_firmware_cross": "firmware_build"}
+_GROUP_OF_MODULE = dict.fromkeys(("test_firmware_cross", "test_mcu_build", "test_mcu_pil"),
+                                 "firmware_build")
 
 
 def _module_name(item):
