@@ -336,6 +336,21 @@ static void test_abort_codes(void)
     CHECK(sdo_write(0x1A03, 1, 0x20000120, 4) == CO_SDO_AB_NO_MAP);
 }
 
+/* reserved bytes (CiA 301 7.2.4.3) of every block-transfer response the helpers saw */
+static int g_reserved_ok = 1;
+
+static int zero_from(const co_frame_t *f, int first)
+{
+    for (int i = first; i < 8; i++) {
+        if (f->data[i] != 0) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int bad_crc);
+
 /* Run a block upload like python-canopen; optionally NAK the first sub-block at ack_short. */
 static uint32_t block_upload(uint16_t index, uint8_t *out, uint32_t cap, int ack_short, uint8_t blk,
                              uint16_t *crc_out, uint32_t *size_out)
@@ -393,6 +408,7 @@ static uint32_t block_upload(uint16_t index, uint8_t *out, uint32_t cap, int ack
         return 0xF00D;
     }
     *crc_out = co_get_u16(&f->data[1]);
+    g_reserved_ok &= zero_from(f, 3); /* end: n, CRC, then reserved */
     uint8_t end[8] = {0xA1, 0, 0, 0, 0, 0, 0, 0};
     rx(0x605, end, 8);
     return got == size ? 0u : 0xCAFE;
@@ -563,6 +579,24 @@ static void test_sdo_frames_whole_and_multiplexed(void)
     f = sdo(s1);
     CHECK(f && f->len == 8 && f->data[0] == (0x10 | (6 << 1) | 1) && f->data[1] == rec_byte(7));
     CHECK(g_n.sdo.state == 0);
+    /* reserved bytes are 0: segmented download responses, block transfer responses */
+    enable_402();
+    uint8_t init[8] = {0x21, 0x00, 0x20, 2, 4, 0, 0, 0};
+    f = sdo(init);
+    CHECK(f && f->data[0] == 0x60 && zero_from(f, 4));
+    uint8_t seg[8] = {(uint8_t)((3 << 1) | 1), 0, 0, 0x80, 0x3F, 0, 0, 0};
+    f = sdo(seg);
+    CHECK(f && f->len == 8 && f->data[0] == 0x20 && zero_from(f, 1));
+    g_reserved_ok = 1;
+    static uint8_t table[64];
+    for (uint32_t i = 0; i < sizeof table; i++) {
+        table[i] = (uint8_t)(i * 5u + 3u);
+    }
+    g_drv.run_state = DRV_RUN_DONE;
+    CHECK(block_download(table, sizeof table, -1, 0) == 0);
+    g_drv.rec_bytes = 20;
+    CHECK(block_upload(0x2021, g_buf, sizeof g_buf, -1, 127, &crc, &size) == 0);
+    CHECK(g_reserved_ok);
 }
 
 /* Block download like python-canopen (optionally dropping segment `drop` once, bad CRC). */
@@ -604,6 +638,7 @@ static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int
                 return abort_code(f);
             }
             uint8_t ack = f->data[1];
+            g_reserved_ok &= zero_from(f, 3); /* sub-block ack: ackseq, blksize, reserved */
             blk = f->data[2];
             if (ack != seq) { /* resend from ack */
                 pos = block_pos + 7u * ack;
@@ -623,6 +658,9 @@ static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int
     f = sdo(e);
     if (f == NULL) {
         return 0xDEAD;
+    }
+    if (f->data[0] == 0xA1) {
+        g_reserved_ok &= zero_from(f, 1); /* end response: all reserved */
     }
     return f->data[0] == 0xA1 ? 0u : abort_code(f);
 }
