@@ -35,7 +35,8 @@ from fftune.analysis.errors import InputError
 
 __all__ = ["DEFAULT_HARMONICS", "odd_ratio", "signed_odd_ratio", "signed_odd_ratio_std",
            "reference_phases",
-           "TuningResult", "RatioMinimizer", "SignedRootSearch"]
+           "TuningResult", "RatioMinimizer", "SignedRootSearch",
+           "ODD_LEVEL_DEFINITION", "harmonic_orders", "SearchPoint", "KfcSearchResult", "KfcSearch"]
 
 DEFAULT_HARMONICS = (3, 5, 7)
 
@@ -384,3 +385,400 @@ class SignedRootSearch(_AskTell):
         res = self._finish(True, reason)
         res.k_fc, res.uncertainty = k, 0.0
         return res
+
+
+# ---------------------------------------------------------------------------------------
+# The measured-data search: a bracket it proves, a root search where the phases are stable,
+# a ratio minimiser where they are not, and sigma(K_fc*) from the measured noise.
+# ---------------------------------------------------------------------------------------
+ODD_LEVEL_DEFINITION = ("rms of |H_k| over the odd harmonics k = 3, 5, .. K re |H_1| "
+                        "(fftune.analysis.tuning.odd_ratio)")
+
+
+def harmonic_orders(n_harmonics, parity="odd"):
+    """The harmonic orders combined into a level: odd 3, 5, .. <= K, or even 2, 4, .. <= K.
+
+    The one definition of the odd (even) harmonic level used by quantify and tune alike:
+    ``odd_ratio(H, harmonic_orders(K))``, the rms of those |H_k| over |H_1|.
+    """
+    n_harmonics = int(n_harmonics)
+    start = 3 if parity == "odd" else 2
+    orders = tuple(range(start, n_harmonics + 1, 2))
+    if not orders:
+        raise InputError(f"tuning: no {parity} harmonic >= {start} among H_1 .. H_{n_harmonics}")
+    return orders
+
+
+@dataclass
+class SearchPoint:
+    """One closed-loop experiment of :class:`KfcSearch`.
+
+    Attributes
+    ----------
+    k_fc : float
+    H : ndarray of complex, shape (K,)
+        HOSIDFs averaged over the recorded periods.
+    H_periods : ndarray of complex, shape (P, K)
+        HOSIDFs of each recorded period (their spread is the measured noise).
+    ratio, ratio_std : float
+        :func:`odd_ratio` and its standard error from the period spread (inf when the
+        motor did not follow the sine at all, |H_1| ~ 0).
+    """
+
+    k_fc: float
+    H: np.ndarray
+    H_periods: np.ndarray
+    ratio: float
+    ratio_std: float
+
+
+@dataclass
+class KfcSearchResult:
+    """Outcome of :class:`KfcSearch`.
+
+    Attributes
+    ----------
+    k_fc : float
+        K_fc* (feed-forward unit); the best measured point when not converged.
+    sigma : float
+        Standard uncertainty of K_fc*: the measured noise of the signed objective through
+        its local slope (small-sample corrected so that +-2 sigma is a 95 % interval),
+        combined with the distance to the verification experiment. NaN when not converged.
+    converged : bool
+    reason : str
+        Why it stopped; when not converged, what to change.
+    n_experiments : int
+    bracket : (float, float)
+        The last bracket proven to hold the ratio minimum (NaN, NaN if none).
+    extended_to : float or None
+        The upper end the bracket was extended to when ``upper`` was too small.
+    regime : str
+        ``"signed root"`` (stable odd phases) or ``"ratio minimiser"`` (the odd HOSIDF
+        phases rotate with K_fc, e.g. stick-slip) or ``"none"``.
+    sigma_signed : float
+        Standard error of one signed-objective value (pooled over the experiments).
+    slope : float
+        ds/dK_fc at K_fc* (1/feed-forward unit).
+    points : list of SearchPoint
+    """
+
+    k_fc: float
+    sigma: float
+    converged: bool
+    reason: str
+    n_experiments: int
+    bracket: tuple
+    extended_to: object
+    regime: str
+    sigma_signed: float
+    slope: float
+    points: list = field(default_factory=list)
+
+
+def _t_factor(dof):
+    """t_{0.977, dof} / 2: scales a standard error estimated with ``dof`` degrees of
+    freedom so that +-2 sigma is a 95 % interval (1 for many dof)."""
+    from scipy.stats import t as student_t
+    if dof < 1:
+        return np.inf
+    return float(student_t.ppf(0.9772, dof)) / 2.0
+
+
+class KfcSearch:
+    """Ask/tell K_fc search on measured HOSIDFs, one closed-loop experiment per step.
+
+    1. Bracket: the ends ``lower`` and ``upper`` are measured, then the root of the
+       signed objective between them (reference phases from H(lower) - H(upper)). The
+       bracket is proven when a measured point has a smaller ratio r than its measured
+       neighbours on both sides. While the smallest r is at the top end, the top is
+       doubled (up to ``k_limit``, what the drive allows); ``extended_to`` says so.
+    2. Refine inside the proven bracket [a, b]: with reference phases from H(a) - H(b)
+       the signed objective s is checked to fall monotonically (within the noise) over
+       the points in [a, b]. Then a root search (secant / inverse quadratic,
+       safeguarded to the sign change); else (the odd phases rotate with K_fc, as in
+       stick-slip) a parabolic step on r^2, safeguarded to the bracket (golden section).
+    3. Stop when the last experiment lies within the stopping tolerance of the estimate,
+       its s is zero within 2 standard errors and its ratio is not above another
+       measured point's by more than the noise: that experiment is the verification at
+       K_fc*. The tolerance is max(sigma(K_fc*), ``rtol`` K_fc*, ``xtol``).
+
+    Parameters
+    ----------
+    lower, upper : float
+        Initial bracket (``lower`` >= 0, usually 0).
+    k_limit : float
+        Largest K_fc the bracket may be extended to (the drive's limit), >= ``upper``.
+    harmonics : sequence of int
+        Odd harmonics of the objective.
+    max_experiments : int
+    xtol : float
+        Absolute floor of the stopping tolerance (feed-forward unit).
+    rtol : float
+        Relative floor of the stopping tolerance.
+
+    Use ``ask()`` for the next K_fc, ``tell(k_fc, H_periods)`` with the (P, K) HOSIDFs of
+    each recorded period (P >= 2), until ``done``; then ``result``.
+    """
+
+    def __init__(self, lower, upper, k_limit=None, harmonics=DEFAULT_HARMONICS, max_experiments=8,
+                 xtol=0.0, rtol=5e-3):
+        lower, upper = float(lower), float(upper)
+        k_limit = upper if k_limit is None else float(k_limit)
+        if not (np.isfinite(lower) and np.isfinite(upper) and 0 <= lower < upper):
+            raise InputError(f"tuning: bracket must satisfy 0 <= lower < upper, got [{lower}, {upper}]")
+        if not (np.isfinite(k_limit) and k_limit >= upper):
+            raise InputError(f"tuning: k_limit must be >= upper = {upper}, got {k_limit}")
+        if int(max_experiments) < 3:
+            raise InputError("tuning: max_experiments must be >= 3")
+        self.lower, self.upper, self.k_limit = lower, upper, k_limit
+        self.harmonics = tuple(harmonics)
+        self.max_experiments = int(max_experiments)
+        self.xtol, self.rtol = float(xtol), float(rtol)
+        self.points = {}
+        self.extended_to = None
+        self.regime = "none"
+        self._ref = None          # the bracket whose ends give the reference phases
+        self._result = None
+        self._gen = self._run()
+        self._pending = next(self._gen)
+
+    # ---- ask / tell ---------------------------------------------------------------------
+    @property
+    def done(self):
+        return self._result is not None
+
+    def ask(self):
+        if self.done:
+            raise InputError("tuning: the search is finished; read .result")
+        return self._pending
+
+    def tell(self, k_fc, H_periods):
+        """Report the HOSIDFs of each recorded period measured at ``k_fc``."""
+        if self.done:
+            raise InputError("tuning: the search is finished; read .result")
+        if not np.isclose(k_fc, self._pending, rtol=0, atol=1e-12 * max(1.0, abs(k_fc))):
+            raise InputError(f"tuning: told K_fc = {k_fc}, but the search asked {self._pending}")
+        Hp = np.asarray(H_periods, dtype=complex)
+        if Hp.ndim != 2 or Hp.shape[0] < 2:
+            raise InputError(f"tuning: need the HOSIDFs of >= 2 recorded periods, shape (P, K); "
+                             f"got {Hp.shape}")
+        if not np.all(np.isfinite(Hp)):
+            raise InputError(f"tuning: HOSIDFs at K_fc = {k_fc} are not finite")
+        self.points[float(self._pending)] = self._point(float(self._pending), Hp)
+        try:
+            self._pending = self._gen.send(None)
+        except StopIteration as stop:
+            self._result = stop.value
+
+    @property
+    def result(self):
+        if self._result is not None:
+            return self._result
+        return self._fail("running")
+
+    def run(self, measure):
+        """Drive the search with ``measure(k_fc) -> H_periods`` (tests, offline)."""
+        while not self.done:
+            k = self.ask()
+            self.tell(k, measure(k))
+        return self.result
+
+    # ---- objective and its noise --------------------------------------------------------
+    def _point(self, k, Hp):
+        H = Hp.mean(axis=0)
+        h1 = np.abs(H[0])
+        moving = h1 > 1e-3 * np.max(np.abs(Hp[:, 0])) and h1 > 1e-6
+        if moving:
+            r = float(odd_ratio(H, self.harmonics))
+            r_p = np.asarray(odd_ratio(Hp, self.harmonics))
+            r_std = float(np.std(r_p, ddof=1) / np.sqrt(len(r_p)))
+        else:
+            r, r_std = np.inf, 0.0
+        return SearchPoint(k, H, Hp, r, r_std)
+
+    def _signed(self, pts, phases):
+        """s and its standard error at each point (inf-ratio points get NaN)."""
+        s, s_se = [], []
+        for p in pts:
+            if not np.isfinite(p.ratio):
+                s.append(np.nan)
+                s_se.append(np.nan)
+                continue
+            s.append(float(signed_odd_ratio(p.H, phases, self.harmonics)))
+            sp = np.asarray(signed_odd_ratio(p.H_periods, phases, self.harmonics))
+            s_se.append(float(np.std(sp, ddof=1) / np.sqrt(len(sp))))
+        return np.array(s), np.array(s_se)
+
+    def _phases(self, a, b):
+        return reference_phases(self.points[a].H - self.points[b].H, self.harmonics)
+
+    def _sorted(self):
+        return [self.points[k] for k in sorted(self.points)]
+
+    def _tol(self, k):
+        return max(self.xtol, self.rtol * abs(k), 1e-12)
+
+    def _fail(self, reason, bracket=(np.nan, np.nan)):
+        pts = self._sorted()
+        finite = [p for p in pts if np.isfinite(p.ratio)]
+        best = min(finite, key=lambda p: p.ratio).k_fc if finite else np.nan
+        return KfcSearchResult(k_fc=best, sigma=np.nan, converged=False, reason=reason,
+                               n_experiments=len(pts), bracket=tuple(bracket),
+                               extended_to=self.extended_to, regime=self.regime,
+                               sigma_signed=np.nan, slope=np.nan, points=pts)
+
+    # ---- the search ---------------------------------------------------------------------
+    def _run(self):
+        lo, hi = self.lower, self.upper
+        yield hi
+        yield lo
+        # the first interior point: the root of s between the ends
+        pa, pb = self.points[lo], self.points[hi]
+        guess = None
+        if np.isfinite(pa.ratio) and np.isfinite(pb.ratio):
+            s, _ = self._signed([pa, pb], self._phases(lo, hi))
+            if s[0] > 0 > s[1]:
+                guess = lo + (hi - lo) * s[0] / (s[0] - s[1])
+        if guess is None or not (lo + 0.05 * (hi - lo) < guess < hi - 0.05 * (hi - lo)):
+            guess = lo + 0.5 * (hi - lo)
+        yield guess
+        while True:
+            if len(self.points) >= self.max_experiments:
+                return self._finish_or_fail("max_experiments reached")
+            pts = self._sorted()
+            ks = np.array([p.k_fc for p in pts])
+            rs = np.array([p.ratio for p in pts])
+            i = int(np.argmin(rs))
+            if i == len(pts) - 1:
+                # smallest ratio at the top: the optimum may lie above it
+                top = ks[-1]
+                if top >= self.k_limit * (1 - 1e-9):
+                    return self._fail(
+                        f"the odd-harmonic ratio is smallest at the drive's limit K_fc = {top:.4g} "
+                        "(bracket cannot be extended): check the friction level, lower the drive's "
+                        "u_max limit only if it is below the friction, or raise the sine amplitude",
+                        (ks[-2], top))
+                new = min(2 * top, self.k_limit)
+                self.extended_to = new
+                yield new
+                continue
+            # bracket [a, b] around the smallest ratio (a = the lower end when it is smallest)
+            a = ks[i - 1] if i > 0 else ks[0]
+            b = ks[i + 1]
+            if self._ref is not None and self._ref[0] < ks[i] < self._ref[1]:
+                # inside the bracket already proven, the sign change of s leads (near the
+                # optimum the ratio sits on its floor and its minimum wanders)
+                a, b = self._ref
+            est = self._estimate(a, b)
+            if est["stop"]:
+                return est["result"]
+            yield est["next"]
+
+    def _estimate(self, a, b):
+        """Next experiment in the proven bracket [a, b], or the final result."""
+        pts = [p for p in self._sorted() if a <= p.k_fc <= b]
+        ks = np.array([p.k_fc for p in pts])
+        rs = np.array([p.ratio for p in pts])
+        phases = self._phases(a, b) if np.isfinite(self.points[a].ratio) else None
+        if self._ref is not None and self._ref[0] <= a and b <= self._ref[1]:
+            phases = self._phases(*self._ref)
+        elif phases is not None:
+            self._ref = (a, b)
+        monotone = False
+        if phases is not None:
+            s, s_se = self._signed(pts, phases)
+            noise = 2 * np.sqrt(s_se[:-1] ** 2 + s_se[1:] ** 2)
+            monotone = bool(np.all(np.diff(s) < noise)) and s[0] > 0 > s[-1]
+        pooled = self._pooled_signed_se(phases) if phases is not None else np.nan
+        if monotone:
+            self.regime = "signed root"
+            j = int(np.nonzero((s[:-1] > 0) & (s[1:] <= 0))[0][0])
+            k1, k2, s1, s2 = ks[j], ks[j + 1], s[j], s[j + 1]
+            root = k1 + (k2 - k1) * s1 / (s1 - s2)
+            # inverse quadratic through three points next to the root, if it stays inside
+            if len(pts) >= 3:
+                near = np.argsort(np.abs(ks - root))[:3]
+                kk, ss = ks[near], s[near]
+                if len(set(np.round(ss, 15))) == 3:
+                    q = sum(kk[m] * np.prod([(0 - ss[o]) / (ss[m] - ss[o]) for o in range(3) if o != m])
+                            for m in range(3))
+                    if k1 < q < k2:
+                        root = q
+            slope = (s2 - s1) / (k2 - k1)
+            dof = self._dof()
+            near = np.abs(ks - root) <= 0.25 * abs(root)
+            if np.count_nonzero(near) >= 4:
+                # lack of fit of a line through the points near the root: the K-to-K
+                # scatter (quantisation, limit cycles) that the period spread does not see
+                fit = np.polyfit(ks[near], s[near], 1)
+                slope = fit[0] if fit[0] < 0 else slope
+                lof = float(np.sqrt(np.sum((s[near] - np.polyval(fit, ks[near])) ** 2)
+                                    / (np.count_nonzero(near) - 2)))
+                if lof > pooled:
+                    pooled, dof = lof, np.count_nonzero(near) - 2
+            sigma_noise = pooled / abs(slope) * _t_factor(dof) if slope != 0 else np.inf
+            tol = max(sigma_noise, self._tol(root))
+            # the verification: a measured point at the estimate, s = 0 within the noise,
+            # ratio not above another point's by more than the noise
+            m = int(np.argmin(np.abs(ks - root)))
+            pm = pts[m]
+            best = pts[int(np.argmin(rs))]
+            r_ok = pm.ratio <= best.ratio + 2 * np.hypot(pm.ratio_std, best.ratio_std) + 0.05 * best.ratio
+            if abs(ks[m] - root) <= tol and abs(s[m]) <= 2 * max(s_se[m], pooled) + abs(slope) * self._tol(root) \
+                    and r_ok:
+                sigma = np.hypot(sigma_noise, abs(ks[m] - root))
+                return {"stop": True, "result": KfcSearchResult(
+                    k_fc=float(root), sigma=float(sigma), converged=True,
+                    reason=(f"verified: the experiment at K_fc = {ks[m]:.6g} has s = {s[m]:.3g} "
+                            f"(noise {max(s_se[m], pooled):.2g}) and the smallest ratio within the noise"),
+                    n_experiments=len(self.points), bracket=(float(a), float(b)),
+                    extended_to=self.extended_to, regime=self.regime,
+                    sigma_signed=float(pooled), slope=float(slope), points=self._sorted())}
+            nxt = root
+            if min(abs(ks - nxt)) < 0.25 * tol:
+                # the estimate sits on a measured point that did not verify: probe the noise
+                # width beside it, on the side of the sign change
+                nxt = root + (tol if s[m] > 0 else -tol)
+            return {"stop": False, "next": float(np.clip(nxt, a + 1e-12, b - 1e-12))}
+        # phases rotate with K_fc (or the lower end does not move): safeguarded ratio minimiser
+        self.regime = "ratio minimiser"
+        i = int(np.argmin(rs))
+        x = ks[i]
+        lo_k = ks[i - 1] if i > 0 else a
+        hi_k = ks[i + 1] if i + 1 < len(ks) else b
+        width = hi_k - lo_k
+        if width <= 2 * self._tol(x):
+            sig = width / 2 / np.sqrt(3)
+            return {"stop": True, "result": KfcSearchResult(
+                k_fc=float(x), sigma=float(max(sig, self._tol(x))), converged=True,
+                reason=(f"ratio minimiser: bracket [{lo_k:.6g}, {hi_k:.6g}] below the tolerance; the "
+                        "odd HOSIDF phases rotate with K_fc, so the signed root search was not used"),
+                n_experiments=len(self.points), bracket=(float(lo_k), float(hi_k)),
+                extended_to=self.extended_to, regime=self.regime,
+                sigma_signed=float(pooled), slope=np.nan, points=self._sorted())}
+        u = None
+        if i > 0 and i + 1 < len(ks) and np.isfinite(rs[i - 1]):
+            f0, f1, f2 = rs[i - 1] ** 2, rs[i] ** 2, rs[i + 1] ** 2
+            x0, x1, x2 = lo_k, x, hi_k
+            den = (x1 - x0) * (f1 - f2) - (x1 - x2) * (f1 - f0)
+            if den != 0:
+                u = x1 - 0.5 * ((x1 - x0) ** 2 * (f1 - f2) - (x1 - x2) ** 2 * (f1 - f0)) / den
+        gold = 0.381966
+        small = 0.1 * width
+        if u is None or not (lo_k + small < u < hi_k - small) or abs(u - x) < max(small / 2, self._tol(x)):
+            u = x + gold * (hi_k - x) if (hi_k - x) > (x - lo_k) else x - gold * (x - lo_k)
+        return {"stop": False, "next": float(u)}
+
+    def _pooled_signed_se(self, phases):
+        pts = [p for p in self._sorted() if np.isfinite(p.ratio)]
+        _, se = self._signed(pts, phases)
+        se = se[np.isfinite(se)]
+        return float(np.sqrt(np.mean(se ** 2))) if len(se) else np.nan
+
+    def _dof(self):
+        return sum(p.H_periods.shape[0] - 1 for p in self.points.values() if np.isfinite(p.ratio))
+
+    def _finish_or_fail(self, reason):
+        return self._fail(f"{reason} before the estimate was verified: raise "
+                          f"tune.search.max_experiments (now {self.max_experiments}) or the periods "
+                          "per experiment (noise)")

@@ -72,7 +72,9 @@ DEFAULTS = {
     "tune": {
         "enabled": True,
         "frequency_hz": 1.25,
-        "amplitude_rad": 1.0,
+        "amplitude_rad": 1.0,          # or "auto": probes at K_fc = 0 (docs/host.md)
+        "amplitude_start_rad": 0.5,    # auto: the first probe's amplitude
+        "amplitude_max_rad": 8.0,      # auto: the largest amplitude it may choose
         "period_samples": 2048,
         "periods": 2,
         "settle_periods": 2,
@@ -277,16 +279,27 @@ def validate(raw, path="<config>"):
     t = cfg["tune"]
     _bool(cfg, path, "tune.enabled")
     _number(cfg, path, "tune.frequency_hz", low=0, low_inclusive=False)
-    _number(cfg, path, "tune.amplitude_rad", low=0, low_inclusive=False)
+    amp_high = od_param_high("EXC_AMPLITUDE")
+    if t["amplitude_rad"] != "auto":
+        _number(cfg, path, "tune.amplitude_rad", low=0, low_inclusive=False, high=amp_high)
+    _number(cfg, path, "tune.amplitude_start_rad", low=0, low_inclusive=False, high=amp_high)
+    _number(cfg, path, "tune.amplitude_max_rad", low=0, low_inclusive=False, high=amp_high)
+    if t["amplitude_max_rad"] < t["amplitude_start_rad"]:
+        raise _err(path, "tune.amplitude_max_rad",
+                   f"expected >= tune.amplitude_start_rad = {t['amplitude_start_rad']:g}, "
+                   f"got {t['amplitude_max_rad']:g}")
     _number(cfg, path, "tune.period_samples", low=16, high=8192, integer=True)
-    _number(cfg, path, "tune.periods", low=1, high=1000, integer=True)
+    # >= 2: the spread over the recorded periods is the measured noise of the objective
+    _number(cfg, path, "tune.periods", low=2, high=1000, integer=True)
     _number(cfg, path, "tune.settle_periods", low=0, high=1000, integer=True)
     _number(cfg, path, "tune.harmonics", low=7, high=50, integer=True)
     if t["capture"] is not None:
         _choice(cfg, path, "tune.capture", CAPTURE_MODES)
     _number(cfg, path, "tune.sweep.k_fc_max", low=0, high=100, low_inclusive=False)
-    _number(cfg, path, "tune.sweep.points", low=3, high=200, integer=True)
-    _choice(cfg, path, "tune.search.method", ("root", "brent"))
+    _number(cfg, path, "tune.sweep.points", low=0, high=200, integer=True)
+    if 0 < t["sweep"]["points"] < 3:
+        raise _err(path, "tune.sweep.points", f"expected 0 (no sweep) or >= 3, got {t['sweep']['points']}")
+    _choice(cfg, path, "tune.search.method", ("root",))
     _number(cfg, path, "tune.search.max_experiments", low=3, high=100, integer=True)
     _number(cfg, path, "tune.search.k_fc_max", low=0, high=100, low_inclusive=False, allow_none=True)
     _number(cfg, path, "tune.search.xtol_v", low=0, low_inclusive=False, allow_none=True)
@@ -294,6 +307,19 @@ def validate(raw, path="<config>"):
     _number(cfg, path, "tune.viscous.k_v_max", low=0, high=100, low_inclusive=False)
     _number(cfg, path, "tune.viscous.max_experiments", low=3, high=100, integer=True)
     return cfg
+
+
+def od_param_high(param):
+    """The upper limit of the drive object carrying ``param`` (configs/od.yaml, the one
+    source of the object dictionary): values above it the drive refuses mid-experiment."""
+    from fftune.host.odmap import OD_YAML
+    with open(OD_YAML, "r", encoding="utf-8") as fh:
+        od = yaml.safe_load(fh)
+    for obj in od.get("objects", []):
+        for entry in obj.get("sub", [obj]):
+            if entry.get("param") == param:
+                return float(entry["high"])
+    raise FftuneError(f"{OD_YAML}: no object with param {param}")
 
 
 def load_config(path):

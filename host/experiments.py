@@ -321,14 +321,15 @@ def quantify(session):
         U = np.stack([_blocks(r.signals[in_name], n) for r in recs.flat]).reshape(shape + (-1, n))
         Y = np.stack([_blocks(r.signals["motor_angle"], n) for r in recs.flat]).reshape(shape + (-1, n))
         hos = _hosidf_estimate(U, Y, fs=fs, n_harmonics=c["harmonics"], f0=f0)
-    mag = np.abs(hos.H)
-    h1 = mag[..., 0]
-    odd_rel = np.sqrt(np.sum(mag[..., 2::2] ** 2, axis=-1)) / h1
-    even_rel = np.sqrt(np.sum(mag[..., 1::2] ** 2, axis=-1)) / h1
+    # the one definition of the harmonic levels (results.yaml, quantify and tune alike)
+    odd_rel = np.asarray(_tuning.odd_ratio(hos.H, _tuning.harmonic_orders(c["harmonics"], "odd")))
+    even_rel = (np.asarray(_tuning.odd_ratio(hos.H, _tuning.harmonic_orders(c["harmonics"], "even")))
+                if c["harmonics"] >= 2 else np.zeros(hos.H.shape[:-1]))
     results = {
         "inject": c["inject"], "input_signal": in_name, "output_signal": "motor_angle",
         "frequencies_hz": [_f(f) for f in c["frequencies_hz"]],
         "rms_levels": [_f(a) for a in c["rms_levels"]], "repeats": c["repeats"],
+        "level_definition": _tuning.ODD_LEVEL_DEFINITION + "; even: the same over k = 2, 4, .. K",
         "odd_relative_level": [[_f(v) for v in row] for row in odd_rel],
         "even_relative_level": [[_f(v) for v in row] for row in even_rel],
         "max_odd_relative_level": _f(np.max(odd_rel)),
@@ -341,8 +342,8 @@ def quantify(session):
 # tune
 # ---------------------------------------------------------------------------------------
 class _TuneProbe:
-    """One closed-loop sine experiment at (K_fc, K_v): HOSIDF reference -> motor angle,
-    odd-harmonic objective, rms tracking error."""
+    """One closed-loop sine experiment at (K_fc, K_v): HOSIDF reference -> motor angle per
+    recorded period, odd-harmonic objective, rms tracking error."""
 
     def __init__(self, session):
         self.s = session
@@ -353,112 +354,179 @@ class _TuneProbe:
         self.cycles = _cycles(session.fs_hz, self.n, c["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
         if self.cycles * c["harmonics"] * 2 >= self.n:
             raise FftuneError(f"{src}: key 'tune.harmonics': harmonic {c['harmonics']} of "
-                              f"{c['frequency_hz']:g} Hz is above fs/2")
+                              f"{c['frequency_hz']:g} Hz is above fs/2 = {session.fs_hz / 2:g} Hz")
+        self.harmonics = _tuning.harmonic_orders(c["harmonics"])
+        self.amplitude = c["amplitude_rad"] if c["amplitude_rad"] != "auto" else None
         self.points = {}
 
-    def measure(self, tag, kfc, kv=0.0):
+    def measure(self, tag, kfc, kv=0.0, amplitude=None):
+        amplitude = self.amplitude if amplitude is None else amplitude
         key = f"tune-{tag}-kfc{kfc:.9g}-kv{kv:.9g}"
+        if amplitude != self.c["amplitude_rad"]:
+            key += f"-a{amplitude:.6g}"
         c = self.c
-        req = sine_request(inject="reference", amplitude_peak=c["amplitude_rad"], n=self.n,
+        cache = (round(float(np.float32(kfc)), 12), round(float(np.float32(kv)), 12), float(amplitude))
+        if cache in self.points:          # the same experiment under another tag
+            return self.points[cache]
+        req = sine_request(inject="reference", amplitude_peak=amplitude, n=self.n,
                            cycles=self.cycles, settle=c["settle_periods"], periods=c["periods"],
                            kfc=kfc, kv=kv)
-        rec = self.s.run("tune", key, req, stats={"harmonics": c["harmonics"],
-                                                  "signals": ["reference", "motor_angle"],
-                                                  "power": ["error"]})
-        if rec.stats is not None:
-            # the drive's line statistics: the same H and rms as from the samples
-            # (fftune.analysis.stats; docs/analysis.md), from a ~200-byte upload
-            hos = hosidf_from_stats(rec.stats, rec.stats, u_name="reference",
-                                    y_name="motor_angle", fs=self.s.fs_hz, n=self.n,
-                                    cycles=self.cycles, n_harmonics=c["harmonics"])
-            rms_error = rec.stats.rms("error")
-        else:
-            r = _blocks(rec.signals["reference"], self.n)[None]
-            y = _blocks(rec.signals["motor_angle"], self.n)[None]
-            hos = _hosidf_estimate(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
-                                   f0=c["frequency_hz"])
-            rms_error = float(np.sqrt(np.mean(rec.signals["error"] ** 2)))
+        # raw samples: the search needs the HOSIDFs of each recorded period (their spread
+        # is the measured noise); the drive's statistics hold only their mean and variance
+        rec = self.s.run("tune", key, req)
+        # each recorded period as a repeat: H_repeats are the per-period HOSIDFs
+        r = _blocks(rec.signals["reference"], self.n)[:, None, :]
+        y = _blocks(rec.signals["motor_angle"], self.n)[:, None, :]
+        hos = _hosidf_estimate(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
+                             f0=c["frequency_hz"])
         H = hos.H
+        moving = np.abs(H[0]) > 1e-6
         point = {
-            "kfc": float(np.float32(kfc)), "kv": float(np.float32(kv)), "H": H,
-            "ratio": float(_tuning.odd_ratio(H)),
-            "rms_error": rms_error,
+            "kfc": float(np.float32(kfc)), "kv": float(np.float32(kv)), "amplitude": float(amplitude),
+            "H": H, "H_periods": hos.H_repeats,
+            "ratio": float(_tuning.odd_ratio(H, self.harmonics)) if moving else math.inf,
+            "rms_error": float(np.sqrt(np.mean(rec.signals["error"] ** 2))),
             "record": rec,
         }
-        self.points[(tag, point["kfc"], point["kv"])] = point
+        self.points[cache] = point
+        self.s.tune_experiments = getattr(self.s, "tune_experiments", 0) + 1
         return point
+
+
+# Out of stick-slip: at K_fc = 0 the motor follows the sine (|H_1| >= 0.9) and the odd
+# harmonics stay below 5 % of it; below that the odd HOSIDF phases rotate with K_fc.
+AUTO_AMPLITUDE_MAX_RATIO = 0.05
+AUTO_AMPLITUDE_MIN_H1 = 0.9
+
+
+def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
+    """``tune.amplitude_rad: auto``: the sine amplitude (rad) for the search, from probes
+    at K_fc = 0, raised until the loop is out of stick-slip.
+
+    Returns
+    -------
+    amplitude : float
+    block : dict
+        The choice, its reason and the probes (for results.yaml).
+    p0 : dict
+        The probe at the chosen amplitude (the search's K_fc = 0 experiment).
+    """
+    a = float(start_rad)
+    probes = []
+    for _ in range(max_probes):
+        p = probe.measure("amplitude", 0.0, amplitude=a)
+        h1 = float(np.abs(p["H"][0]))
+        probes.append({"amplitude_rad": _f(a), "h1": _f(h1), "ratio_at_zero": _f(p["ratio"])})
+        if h1 >= AUTO_AMPLITUDE_MIN_H1 and p["ratio"] <= AUTO_AMPLITUDE_MAX_RATIO:
+            return a, {"chosen_rad": _f(a), "probes": probes, "reason": (
+                f"at K_fc = 0 the motor follows the sine (|H_1| = {h1:.3g} >= "
+                f"{AUTO_AMPLITUDE_MIN_H1:g}) and the odd-harmonic ratio {p['ratio']:.3g} is <= "
+                f"{AUTO_AMPLITUDE_MAX_RATIO:g}: out of stick-slip")}, p
+        if a >= max_rad:
+            break
+        # r(0) falls about as 1/amplitude out of stick-slip; a stuck motor needs a big step
+        factor = 4.0 if not math.isfinite(p["ratio"]) or h1 < 0.5 else \
+            min(8.0, max(2.0, p["ratio"] / (0.8 * AUTO_AMPLITUDE_MAX_RATIO)))
+        a = min(max_rad, a * factor)
+    return a, {"chosen_rad": _f(a), "probes": probes, "reason": (
+        f"stick-slip at every amplitude up to tune.amplitude_max_rad = {max_rad:g} rad "
+        f"(|H_1| = {probes[-1]['h1']:.3g}, ratio at K_fc = 0 {probes[-1]['ratio_at_zero']}); "
+        "the search runs there and may rely on the ratio minimiser: raise "
+        "tune.amplitude_max_rad if the set-up allows")}, p
 
 
 def sweep_optimum(k, ratio, signed):
     """K_fc optimum of a sweep: the zero crossing of the signed objective next to the
     ratio minimum, linearly interpolated between the two sweep points around it; the grid
-    minimum of the ratio when the signed objective does not change sign there."""
+    minimum of the ratio when the signed objective does not change sign there.
+
+    Returns
+    -------
+    k_opt : float
+        NaN when the ratio is smallest at an end of the grid (the optimum may lie outside).
+    note : str
+    """
     i = int(np.argmin(ratio))
+    if i == len(k) - 1 or (i == 0 and k[0] > 0):
+        return math.nan, (f"the ratio is smallest at the end of the sweep (K_fc = {k[i]:.4g}): "
+                          "the optimum may lie outside; widen tune.sweep.k_fc_max")
     for j in (i - 1, i):
         if 0 <= j < len(k) - 1 and signed[j] > 0 >= signed[j + 1]:
-            return float(k[j] + (k[j + 1] - k[j]) * signed[j] / (signed[j] - signed[j + 1]))
-    return float(k[i])
+            return (float(k[j] + (k[j + 1] - k[j]) * signed[j] / (signed[j] - signed[j + 1])),
+                    "zero crossing of the signed objective next to the ratio minimum")
+    return float(k[i]), "grid minimum of the ratio (no sign change of the signed objective there)"
+
+
+def k_fc_limit(session):
+    """The largest K_fc the drive allows: its output limit u_max (a feed-forward above it
+    only saturates), at most the object's own range (100 V)."""
+    u_max = session.controller.get("u_max")
+    if u_max is None:
+        try:
+            u_max = float(session.drive.get("u_max"))
+        except (FftuneError, KeyError):
+            u_max = 100.0
+    return float(min(u_max, 100.0))
 
 
 def tune(session):
-    """K_fc: (a) the paper's sweep, (b) an automated search, then (c) K_v.
+    """K_fc: (a) the paper's sweep (optional), (b) the automated search, then (c) K_v.
 
     Returns
     -------
     results : dict
     data : dict
-        Sweep HOSIDFs, the search's evaluations, the records at K_fc = 0, K_fc* and at the
-        smallest rms error (for the paper's Figures 7 and 9).
+        Sweep (or search) HOSIDFs, the records at K_fc = 0, K_fc* and at the smallest rms
+        error (for the paper's Figures 7 and 9).
     """
     c = session.cfg["tune"]
     probe = _TuneProbe(session)
-    # (a) sweep
-    ks = np.linspace(0.0, c["sweep"]["k_fc_max"], c["sweep"]["points"])
-    sweep = [probe.measure("sweep", float(k)) for k in ks]
-    H_sweep = np.stack([p["H"] for p in sweep])
-    ratio_sweep = np.array([p["ratio"] for p in sweep])
-    kfc_sweep = np.array([p["kfc"] for p in sweep])
-    # Reference phases of the signed objective: the direction in which the odd HOSIDFs
-    # move from under- (K_fc = 0) to over-compensation (the bracket's upper end). Odd
-    # harmonics that do not depend on K_fc (quantisation, other nonlinearities) cancel in
-    # the difference, so the zero crossing sits at the minimum of |H_i| along that line.
-    phases_sweep = _tuning.reference_phases(H_sweep[0] - H_sweep[-1])
-    signed_sweep = np.asarray(_tuning.signed_odd_ratio(H_sweep, phases_sweep))
-    k_sweep_opt = sweep_optimum(kfc_sweep, ratio_sweep, signed_sweep)
+    session.tune_experiments = 0
+    # (0) amplitude
+    amp_block = None
+    if c["amplitude_rad"] == "auto":
+        probe.amplitude, amp_block, _ = choose_amplitude(probe, c["amplitude_start_rad"],
+                                                         c["amplitude_max_rad"])
+    n_amplitude_probes = session.tune_experiments
     # (b) automated search, one experiment at a time
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
-    max_exp = c["search"]["max_experiments"]
-    xtol = c["search"]["xtol_v"] or 1e-3 * k_hi
-    measured = {}
-
-    def experiment(k):
-        k32 = float(np.float32(k))
-        if k32 not in measured:
-            measured[k32] = probe.measure("search", float(k))
-        return measured[k32]
-
-    if c["search"]["method"] == "root":
-        # The bracket ends are the search's own first two experiments; measuring them
-        # first gives the reference phases before the first value is told.
-        phases = _tuning.reference_phases(experiment(0.0)["H"] - experiment(k_hi)["H"])
-        search = _tuning.SignedRootSearch(0.0, k_hi, xtol=xtol, max_evaluations=max_exp)
-        outcome = search.run(lambda k: float(_tuning.signed_odd_ratio(experiment(k)["H"], phases)))
-    else:
-        search = _tuning.RatioMinimizer(0.0, k_hi, xtol=xtol, max_evaluations=max_exp)
-        outcome = search.run(lambda k: experiment(k)["ratio"])
-    evaluations = list(measured.values())
+    limit = max(k_fc_limit(session), k_hi)
+    search = _tuning.KfcSearch(0.0, k_hi, k_limit=limit, harmonics=probe.harmonics,
+                               max_experiments=c["search"]["max_experiments"],
+                               xtol=c["search"]["xtol_v"] or 0.0)
+    by_k = {}
+    while not search.done:
+        k = search.ask()
+        p = probe.measure("search", float(k))
+        by_k[float(k)] = p
+        search.tell(k, p["H_periods"])
+    outcome = search.result
+    n_search = session.tune_experiments
+    pts = sorted(by_k.items())
+    p0 = by_k.get(0.0) or probe.measure("verify", 0.0)
     k_star = float(outcome.k_fc)
-    k_star_unc = _f(outcome.uncertainty)
-    n_search = len(evaluations)
-    # verification experiments at K_fc = 0 and K_fc*
-    p0 = probe.measure("verify", 0.0)
-    p_star = probe.measure("verify", k_star)
-    # rms error minimum of the sweep (the paper's +25 %)
-    i_rms = int(np.argmin([p["rms_error"] for p in sweep]))
-    p_rms = sweep[i_rms]
+    # the verification experiment: the measured point nearest K_fc* (within the tolerance
+    # when converged)
+    k_ver, p_star = min(pts, key=lambda kp: abs(kp[0] - k_star))
+    # (a) the paper's sweep, the figure step (skipped with tune.sweep.points: 0)
+    sweep = []
+    k_sweep_opt, sweep_note = None, "skipped (tune.sweep.points: 0)"
+    if c["sweep"]["points"]:
+        ks = np.linspace(0.0, c["sweep"]["k_fc_max"], c["sweep"]["points"])
+        sweep = [probe.measure("sweep", float(k)) for k in ks]
+    fig_pts = sweep if sweep else [p for _, p in pts]
+    H_fig = np.stack([p["H"] for p in fig_pts])
+    ratio_fig = np.array([p["ratio"] for p in fig_pts])
+    kfc_fig = np.array([p["kfc"] for p in fig_pts])
+    phases_fig = _tuning.reference_phases(H_fig[0] - H_fig[-1], probe.harmonics)
+    signed_fig = np.asarray(_tuning.signed_odd_ratio(H_fig, phases_fig, probe.harmonics))
+    if sweep:
+        k_sweep_opt, sweep_note = sweep_optimum(kfc_fig, ratio_fig, signed_fig)
+    # rms error minimum (the paper's +25 %): over the sweep, else over the search
+    p_rms = min(fig_pts, key=lambda p: p["rms_error"])
     # (c) viscous feed-forward K_v at K_fc*
     kv_block = p_kv = None
-    if c["viscous"]["enabled"]:
+    if c["viscous"]["enabled"] and outcome.converged:
         kv_eval = []
 
         def rms_at(kv):
@@ -466,14 +534,15 @@ def tune(session):
             kv_eval.append(p)
             return p["rms_error"]
 
+        p_star_exact = probe.measure("verify", k_star) if abs(k_ver - k_star) > 0 else p_star
         # Brent's minimiser of fftune.analysis.tuning on the rms error instead of the ratio.
         mini = _tuning.RatioMinimizer(0.0, c["viscous"]["k_v_max"],
                                       max_evaluations=c["viscous"]["max_experiments"])
         kv_star = float(mini.run(rms_at).k_fc)
         p_kv = probe.measure("verify", k_star, kv_star)
-        if p_kv["rms_error"] > p_star["rms_error"]:
+        if p_kv["rms_error"] > p_star_exact["rms_error"]:
             # Brent never evaluates the bracket ends; K_v = 0 (the K_fc* run) is better.
-            kv_star, p_kv = 0.0, p_star
+            kv_star, p_kv = 0.0, p_star_exact
         kv_block = {
             "k_v_star": _f(kv_star), "experiments": len(kv_eval),
             "rms_error_rad": _f(p_kv["rms_error"]),
@@ -481,34 +550,52 @@ def tune(session):
         }
     truth = session.truth or {}
     fc_true = truth.get("sim_fc_volt")
+    sigma = _f(outcome.sigma)
     results = {
-        "frequency_hz": c["frequency_hz"], "amplitude_rad": c["amplitude_rad"],
-        "objective": "r = rms(|H_3|, |H_5|, |H_7|) / |H_1|, reference -> motor angle (fftune.analysis.tuning)",
-        "sweep": {
-            "k_fc": [_f(k) for k in kfc_sweep], "ratio": [_f(r) for r in ratio_sweep],
+        "frequency_hz": c["frequency_hz"], "amplitude_rad": _f(probe.amplitude),
+        "amplitude": amp_block or {"chosen_rad": _f(probe.amplitude), "reason": "tune.amplitude_rad"},
+        "objective": f"odd-harmonic ratio r = {_tuning.ODD_LEVEL_DEFINITION}, harmonics "
+                     f"{list(probe.harmonics)}, reference -> motor angle",
+        "sweep": None if not sweep else {
+            "k_fc": [_f(k) for k in kfc_fig], "ratio": [_f(r) for r in ratio_fig],
             "rms_error_rad": [_f(p["rms_error"]) for p in sweep],
-            "optimum_k_fc": _f(k_sweep_opt), "experiments": len(sweep),
+            "optimum_k_fc": _f(k_sweep_opt), "optimum_note": sweep_note, "experiments": len(sweep),
         },
         "search": {
-            "method": c["search"]["method"], "k_fc_star": _f(k_star), "uncertainty": k_star_unc,
+            "method": "bracketed root of the signed objective, ratio minimiser where the odd "
+                      "phases rotate (fftune.analysis.tuning.KfcSearch)",
+            "k_fc_star": _f(k_star), "sigma_v": sigma, "uncertainty": sigma,
             "converged": bool(outcome.converged), "stop_reason": outcome.reason,
+            "regime": outcome.regime,
+            "bracket_v": [_f(x) for x in outcome.bracket],
+            "bracket_extended": None if outcome.extended_to is None else {
+                "from_v": _f(k_hi), "to_v": _f(outcome.extended_to),
+                "reason": f"the ratio was smallest at the configured upper end {k_hi:g} V "
+                          f"(tune.search.k_fc_max / tune.sweep.k_fc_max too small); doubled, "
+                          f"capped at the drive's limit {limit:g} V"},
+            "signed_objective_std": _f(outcome.sigma_signed),
+            "signed_objective_slope_per_v": _f(outcome.slope),
+            "verification_k_fc": _f(k_ver),
             "experiments": n_search,
+            "amplitude_probes": n_amplitude_probes,
             "relative_to_sweep_optimum": _f(k_star / k_sweep_opt - 1) if k_sweep_opt else None,
-            "evaluations": [{"k_fc": _f(p["kfc"]), "ratio": _f(p["ratio"])} for p in evaluations],
+            "evaluations": [{"k_fc": _f(p["kfc"]), "ratio": _f(p["ratio"]),
+                             "ratio_std": _f(sp.ratio_std)}
+                            for (_, p), sp in zip(pts, outcome.points)],
         },
-        "k_fc_star": _f(k_star),
+        "k_fc_star": _f(k_star) if outcome.converged else None,
+        "k_fc_best_measured": _f(k_star),
         "ratio_at_zero": _f(p0["ratio"]), "ratio_at_k_fc_star": _f(p_star["ratio"]),
         "ratio_improvement": _f(p0["ratio"] / p_star["ratio"]) if p_star["ratio"] > 0 else None,
         "rms_error_rad": {"k_fc_0": _f(p0["rms_error"]), "k_fc_star": _f(p_star["rms_error"]),
                           "sweep_min": _f(p_rms["rms_error"]), "sweep_min_at_k_fc": _f(p_rms["kfc"])},
         "viscous": kv_block,
         "true_coulomb_v": _f(fc_true),
-        "k_fc_star_error_re_truth": _f(k_star / fc_true - 1) if fc_true else None,
+        "k_fc_star_error_re_truth": _f(k_star / fc_true - 1) if fc_true and outcome.converged else None,
     }
     if kv_block:
         results["rms_error_rad"]["k_fc_star_k_v_star"] = kv_block["rms_error_rad"]
-    data = {"k_sweep": kfc_sweep, "H_sweep": H_sweep, "ratio_sweep": ratio_sweep,
-            "signed_sweep": signed_sweep, "k_star": k_star, "p0": p0, "p_star": p_star, "p_rms": p_rms,
-            "p_kv": p_kv,
-            "n": probe.n, "fs": session.fs_hz}
+    data = {"k_sweep": kfc_fig, "H_sweep": H_fig, "ratio_sweep": ratio_fig,
+            "signed_sweep": signed_fig, "k_star": k_star, "p0": p0, "p_star": p_star, "p_rms": p_rms,
+            "p_kv": p_kv, "n": probe.n, "fs": session.fs_hz}
     return results, data

@@ -5,6 +5,7 @@ the figures and ``report.html`` into the output directory (captures are written 
 session as the runs arrive).
 """
 import datetime
+import math
 import os
 import time
 
@@ -67,9 +68,14 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
         elif step == "tune":
             results["tune"], tune_data = ex.tune(session)
             tr = results["tune"]
-            log(f"tune: K_fc* = {tr['k_fc_star']:.4g} V after {tr['search']['experiments']} "
-                f"experiments (sweep optimum {tr['sweep']['optimum_k_fc']:.4g} V); ratio "
-                f"{tr['ratio_at_zero']:.3g} -> {tr['ratio_at_k_fc_star']:.3g}")
+            srch = tr["search"]
+            if srch["converged"]:
+                log(f"tune: K_fc* = {tr['k_fc_star']:.4g} V +- {srch['sigma_v']:.2g} V (1 sigma) "
+                    f"after {srch['experiments']} experiments at {tr['amplitude_rad']:.3g} rad; "
+                    f"ratio {tr['ratio_at_zero'] or math.inf:.3g} -> {tr['ratio_at_k_fc_star']:.3g}")
+            else:
+                log(f"tune: not converged after {srch['experiments']} experiments: "
+                    f"{srch['stop_reason']}")
         n_runs = session.counts["measured"] + session.counts["resumed"] - before
         results.setdefault("timing_s", {})[step] = round(time.monotonic() - t, 2)
         results.setdefault("runs", {})[step] = n_runs

@@ -155,8 +155,10 @@ def key_numbers(results):
     t = results.get("tune")
     if t:
         rows += [
-            ("K_fc* (automated search)", _fmt(t["k_fc_star"], " V")),
-            ("K_fc optimum of the sweep", _fmt(t["sweep"]["optimum_k_fc"], " V")),
+            ("K_fc* (automated search)", _fmt(t["k_fc_star"], " V") if t["search"]["converged"]
+             else f"not converged: {t['search']['stop_reason']}"),
+            ("sigma(K_fc*) from the measured noise", _fmt(t["search"].get("sigma_v"), " V")),
+            ("K_fc optimum of the sweep", _fmt((t["sweep"] or {}).get("optimum_k_fc"), " V")),
             ("search vs sweep optimum", _fmt(t["search"]["relative_to_sweep_optimum"], pct=True)),
             ("closed-loop experiments of the search", t["search"]["experiments"]),
             ("true Coulomb friction (simulation)", _fmt(t["true_coulomb_v"], " V")),
