@@ -639,7 +639,14 @@ class KfcSearch:
             s, _ = self._signed([pa, pb], self._phases(lo, hi))
             if s[0] > 0 > s[1]:
                 guess = lo + (hi - lo) * s[0] / (s[0] - s[1])
-        if guess is None or not (lo + 0.05 * (hi - lo) < guess < hi - 0.05 * (hi - lo)):
+            elif s[0] > s[1] > 0 and pb.ratio < pa.ratio and hi < self.k_limit:
+                # both ends under-compensated: extend at once, to the extrapolated zero of
+                # s (with a margin), at least 1.25 and at most 4 times the upper end
+                root = lo + (hi - lo) * s[0] / (s[0] - s[1])
+                guess = min(self.k_limit, max(1.25 * hi, min(4 * hi, 1.15 * root)))
+                self.extended_to = guess
+        if guess is None or not (lo + 0.05 * (hi - lo) < guess < hi - 0.05 * (hi - lo)) \
+                and self.extended_to is None:
             guess = lo + 0.5 * (hi - lo)
         yield guess
         while True:
@@ -672,7 +679,13 @@ class KfcSearch:
             est = self._estimate(a, b)
             if est["stop"]:
                 return est["result"]
-            yield est["next"]
+            nxt = est["next"]
+            known = np.array(sorted(self.points))
+            if np.min(np.abs(known - nxt)) <= 1e-9 * max(1.0, abs(nxt)):
+                # the step repeats an experiment: it cannot add information
+                return self._finish_or_fail(f"the search stalled at K_fc = {nxt:.6g} (no new "
+                                            "experiment to make)")
+            yield nxt
 
     def _estimate(self, a, b):
         """Next experiment in the proven bracket [a, b], or the final result."""
@@ -695,15 +708,16 @@ class KfcSearch:
             j = int(np.nonzero((s[:-1] > 0) & (s[1:] <= 0))[0][0])
             k1, k2, s1, s2 = ks[j], ks[j + 1], s[j], s[j + 1]
             root = k1 + (k2 - k1) * s1 / (s1 - s2)
-            # inverse quadratic through three points next to the root, if it stays inside
-            if len(pts) >= 3:
-                near = np.argsort(np.abs(ks - root))[:3]
-                kk, ss = ks[near], s[near]
-                if len(set(np.round(ss, 15))) == 3:
-                    q = sum(kk[m] * np.prod([(0 - ss[o]) / (ss[m] - ss[o]) for o in range(3) if o != m])
-                            for m in range(3))
-                    if k1 < q < k2:
-                        root = q
+            # Over-compensated (s < 0) the loop does not stick and s is close to linear in
+            # K_fc; under-compensated it bends (stick-slip). So: the secant through the two
+            # over-compensated points nearest the root when there are two, else the
+            # linear interpolation across the sign change; kept only inside the sign change.
+            over = np.nonzero(s < 0)[0]
+            if len(over) >= 2:
+                o1, o2 = over[0], over[1]
+                sec = ks[o1] - s[o1] * (ks[o2] - ks[o1]) / (s[o2] - s[o1])
+                if k1 < sec < k2:
+                    root = sec
             slope = (s2 - s1) / (k2 - k1)
             dof = self._dof()
             near = np.abs(ks - root) <= 0.25 * abs(root)
@@ -722,15 +736,26 @@ class KfcSearch:
             # ratio not above another point's by more than the noise
             m = int(np.argmin(np.abs(ks - root)))
             pm = pts[m]
-            best = pts[int(np.argmin(rs))]
+            # points closer than 2 tol to the estimate are the same K_fc within the
+            # resolution; every other measured ratio must not be below the verification's
+            # by more than the noise
+            others = [p for p in pts if abs(p.k_fc - root) > 2 * tol] or [pm]
+            best = min(others, key=lambda p: p.ratio)
             r_ok = pm.ratio <= best.ratio + 2 * np.hypot(pm.ratio_std, best.ratio_std) + 0.05 * best.ratio
-            if abs(ks[m] - root) <= tol and abs(s[m]) <= 2 * max(s_se[m], pooled) + abs(slope) * self._tol(root) \
-                    and r_ok:
+            s_ok = abs(s[m]) <= 2 * max(s_se[m], pooled) + abs(slope) * self._tol(root)
+            narrow = (k2 - k1) <= 4 * tol
+            if abs(ks[m] - root) <= tol and r_ok and (s_ok or narrow):
+                # s_ok: s(K_m) = 0 within the noise; narrow: the sign change is bracketed
+                # within the tolerance, s's K-to-K scatter (quantisation) exceeds the noise
                 sigma = np.hypot(sigma_noise, abs(ks[m] - root))
+                if not s_ok:
+                    sigma = np.hypot(sigma, (k2 - k1) / np.sqrt(12))
+                what = (f"s = {s[m]:.3g} (noise {max(s_se[m], pooled):.2g})" if s_ok else
+                        f"the sign change of s bracketed in [{k1:.6g}, {k2:.6g}]")
                 return {"stop": True, "result": KfcSearchResult(
                     k_fc=float(root), sigma=float(sigma), converged=True,
-                    reason=(f"verified: the experiment at K_fc = {ks[m]:.6g} has s = {s[m]:.3g} "
-                            f"(noise {max(s_se[m], pooled):.2g}) and the smallest ratio within the noise"),
+                    reason=(f"verified: the experiment at K_fc = {ks[m]:.6g} has {what} and the "
+                            "smallest ratio within the noise"),
                     n_experiments=len(self.points), bracket=(float(a), float(b)),
                     extended_to=self.extended_to, regime=self.regime,
                     sigma_signed=float(pooled), slope=float(slope), points=self._sorted())}
@@ -739,6 +764,8 @@ class KfcSearch:
                 # the estimate sits on a measured point that did not verify: probe the noise
                 # width beside it, on the side of the sign change
                 nxt = root + (tol if s[m] > 0 else -tol)
+                if not k1 < nxt < k2:
+                    nxt = 0.5 * (k1 + k2)
             return {"stop": False, "next": float(np.clip(nxt, a + 1e-12, b - 1e-12))}
         # phases rotate with K_fc (or the lower end does not move): safeguarded ratio minimiser
         self.regime = "ratio minimiser"
