@@ -672,10 +672,6 @@ class KfcSearch:
             # bracket [a, b] around the smallest ratio (a = the lower end when it is smallest)
             a = ks[i - 1] if i > 0 else ks[0]
             b = ks[i + 1]
-            if self._ref is not None and self._ref[0] < ks[i] < self._ref[1]:
-                # inside the bracket already proven, the sign change of s leads (near the
-                # optimum the ratio sits on its floor and its minimum wanders)
-                a, b = self._ref
             est = self._estimate(a, b)
             if est["stop"]:
                 return est["result"]
@@ -689,19 +685,32 @@ class KfcSearch:
 
     def _estimate(self, a, b):
         """Next experiment in the proven bracket [a, b], or the final result."""
-        pts = [p for p in self._sorted() if a <= p.k_fc <= b]
-        ks = np.array([p.k_fc for p in pts])
-        rs = np.array([p.ratio for p in pts])
-        phases = self._phases(a, b) if np.isfinite(self.points[a].ratio) else None
+        # Where s is trusted: the earlier bracket whose ends gave the reference phases, if
+        # it holds this one and s falls monotonically over it (near the optimum the ratio
+        # sits on its floor and its minimum wanders, the sign change of s does not); else
+        # this bracket with phases from its own ends (a sub-bracket where the phases are
+        # stable); else none: the odd phases rotate with K_fc.
+        candidates = []
         if self._ref is not None and self._ref[0] <= a and b <= self._ref[1]:
-            phases = self._phases(*self._ref)
-        elif phases is not None:
-            self._ref = (a, b)
+            candidates.append(self._ref)
+        if np.isfinite(self.points[a].ratio) and (a, b) not in candidates:
+            candidates.append((a, b))
         monotone = False
-        if phases is not None:
+        for ref in candidates:
+            pts = [p for p in self._sorted() if ref[0] <= p.k_fc <= ref[1]]
+            phases = self._phases(*ref)
             s, s_se = self._signed(pts, phases)
             noise = 2 * np.sqrt(s_se[:-1] ** 2 + s_se[1:] ** 2)
-            monotone = bool(np.all(np.diff(s) < noise)) and s[0] > 0 > s[-1]
+            if bool(np.all(np.diff(s) < noise)) and s[0] > 0 > s[-1]:
+                monotone = True
+                self._ref = ref
+                a, b = ref
+                break
+        if not monotone:
+            pts = [p for p in self._sorted() if a <= p.k_fc <= b]
+            phases = self._phases(a, b) if np.isfinite(self.points[a].ratio) else None
+        ks = np.array([p.k_fc for p in pts])
+        rs = np.array([p.ratio for p in pts])
         pooled = self._pooled_signed_se(phases) if phases is not None else np.nan
         if monotone:
             self.regime = "signed root"
@@ -739,9 +748,14 @@ class KfcSearch:
             # points closer than 2 tol to the estimate are the same K_fc within the
             # resolution; every other measured ratio must not be below the verification's
             # by more than the noise
-            others = [p for p in pts if abs(p.k_fc - root) > 2 * tol] or [pm]
+            others = [p for p in self._sorted() if abs(p.k_fc - root) > 2 * tol] or [pm]
             best = min(others, key=lambda p: p.ratio)
-            r_ok = pm.ratio <= best.ratio + 2 * np.hypot(pm.ratio_std, best.ratio_std) + 0.05 * best.ratio
+            r_ok = pm.ratio <= best.ratio + 2 * np.hypot(pm.ratio_std, best.ratio_std) + 0.01 * best.ratio
+            # and a local minimum: the nearest measured point on each side (beyond the
+            # resolution) has a larger ratio, within the noise only
+            for side in ([p for p in others if p.k_fc < root][-1:], [p for p in others if p.k_fc > root][:1]):
+                for q in side:
+                    r_ok = r_ok and q.ratio >= pm.ratio - 2 * np.hypot(pm.ratio_std, q.ratio_std)
             s_ok = abs(s[m]) <= 2 * max(s_se[m], pooled) + abs(slope) * self._tol(root)
             narrow = (k2 - k1) <= 4 * tol
             if abs(ks[m] - root) <= tol and r_ok and (s_ok or narrow):

@@ -125,3 +125,115 @@ def test_signed_ratio_std_matches_scatter():
         values.append(signed_odd_ratio(H, phases))
         predicted.append(signed_odd_ratio_std(H, H_std, repeats))
     assert np.std(values) == pytest.approx(np.mean(predicted), rel=0.15)
+
+
+# ---- KfcSearch: measured-data search (bracket, stick-slip fallback, sigma) -------------
+from fftune.analysis.tuning import KfcSearch, harmonic_orders  # noqa: E402
+
+
+def periods_of(h, noise=0.0, periods=4, rng=None):
+    """(P, K) per-period HOSIDFs: ``h`` plus complex Gaussian noise of std ``noise``."""
+    rng = rng or np.random.default_rng(0)
+    w = noise * (rng.standard_normal((periods, h.size)) + 1j * rng.standard_normal((periods, h.size)))
+    return h[None, :] + w / np.sqrt(2)
+
+
+def test_harmonic_orders_is_the_one_level_definition():
+    assert harmonic_orders(7) == (3, 5, 7)
+    assert harmonic_orders(8, "even") == (2, 4, 6, 8)
+    h = relay_with_offset_hosidf(0.0)
+    assert odd_ratio(h, harmonic_orders(7)) == odd_ratio(h)
+    with pytest.raises(InputError, match="no odd harmonic"):
+        harmonic_orders(2)
+
+
+def test_kfc_search_brackets_verifies_and_reports_sigma():
+    rng = np.random.default_rng(5)
+    res = KfcSearch(0.0, 0.3, max_experiments=8).run(
+        lambda k: periods_of(relay_with_offset_hosidf(k), 1e-4, rng=rng))
+    assert res.converged and res.regime == "signed root" and res.extended_to is None
+    assert res.k_fc == pytest.approx(FC, rel=0.01)
+    assert abs(res.k_fc - FC) <= 2 * res.sigma and 0 < res.sigma < 0.01 * FC
+    assert res.n_experiments <= 6
+    # the verification experiment is within the tolerance of K_fc*, and no measured point
+    # has a smaller ratio by more than the noise
+    k_ver = min((p.k_fc for p in res.points), key=lambda k: abs(k - res.k_fc))
+    assert abs(k_ver - res.k_fc) <= max(3 * res.sigma, 0.005 * res.k_fc)
+    r_ver = next(p.ratio for p in res.points if p.k_fc == k_ver)
+    assert all(r_ver <= p.ratio + 1e-3 for p in res.points if abs(p.k_fc - res.k_fc) > 0.01 * FC)
+
+
+def test_kfc_search_extends_a_too_small_bracket_and_says_so():
+    res = KfcSearch(0.0, 0.05, k_limit=10.0).run(lambda k: periods_of(relay_with_offset_hosidf(k), 1e-5))
+    assert res.converged and res.extended_to is not None and res.extended_to > FC
+    assert res.k_fc == pytest.approx(FC, rel=0.01)
+
+
+def test_kfc_search_at_the_drive_limit_says_why_instead_of_guessing():
+    # the old root search returned the bracket end with its confident label
+    res = KfcSearch(0.0, 0.05, k_limit=0.08).run(lambda k: periods_of(relay_with_offset_hosidf(k), 1e-5))
+    assert not res.converged and np.isnan(res.sigma)
+    assert "drive's limit" in res.reason and "amplitude" in res.reason
+
+
+def rotating_hosidf(k_fc, fc=FC, turn_deg=270.0):
+    """Stick-slip-like HOSIDFs: under-compensated the odd phases rotate with K_fc (by
+    ``turn_deg`` between 0 and fc), over-compensated they are fixed; |H_k| ~ |fc - k_fc|."""
+    h = relay_with_offset_hosidf(k_fc, fc=fc)
+    if k_fc < fc:
+        turn = np.radians(turn_deg) * (1 - k_fc / fc) ** 2
+        for k in range(3, 8, 2):
+            h[k - 1] = h[k - 1] * np.exp(1j * turn * k / 3)
+    return h
+
+
+def test_kfc_search_survives_phase_rotation_where_the_old_root_search_fails():
+    # the old search: reference phases from H(0) - H(k_max), root assumed between
+    phases = reference_phases(rotating_hosidf(0.0) - rotating_hosidf(0.3))
+    s = [float(signed_odd_ratio(rotating_hosidf(k), phases)) for k in np.linspace(0, 0.3, 61)]
+    assert np.sum(np.diff(np.sign(s)) != 0) >= 2          # s changes sign more than once
+    rng = np.random.default_rng(2)
+    res = KfcSearch(0.0, 0.3, max_experiments=10).run(
+        lambda k: periods_of(rotating_hosidf(k), 1e-5, rng=rng))
+    assert res.converged and res.k_fc == pytest.approx(FC, rel=0.02)
+
+
+def test_kfc_search_ratio_minimiser_when_s_has_no_sign_change():
+    # odd harmonics whose phase does not turn at the optimum (|H_k| ~ |fc - k_fc| at a fixed
+    # phase): s never changes sign, only the ratio r shows the optimum
+    def h(k):
+        out = relay_with_offset_hosidf(k)
+        for j in range(3, 8, 2):
+            out[j - 1] = abs(out[j - 1]) * np.exp(0.7j * j)
+        return periods_of(out, 1e-6)
+
+    res = KfcSearch(0.0, 0.3, max_experiments=20).run(h)
+    assert res.regime == "ratio minimiser" and "phases rotate" in res.reason
+    assert res.converged and res.k_fc == pytest.approx(FC, rel=0.02)
+    assert abs(res.k_fc - FC) <= max(2 * res.sigma, 0.02 * FC)
+
+
+@pytest.mark.parametrize("turn_deg", [90, 180, 270, 360, 540])
+@pytest.mark.parametrize("fc", [0.03, 0.1157, 0.25])
+def test_kfc_search_over_a_family_of_rotating_phases_is_right_or_says_why(turn_deg, fc):
+    rng = np.random.default_rng(int(turn_deg))
+    res = KfcSearch(0.0, 0.3, max_experiments=12).run(
+        lambda k: periods_of(rotating_hosidf(k, fc=fc, turn_deg=turn_deg), 1e-5, rng=rng))
+    if res.converged:
+        assert abs(res.k_fc - fc) <= max(0.02 * fc, 2 * res.sigma)
+    else:
+        assert "raise" in res.reason
+
+
+def test_kfc_search_refuses_bad_input():
+    with pytest.raises(InputError, match="0 <= lower < upper"):
+        KfcSearch(0.0, 0.0)
+    with pytest.raises(InputError, match="0 <= lower < upper"):
+        KfcSearch(-0.1, 0.3)
+    with pytest.raises(InputError, match="k_limit"):
+        KfcSearch(0.0, 0.3, k_limit=0.2)
+    search = KfcSearch(0.0, 0.3)
+    with pytest.raises(InputError, match=">= 2 recorded periods"):
+        search.tell(search.ask(), relay_with_offset_hosidf(0.3)[None, :])
+    with pytest.raises(InputError, match="asked"):
+        search.tell(0.123, periods_of(relay_with_offset_hosidf(0.3)))
