@@ -482,6 +482,20 @@ def k_fc_limit(session):
     return float(min(u_max, 100.0))
 
 
+def check_tune_plan(session):
+    """The tune keys against the drive (sine on the DFT grid, harmonics below fs/2, the
+    bracket within what the drive allows), before any experiment is made."""
+    c = session.cfg["tune"]
+    src = session.cfg.get("_source", "config")
+    _TuneProbe(session)
+    k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
+    limit = k_fc_limit(session)
+    if k_hi > limit:
+        key = "tune.search.k_fc_max" if c["search"]["k_fc_max"] else "tune.sweep.k_fc_max"
+        raise FftuneError(f"{src}: key '{key}': {k_hi:g} V is above what the drive allows "
+                          f"(its output limit u_max = {limit:g} V)")
+
+
 def tune(session):
     """K_fc: (a) the paper's sweep (optional), (b) the automated search, then (c) K_v.
 
@@ -493,6 +507,7 @@ def tune(session):
         error (for the paper's Figures 7 and 9).
     """
     c = session.cfg["tune"]
+    check_tune_plan(session)
     probe = _TuneProbe(session)
     session.tune_experiments = 0
     # (0) amplitude
@@ -503,7 +518,7 @@ def tune(session):
     n_amplitude_probes = session.tune_experiments
     # (b) automated search, one experiment at a time
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
-    limit = max(k_fc_limit(session), k_hi)
+    limit = k_fc_limit(session)
     search = _tuning.KfcSearch(0.0, k_hi, k_limit=limit, harmonics=probe.harmonics,
                                max_experiments=c["search"]["max_experiments"],
                                xtol=c["search"]["xtol_v"] or 0.0)

@@ -51,6 +51,8 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
     detect_levels = hos = tune_data = None
     account = getattr(drive, "time_account", None)  # a live drive client (not a CAN-log replay)
     budgets = {}
+    if "tune" in steps and cfg["tune"]["enabled"]:
+        ex.check_tune_plan(session)      # before any experiment: the tune keys vs the drive
     for step in steps:
         if not cfg[step]["enabled"]:
             log(f"{step}: disabled in the configuration")

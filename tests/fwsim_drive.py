@@ -30,6 +30,7 @@ def plant_file(overrides, base=PLANT_TWOMASS, directory=None):
     """A plant YAML: ``base`` with ``overrides`` ({section: {key: number}}) applied."""
     from fftune.host.sim import derived_plant
     directory = directory or tempfile.mkdtemp(prefix="fftune-plant-")
+    os.makedirs(directory, exist_ok=True)
     return derived_plant(base, overrides, os.path.join(directory, "plant.yaml"))
 
 

@@ -136,8 +136,8 @@ def test_config_error_is_one_line_with_exit_2(tmp_path, capsys):
     code = main(["run", "--config", str(bad), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert code == 2
-    assert err.strip() == (f"fftune: error: {bad}: key 'tune.sweep.points': expected an integer "
-                           ">= 3, got 1")
+    assert err.strip() == (f"fftune: error: {bad}: key 'tune.sweep.points': expected 0 (no sweep) "
+                           "or >= 3, got 1")
 
 
 def test_unwritable_output_directory_is_refused_before_any_experiment(tmp_path, capsys, eds):
