@@ -477,7 +477,7 @@ def k_fc_limit(session):
     if u_max is None:
         try:
             u_max = float(session.drive.get("u_max"))
-        except (FftuneError, KeyError):
+        except (FftuneError, KeyError, AttributeError):   # e.g. a CAN-log replay without it
             u_max = 100.0
     return float(min(u_max, 100.0))
 

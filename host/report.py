@@ -52,7 +52,7 @@ def figure_conclusions(results, detect_levels=None, tune_data=None):
         if below.any() and above.any():
             turn = abs(np.degrees(np.angle(H[above][0, 2] / H[below][-1, 2])))
             out["figure7"] = (f"H_3 turns by {turn:.0f} deg across K_fc* = {ks:.4g} V (the paper: "
-                              f"180 deg); ratio {t['ratio_at_zero']:.3g} at K_fc = 0, "
+                              f"180 deg); ratio {t['ratio_at_zero'] or float('inf'):.3g} at K_fc = 0, "
                               f"{t['ratio_at_k_fc_star']:.3g} at K_fc*")
         e = t["rms_error_rad"]
         where = "above" if (e["sweep_min_at_k_fc"] or 0) > ks else "not above"
