@@ -130,7 +130,23 @@ def run(fast=False):
             bad.append(name)
     print(f"median closed-loop experiments {statistics.median(counts):g} (goal <= 5), "
           f"max {max(counts)}; rows failing acceptance: {len(bad)} {bad if bad else ''}")
+    if not fast:
+        hits, n = coverage()
+        print(f"sigma coverage: truth within +-2 sigma in {hits}/{n} noise seeds at 1e-2 rad "
+              f"(goal >= 90 %)")
     return 1 if bad else 0
+
+
+def coverage(seeds=range(1, 21), noise_rad=1e-2):
+    """(hits, n): converged runs whose truth lies within +-2 reported sigma."""
+    hits = n = 0
+    for seed in seeds:
+        with tempfile.TemporaryDirectory() as tmp:
+            t = run_row({"sensor": {"noise_std": noise_rad, "seed": seed}}, {}, tmp)
+        s = t["search"]
+        n += 1
+        hits += bool(s["converged"]) and abs(t["k_fc_star"] - t["true_coulomb_v"]) <= 2 * s["sigma_v"]
+    return hits, n
 
 
 if __name__ == "__main__":
