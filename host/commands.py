@@ -63,12 +63,15 @@ def _prepare(args):
 def _experiment(args):
     from fftune.host.pipeline import run_pipeline, summary_lines
 
-    cfg, out = _prepare(args)
+    cfg = load_config(args.config)
     opts = BusOptions.from_args(args, cfg["drive"])
     d = cfg["drive"]
+    # The client checks the EDS (file, drive profile) before anything is written: a refused
+    # drive leaves no empty output directory behind.
     client = DriveClient(opts, sdo_timeout_s=d["sdo_timeout_s"], sdo_retries=d["sdo_retries"],
                          heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],
                          run_timeout_s=d["run_timeout_s"], progress=not args.no_progress)
+    out = check_output_dir(args.out or cfg["output"])
     with client:
         client.enable()
         results = run_pipeline(client, cfg, out, steps=args.steps, figures=not args.no_figures,

@@ -76,7 +76,7 @@ def test_cli_against_a_running_drive_with_a_generic_eds(tmp_path, drive_sim):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("fftune: error: EDS ")
     assert "0x2000 Controller" in lines[0] and "docs/drive-profile.md" in lines[0]
-    assert not (tmp_path / "out" / "captures").exists()
+    assert not (tmp_path / "out").exists(), "a refused drive must leave nothing behind"
 
 
 def test_profile_doc_lists_every_object():
