@@ -25,7 +25,7 @@ FFTUNE = os.path.join(REPO, ".venv", "bin", "fftune")
 TINY = {
     "output": "unused",
     "drive": {"heartbeat_ms": 200, "sdo_timeout_s": 1.0, "sdo_retries": 3, "run_timeout_s": 300.0},
-    "tune": {"frequency_hz": 5.0, "amplitude_rad": 0.3, "period_samples": 512, "periods": 1,
+    "tune": {"frequency_hz": 5.0, "amplitude_rad": 0.3, "period_samples": 512, "periods": 2,
              "settle_periods": 3, "sweep": {"k_fc_max": 0.3, "points": 3},
              "search": {"method": "root", "max_experiments": 4},
              "viscous": {"enabled": False}},
@@ -78,7 +78,12 @@ def test_tuning_over_vcan_in_the_guest_matches_socketcand(tmp_path, vm_session, 
     host = yaml.safe_load(open(tmp_path / "host" / "results.yaml"))
     tv, th = vm["tune"], host["tune"]
     assert tv["search"]["experiments"] == th["search"]["experiments"] <= 4
-    assert tv["k_fc_star"] == pytest.approx(th["k_fc_star"], rel=0.01)
+    # (this tiny search may end unconverged, K_fc* None: the same on both buses)
+    assert tv["search"]["converged"] == th["search"]["converged"]
+    if th["k_fc_star"] is None:
+        assert tv["k_fc_star"] is None
+    else:
+        assert tv["k_fc_star"] == pytest.approx(th["k_fc_star"], rel=0.01)
     assert tv["sweep"]["k_fc"] == th["sweep"]["k_fc"]
     assert tv["sweep"]["ratio"] == pytest.approx(th["sweep"]["ratio"], rel=0.05)
     assert vm["drive"]["identity"]["bus"] == "interface socketcan, channel vcan0"

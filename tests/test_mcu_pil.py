@@ -80,7 +80,7 @@ def _runs(out):
 def test_m4_and_drive_sim_record_the_same_samples_bit_for_bit(tuned_m4, tuned_x86):
     (r4, out4), (r86, out86) = tuned_m4, tuned_x86
     runs4, runs86 = _runs(out4), _runs(out86)
-    assert len(runs4) >= 8 and set(runs4) == set(runs86)
+    assert len(runs4) >= 4 and set(runs4) == set(runs86)  # the sweep points and the search's runs
     for key, run in runs4.items():
         for name, values in run.signals.items():
             a = np.asarray(values, dtype=np.float32)
