@@ -137,20 +137,15 @@ class TuningResult:
     history: list = field(default_factory=list)
 
 
-class _AskTell:
-    """Runs a search written as a generator (``value = yield k``) one step at a time."""
+class _GeneratorSearch:
+    """Ask/tell plumbing of a search written as a generator (``told = yield k``).
 
-    def __init__(self, lower, upper, xtol, max_evaluations):
-        lower, upper = float(lower), float(upper)
-        if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
-            raise InputError(f"tuning: bracket must satisfy lower < upper, got [{lower}, {upper}]")
-        if not xtol > 0:
-            raise InputError(f"tuning: xtol must be > 0, got {xtol}")
-        if int(max_evaluations) < 3:
-            raise InputError("tuning: max_evaluations must be >= 3")
-        self.lower, self.upper, self.xtol = lower, upper, float(xtol)
-        self.max_evaluations = int(max_evaluations)
-        self.history = []
+    Subclasses define ``_run()`` (the generator, returning the result) and ``result``;
+    ``tell`` checks the K_fc against the one asked (:meth:`_check_told`) and hands the
+    measurement on with :meth:`_advance`.
+    """
+
+    def _start(self):
         self._result = None
         self._gen = self._run()
         self._pending = next(self._gen)
@@ -166,29 +161,56 @@ class _AskTell:
             raise InputError("tuning: the search is finished; read .result")
         return self._pending
 
-    def tell(self, k_fc, value):
-        """Report the objective measured at ``k_fc`` (must be the value just asked)."""
+    def _check_told(self, k_fc):
         if self.done:
             raise InputError("tuning: the search is finished; read .result")
         if not np.isclose(k_fc, self._pending, rtol=0, atol=1e-12 * max(1.0, abs(k_fc))):
             raise InputError(f"tuning: told K_fc = {k_fc}, but the search asked {self._pending}")
+
+    def _advance(self, told):
+        """Send ``told`` to the generator; True when it finished (its result is kept)."""
+        try:
+            self._pending = self._gen.send(told)
+        except StopIteration as stop:
+            self._result = stop.value
+            return True
+        return False
+
+    def run(self, measure):
+        """Drive the search with a callable ``measure(k_fc)`` (tests, offline): the
+        objective value, or for :class:`KfcSearch` the per-period HOSIDFs."""
+        while not self.done:
+            k = self.ask()
+            self.tell(k, measure(k))
+        return self.result
+
+
+class _AskTell(_GeneratorSearch):
+    """A scalar-objective search (``value = yield k``) with an evaluation budget."""
+
+    def __init__(self, lower, upper, xtol, max_evaluations):
+        lower, upper = float(lower), float(upper)
+        if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
+            raise InputError(f"tuning: bracket must satisfy lower < upper, got [{lower}, {upper}]")
+        if not xtol > 0:
+            raise InputError(f"tuning: xtol must be > 0, got {xtol}")
+        if int(max_evaluations) < 3:
+            raise InputError("tuning: max_evaluations must be >= 3")
+        self.lower, self.upper, self.xtol = lower, upper, float(xtol)
+        self.max_evaluations = int(max_evaluations)
+        self.history = []
+        self._start()
+
+    def tell(self, k_fc, value):
+        """Report the objective measured at ``k_fc`` (must be the value just asked)."""
+        self._check_told(k_fc)
         value = float(value)
         if not np.isfinite(value):
             raise InputError(f"tuning: objective at K_fc = {k_fc} is not finite ({value})")
         self.history.append((float(self._pending), value))
-        if len(self.history) >= self.max_evaluations:
-            # let the algorithm see the value, then stop if it did not finish itself
-            try:
-                self._pending = self._gen.send(value)
-            except StopIteration as stop:
-                self._result = stop.value
-                return
+        # let the algorithm see the value, then stop it if it did not finish within budget
+        if not self._advance(value) and len(self.history) >= self.max_evaluations:
             self._result = self._finish(converged=False, reason="max_evaluations reached")
-            return
-        try:
-            self._pending = self._gen.send(value)
-        except StopIteration as stop:
-            self._result = stop.value
 
     @property
     def result(self):
@@ -196,13 +218,6 @@ class _AskTell:
         if self._result is not None:
             return self._result
         return self._finish(converged=False, reason="running")
-
-    def run(self, objective):
-        """Drive the search with a callable ``objective(k_fc) -> value`` (tests, offline)."""
-        while not self.done:
-            k = self.ask()
-            self.tell(k, objective(k))
-        return self.result
 
 
 class RatioMinimizer(_AskTell):
@@ -484,7 +499,7 @@ def _t_factor(dof):
     return float(student_t.ppf(0.9772, dof)) / 2.0
 
 
-class KfcSearch:
+class KfcSearch(_GeneratorSearch):
     """Ask/tell K_fc search on measured HOSIDFs, one closed-loop experiment per step.
 
     1. Bracket: the ends ``lower`` and ``upper`` are measured, then the root of the
@@ -538,26 +553,12 @@ class KfcSearch:
         self.extended_to = None
         self.regime = "none"
         self._ref = None          # the bracket whose ends give the reference phases
-        self._result = None
-        self._gen = self._run()
-        self._pending = next(self._gen)
+        self._start()
 
     # ---- ask / tell ---------------------------------------------------------------------
-    @property
-    def done(self):
-        return self._result is not None
-
-    def ask(self):
-        if self.done:
-            raise InputError("tuning: the search is finished; read .result")
-        return self._pending
-
     def tell(self, k_fc, H_periods):
         """Report the HOSIDFs of each recorded period measured at ``k_fc``."""
-        if self.done:
-            raise InputError("tuning: the search is finished; read .result")
-        if not np.isclose(k_fc, self._pending, rtol=0, atol=1e-12 * max(1.0, abs(k_fc))):
-            raise InputError(f"tuning: told K_fc = {k_fc}, but the search asked {self._pending}")
+        self._check_told(k_fc)
         Hp = np.asarray(H_periods, dtype=complex)
         if Hp.ndim != 2 or Hp.shape[0] < 2:
             raise InputError(f"tuning: need the HOSIDFs of >= 2 recorded periods, shape (P, K); "
@@ -565,23 +566,13 @@ class KfcSearch:
         if not np.all(np.isfinite(Hp)):
             raise InputError(f"tuning: HOSIDFs at K_fc = {k_fc} are not finite")
         self.points[float(self._pending)] = self._point(float(self._pending), Hp)
-        try:
-            self._pending = self._gen.send(None)
-        except StopIteration as stop:
-            self._result = stop.value
+        self._advance(None)
 
     @property
     def result(self):
         if self._result is not None:
             return self._result
         return self._fail("running")
-
-    def run(self, measure):
-        """Drive the search with ``measure(k_fc) -> H_periods`` (tests, offline)."""
-        while not self.done:
-            k = self.ask()
-            self.tell(k, measure(k))
-        return self.result
 
     # ---- objective and its noise --------------------------------------------------------
     def _point(self, k, Hp):
