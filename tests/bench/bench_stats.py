@@ -18,12 +18,12 @@ import threading
 import time
 
 import can
-import yaml
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.abspath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, os.path.join(REPO, "tests"))
 
+from fftune.host.config import load_config  # noqa: E402
 from fftune.host.drive import BusOptions, DriveClient  # noqa: E402
 from fftune.host.experiments import sine_request  # noqa: E402
 from fftune.host.sim import start_drive_sim  # noqa: E402
@@ -84,10 +84,12 @@ def main():
     if reason:
         print(f"bench_stats: skipped: {reason}")
         return 0
-    t = yaml.safe_load(open(DEMO))["tune"]
+    t = load_config(DEMO)["tune"]
+    # "auto" probes for the amplitude; one tune experiment here uses the first probe's
+    amplitude = t["amplitude_start_rad"] if t["amplitude_rad"] == "auto" else t["amplitude_rad"]
     fs = 2560.0
     cycles = int(round(t["frequency_hz"] * t["period_samples"] / fs))
-    req = sine_request(inject="reference", amplitude_peak=t["amplitude_rad"], n=t["period_samples"],
+    req = sine_request(inject="reference", amplitude_peak=amplitude, n=t["period_samples"],
                        cycles=cycles, settle=t["settle_periods"], periods=t["periods"], kfc=0.1, kv=0.0)
     sim = start_drive_sim(PLANT, log_path=os.devnull)
     sniff = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
