@@ -85,14 +85,16 @@ def test_encoder_against_the_reference_numbers():
 
 # ---- against drive_sim --bitrate -------------------------------------------------------
 
-def _frames_with_stamps(cli, count, timeout=5.0):
-    """(id, data, stamp_s, received_wall_s) of the next `count` frames."""
+def _frames_with_stamps(cli, count, timeout=5.0, ids=None):
+    """(id, data, stamp_s, received_wall_s) of the next `count` frames (of `ids` only, if given)."""
     out = []
     while len(out) < count:
         msg = cli.expect_message(timeout)
         assert msg is not None, f"got {len(out)} of {count} frames"
         parts = msg[1:-1].split()
         if parts[0] != b"frame":
+            continue
+        if ids is not None and int(parts[1], 16) not in ids:
             continue
         data = bytes.fromhex(parts[3].decode()) if len(parts) > 3 else b""
         out.append((int(parts[1], 16), data, float(parts[2]), time.time()))
@@ -145,10 +147,13 @@ def test_lowest_identifier_wins_arbitration(tmp_path):
         a, b, obs = RawClient(drive.port), RawClient(drive.port), RawClient(drive.port)
         time.sleep(0.25)
         a.sock.sendall(b"".join(f"< send 700 8 {k:02x} 00 00 00 00 00 00 00 >".encode() for k in range(40)))
-        first = _frames_with_stamps(obs, 1)
+        # the clients' frames only: the drive's own heartbeat (0x701) may precede the burst
+        # (it cannot win arbitration against 0x700 or 0x100 while the burst lasts)
+        clients = {0x700, 0x100}
+        first = _frames_with_stamps(obs, 1, ids=clients)
         assert first[0][0] == 0x700
         b.send_frame(0x100, [0xAA])  # queued while A's burst (~250 ms) is on the bus
-        got = first + _frames_with_stamps(obs, 40)
+        got = first + _frames_with_stamps(obs, 40, ids=clients)
         ids = [i for i, _, _, _ in got]
         pos = ids.index(0x100)
         assert pos < 40 and ids[pos + 1:].count(0x700) > 10, \
