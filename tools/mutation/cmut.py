@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, ModuleReport, Mutant, MutationError, fail, load_equivalents, print_report  # noqa: E402
+from common import ROOT, ModuleReport, Mutant, MutationError, announce, run_and_report  # noqa: E402
 
 FW = ROOT / "firmware_sim"
 WORK = ROOT / "build" / "mutation" / "c"
@@ -364,33 +364,22 @@ def main(argv=None):
     args = ap.parse_args(argv)
     modules = args.module or list(MODULES)
     signal.signal(signal.SIGTERM, signal.default_int_handler)   # restore the source on a stop
-    try:
-        equivalents = load_equivalents()
-        if not args.report_only:
-            deadline = time.monotonic() + args.budget
-            WORK.mkdir(parents=True, exist_ok=True)
-            lock = open(WORK / "lock", "w")
-            try:
-                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                raise MutationError(f"mutation: another C mutation run uses {WORK} (one at a time)")
-            digests = {m: _digest(m) for m in modules}   # of the code copied just below
-            _prepare_tree()
-            for module in modules:
-                if time.monotonic() > deadline:
-                    break
-                print(f"mutation: {module}: running (budget left "
-                      f"{max(0, deadline - time.monotonic()):.0f} s)", flush=True)
-                run_module(module, deadline, args.restart, digests[module])
-        print_report([report(m) for m in modules], equivalents)
-    except MutationError as exc:
-        fail(str(exc))
-    except KeyboardInterrupt:
-        print("mutation: stopped; the results so far are kept, run again to continue",
-              file=sys.stderr)
-        return 130
-    return 0
-
+    def run():
+        deadline = time.monotonic() + args.budget
+        WORK.mkdir(parents=True, exist_ok=True)
+        lock = open(WORK / "lock", "w")
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise MutationError(f"mutation: another C mutation run uses {WORK} (one at a time)")
+        digests = {m: _digest(m) for m in modules}   # of the code copied just below
+        _prepare_tree()
+        for module in modules:
+            if time.monotonic() > deadline:
+                break
+            announce(module, deadline)
+            run_module(module, deadline, args.restart, digests[module])
+    return run_and_report(None if args.report_only else run, modules, report)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -10,6 +10,7 @@ the heading "Equivalent mutants" in docs/testing.md: one source, read here and b
 """
 import re
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,6 +26,33 @@ class MutationError(Exception):
 def fail(message):
     print(f"fftune: error: {message}", file=sys.stderr)
     sys.exit(2)
+
+
+def announce(name, deadline):
+    """One progress line: module ``name`` starts, with the budget left until ``deadline``."""
+    print(f"mutation: {name}: running (budget left "
+          f"{max(0, deadline - time.monotonic()):.0f} s)", flush=True)
+
+
+def run_and_report(run, names, report):
+    """The shared tail of both tools: check the equivalent-mutant list, ``run()`` the
+    mutants (None for a report only), print the scores of ``names`` (``report(name)``).
+
+    A :class:`MutationError` is one error line (exit 2); Ctrl-C or SIGTERM keeps the
+    results so far and returns 130. Returns the exit status.
+    """
+    try:
+        equivalents = load_equivalents()
+        if run is not None:
+            run()
+        print_report([report(n) for n in names], equivalents)
+    except MutationError as exc:
+        fail(str(exc))
+    except KeyboardInterrupt:
+        print("mutation: stopped; the results so far are kept, run again to continue",
+              file=sys.stderr)
+        return 130
+    return 0
 
 
 def _split_row(line):

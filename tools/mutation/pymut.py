@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, ModuleReport, Mutant, MutationError, fail, load_equivalents, print_report  # noqa: E402
+from common import ROOT, ModuleReport, Mutant, MutationError, announce, fail, run_and_report  # noqa: E402
 
 WORK = ROOT / "build" / "mutation" / "py"
 
@@ -267,24 +267,13 @@ def main(argv=None):
     except ImportError:
         fail("mutation: cosmic-ray is not installed in this Python "
              f"({sys.executable}): pip install -r tools/mutation/requirements.txt")
-    try:
-        equivalents = load_equivalents()
-        if not args.report_only:
-            deadline = time.monotonic() + args.budget
-            for name in names:
-                session, config, pkg_root = _prepare(name, force=args.restart)
-                print(f"mutation: {name}: running (budget left "
-                      f"{max(0, deadline - time.monotonic()):.0f} s)", flush=True)
-                _exec(name, session, config, pkg_root, deadline)
-        print_report([report(n) for n in names], equivalents)
-    except MutationError as exc:
-        fail(str(exc))
-    except KeyboardInterrupt:
-        print("mutation: stopped; the results so far are kept, run again to continue",
-              file=sys.stderr)
-        return 130
-    return 0
-
+    def run():
+        deadline = time.monotonic() + args.budget
+        for name in names:
+            session, config, pkg_root = _prepare(name, force=args.restart)
+            announce(name, deadline)
+            _exec(name, session, config, pkg_root, deadline)
+    return run_and_report(None if args.report_only else run, names, report)
 
 if __name__ == "__main__":
     sys.exit(main())
