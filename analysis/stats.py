@@ -23,7 +23,8 @@ from fftune.analysis.errors import InputError
 from fftune.analysis.hosidf import hosidf_from_lines
 
 __all__ = ["SIGNAL_BITS", "HarmonicStats", "parse_stats", "harmonic_stats", "hosidf_from_stats",
-           "relative_difference", "STAT_K_MAX", "STAT_SIG_MAX"]
+           "period_hosidf_moments", "period_noise_rms", "relative_difference", "STAT_K_MAX",
+           "STAT_SIG_MAX"]
 
 # Signal numbers of the drive (firmware_sim/core/drv.h DRV_SIG_*), the bit order of the data.
 SIGNAL_BITS = {"reference": 0, "plant_input": 1, "motor_angle": 2, "load_angle": 3, "error": 4}
@@ -223,6 +224,91 @@ def hosidf_from_stats(u_stats, y_stats, *, u_name, y_name, fs, n, cycles, n_harm
     Yk = np.array([s.mean[y_name][:k] for s in flat_y]).reshape(ys.shape + (k,)) * p
     bins = np.broadcast_to(np.asarray(cycles, dtype=np.int64), us.shape[:-1]).copy()
     return hosidf_from_lines(U1, Yk, bins, n=int(n), n_blocks=p, fs=fs)
+
+
+def period_hosidf_moments(stats, *, u_name, y_name, n_harmonics=None, max_input_variance=1e-6):
+    """Mean HOSIDFs of one sine run and the period-to-period variance of one period's
+    HOSIDFs, from its line statistics (for :meth:`fftune.analysis.tuning.KfcSearch.tell_moments`).
+
+    With an input that repeats exactly every period (the drive's generated reference:
+    the same samples each period), one period's HOSIDF is
+    H_p,k = Y_p[k] exp(-j k angle(U[1])) / |U[1]|, so its mean is the HOSIDF of the run
+    (:func:`hosidf_from_stats`) and E|H_p,k - H_k|^2 = var(Y[k]) / |U[1]|^2.
+
+    Parameters
+    ----------
+    stats : HarmonicStats
+        One run, with harmonic statistics of ``u_name`` and ``y_name`` and P >= 2.
+    u_name, y_name : str
+    n_harmonics : int, optional
+        K (default: all the statistics hold).
+    max_input_variance : float
+        Largest var(U[1]) / |U[1]|^2 accepted as "exactly periodic" (float32 rounding).
+
+    Returns
+    -------
+    H : ndarray of complex, shape (K,)
+    H_var : ndarray, shape (K,)
+    n_periods : int
+
+    Raises
+    ------
+    InputError
+        Missing signals, fewer than 2 periods, no input at the sine's line, or an input
+        that changes from period to period (its variance would be neglected).
+    """
+    for name in (u_name, y_name):
+        if name not in stats.mean:
+            raise InputError(f"statistics: no harmonic statistics of '{name}'")
+    k = int(n_harmonics or stats.harmonics)
+    if stats.harmonics < k:
+        raise InputError(f"statistics: {stats.harmonics} harmonics recorded, {k} asked for")
+    if stats.periods < 2:
+        raise InputError(f"statistics: {stats.periods} recorded period(s); the period-to-period "
+                         "variance needs >= 2")
+    u1 = complex(stats.mean[u_name][0])
+    if not np.isfinite(u1) or abs(u1) == 0:
+        raise InputError(f"input '{u_name}': zero power at the sine frequency")
+    rel_var_u = float(stats.var[u_name][0]) / abs(u1) ** 2
+    if not rel_var_u <= max_input_variance:
+        raise InputError(f"input '{u_name}': changes from period to period (variance {rel_var_u:.3g} "
+                         f"of its power at the sine's line, above {max_input_variance:g}); the "
+                         "HOSIDF variance from statistics needs an exactly periodic input (the "
+                         "drive's reference)")
+    harmonics = np.arange(1, k + 1)
+    H = np.asarray(stats.mean[y_name][:k]) * np.exp(-1j * harmonics * np.angle(u1)) / abs(u1)
+    H_var = np.asarray(stats.var[y_name][:k], dtype=float) / abs(u1) ** 2
+    return H, H_var, int(stats.periods)
+
+
+def period_noise_rms(stats, name, n):
+    """Period-to-period rms of a signal per sample, from the variances at its harmonic lines.
+
+    For white noise of variance sigma^2 per sample, each line of the N-sample DFT varies
+    from period to period with E|X_p - mean|^2 = N sigma^2; the estimate is
+    sqrt(mean_k var[k] / N). From raw samples the same quantity is the spread of the
+    samples over the periods (what the raw tune path computes); the two agree for white
+    measurement noise. Lines that also carry non-periodic nonlinear motion (stick-slip)
+    count it as noise, as the raw spread does.
+
+    Parameters
+    ----------
+    stats : HarmonicStats
+    name : str
+    n : int
+        Period N in samples.
+
+    Returns
+    -------
+    float
+        Signal unit (e.g. rad); NaN when P < 2.
+    """
+    if name not in stats.var:
+        raise InputError(f"statistics: no harmonic statistics of '{name}'")
+    v = np.asarray(stats.var[name], dtype=float)
+    if stats.periods < 2 or not np.all(np.isfinite(v)):
+        return float("nan")
+    return float(np.sqrt(np.mean(v) / int(n)))
 
 
 def relative_difference(a, b, scale=None):

@@ -433,18 +433,25 @@ class SearchPoint:
     k_fc : float
     H : ndarray of complex, shape (K,)
         HOSIDFs averaged over the recorded periods.
-    H_periods : ndarray of complex, shape (P, K)
-        HOSIDFs of each recorded period (their spread is the measured noise).
+    H_periods : ndarray of complex, shape (P, K), or None
+        HOSIDFs of each recorded period (their spread is the measured noise); None when
+        the point was told as moments (:meth:`KfcSearch.tell_moments`).
     ratio, ratio_std : float
         :func:`odd_ratio` and its standard error from the period spread (inf when the
         motor did not follow the sine at all, |H_1| ~ 0).
+    H_var : ndarray, shape (K,)
+        Period-to-period variance of one period's complex H_k, E|H_p,k - H_k|^2.
+    n_periods : int
+        P, the recorded periods behind ``H``.
     """
 
     k_fc: float
     H: np.ndarray
-    H_periods: np.ndarray
+    H_periods: object
     ratio: float
     ratio_std: float
+    H_var: np.ndarray = None
+    n_periods: int = 0
 
 
 @dataclass
@@ -532,7 +539,9 @@ class KfcSearch(_GeneratorSearch):
         Relative floor of the stopping tolerance.
 
     Use ``ask()`` for the next K_fc, ``tell(k_fc, H_periods)`` with the (P, K) HOSIDFs of
-    each recorded period (P >= 2), until ``done``; then ``result``.
+    each recorded period (P >= 2), or ``tell_moments(k_fc, H, H_var, P)`` with their mean
+    and period-to-period variance (a drive's line statistics), until ``done``; then
+    ``result``.
     """
 
     def __init__(self, lower, upper, k_limit=None, harmonics=DEFAULT_HARMONICS, max_experiments=8,
@@ -568,6 +577,43 @@ class KfcSearch(_GeneratorSearch):
         self.points[float(self._pending)] = self._point(float(self._pending), Hp)
         self._advance(None)
 
+    def tell_moments(self, k_fc, H, H_var, n_periods):
+        """Report the HOSIDFs measured at ``k_fc`` as their mean over the recorded periods
+        and the period-to-period variance of one period's H_k (what a drive's line
+        statistics give, :func:`fftune.analysis.stats.period_hosidf_moments`) instead of
+        the HOSIDFs of each period.
+
+        The standard errors of the ratio and of the signed objective then come from first-
+        order error propagation with the lines taken as independent and circular (real and
+        imaginary parts of equal variance, uncorrelated); with per-period HOSIDFs
+        (:meth:`tell`) they are the spread of the per-period values.
+
+        Parameters
+        ----------
+        k_fc : float
+            The K_fc asked for.
+        H : array_like of complex, shape (K,)
+            Mean HOSIDFs H_1 .. H_K.
+        H_var : array_like of float, shape (K,)
+            E|H_p,k - H_k|^2 of one period p (>= 0).
+        n_periods : int
+            P >= 2.
+        """
+        self._check_told(k_fc)
+        H = np.asarray(H, dtype=complex)
+        H_var = np.asarray(H_var, dtype=float)
+        P = int(n_periods)
+        if H.ndim != 1 or H_var.shape != H.shape:
+            raise InputError(f"tuning: need H and H_var of one shape (K,); got {H.shape} and {H_var.shape}")
+        if P < 2:
+            raise InputError(f"tuning: need the moments of >= 2 recorded periods, got {P}")
+        if not (np.all(np.isfinite(H)) and np.all(np.isfinite(H_var)) and np.all(H_var >= 0)):
+            raise InputError(f"tuning: HOSIDF moments at K_fc = {k_fc} are not finite (or a "
+                             "negative variance)")
+        k = float(self._pending)
+        self.points[k] = self._point_from_moments(k, H, H_var, P)
+        self._advance(None)
+
     @property
     def result(self):
         if self._result is not None:
@@ -585,7 +631,31 @@ class KfcSearch(_GeneratorSearch):
             r_std = float(np.std(r_p, ddof=1) / np.sqrt(len(r_p)))
         else:
             r, r_std = np.inf, 0.0
-        return SearchPoint(k, H, Hp, r, r_std)
+        d = Hp - H
+        H_var = np.sum(d.real ** 2 + d.imag ** 2, axis=0) / (len(Hp) - 1)
+        return SearchPoint(k, H, Hp, r, r_std, H_var, len(Hp))
+
+    def _point_from_moments(self, k, H, H_var, P):
+        h1 = np.abs(H[0])
+        moving = h1 > 1e-3 * (h1 + np.sqrt(H_var[0])) and h1 > 1e-6
+        if moving:
+            r = float(odd_ratio(H, self.harmonics))
+            # r = q / |H_1|, q = sqrt(mean_i |H_i|^2): d r / d H_i = H_i / (n q |H_1|),
+            # d r / d |H_1| = -r / |H_1|; a circular line of variance v adds v / 2 per
+            # unit gradient
+            n = len(self.harmonics)
+            q = r * h1
+            hi = np.array([_harmonic(H, i) for i in self.harmonics])
+            vi = np.array([_harmonic(H_var, i) for i in self.harmonics])
+            if q > 0:
+                var_q = float(np.sum(np.abs(hi) ** 2 * vi)) / (2 * (n * q) ** 2)
+            else:
+                var_q = float(np.sum(vi)) / (2 * n ** 2)
+            var_r = var_q / h1 ** 2 + r ** 2 * H_var[0] / (2 * h1 ** 2)
+            r_std = float(np.sqrt(var_r / P))
+        else:
+            r, r_std = np.inf, 0.0
+        return SearchPoint(k, H, None, r, r_std, H_var, P)
 
     def _signed(self, pts, phases):
         """s and its standard error at each point (inf-ratio points get NaN)."""
@@ -595,9 +665,19 @@ class KfcSearch(_GeneratorSearch):
                 s.append(np.nan)
                 s_se.append(np.nan)
                 continue
-            s.append(float(signed_odd_ratio(p.H, phases, self.harmonics)))
-            sp = np.asarray(signed_odd_ratio(p.H_periods, phases, self.harmonics))
-            s_se.append(float(np.std(sp, ddof=1) / np.sqrt(len(sp))))
+            s_k = float(signed_odd_ratio(p.H, phases, self.harmonics))
+            s.append(s_k)
+            if p.H_periods is not None:
+                sp = np.asarray(signed_odd_ratio(p.H_periods, phases, self.harmonics))
+                s_se.append(float(np.std(sp, ddof=1) / np.sqrt(len(sp))))
+            else:
+                # s = mean_i Re(H_i e^{-j phi_i}) / |H_1|: gradient 1 / (n |H_1|) per
+                # line, -s / |H_1| through |H_1| (see _point_from_moments)
+                h1 = np.abs(p.H[0])
+                n = len(self.harmonics)
+                vi = np.array([_harmonic(p.H_var, i) for i in self.harmonics])
+                var_s = float(np.sum(vi)) / (2 * (n * h1) ** 2) + s_k ** 2 * p.H_var[0] / (2 * h1 ** 2)
+                s_se.append(float(np.sqrt(var_s / p.n_periods)))
         return np.array(s), np.array(s_se)
 
     def _phases(self, a, b):
@@ -808,7 +888,7 @@ class KfcSearch(_GeneratorSearch):
         return float(np.sqrt(np.mean(se ** 2))) if len(se) else np.nan
 
     def _dof(self):
-        return sum(p.H_periods.shape[0] - 1 for p in self.points.values() if np.isfinite(p.ratio))
+        return sum(p.n_periods - 1 for p in self.points.values() if np.isfinite(p.ratio))
 
     def _finish_or_fail(self, reason):
         return self._fail(f"{reason} before the estimate was verified: raise "

@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from fftune.analysis.hosidf import hosidf as _hosidf_estimate  # (fftune.analysis.hosidf is the function)
+from fftune.analysis import stats as _stats
 from fftune.analysis.stats import harmonic_stats, hosidf_from_stats
 from fftune.analysis import tuning as _tuning
 from fftune.analysis.bla import bla_levels, estimate_quantisation_step, level_verdict
@@ -358,6 +359,15 @@ class _TuneProbe:
         self.harmonics = _tuning.harmonic_orders(c["harmonics"])
         self.amplitude = c["amplitude_rad"] if c["amplitude_rad"] != "auto" else None
         self.points = {}
+        # what the drive accumulates with capture stats/both: the HOSIDF lines of the
+        # reference and the angle, and the power of the tracking error
+        self.stats_request = {"harmonics": c["harmonics"], "signals": ["reference", "motor_angle"],
+                              "power": ["error"]}
+        if session.capture_mode("tune") != "raw" and c["harmonics"] > _stats.STAT_K_MAX:
+            raise FftuneError(f"{src}: key 'tune.harmonics': {c['harmonics']} harmonics with "
+                              f"tune.capture {session.capture_mode('tune')}: the drive's statistics "
+                              f"hold at most {_stats.STAT_K_MAX} (set tune.capture: raw or "
+                              f"tune.harmonics <= {_stats.STAT_K_MAX})")
 
     def measure(self, tag, kfc, kv=0.0, amplitude=None):
         amplitude = self.amplitude if amplitude is None else amplitude
@@ -371,24 +381,32 @@ class _TuneProbe:
         req = sine_request(inject="reference", amplitude_peak=amplitude, n=self.n,
                            cycles=self.cycles, settle=c["settle_periods"], periods=c["periods"],
                            kfc=kfc, kv=kv)
-        # raw samples: the search needs the HOSIDFs of each recorded period (their spread
-        # is the measured noise); the drive's statistics hold only their mean and variance
-        rec = self.s.run("tune", key, req)
-        # each recorded period as a repeat: H_repeats are the per-period HOSIDFs
-        r = _blocks(rec.signals["reference"], self.n)[:, None, :]
-        y = _blocks(rec.signals["motor_angle"], self.n)[:, None, :]
-        hos = _hosidf_estimate(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
-                             f0=c["frequency_hz"])
-        H = hos.H
+        rec = self.s.run("tune", key, req, stats=self.stats_request)
+        if rec.stats is not None:
+            # the drive's line statistics: the mean HOSIDFs and their period-to-period
+            # variance (the search propagates it; fftune.analysis.tuning.KfcSearch.tell_moments)
+            H, H_var, n_periods = _stats.period_hosidf_moments(
+                rec.stats, u_name="reference", y_name="motor_angle", n_harmonics=c["harmonics"])
+            H_periods = None
+            noise_rad = _stats.period_noise_rms(rec.stats, "motor_angle", self.n)
+            rms_error = rec.stats.rms("error")
+        else:
+            # each recorded period as a repeat: H_repeats are the per-period HOSIDFs
+            r = _blocks(rec.signals["reference"], self.n)[:, None, :]
+            y = _blocks(rec.signals["motor_angle"], self.n)[:, None, :]
+            hos = _hosidf_estimate(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
+                                   f0=c["frequency_hz"])
+            H, H_periods, H_var, n_periods = hos.H, hos.H_repeats, None, y.shape[0]
+            # measurement noise of the angle: its spread over the recorded periods
+            y_p = y[:, 0, :]
+            noise_rad = float(np.sqrt(np.sum((y_p - y_p.mean(axis=0)) ** 2) / (y_p.size - self.n)))
+            rms_error = float(np.sqrt(np.mean(rec.signals["error"] ** 2)))
         moving = np.abs(H[0]) > 1e-6
-        # measurement noise of the angle: its spread over the recorded periods
-        y_p = y[:, 0, :]
-        noise_rad = float(np.sqrt(np.sum((y_p - y_p.mean(axis=0)) ** 2) / (y_p.size - self.n)))
         point = {
             "kfc": float(np.float32(kfc)), "kv": float(np.float32(kv)), "amplitude": float(amplitude),
-            "H": H, "H_periods": hos.H_repeats,
+            "H": H, "H_periods": H_periods, "H_var": H_var, "n_periods": n_periods,
             "ratio": float(_tuning.odd_ratio(H, self.harmonics)) if moving else math.inf,
-            "rms_error": float(np.sqrt(np.mean(rec.signals["error"] ** 2))),
+            "rms_error": rms_error,
             "angle_noise_rad": noise_rad,
             "record": rec,
         }
@@ -527,7 +545,10 @@ def tune(session):
         k = search.ask()
         p = probe.measure("search", float(k))
         by_k[float(k)] = p
-        search.tell(k, p["H_periods"])
+        if p["H_periods"] is not None:
+            search.tell(k, p["H_periods"])
+        else:
+            search.tell_moments(k, p["H"], p["H_var"], p["n_periods"])
     outcome = search.result
     n_search = session.tune_experiments
     p_lo = by_k.get(0.0)

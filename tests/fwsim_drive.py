@@ -89,19 +89,30 @@ class FwSimDrive:
                 continue
         return out
 
-    def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"), desc="run"):
+    def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"), desc="run",
+            capture="raw", stats=None):
+        """As :meth:`fftune.host.drive.DriveClient.run` (capture 'raw', 'stats' or 'both')."""
+        from fftune.analysis.stats import parse_stats
+        from fftune.host.drive import stats_parameters
         mask = 0
-        for s in signals:
-            mask |= 1 << SIGNAL_BITS[s]
+        if capture != "stats":
+            for s in signals:
+                mask |= 1 << SIGNAL_BITS[s]
         self.set_parameters(dict(parameters, rec_signals=mask))
+        self.set_parameters(stats_parameters(stats) if capture != "raw" and stats else
+                            {"stat_harmonics": 0, "stat_signals": 0, "stat_power": 0})
         t0 = time.time()
         self.sim.start()
         self.sim.run_until_idle()
-        data, names = self.sim.record()
         self.runs += 1
         n = int(self.sim.get("EXC_PERIOD"))
         rec = int(self.sim.get("EXC_RECORD_PERIODS"))
-        sig = {name: data[:, i].astype(np.float64) for i, name in enumerate(names)}
+        sig = {}
+        if capture != "stats":
+            data, names = self.sim.record()
+            sig = {name: data[:, i].astype(np.float64) for i, name in enumerate(names)}
+        run_stats = parse_stats(self.sim.stats_bytes()) if capture != "raw" else None
         return RunRecord(signals=sig, parameters=self.read_parameters(), fs_hz=float(self.sim.get("FS")),
                          period_samples=n, settle_periods=int(self.sim.get("EXC_SETTLE_PERIODS")),
-                         record_periods=rec, run_counter=self.runs, t_start=t0, t_end=time.time())
+                         record_periods=rec, run_counter=self.runs, t_start=t0, t_end=time.time(),
+                         stats=run_stats)

@@ -202,3 +202,49 @@ def test_capture_mode_follows_the_bus():
     assert s.capture_mode("tune") == "stats"          # a real drive
     s.cfg["tune"]["capture"] = "both"
     assert s.capture_mode("tune") == "both"           # the configuration decides
+
+
+def test_period_hosidf_moments_equal_the_per_period_hosidfs_of_the_samples(noisy_plant):
+    """The tune search's input from statistics (mean H and one period's variance) against
+    the per-period HOSIDFs from the samples of the same run; the noise per sample from the
+    line variances against the spread of the samples over the periods."""
+    from fftune.analysis.stats import period_hosidf_moments, period_noise_rms
+    n, p = 4096, 8
+    sig, st = _run(plant=noisy_plant, n=n, cycles=1, amplitude=0.5, periods=p, settle=2, kfc=0.05)
+    H, H_var, P = period_hosidf_moments(st, u_name="reference", y_name="motor_angle")
+    h = hosidf(sig["reference"].reshape(p, 1, n), sig["motor_angle"].reshape(p, 1, n), fs=FS,
+               n_harmonics=7, f0=FS / n)
+    Hp = np.asarray(h.H_repeats).reshape(p, 7)          # (P experiments of one period, K)
+    assert P == p
+    assert relative_difference(H, Hp.mean(axis=0), abs(Hp[0, 0])) <= 1e-5
+    d = Hp - Hp.mean(axis=0)
+    var_raw = np.sum(d.real ** 2 + d.imag ** 2, axis=0) / (p - 1)
+    np.testing.assert_allclose(H_var, var_raw, rtol=1e-2)
+    y = sig["motor_angle"].reshape(p, n)
+    noise_raw = np.sqrt(np.sum((y - y.mean(axis=0)) ** 2) / (y.size - n))
+    # 7 lines x 7 degrees of freedom: the estimate scatters by about 1 / sqrt(2 x 49)
+    assert abs(period_noise_rms(st, "motor_angle", n) / noise_raw - 1) <= 0.35
+    assert abs(noise_raw / 2e-3 - 1) <= 0.1
+
+
+def test_period_hosidf_moments_refuse_what_they_cannot_stand_for():
+    from fftune.analysis.stats import period_hosidf_moments, period_noise_rms
+    st = HarmonicStats(periods=4, harmonics=3,
+                       mean={"reference": np.array([100 + 0j, 0, 0]), "motor_angle": np.array([90j, 1, 2])},
+                       var={"reference": np.zeros(3), "motor_angle": np.array([4.0, 1, 1])})
+    H, H_var, P = period_hosidf_moments(st, u_name="reference", y_name="motor_angle")
+    np.testing.assert_allclose(H, [0.9j, 0.01, 0.02])
+    np.testing.assert_allclose(H_var, [4e-4, 1e-4, 1e-4])
+    assert period_noise_rms(st, "motor_angle", n=2) == pytest.approx(1.0)
+    with pytest.raises(InputError, match="changes from period to period"):
+        period_hosidf_moments(HarmonicStats(periods=4, harmonics=3, mean=st.mean,
+                                            var={"reference": np.array([1.0, 0, 0]),
+                                                 "motor_angle": st.var["motor_angle"]}),
+                              u_name="reference", y_name="motor_angle")
+    with pytest.raises(InputError, match="needs >= 2"):
+        period_hosidf_moments(HarmonicStats(periods=1, harmonics=3, mean=st.mean, var=st.var),
+                              u_name="reference", y_name="motor_angle")
+    with pytest.raises(InputError, match="no harmonic statistics of 'load_angle'"):
+        period_hosidf_moments(st, u_name="reference", y_name="load_angle")
+    with pytest.raises(InputError, match="4 asked for"):
+        period_hosidf_moments(st, u_name="reference", y_name="motor_angle", n_harmonics=4)

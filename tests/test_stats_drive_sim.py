@@ -94,8 +94,9 @@ def test_line_above_nyquist_is_refused_by_the_drive_naming_the_limit(drive):
 
 def test_fftune_tune_on_statistics_matches_raw(sim, tmp_path):
     """`fftune tune` with capture: stats and capture: raw on the same plant: the same K_fc*
-    within the search's reported uncertainty. The tune step uploads samples in both modes:
-    its K_fc search needs the HOSIDFs of each recorded period (docs/host.md)."""
+    within the search's reported uncertainty. With statistics nothing is recorded: the
+    search works from the mean HOSIDFs and their period-to-period variance (184 bytes per
+    experiment); a second call resumes every experiment from the statistics captures."""
     cfg = yaml.safe_load(open(DEMO))
     cfg["tune"].update(frequency_hz=1.25, period_samples=2048)
     cfg["tune"]["sweep"]["points"] = 5
@@ -111,9 +112,23 @@ def test_fftune_tune_on_statistics_matches_raw(sim, tmp_path):
         out[mode] = (yaml.safe_load(open(d / "results.yaml"))["tune"], d)
     (ts, ds), (tr, dr) = out["stats"], out["raw"]
     caps = os.listdir(ds / "captures")
-    assert any(f.endswith(".h5") for f in caps)
+    assert caps and all(f.endswith(".stats.json") for f in caps), caps
+    assert all(f.endswith(".h5") for f in os.listdir(dr / "captures"))
+    assert ts["search"]["converged"] and tr["search"]["converged"]
     unc = max(ts["search"]["uncertainty"] or 0, tr["search"]["uncertainty"] or 0, 1e-4)
     assert abs(ts["k_fc_star"] - tr["k_fc_star"]) <= 2 * unc
+    # the propagated noise is of the size of the per-period spread (both > 0)
+    sd_s = [e["ratio_std"] for e in ts["search"]["evaluations"]]
+    sd_r = [e["ratio_std"] for e in tr["search"]["evaluations"]]
+    assert 0 < np.median(sd_s) and 0 < np.median(sd_r)
+    assert 0.2 <= np.median(sd_s) / np.median(sd_r) <= 5
+    # resumed from the statistics captures alone: the same result, no experiment
+    cfg["tune"]["capture"] = "stats"
+    assert main(["tune", "--config", str(tmp_path / "stats.yaml"), "--out", str(ds),
+                 "--port", str(sim.port), "--no-progress", "--no-figures"]) == 0
+    again = yaml.safe_load(open(ds / "results.yaml"))
+    assert again["experiments"]["measured"] == 0
+    assert again["tune"]["k_fc_star"] == ts["k_fc_star"]
     # two sessions are two sets of experiments (the plant starts each from where the last
     # run left it): close, not equal; the same run both ways is compared exactly above
     np.testing.assert_allclose(ts["sweep"]["ratio"], tr["sweep"]["ratio"], rtol=1e-2)

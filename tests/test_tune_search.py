@@ -72,11 +72,14 @@ def test_fixed_amplitude_in_noise_is_refused_with_the_fix(tmp_path):
     assert t["amplitude_rad"] >= 1.5
 
 
-def test_sigma_covers_the_truth_over_noise_seeds(tmp_path):
-    """>= 20 noise seeds at 1e-2 rad: the truth within +-2 sigma in >= 90 %."""
+@pytest.mark.parametrize("capture", ["raw", "stats"])
+def test_sigma_covers_the_truth_over_noise_seeds(tmp_path, capture):
+    """>= 20 noise seeds at 1e-2 rad: the truth within +-2 sigma in >= 90 %, with the
+    per-period HOSIDFs of raw samples and with the drive's line statistics (mean and
+    variance, the standard errors propagated)."""
     hits, z = 0, []
     for seed in range(1, 21):
-        t = bench_tune.run_row({"sensor": {"noise_std": 1e-2, "seed": seed}}, {},
+        t = bench_tune.run_row({"sensor": {"noise_std": 1e-2, "seed": seed}}, {"capture": capture},
                                str(tmp_path / f"s{seed}"))
         s = t["search"]
         assert s["converged"], s["stop_reason"]
@@ -84,7 +87,7 @@ def test_sigma_covers_the_truth_over_noise_seeds(tmp_path):
         hits += abs(z[-1]) <= 2
     assert hits >= 18, z
     # sigma is a measurement, not a bracket width: the measured noise of s grows with it
-    quiet = bench_tune.run_row({"sensor": {"noise_std": 1e-3}}, {}, str(tmp_path / "quiet"))
+    quiet = bench_tune.run_row({"sensor": {"noise_std": 1e-3}}, {"capture": capture}, str(tmp_path / "quiet"))
     assert quiet["search"]["signed_objective_std"] < t["search"]["signed_objective_std"]
 
 
@@ -141,6 +144,8 @@ def test_bad_tune_keys_give_one_error_line(tmp_path, capsys, tune, expected):
     ({"harmonics": 41, "frequency_hz": 40.0, "period_samples": 1024},
      "key 'tune.harmonics': harmonic 41 of 40 Hz is above fs/2 = 1280 Hz"),
     ({"search": {"k_fc_max": 20.0}}, "key 'tune.search.k_fc_max': 20 V is above what the drive allows"),
+    ({"harmonics": 9, "capture": "stats"},
+     "key 'tune.harmonics': 9 harmonics with tune.capture stats: the drive's statistics hold at most 8"),
 ])
 def test_tune_plan_against_the_drive_is_checked_before_any_experiment(tmp_path, tune, expected):
     from fftune.host.config import validate
