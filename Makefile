@@ -44,7 +44,8 @@ TEST_WORKERS ?= auto
 
 test: setup
 	@start=$$(date +%s); rc=0; \
-	$(FW) test || rc=$$?; \
+	$(FW) -j$$(nproc) test-build >/dev/null || rc=$$?; \
+	[ $$rc = 0 ] && { $(FW) test || rc=$$?; }; \
 	if [ $$rc = 0 ]; then \
 	    $(VENV)/bin/python -m pytest -q -ra -n $(TEST_WORKERS) --dist loadgroup tests || rc=$$?; fi; \
 	echo "make test: wall time $$(( $$(date +%s) - start )) s (load average $$(cut -d' ' -f1-3 /proc/loadavg)), exit status $$rc"; \

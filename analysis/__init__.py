@@ -46,20 +46,45 @@ read_run, write_run, load_experiment, export_mat, export_csv -- the HDF5 capture
 Plots live in :mod:`fftune.analysis.plots` (imported on demand: matplotlib is slow to load).
 """
 
+import importlib
+
 from fftune import __version__  # noqa: F401  (one version: the distribution's)
-from fftune.analysis.bla import (BLALevels, BLAResult, TransientWarning, bla_levels,
-                                 classify_grid, detect_excited_lines, level_verdict,
-                                 robust_bla, robust_bla_spectra)
-from fftune.analysis.capture import (export_csv, export_mat, load_experiment, read_run,
-                                     write_run)
 from fftune.analysis.errors import FftuneError, InputError
+# eager: the function `hosidf` shadows its submodule's name, which a later first import of
+# the submodule would otherwise bind here (numpy only)
 from fftune.analysis.hosidf import HosidfResult, hosidf
-from fftune.analysis.multisine import (Multisine, crest_factor, design_multisine,
-                                       drive_multisine, multisine_realizations,
-                                       random_odd_multisine)
-from fftune.analysis.stats import HarmonicStats, harmonic_stats, hosidf_from_stats, parse_stats
-from fftune.analysis.tuning import (RatioMinimizer, SignedRootSearch, TuningResult,
-                                    odd_ratio, signed_odd_ratio)
+
+# The other public names and the module each lives in, imported on first use (PEP 562,
+# as scipy does): `fftune --version` or `fftune sim` need not load scipy.
+_LAZY = {
+    "fftune.analysis.bla": ("BLALevels", "BLAResult", "TransientWarning", "bla_levels",
+                            "classify_grid", "detect_excited_lines", "level_verdict",
+                            "robust_bla", "robust_bla_spectra"),
+    "fftune.analysis.capture": ("export_csv", "export_mat", "load_experiment", "read_run",
+                                "write_run"),
+    "fftune.analysis.multisine": ("Multisine", "crest_factor", "design_multisine",
+                                  "drive_multisine", "multisine_realizations",
+                                  "random_odd_multisine"),
+    "fftune.analysis.stats": ("HarmonicStats", "harmonic_stats", "hosidf_from_stats",
+                              "parse_stats"),
+    "fftune.analysis.tuning": ("RatioMinimizer", "SignedRootSearch", "TuningResult",
+                               "odd_ratio", "signed_odd_ratio"),
+}
+_MODULE_OF = {name: mod for mod, names in _LAZY.items() for name in names}
+
+
+def __getattr__(name):
+    mod = _MODULE_OF.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'fftune.analysis' has no attribute {name!r}")
+    value = getattr(importlib.import_module(mod), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "random_odd_multisine", "design_multisine", "multisine_realizations", "drive_multisine",

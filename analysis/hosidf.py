@@ -17,7 +17,6 @@ A single record is ``x.reshape(1, 1, -1)``.
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 
 from fftune.analysis.errors import InputError
 
@@ -124,6 +123,8 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
     n_blocks = u.shape[-2]
     n_lines = n // 2 + 1
     # periods averaged in the time domain (exact at the sine's harmonics), then one rfft
+    import scipy.fft  # here: `import fftune.analysis` (the CLI's start) stays free of scipy
+
     U = scipy.fft.rfft(u.sum(axis=-2), axis=-1)
     if not np.isfinite(U).all():
         raise InputError("input u: contains NaN or inf")

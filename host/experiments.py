@@ -555,12 +555,18 @@ def tune(session):
     if outcome.converged and p_lo is not None and \
             p_lo["angle_noise_rad"] > MAX_NOISE_RE_AMPLITUDE * probe.amplitude:
         outcome.converged = False
+        from_lines = p_lo["H_periods"] is None
         outcome.reason = (
-            f"the angle noise ({p_lo['angle_noise_rad']:.2g} rad, spread over the recorded periods) "
-            f"is {100 * p_lo['angle_noise_rad'] / probe.amplitude:.2g} % of the sine amplitude "
+            f"the angle noise ({p_lo['angle_noise_rad']:.2g} rad, "
+            + ("from the period-to-period variance at the harmonic lines (drive statistics: it "
+               "also counts motion that differs between periods, a settling transient or "
+               "stick-slip)" if from_lines else "spread over the recorded periods")
+            + f") is {100 * p_lo['angle_noise_rad'] / probe.amplitude:.2g} % of the sine amplitude "
             f"{probe.amplitude:g} rad: it dithers the friction and biases K_fc* (here "
             f"{outcome.k_fc:.4g} V); raise tune.amplitude_rad to >= "
-            f"{p_lo['angle_noise_rad'] / MAX_NOISE_RE_AMPLITUDE:.2g} rad or set it to auto")
+            f"{p_lo['angle_noise_rad'] / MAX_NOISE_RE_AMPLITUDE:.2g} rad or set it to auto"
+            + ("; if the loop settles slowly, raise tune.settle_periods or use tune.capture: both"
+               if from_lines else ""))
     pts = sorted(by_k.items())
     p0 = by_k.get(0.0) or probe.measure("verify", 0.0)
     k_star = float(outcome.k_fc)

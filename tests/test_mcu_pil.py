@@ -4,13 +4,15 @@ unchanged host over python-can's slcan interface (processor-in-the-loop):
 - `fftune tune -i slcan -c socket://...` with configs/pil.yaml finds K_fc* within 2 % of the
   plant's Coulomb level (the plant's truth read from the drive, 0x2100);
 - determinism: the same tune against drive_sim (x86-64, same plant file, same seed) gives the
-  same recorded samples bit for bit in every run, so the same K_fc*;
+  same line statistics (tune.capture: stats) bit for bit in every run, so the same K_fc*;
+  a sine run records the same samples bit for bit;
 - a multisine run agrees within a stated tolerance (the excitation table is built with the
   C library's sinf/cosf: glibc on x86, newlib on the M4);
 - bad input on the link (garbage, overlong lines, a connection closed mid-line and during
   a block upload) leaves the MCU serving.
 Skipped with the reason when qemu-system-arm or arm-none-eabi-gcc is missing.
 """
+import json
 import math
 import os
 import re
@@ -22,7 +24,7 @@ import numpy as np
 import pytest
 import yaml
 
-from fftune.analysis import capture
+from fftune.analysis.stats import HarmonicStats
 from fftune.host.cli import main
 from fftune.host.drive import BusOptions, DriveClient
 from fftune.host.odmap import DEFAULT_EDS
@@ -73,21 +75,34 @@ def test_tune_on_the_m4_finds_the_coulomb_level(tuned_m4):
     assert t["ratio_at_zero"] >= 10 * t["ratio_at_k_fc_star"]
 
 
-def _runs(out):
-    return {os.path.basename(p)[:-3]: capture.read_run(str(p)) for p in (out / "captures").glob("*.h5")}
+def _stats_runs(out):
+    """{run key: HarmonicStats} of the .stats.json captures (float32 values stored exactly)."""
+    return {p.name[:-len(".stats.json")]: HarmonicStats.from_dict(json.loads(p.read_text())["stats"])
+            for p in (out / "captures").glob("*.stats.json")}
 
 
-def test_m4_and_drive_sim_record_the_same_samples_bit_for_bit(tuned_m4, tuned_x86):
+def _f32_bits(values):
+    a = np.asarray(values, dtype=np.float32)
+    return a.view(np.uint32)
+
+
+def test_m4_and_drive_sim_accumulate_the_same_statistics_bit_for_bit(tuned_m4, tuned_x86):
+    """configs/pil.yaml's tune captures the drive's line statistics (tune.capture: stats):
+    the float32 sums of the M4 and of drive_sim (x86-64) are the same bits, so the same
+    K_fc*. (The recorded samples of a sine run: test_sine_and_multisine_runs_... below.)"""
     (r4, out4), (r86, out86) = tuned_m4, tuned_x86
-    runs4, runs86 = _runs(out4), _runs(out86)
+    assert not list((out4 / "captures").glob("*.h5"))
+    runs4, runs86 = _stats_runs(out4), _stats_runs(out86)
     assert len(runs4) >= 4 and set(runs4) == set(runs86)  # the sweep points and the search's runs
     for key, run in runs4.items():
-        for name, values in run.signals.items():
-            a = np.asarray(values, dtype=np.float32)
-            b = np.asarray(runs86[key].signals[name], dtype=np.float32)
-            assert a.shape == b.shape and a.size > 0
-            differ = int(np.count_nonzero(a.view(np.uint32) != b.view(np.uint32)))
-            assert differ == 0, f"{key}: {name}: {differ} of {a.size} samples differ"
+        a, b = run, runs86[key]
+        assert a.periods == b.periods >= 2 and a.harmonics == b.harmonics == 7
+        for name in a.mean:
+            for x, y in ((a.mean[name].real, b.mean[name].real), (a.mean[name].imag, b.mean[name].imag),
+                         (a.var[name], b.var[name])):
+                differ = int(np.count_nonzero(_f32_bits(x) != _f32_bits(y)))
+                assert differ == 0, f"{key}: {name}: {differ} values differ"
+        assert a.power_msq == b.power_msq and a.power_mean == b.power_mean
     assert r4["tune"]["k_fc_star"] == r86["tune"]["k_fc_star"]
 
 
@@ -102,11 +117,23 @@ def _session(opts, requests):
         return [c.run(r).signals for r in requests]
 
 
-def test_multisine_run_agrees_within_the_libm_tolerance(pil):
+SINE = {"exc_kind": 1, "exc_period": 1024, "exc_sine_cycles": 1, "exc_amplitude": 0.5,
+        "exc_settle_periods": 1, "exc_record_periods": 2, "exc_inject": 0, "kfc": 0.05}
+
+
+def test_sine_and_multisine_runs_record_the_same_samples(pil):
+    """A sine run (the tune's kind) records the same bits on the M4 and on drive_sim; a
+    multisine run agrees within the libm tolerance."""
     with pil.start() as target:
-        m4 = _session(BusOptions(interface="slcan", channel=target.channel, eds=DEFAULT_EDS), [MULTISINE])[0]
+        m4, sine4 = _session(BusOptions(interface="slcan", channel=target.channel, eds=DEFAULT_EDS),
+                             [MULTISINE, SINE])
     with start_drive_sim(PIL_PLANT) as sim:
-        x86 = _session(BusOptions(host=sim.host, port=sim.port, eds=DEFAULT_EDS), [MULTISINE])[0]
+        x86, sine86 = _session(BusOptions(host=sim.host, port=sim.port, eds=DEFAULT_EDS), [MULTISINE, SINE])
+    for name, values in sine4.items():
+        a, b = _f32_bits(values), _f32_bits(sine86[name])
+        assert a.shape == b.shape and a.size == 2048
+        differ = int(np.count_nonzero(a != b))
+        assert differ == 0, f"sine run: {name}: {differ} of {a.size} samples differ"
     u4, u86 = np.float32(m4["plant_input"]), np.float32(x86["plant_input"])
     # The period is built by an inverse FFT whose twiddles come from sinf/cosf (glibc on
     # x86, newlib's fdlibm on the M4; both within 1 ulp, not always the same): the plant
