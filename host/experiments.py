@@ -72,13 +72,15 @@ class Session:
         return "stats" if (self.truth is None or bus_model) else "raw"
 
     def run(self, experiment, key, request, level_index=0, realization=0, extra_signals=None,
-            stats=None):
+            stats=None, signals=None):
         """The run ``key`` of ``experiment`` with drive parameters ``request``, measured or
         loaded from an earlier capture with the same request. ``extra_signals`` (name ->
         array of the record's length, e.g. the excitation the drive generated but does
         not record) are stored in the capture beside the recorded ones, as float32.
         ``stats`` (``fftune.host.drive.stats_parameters``) asks the drive for its line
-        statistics when the step's capture mode is 'stats' or 'both'."""
+        statistics when the step's capture mode is 'stats' or 'both'. ``signals``: the
+        recorder signals to upload (default: the drive client's), only what the analysis
+        reads: every recorded float crosses the bus."""
         request = dict(self.controller, **request)
         rec = self.store.load(key, request)
         if rec is not None:
@@ -86,6 +88,8 @@ class Session:
             return rec
         capture = self.capture_mode(experiment) if stats else "raw"
         kwargs = {"capture": capture, "stats": stats} if capture != "raw" else {}
+        if signals is not None:
+            kwargs["signals"] = tuple(signals)
         rec = self.drive.run(request, desc=key, **kwargs)
         for name, values in (extra_signals or {}).items():
             rec.signals[name] = np.asarray(values, dtype=np.float32).astype(np.float64)
@@ -242,6 +246,9 @@ def detect(session):
     if len(lines.excited) == 0:
         raise FftuneError(f"{src}: key 'detect.band_hz': no excited line in the band")
     u_lv, y_lv, r_lv = [], [], []
+    # what the robust BLA reads (the excitation added at the plant input is regenerated
+    # here, not recorded): 2 of the 4 signals, half the upload
+    detect_signals = ("plant_input", "motor_angle") + (("reference",) if c["inject"] == "reference" else ())
     for li, rms in enumerate(c["rms_levels"]):
         u_m, y_m, r_m = [], [], []
         for m in range(c["realizations"]):
@@ -258,7 +265,7 @@ def detect(session):
                 one = drive_multisine(n, k_min, k_max, c["group"], c["seed"], m, rms)
                 extra = {"excitation": np.tile(one, c["periods"])}
             rec = session.run("detect", f"detect-L{li:02d}-M{m:02d}", req, level_index=li,
-                              realization=m, extra_signals=extra)
+                              realization=m, extra_signals=extra, signals=detect_signals)
             u_max = _run_u_max(session, rec)
             u_m.append(_blocks(rec.signals["plant_input"], n))
             y_m.append(_blocks(rec.signals["motor_angle"], n))
