@@ -30,6 +30,7 @@ __all__ = ["SIGNAL_BITS", "HarmonicStats", "parse_stats", "harmonic_stats", "hos
 SIGNAL_BITS = {"reference": 0, "plant_input": 1, "motor_angle": 2, "load_angle": 3, "error": 4}
 STAT_K_MAX = 8      # harmonics the drive holds (stat.h)
 STAT_SIG_MAX = 3    # signals with harmonic statistics the drive holds
+STAT_FLAG_OVERRUN = 0x01  # header status bit: the statistics are invalid (stat.h)
 
 
 @dataclass
@@ -89,20 +90,29 @@ def _names(mask):
 def parse_stats(data):
     """The drive's statistics data (object 0x2041, little-endian) as :class:`HarmonicStats`.
 
-    Layout: u32 P; u8 K, u8 harmonic signal mask, u8 power signal mask, u8 0; per harmonic
+    Layout: u32 P; u8 K, u8 harmonic signal mask, u8 power signal mask, u8 status (bit 0:
+    the drive's background task fell behind its control interrupt, the run's statistics are
+    invalid and P is 0; firmware_sim/core/stat.h); per harmonic
     signal (bit order), per k: f32 mean re, f32 mean im, f32 variance (0 when P < 2); per
     power signal: f32 mean, f32 mean square.
 
     Raises
     ------
     InputError
-        Too short, inconsistent length, or more than the drive can hold.
+        Too short, inconsistent length, more than the drive can hold, or marked invalid by
+        the drive (status bit 0).
     """
     data = bytes(data)
     if len(data) < 8:
         raise InputError(f"statistics data: {len(data)} bytes, need at least the 8-byte header")
     periods = int.from_bytes(data[0:4], "little")
-    k, hmask, pmask = data[4], data[5], data[6]
+    k, hmask, pmask, status = data[4], data[5], data[6], data[7]
+    if status & STAT_FLAG_OVERRUN:
+        raise InputError("statistics data: invalid, the drive's background task fell behind its control "
+                         "loop during the run (status bit 0, overrun counter 0x2040:6); capture raw or "
+                         "repeat the run")
+    if status:
+        raise InputError(f"statistics data: unknown status bits 0x{status:02X} in the header")
     hs, ps = _names(hmask), _names(pmask)
     if k > STAT_K_MAX or len(hs) > STAT_SIG_MAX or (hmask | pmask) > 0x1F:
         raise InputError(f"statistics data: header K = {k}, masks 0x{hmask:02X}/0x{pmask:02X} "

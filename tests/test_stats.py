@@ -164,6 +164,31 @@ def test_parse_stats_rejects_inconsistent_data():
     assert back.periods == 2 and np.array_equal(back.mean["reference"], st.mean["reference"])
 
 
+def test_statistics_invalidated_by_a_background_overrun_are_rejected():
+    """The drive's sums run in its background task (drv_background between control steps);
+    if that falls behind, the run's statistics carry status bit 0 and P = 0, and the parser
+    refuses them instead of returning numbers."""
+    with FwSim(TWOMASS) as sim:
+        sim.enable()
+        sim.configure(exc_kind=1, exc_amplitude=0.3, exc_period=256, exc_sine_cycles=1, exc_settle_periods=0,
+                      exc_record_periods=2, rec_signals=0, stat_harmonics=3, stat_signals=0x05, stat_power=0x10)
+        sim.start()
+        for _ in range(40):  # control steps with no background in between: 2 blocks of 16 fill
+            sim.lib.sim_step(sim.sim)
+        sim.run_until_idle()
+        assert sim.get("STAT_OVERRUNS") == 1 and sim.get("STAT_PERIODS") == 0
+        raw = sim.stats_bytes()
+        with pytest.raises(InputError, match="background task fell behind"):
+            parse_stats(raw)
+        sim.start()  # the next run, background keeping up: valid again
+        sim.run_until_idle()
+        st = parse_stats(sim.stats_bytes())
+        assert st.periods == 2 and abs(st.mean["reference"][0]) > 0.3 * 256 / 2 * 0.9
+    hdr = (2).to_bytes(4, "little") + bytes([0, 0, 0x10, 0x80])
+    with pytest.raises(InputError, match="unknown status bits 0x80"):
+        parse_stats(hdr + bytes(8))
+
+
 def test_harmonic_stats_checks_its_input():
     with pytest.raises(InputError, match="N/2"):
         harmonic_stats({"x": np.zeros(64)}, n=64, cycles=4, harmonics=8)

@@ -224,7 +224,8 @@ drv_status_t drv_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value)
     case DRV_P_STAT_HARMONICS: v = drv->stat.k; break;
     case DRV_P_STAT_SIGNALS: v = drv->stat.hmask; break;
     case DRV_P_STAT_POWER: v = drv->stat.pmask; break;
-    case DRV_P_STAT_PERIODS: v = drv->stat.periods; break;
+    case DRV_P_STAT_PERIODS: v = drv->stat.overrun ? 0u : drv->stat.periods; break;
+    case DRV_P_STAT_OVERRUNS: v = drv->stat.overruns; break;
     case DRV_P_STAT_BYTES: v = stat_size_bytes(&drv->stat); break;
     default: return DRV_E_NO_PARAM;
     }
@@ -409,6 +410,7 @@ void drv_run_abort(drv_t *drv, drv_stop_reason_t reason)
     if (run_active(&drv->run)) {
         run_stop(&drv->run, RUN_ABORTED, (uint32_t)reason);
         gen_stop(&drv->gen);
+        stat_flush(&drv->stat); /* the samples so far go to the background */
     }
 }
 
@@ -472,6 +474,7 @@ static float drv_fault_stop(drv_t *drv, drv_stop_reason_t reason)
     drv->run.state = RUN_FAULT;
     drv->run.last_error = reason;
     gen_stop(&drv->gen);
+    stat_flush(&drv->stat);
     ctl_reset(&drv->ctl);
     drv->fault = true;
     drv->u = 0.0f;
@@ -523,6 +526,7 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
         }
         if (!run_active(&drv->run)) {
             gen_stop(&drv->gen);
+            stat_flush(&drv->stat); /* the last samples go to the background */
         }
     }
     return u;
@@ -530,13 +534,29 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
 
 /* ---- recorder, statistics and table byte streams ---- */
 
-uint32_t drv_stat_size_bytes(const drv_t *drv)
+void drv_background(drv_t *drv)
 {
+    stat_process(&drv->stat);
+}
+
+/* A reader after the run gets the final statistics: what the background has not consumed
+ * yet is consumed now (no run active: the interrupt adds nothing). */
+static void drv_stat_settle(drv_t *drv)
+{
+    if (!run_active(&drv->run)) {
+        stat_finish(&drv->stat);
+    }
+}
+
+uint32_t drv_stat_size_bytes(drv_t *drv)
+{
+    drv_stat_settle(drv);
     return stat_size_bytes(&drv->stat);
 }
 
-drv_status_t drv_stat_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len)
+drv_status_t drv_stat_read(drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len)
 {
+    drv_stat_settle(drv);
     return stat_read(&drv->stat, offset, dst, len) == 0 ? DRV_OK : DRV_E_LENGTH;
 }
 

@@ -158,8 +158,18 @@ void drv_get_monitor(const drv_t *drv, drv_monitor_t *mon);
  * drv_enable(drv, true) (CiA 402 fault reset + enable). */
 bool drv_fault(const drv_t *drv);
 
-/* On-drive run statistics (stat.h): the byte stream of object 0x2041, valid after DONE. */
-uint32_t drv_stat_size_bytes(const drv_t *drv);
-drv_status_t drv_stat_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
+/* Background work (the statistics' sums, stat.h): the port calls it from its main loop, never
+ * from the control interrupt, often enough that it takes each block of STAT_BLOCK samples
+ * within STAT_BLOCK control periods (else that run's statistics are marked invalid and the
+ * overrun counter 0x2040:6 counts it). Bounded: at most 2 blocks per call. Safe against the
+ * control interrupt on a single core without masking it. */
+void drv_background(drv_t *drv);
+
+/* On-drive run statistics (stat.h): the byte stream of object 0x2041, valid after DONE.
+ * Not const: with no run active, both first consume what the background has not (the
+ * run's last samples), so a read right after the run sees the final values. Call from the
+ * background context (the CANopen layer's), not from the control interrupt. */
+uint32_t drv_stat_size_bytes(drv_t *drv);
+drv_status_t drv_stat_read(drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
 
 #endif /* DRV_H */

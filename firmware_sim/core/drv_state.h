@@ -19,7 +19,6 @@ typedef struct {
     gen_t gen;
     run_t run;
     rec_t rec;
-    stat_t stat;
 
     float fs_hz;
     float *table_buf;        /* the table in use (committed) */
@@ -41,6 +40,11 @@ typedef struct {
     float target, reference, error, u;
     float motor, load;
     float motor_prev;        /* previous measurement (velocity by backward difference) */
+
+    /* last: its ~1.5 kB (hand-over blocks) would push the fields above beyond the
+     * Cortex-M4's short load/store offsets (vldr: 1020 bytes), costing drv_step an address
+     * computation per access */
+    stat_t stat;
 } drv_t;
 
 #endif /* DRV_STATE_H */

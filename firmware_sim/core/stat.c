@@ -1,6 +1,7 @@
 /* stat.c - see stat.h. */
 #include "stat.h"
 
+#include <stdatomic.h> /* atomic_signal_fence only: a compiler barrier, no library call */
 #include <stddef.h>
 
 #if defined(__BYTE_ORDER__) && (__BYTE_ORDER__ != __ORDER_LITTLE_ENDIAN__)
@@ -18,6 +19,13 @@ static uint32_t stat_popcount(uint32_t m)
 
 static void stat_clear(stat_t *st)
 {
+    st->wblk = 0u;
+    st->wcount = 0u;
+    st->wptr = st->block[0];
+    st->ready[0] = 0u;
+    st->ready[1] = 0u;
+    st->overrun = false;
+    st->rblk = 0u;
     st->idx = 0u;
     st->periods = 0u;
     st->first = true;
@@ -50,6 +58,7 @@ void stat_init(stat_t *st)
     st->n = 1u;
     st->inv_n = 1.0f;
     st->active = false;
+    st->overruns = 0u;
     stat_clear(st);
 }
 
@@ -114,8 +123,115 @@ void stat_begin(stat_t *st, uint32_t n)
     }
     st->n = n > 0u ? n : 1u;
     st->inv_n = 1.0f / (float)st->n;
-    st->active = st->k_run > 0u || st->np > 0u;
     stat_clear(st);
+    st->active = st->k_run > 0u || st->np > 0u;
+}
+
+/* ---- interrupt side ---- */
+
+void stat_block_full(stat_t *st)
+{
+    uint32_t b = st->wblk;
+    atomic_signal_fence(memory_order_release); /* the samples before the hand-over */
+    st->ready[b] = st->wcount;
+    b ^= 1u;
+    if (st->ready[b] != 0u) {
+        /* the background still holds the other block: nowhere to write the next sample */
+        st->overrun = true;
+        st->overruns++;
+        st->active = false;
+        return;
+    }
+    st->wblk = b;
+    st->wcount = 0u;
+    st->wptr = st->block[b];
+}
+
+void stat_flush(stat_t *st)
+{
+    if (!st->active) {
+        return;
+    }
+    st->active = false;
+    if (st->wcount > 0u) {
+        atomic_signal_fence(memory_order_release);
+        st->ready[st->wblk] = st->wcount;
+    }
+}
+
+/* ---- background side ---- */
+
+/* One recorded sample's update (v: its STAT_SLOT values). The float32
+ * operations and their order are those of the per-sample update this replaces. */
+static void stat_sample(stat_t *st, const float *v)
+{
+    if (st->first) {
+        for (uint32_t j = 0u; j < st->nh; j++) {
+            st->x0[j] = v[st->hsel[j]];
+        }
+        st->first = false;
+    }
+    if (st->k_run > 0u) {
+        const float s = v[STAT_SLOT_SIN], c = v[STAT_SLOT_COS];
+        /* z_k = exp(-j 2 pi k c n / N) = (c - j s)^k for all STAT_K_MAX harmonics (fixed
+         * trip counts; unused ones are never read): z2 = z1^2, z3 = z2 z1, z4 = z2^2,
+         * z5..z8 = z4 z1..z4 (at most 3 roundings deep, no drift) */
+        float zr[STAT_K_MAX], zi[STAT_K_MAX];
+        zr[0] = c;
+        zi[0] = -s;
+        zr[1] = c * c - s * s;
+        zi[1] = -2.0f * c * s;
+        zr[2] = zr[1] * c + zi[1] * s;
+        zi[2] = zi[1] * c - zr[1] * s;
+        zr[3] = zr[1] * zr[1] - zi[1] * zi[1];
+        zi[3] = 2.0f * zr[1] * zi[1];
+        for (uint32_t k = 0u; k < 4u; k++) {
+            zr[4u + k] = zr[3] * zr[k] - zi[3] * zi[k];
+            zi[4u + k] = zr[3] * zi[k] + zi[3] * zr[k];
+        }
+        for (uint32_t j = 0u; j < st->nh; j++) {
+            const float x = v[st->hsel[j]] - st->x0[j];
+            float *ar = st->acc_re[j], *ai = st->acc_im[j];
+            for (uint32_t k = 0u; k < STAT_K_MAX; k++) {
+                ar[k] += x * zr[k];
+                ai[k] += x * zi[k];
+            }
+        }
+    }
+    for (uint32_t j = 0u; j < st->np; j++) {
+        const float x = v[st->psel[j]];
+        st->psum[j] += x;
+        st->psq[j] += x * x;
+    }
+    if (++st->idx == st->n) {
+        stat_period_end(st);
+    }
+}
+
+void stat_process(stat_t *st)
+{
+    for (uint32_t i = 0u; i < 2u; i++) {
+        uint32_t b = st->rblk;
+        uint32_t count = st->ready[b];
+        if (count == 0u) {
+            return;
+        }
+        atomic_signal_fence(memory_order_acquire); /* the samples after the hand-over */
+        if (!st->overrun) {
+            const float *v = st->block[b];
+            for (uint32_t i_s = 0u; i_s < count; i_s++, v += STAT_SLOT) {
+                stat_sample(st, v);
+            }
+        }
+        atomic_signal_fence(memory_order_release); /* done reading before giving it back */
+        st->ready[b] = 0u;
+        st->rblk = b ^ 1u;
+    }
+}
+
+void stat_finish(stat_t *st)
+{
+    stat_process(st);
 }
 
 void stat_period_end(stat_t *st)
@@ -154,10 +270,14 @@ static uint32_t stat_word(const stat_t *st, uint32_t i)
     union { float f; uint32_t u; } w; /* float32 bit pattern, no libc memcpy */
     float f = 0.0f;
     if (i == 0u) {
-        return st->periods;
+        return st->overrun ? 0u : st->periods;
     }
     if (i == 1u) {
-        return (st->k_run & 0xFFu) | ((st->k_run ? st->hmask : 0u) << 8) | (st->pmask << 16);
+        return (st->k_run & 0xFFu) | ((st->k_run ? st->hmask : 0u) << 8) | (st->pmask << 16) |
+               ((st->overrun ? STAT_FLAG_OVERRUN : 0u) << 24);
+    }
+    if (st->overrun) {
+        return 0u; /* invalid: no number rather than a wrong one */
     }
     i -= 2u;
     uint32_t nharm = 3u * st->k_run * st->nh;

@@ -19,8 +19,27 @@
  * Power statistics: for the signals of a second mask, the mean and the mean square over the
  * recorded samples (per period, then over periods), e.g. the rms tracking error.
  *
+ * Split between the control interrupt and the background (so drv_step stays in its budget):
+ * per recorded sample, stat_push (inline, in drv_step) only copies the signals and the
+ * fundamental's sin/cos (7 stores, no selection: cheaper than indexing) into a fixed
+ * ping-pong pair of blocks of STAT_BLOCK samples;
+ * stat_process (called by the port's main loop between steps, through drv_background)
+ * consumes full blocks in order and does the DFT sums and the per-period Welford update:
+ * the same float32 operations in the same order as a per-sample update in the interrupt,
+ * so the results are bit for bit the same. The run's end (DONE, abort, fault) hands the last,
+ * partial block over (stat_flush); stat_finish (the readers: drv_stat_size_bytes /
+ * drv_stat_read, i.e. the SDO upload of 0x2041) consumes what is pending once no run is
+ * active, so the statistics read after a run are always its final ones. If the interrupt
+ * finds both blocks full (the background fell behind), the run's statistics are invalid:
+ * no more samples are taken, the data reports P = 0 and status bit STAT_FLAG_OVERRUN, and
+ * the overrun counter (0x2040:6) counts it. Interrupt / background hand-over: a block
+ * belongs to the interrupt while its `ready` count is 0 and to the background while it is
+ * not (single core: compiler fences only, atomic_signal_fence).
+ *
  * Statistics data (the byte stream of object 0x2041, little-endian):
- *   u32 periods P; u8 K; u8 harmonic signal mask; u8 power signal mask; u8 0;
+ *   u32 periods P (0 when invalid); u8 K; u8 harmonic signal mask; u8 power signal mask;
+ *   u8 status (bit 0 STAT_FLAG_OVERRUN: the background fell behind, the numbers are not
+ *   the run's);
  *   per harmonic signal (bit order), per k = 1 .. K: f32 mean re, f32 mean im, f32 variance
  *     (0 when P < 2);
  *   per power signal (bit order): f32 mean, f32 mean square.
@@ -33,10 +52,19 @@
 
 #define STAT_K_MAX 8u       /* harmonics the drive holds */
 #define STAT_SIG_MAX 3u     /* signals with harmonic statistics */
-#define STAT_NUM_SIGNALS 5u /* = REC_NUM_SIGNALS, signal numbers in DRV_SIG_* bit order */
+#define STAT_NUM_SIGNALS 5u /* = REC_NUM_SIGNALS, signal numbers in DRV_SIG_* bit order (stat_push
+                               copies exactly 5) */
 #define STAT_SIGNAL_MASK 0x1Fu
 #define STAT_HEADER_BYTES 8u
 #define STAT_MAX_BYTES (STAT_HEADER_BYTES + 12u * STAT_K_MAX * STAT_SIG_MAX + 8u * STAT_NUM_SIGNALS)
+/* Samples per hand-over block: the background must take a block within STAT_BLOCK control
+ * periods (16 at 2560 Hz: 6.25 ms). Values per sample (STAT_SLOT): the STAT_NUM_SIGNALS
+ * signals in bit order, then sin and cos of the fundamental (STAT_SLOT_SIN / _COS). */
+#define STAT_BLOCK 16u
+#define STAT_SLOT_SIN STAT_NUM_SIGNALS
+#define STAT_SLOT_COS (STAT_NUM_SIGNALS + 1u)
+#define STAT_SLOT (STAT_NUM_SIGNALS + 2u)
+#define STAT_FLAG_OVERRUN 0x01u
 
 typedef enum {
     STAT_OK = 0,
@@ -54,7 +82,18 @@ typedef struct {
     uint8_t hsel[STAT_SIG_MAX], psel[STAT_NUM_SIGNALS];
     uint32_t n;            /* period [samples] */
     float inv_n;
-    bool active;           /* any statistics this run */
+    /* ---- interrupt side (stat_push) ---- */
+    bool active;           /* taking samples this run (false after an overrun) */
+    uint32_t wblk;         /* block being filled */
+    uint32_t wcount;       /* samples in it */
+    float *wptr;           /* next sample's values */
+    /* ---- hand-over ---- */
+    volatile uint32_t ready[2]; /* samples handed over in each block, 0 = the interrupt's */
+    volatile bool overrun; /* this run's statistics are invalid */
+    volatile uint32_t overruns; /* runs whose statistics were invalidated, since init */
+    float block[2][STAT_BLOCK * STAT_SLOT];
+    /* ---- background side (stat_process) ---- */
+    uint32_t rblk;         /* next block to consume */
     bool first;            /* next sample is the run's first recorded one */
     /* per period */
     uint32_t idx;          /* sample in the period */
@@ -76,9 +115,20 @@ stat_status_t stat_set_signals(stat_t *st, uint32_t mask);
 stat_status_t stat_set_power(stat_t *st, uint32_t mask);
 /* Would a run with period n, sine cycles c (0 for a run without a sine) be accepted? */
 stat_status_t stat_check(const stat_t *st, uint32_t n, uint32_t cycles);
-/* Start of a run (after stat_check): clears the statistics. */
+/* Start of a run (after stat_check, no run active): clears the statistics and the blocks. */
 void stat_begin(stat_t *st, uint32_t n);
-/* End of the period: the period's sums into the running statistics (called by stat_push). */
+
+/* Interrupt side: a full block goes to the background (called by stat_push). */
+void stat_block_full(stat_t *st);
+/* Interrupt side (or with the interrupt masked): the run has ended; the partial block goes
+ * to the background. Idempotent. */
+void stat_flush(stat_t *st);
+
+/* Background: consume the blocks handed over, in order (bounded: at most 2 blocks). */
+void stat_process(stat_t *st);
+/* Background, no run active: stat_process, so the statistics are the run's final ones. */
+void stat_finish(stat_t *st);
+/* End of the period: the period's sums into the running statistics (stat_process). */
 void stat_period_end(stat_t *st);
 
 /* ---- per-sample hot path, inline (controller step budget) ---- */
@@ -90,46 +140,18 @@ static inline void stat_push(stat_t *st, const float sig[STAT_NUM_SIGNALS], floa
     if (!st->active) {
         return;
     }
-    if (st->first) {
-        for (uint32_t j = 0u; j < st->nh; j++) {
-            st->x0[j] = sig[st->hsel[j]];
-        }
-        st->first = false;
-    }
-    if (st->k_run > 0u) {
-        /* z_k = exp(-j 2 pi k c n / N) = (c - j s)^k for all STAT_K_MAX harmonics (constant
-         * cost, fixed trip counts the compiler unrolls / vectorises; unused ones are never
-         * read): z2 = z1^2, z3 = z2 z1, z4 = z2^2, z5..z8 = z4 z1..z4 (at most 3 roundings
-         * deep, no drift) */
-        float zr[STAT_K_MAX], zi[STAT_K_MAX];
-        zr[0] = c;
-        zi[0] = -s;
-        zr[1] = c * c - s * s;
-        zi[1] = -2.0f * c * s;
-        zr[2] = zr[1] * c + zi[1] * s;
-        zi[2] = zi[1] * c - zr[1] * s;
-        zr[3] = zr[1] * zr[1] - zi[1] * zi[1];
-        zi[3] = 2.0f * zr[1] * zi[1];
-        for (uint32_t k = 0u; k < 4u; k++) {
-            zr[4u + k] = zr[3] * zr[k] - zi[3] * zi[k];
-            zi[4u + k] = zr[3] * zi[k] + zi[3] * zr[k];
-        }
-        for (uint32_t j = 0u; j < st->nh; j++) {
-            const float x = sig[st->hsel[j]] - st->x0[j];
-            float *ar = st->acc_re[j], *ai = st->acc_im[j];
-            for (uint32_t k = 0u; k < STAT_K_MAX; k++) {
-                ar[k] += x * zr[k];
-                ai[k] += x * zi[k];
-            }
-        }
-    }
-    for (uint32_t j = 0u; j < st->np; j++) {
-        const float x = sig[st->psel[j]];
-        st->psum[j] += x;
-        st->psq[j] += x * x;
-    }
-    if (++st->idx == st->n) {
-        stat_period_end(st);
+    float *dst = st->wptr;
+    /* written out: gcc keeps a 5-trip copy loop on the M4 (twice the instructions) */
+    dst[0] = sig[0];
+    dst[1] = sig[1];
+    dst[2] = sig[2];
+    dst[3] = sig[3];
+    dst[4] = sig[4];
+    dst[STAT_SLOT_SIN] = s;
+    dst[STAT_SLOT_COS] = c;
+    st->wptr = dst + STAT_SLOT;
+    if (++st->wcount == STAT_BLOCK) {
+        stat_block_full(st);
     }
 }
 

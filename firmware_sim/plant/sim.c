@@ -123,6 +123,7 @@ void sim_run(sim_t *sim, uint64_t steps)
 {
     for (uint64_t i = 0; i < steps; i++) {
         (void)sim_step(sim);
+        drv_background(&sim->drv); /* the main loop's work between control steps */
     }
 }
 
@@ -136,6 +137,7 @@ uint64_t sim_run_until_idle(sim_t *sim, uint64_t max_steps)
             break;
         }
         (void)sim_step(sim);
+        drv_background(&sim->drv);
         n++;
     }
     return n;

@@ -46,10 +46,13 @@ void sim_free(sim_t *sim);
 drv_t *sim_drv(sim_t *sim);
 plant_t *sim_plant(sim_t *sim);
 
-/* One controller step; returns the plant input [V]. */
+/* One controller step (the control interrupt's work, no drv_background); returns the plant
+ * input [V]. A caller that steps with sim_step calls drv_background between steps. */
 float sim_step(sim_t *sim);
+/* steps x (sim_step, then drv_background: a main loop between control steps) */
 void sim_run(sim_t *sim, uint64_t steps);
-/* Steps until the run is no longer settling/recording (at most max_steps); returns steps taken. */
+/* Steps (with drv_background) until the run is no longer settling/recording (at most
+ * max_steps); returns steps taken. */
 uint64_t sim_run_until_idle(sim_t *sim, uint64_t max_steps);
 
 /* The simulated plant's truth for the sim_only ids of configs/od.yaml (DRV_P_SIM_*):

@@ -356,6 +356,7 @@ static void loop_free_run(app_t *app)
             do {
                 for (int k = 0; k < 64 && co_node_run_active(&app->node); k++) {
                     sim_step(&app->sim);
+                    drv_background(sim_drv(&app->sim)); /* statistics sums, between steps */
                     app->steps++;
                 }
             } while (mono_us() < until && co_node_run_active(&app->node));
@@ -389,6 +390,7 @@ static void loop_realtime(app_t *app)
         }
         sim_step(&app->sim);
         app->steps++;
+        drv_background(sim_drv(&app->sim)); /* statistics sums, before the bus work */
         /* bus work in bounded passes while the next deadline is far enough away (at least
          * one pass per period, so the bus is never starved) */
         uint64_t deadline_ns = (uint64_t)next.tv_sec * 1000000000u + (uint64_t)next.tv_nsec + period_ns;

@@ -101,6 +101,20 @@ __attribute__((noinline)) void bench_fw_drive_steps(drv_t *drv, uint32_t n)
     }
 }
 
+/* The same with the port's main-loop work between steps (drv_background: the statistics'
+ * sums); callgrind counts drv_step (--toggle-collect=drv_step) and the background
+ * (--toggle-collect=stat_process, per period: stat_period_end) separately. */
+__attribute__((noinline)) void bench_fw_steps_and_background(drv_t *drv, uint32_t n);
+__attribute__((noinline)) void bench_fw_steps_and_background(drv_t *drv, uint32_t n)
+{
+    drv_meas_t m = {0.001f, 0.002f};
+    for (uint32_t i = 0; i < n; i++) {
+        float u = drv_step(drv, &m);
+        drv_background(drv);
+        m.motor_angle_rad += 1e-4f * u;
+    }
+}
+
 static int bench_instr(int argc, char **argv)
 {
     drv_t drv;
@@ -157,14 +171,25 @@ static int bench_instr(int argc, char **argv)
         fprintf(stderr, "bench_fw: run refused (recorder %u floats)\n", (unsigned)st.rec_capacity);
         return 2;
     }
-    bench_fw_drive_steps(&drv, n);
+    if (stats) {
+        bench_fw_steps_and_background(&drv, n);
+    } else {
+        bench_fw_drive_steps(&drv, n);
+    }
     uint32_t state;
     (void)drv_get_u32(&drv, DRV_P_RUN_STATE, &state);
     printf("steps %u, run state %u\n", (unsigned)n, (unsigned)state);
     if (stats) {
-        uint32_t periods;
+        uint32_t periods, overruns;
         (void)drv_get_u32(&drv, DRV_P_STAT_PERIODS, &periods);
-        printf("statistics: %u periods accumulated\n", (unsigned)periods);
+        (void)drv_get_u32(&drv, DRV_P_STAT_OVERRUNS, &overruns);
+        printf("statistics: %u periods accumulated, %u background overruns\n", (unsigned)periods,
+               (unsigned)overruns);
+        if (overruns != 0u || periods != n / period) {
+            fprintf(stderr, "bench_fw: the statistics were not accumulated (%u periods of %u, %u overruns)\n",
+                    (unsigned)periods, (unsigned)(n / period), (unsigned)overruns);
+            return 2;
+        }
     }
     if (state != DRV_RUN_RECORDING) {
         fprintf(stderr, "bench_fw: the run was not recording through all measured steps\n");

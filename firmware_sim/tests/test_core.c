@@ -930,6 +930,281 @@ static void test_random_api_sequences_keep_invariants(void)
     TH_ASSERT(runs > 10u); /* the sequence did exercise runs */
 }
 
+
+/* ---------------- on-drive statistics (stat.h): deferred to the background ---------------- */
+
+/* The per-sample update as the control step did it before the background split (the
+ * reference): the same float32 operations in the same order, fed with the recorded
+ * samples (all 5 signals) and the generator's sin/cos of the phase index. Writes the
+ * 0x2041 byte stream; returns its length. */
+static uint32_t ref_stats(const float *rec, uint32_t samples, uint32_t n, uint32_t cycles, uint32_t k_run,
+                          uint32_t hmask, uint32_t pmask, float quarter_step, uint8_t *out)
+{
+    uint32_t hsel[3], psel[5], nh = 0u, np = 0u;
+    for (uint32_t b = 0u; b < 5u; b++) {
+        if (hmask & (1u << b)) {
+            hsel[nh++] = b;
+        }
+        if (pmask & (1u << b)) {
+            psel[np++] = b;
+        }
+    }
+    float x0[3] = {0}, ar[3][8] = {{0}}, ai[3][8] = {{0}}, mr[3][8] = {{0}}, mi[3][8] = {{0}}, m2[3][8] = {{0}};
+    float psum[5] = {0}, psq[5] = {0}, pmean[5] = {0}, pmsq[5] = {0};
+    const float inv_n = 1.0f / (float)n;
+    uint32_t idx = 0u, periods = 0u;
+    for (uint32_t i = 0u; i < samples; i++) {
+        const float *sig = rec + 5u * i;
+        float s, c;
+        gen_sincos_index((uint32_t)(((uint64_t)cycles * i) % n), n, quarter_step, &s, &c);
+        if (i == 0u) {
+            for (uint32_t j = 0u; j < nh; j++) {
+                x0[j] = sig[hsel[j]];
+            }
+        }
+        float zr[8], zi[8];
+        zr[0] = c;
+        zi[0] = -s;
+        zr[1] = c * c - s * s;
+        zi[1] = -2.0f * c * s;
+        zr[2] = zr[1] * c + zi[1] * s;
+        zi[2] = zi[1] * c - zr[1] * s;
+        zr[3] = zr[1] * zr[1] - zi[1] * zi[1];
+        zi[3] = 2.0f * zr[1] * zi[1];
+        for (uint32_t k = 0u; k < 4u; k++) {
+            zr[4u + k] = zr[3] * zr[k] - zi[3] * zi[k];
+            zi[4u + k] = zr[3] * zi[k] + zi[3] * zr[k];
+        }
+        for (uint32_t j = 0u; j < nh && k_run > 0u; j++) {
+            const float x = sig[hsel[j]] - x0[j];
+            for (uint32_t k = 0u; k < 8u; k++) {
+                ar[j][k] += x * zr[k];
+                ai[j][k] += x * zi[k];
+            }
+        }
+        for (uint32_t j = 0u; j < np; j++) {
+            psum[j] += sig[psel[j]];
+            psq[j] += sig[psel[j]] * sig[psel[j]];
+        }
+        if (++idx == n) {
+            idx = 0u;
+            periods++;
+            const float w = 1.0f / (float)periods;
+            for (uint32_t j = 0u; j < nh; j++) {
+                for (uint32_t k = 0u; k < k_run; k++) {
+                    const float xr = ar[j][k], xi = ai[j][k];
+                    const float dr = xr - mr[j][k], di = xi - mi[j][k];
+                    mr[j][k] += dr * w;
+                    mi[j][k] += di * w;
+                    m2[j][k] += dr * (xr - mr[j][k]) + di * (xi - mi[j][k]);
+                    ar[j][k] = 0.0f;
+                    ai[j][k] = 0.0f;
+                }
+            }
+            for (uint32_t j = 0u; j < np; j++) {
+                pmean[j] += (psum[j] * inv_n - pmean[j]) * w;
+                pmsq[j] += (psq[j] * inv_n - pmsq[j]) * w;
+                psum[j] = 0.0f;
+                psq[j] = 0.0f;
+            }
+        }
+    }
+    float f[8u + 3u * 8u * 3u + 2u * 5u];
+    uint32_t nf = 0u;
+    for (uint32_t j = 0u; j < nh && k_run > 0u; j++) {
+        for (uint32_t k = 0u; k < k_run; k++) {
+            f[nf++] = mr[j][k];
+            f[nf++] = mi[j][k];
+            f[nf++] = periods > 1u ? m2[j][k] / (float)(periods - 1u) : 0.0f;
+        }
+    }
+    for (uint32_t j = 0u; j < np; j++) {
+        f[nf++] = pmean[j];
+        f[nf++] = pmsq[j];
+    }
+    uint32_t hdr[2] = {periods, k_run | ((k_run ? hmask : 0u) << 8) | (pmask << 16)};
+    memcpy(out, hdr, 8u);
+    memcpy(out + 8u, f, 4u * nf);
+    return 8u + 4u * nf;
+}
+
+/* A sine run with statistics (K = 8 of reference, plant input, motor angle; power of
+ * motor angle and error), all 5 signals recorded. */
+static void stat_setup(drv_t *d, uint32_t n, uint32_t cycles, uint32_t periods)
+{
+    drv_enable(d, true);
+    TH_EQ(drv_set_f32(d, DRV_P_KFC, 0.1f), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_REC_SIGNALS, 0x1Fu), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_PERIOD, n), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_SINE_CYCLES, cycles), DRV_OK);
+    TH_EQ(drv_set_f32(d, DRV_P_EXC_AMPLITUDE, 0.4f), DRV_OK);
+    TH_EQ(drv_set_f32(d, DRV_P_EXC_OFFSET, 2.5f), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_SETTLE_PERIODS, 1u), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_RECORD_PERIODS, periods), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_STAT_HARMONICS, 8u), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_STAT_SIGNALS, 0x07u), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_STAT_POWER, 0x14u), DRV_OK);
+    TH_EQ(drv_run_start(d), DRV_OK);
+}
+
+/* A crude plant so the signals are not trivial: motor follows u through an integrator. */
+static float stat_step(drv_t *d, float motor)
+{
+    drv_meas_t m = {motor, 0.5f * motor};
+    float u = drv_step(d, &m);
+    return motor + 2e-3f * u + 1e-4f * sinf(37.0f * motor);
+}
+
+static void test_stat_deferred_equals_per_sample_reference_bit_for_bit(void)
+{
+    static uint8_t got[STAT_MAX_BYTES], want[STAT_MAX_BYTES];
+    /* background every step, every 11th step (blocks pile up to 2), and a period that is
+     * not a multiple of the block (periods end inside blocks) */
+    const uint32_t every[] = {1u, 11u, 16u};
+    for (uint32_t t = 0u; t < sizeof every / sizeof every[0]; t++) {
+        drv_t d = make_drv(REC_CAP);
+        const uint32_t n = 500u, cycles = 3u, periods = 5u;
+        stat_setup(&d, n, cycles, periods);
+        const float quarter_step = d.gen.quarter_step;
+        float motor = 2.5f;
+        for (uint32_t i = 0u; i < (periods + 1u) * n; i++) {
+            motor = stat_step(&d, motor);
+            if ((i + 1u) % every[t] == 0u) {
+                drv_background(&d);
+            }
+        }
+        uint32_t state, samples, ovr;
+        TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &state), DRV_OK);
+        TH_EQ(state, DRV_RUN_DONE);
+        TH_EQ(drv_get_u32(&d, DRV_P_REC_SAMPLES, &samples), DRV_OK);
+        TH_EQ(samples, periods * n);
+        uint32_t size = drv_stat_size_bytes(&d);
+        TH_EQ(size, 8u + 12u * 8u * 3u + 8u * 2u);
+        TH_EQ(drv_stat_read(&d, 0u, got, size), DRV_OK);
+        uint32_t wsize = ref_stats(rec_buf, samples, n, cycles, 8u, 0x07u, 0x14u, quarter_step, want);
+        TH_EQ(wsize, size);
+        TH_ASSERT(memcmp(got, want, size) == 0);
+        uint32_t p;
+        memcpy(&p, got, 4u);
+        TH_EQ(p, periods);
+        TH_EQ(drv_get_u32(&d, DRV_P_STAT_OVERRUNS, &ovr), DRV_OK);
+        TH_EQ(ovr, 0u);
+        /* not a trivial match: the fundamental of the reference is about amp N / 2 */
+        float mre, mim;
+        memcpy(&mre, got + 8u, 4u);
+        memcpy(&mim, got + 12u, 4u);
+        TH_NEAR(sqrtf(mre * mre + mim * mim), 0.4f * (float)n / 2.0f, 1e-2f);
+    }
+}
+
+static void test_stat_overrun_is_reported_not_delivered(void)
+{
+    static uint8_t got[STAT_MAX_BYTES];
+    drv_t d = make_drv(REC_CAP);
+    stat_setup(&d, 200u, 1u, 3u);
+    float motor = 2.5f;
+    /* settle, then the background keeps up for a while ... */
+    for (uint32_t i = 0u; i < 300u; i++) {
+        motor = stat_step(&d, motor);
+        drv_background(&d);
+    }
+    /* ... then misses 2 blocks and a bit: the interrupt finds both blocks full */
+    for (uint32_t i = 0u; i < 2u * STAT_BLOCK + 1u; i++) {
+        motor = stat_step(&d, motor);
+    }
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_STAT_OVERRUNS, &v), DRV_OK);
+    TH_EQ(v, 1u);
+    while (drv_get_u32(&d, DRV_P_RUN_STATE, &v) == DRV_OK && v == DRV_RUN_RECORDING) {
+        motor = stat_step(&d, motor);
+        drv_background(&d);
+    }
+    TH_EQ(v, DRV_RUN_DONE);
+    TH_EQ(drv_get_u32(&d, DRV_P_STAT_PERIODS, &v), DRV_OK);
+    TH_EQ(v, 0u); /* the host's check (periods == recorded periods) rejects it */
+    uint32_t size = drv_stat_size_bytes(&d);
+    TH_EQ(drv_stat_read(&d, 0u, got, size), DRV_OK);
+    uint32_t w0, w1;
+    memcpy(&w0, got, 4u);
+    memcpy(&w1, got + 4u, 4u);
+    TH_EQ(w0, 0u);
+    TH_EQ(w1 >> 24, STAT_FLAG_OVERRUN);
+    TH_EQ(w1 & 0xFFu, 8u); /* the layout stays readable */
+    uint32_t nonzero = 0u;
+    for (uint32_t i = 8u; i < size; i++) {
+        nonzero += got[i] != 0u;
+    }
+    TH_EQ(nonzero, 0u); /* no numbers rather than wrong ones */
+    /* the next run with a background that keeps up is valid again; the counter stays */
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    while (drv_get_u32(&d, DRV_P_RUN_STATE, &v) == DRV_OK && v == DRV_RUN_SETTLING) {
+        motor = stat_step(&d, motor);
+        drv_background(&d);
+    }
+    while (drv_get_u32(&d, DRV_P_RUN_STATE, &v) == DRV_OK && v == DRV_RUN_RECORDING) {
+        motor = stat_step(&d, motor);
+        drv_background(&d);
+    }
+    TH_EQ(drv_stat_read(&d, 0u, got, size), DRV_OK);
+    memcpy(&w0, got, 4u);
+    memcpy(&w1, got + 4u, 4u);
+    TH_EQ(w0, 3u);
+    TH_EQ(w1 >> 24, 0u);
+    TH_EQ(drv_get_u32(&d, DRV_P_STAT_OVERRUNS, &v), DRV_OK);
+    TH_EQ(v, 1u);
+}
+
+static void test_stat_read_right_after_the_run_is_final(void)
+{
+    static uint8_t got[STAT_MAX_BYTES], want[STAT_MAX_BYTES];
+    /* 3 x 100 samples: the last block holds 300 % 16 = 12 samples; the background never
+     * runs after the last 20 steps, so the last period is still pending at DONE */
+    drv_t d = make_drv(REC_CAP);
+    const uint32_t n = 100u, periods = 3u;
+    stat_setup(&d, n, 2u, periods);
+    const float quarter_step = d.gen.quarter_step;
+    float motor = 2.5f;
+    const uint32_t steps = (periods + 1u) * n;
+    for (uint32_t i = 0u; i < steps; i++) {
+        motor = stat_step(&d, motor);
+        if (i + 20u < steps) {
+            drv_background(&d);
+        }
+    }
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_DONE);
+    TH_EQ(drv_get_u32(&d, DRV_P_STAT_PERIODS, &v), DRV_OK);
+    TH_EQ(v, periods - 1u); /* the background has not seen the last period yet */
+    uint32_t size = drv_stat_size_bytes(&d); /* the reader (SDO upload of 0x2041) drains */
+    TH_EQ(drv_stat_read(&d, 0u, got, size), DRV_OK);
+    TH_EQ(ref_stats(rec_buf, periods * n, n, 2u, 8u, 0x07u, 0x14u, quarter_step, want), size);
+    TH_ASSERT(memcmp(got, want, size) == 0);
+    TH_EQ(drv_get_u32(&d, DRV_P_STAT_PERIODS, &v), DRV_OK);
+    TH_EQ(v, periods);
+
+    /* an abort mid-period: the read has the completed periods and the samples so far */
+    drv_t a = make_drv(REC_CAP);
+    stat_setup(&a, n, 2u, periods);
+    for (uint32_t i = 0u; i < n + 2u * n + 37u; i++) {
+        motor = stat_step(&a, motor);
+        if (i % 5u == 0u) {
+            drv_background(&a);
+        }
+    }
+    drv_run_abort(&a, DRV_STOP_ABORT_CMD);
+    size = drv_stat_size_bytes(&a);
+    TH_EQ(drv_stat_read(&a, 0u, got, size), DRV_OK);
+    uint32_t rs;
+    TH_EQ(drv_get_u32(&a, DRV_P_REC_SAMPLES, &rs), DRV_OK);
+    TH_EQ(rs, 2u * n + 37u);
+    TH_EQ(ref_stats(rec_buf, rs, n, 2u, 8u, 0x07u, 0x14u, quarter_step, want), size);
+    TH_ASSERT(memcmp(got, want, size) == 0);
+    TH_EQ(drv_get_u32(&a, DRV_P_STAT_PERIODS, &v), DRV_OK);
+    TH_EQ(v, 2u);
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
@@ -953,5 +1228,8 @@ int main(void)
     TH_RUN(test_ms_through_drive);
     TH_RUN(test_fft_inverse_complex_small);
     TH_RUN(test_random_api_sequences_keep_invariants);
+    TH_RUN(test_stat_deferred_equals_per_sample_reference_bit_for_bit);
+    TH_RUN(test_stat_overrun_is_reported_not_delivered);
+    TH_RUN(test_stat_read_right_after_the_run_is_final);
     return th_finish();
 }

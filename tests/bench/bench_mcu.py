@@ -2,9 +2,14 @@
 
 - Instructions per drv_step on the M4 (arm-none-eabi-gcc -O2, fpv4-sp-d16): pil_bench.elf
   under qemu-system-arm -icount shift=0 (every instruction 1 ns of virtual time; SysTick
-  counts it at 168 MHz, so instructions = ticks / 0.168, exact). drv_step alone:
-  controller + generator + recorder of 3 signals, no plant, 5000 steps in a recording run.
-- Beside it the x86-64 count of the same workload by callgrind (build/bench_fw instr).
+  counts it at 168 MHz, so instructions = ticks / 0.168, exact). drv_step: controller +
+  generator + recorder of 3 signals, no plant, 4000 steps in a recording run, counted over
+  the benchmark loop (bench_drive_steps: + the loop's call and feedback, ~9 instructions).
+  With the harmonic statistics on (K = 8 of 3 signals, power of 1): drv_step timed alone per
+  call, and the background (drv_background, called between steps) per step.
+- Beside it the x86-64 counts by callgrind (build/bench_fw instr): the same loop
+  (--toggle-collect=bench_fw_drive_steps, what the M4 figure counts) and drv_step alone
+  (--toggle-collect=drv_step, what `make -C firmware_sim bench` and the docs quote).
 - The PIL interrupt's work per step (sim_step: the double-precision plant in software
   floating point + drv_step), mean and worst, against the 65625 cycles of one 2560 Hz period.
 - Flash and RAM of build/mcu/pil.elf (make pil).
@@ -49,19 +54,23 @@ def m4_counts():
     return res
 
 
+def _callgrind(args, toggle):
+    cg = os.path.join(BUILD, "callgrind.mcu.out")
+    subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={cg}", f"--toggle-collect={toggle}",
+                    os.path.join(BUILD, "bench_fw"), "instr", *args, str(STEPS)], check=True, capture_output=True)
+    with open(cg) as f:
+        text = f.read()
+    return int(re.search(r"^(?:summary|totals):\s*(\d+)", text, re.M).group(1)) / STEPS
+
+
 def x86_counts():
+    """name -> (over the benchmark loop, drv_step alone) per step; for the statistics run
+    (drv_step alone, background stat_process) per step."""
     if shutil.which("valgrind") is None:
         return {}
-    res = {}
-    for name, args in WORKLOADS:
-        cg = os.path.join(BUILD, f"callgrind.mcu.{name}.out")
-        subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={cg}",
-                        "--toggle-collect=bench_fw_drive_steps*", os.path.join(BUILD, "bench_fw"), "instr",
-                        *args, str(STEPS)], check=True, capture_output=True)
-        with open(cg) as f:
-            text = f.read()
-        ir = int(re.search(r"^(?:summary|totals):\s*(\d+)", text, re.M).group(1))
-        res[name] = ir / STEPS
+    res = {name: (_callgrind(args, "bench_fw_drive_steps"), _callgrind(args, "drv_step"))
+           for name, args in WORKLOADS}
+    res["stats"] = (_callgrind(["sine-stats"], "drv_step"), _callgrind(["sine-stats"], "stat_process"))
     return res
 
 
@@ -108,10 +117,17 @@ def main():
     m4 = m4_counts()
     x86 = x86_counts()
     print(f"drv_step instructions per controller step (controller + generator + recorder of 3 signals, "
-          f"no plant; {STEPS} steps):")
+          f"no plant; {STEPS} steps), counted over the benchmark loop (drv_step + the loop's call and "
+          f"feedback) on both; x86 drv_step alone as `make -C firmware_sim bench` prints it:")
     for name, _ in WORKLOADS:
-        x = f"{x86[name]:.0f}" if name in x86 else "n/a (valgrind not installed)"
+        x = (f"{x86[name][0]:.0f} (drv_step alone {x86[name][1]:.0f})" if name in x86
+             else "n/a (valgrind not installed)")
         print(f"  {name[9:]:>10}: Cortex-M4F (qemu -icount) {m4[name]:.0f}   x86-64 (callgrind) {x}")
+    xs = (f"x86-64 (callgrind) {x86['stats'][0]:.0f}, background {x86['stats'][1]:.0f}" if "stats" in x86
+          else "x86-64 n/a (valgrind not installed)")
+    print(f"  sine with harmonic statistics (K = 8 of 3 signals, power of 1), drv_step timed alone per call, "
+          f"drv_background between steps: Cortex-M4F {m4['drv_step_sine_stats']:.0f}, background "
+          f"{m4['background_sine_stats']:.0f} per step;   {xs} per step")
     period = 168e6 / 2560
     print(f"PIL control interrupt (sim_step: software-double plant + drv_step, sine run of 4096 steps): "
           f"mean {m4['closed_loop_total']:.0f}, worst {m4['closed_loop_worst']:.0f} instructions per step "

@@ -150,9 +150,9 @@ drv_status_t drv_rec_read(const drv_t *d, uint32_t off, uint8_t *dst, uint32_t l
 }
 
 /* statistics: 8 synthetic bytes (the header of an empty statistics stream) */
-uint32_t drv_stat_size_bytes(const drv_t *d) { (void)d; return 8u; }
+uint32_t drv_stat_size_bytes(drv_t *d) { (void)d; return 8u; }
 
-drv_status_t drv_stat_read(const drv_t *d, uint32_t off, uint8_t *dst, uint32_t len)
+drv_status_t drv_stat_read(drv_t *d, uint32_t off, uint8_t *dst, uint32_t len)
 {
     (void)d;
     if ((uint64_t)off + len > 8u) {

@@ -6,7 +6,12 @@
  * count of the same workload (firmware_sim/tests/bench_fw.c instr).
  *
  * Workloads (as bench_fw instr): drv_step alone (controller + generator + recorder of 3
- * signals, no plant) with a 64- and a 1024-sample table and with the sine generator;
+ * signals, no plant) with a 64- and a 1024-sample table and with the sine generator,
+ * counted over the loop bench_drive_steps (so the loop's call and feedback are included,
+ * as in bench_fw's "benchmark loop" figure); the sine with the harmonic statistics on
+ * (K = 8 of 3 signals, power of 1), drv_step timed alone per step with drv_background
+ * between steps outside the timed region (as bench_fw's drv_step-alone figure), and the
+ * background per step;
  * then the processor-in-the-loop interrupt's work (sim_step: the double-precision plant in
  * software floating point + drv_step) per step over a sine run of the PIL configuration.
  * Output on USART1 (the serial console), one line per figure; exit by semihosting.
@@ -148,6 +153,67 @@ static void bench_drive(const char *what, uint32_t table_len)
     report(what, ticks_since(t0, t1), BENCH_STEPS, wrapped);
 }
 
+/* drv_step with the harmonic statistics on, drv_background between steps (the main loop);
+ * each timed alone per call, the counter reads' own cost subtracted */
+static void bench_drive_stats(void)
+{
+    static drv_t drv;
+    drv_storage_t st = {g_rec, (uint32_t)(sizeof g_rec / sizeof g_rec[0]), g_tab, BENCH_TABLE, 2560.0f, g_stage};
+    if (drv_init(&drv, &st) != DRV_OK) {
+        put("BENCH error drv_init\n");
+        return;
+    }
+    drv_enable(&drv, true);
+    (void)drv_set_f32(&drv, DRV_P_KFC, 0.1f);
+    (void)drv_set_f32(&drv, DRV_P_KV, 0.01f);
+    (void)drv_set_u32(&drv, DRV_P_REC_SIGNALS, 0x07u);
+    (void)drv_set_f32(&drv, DRV_P_EXC_AMPLITUDE, 0.5f);
+    (void)drv_set_u32(&drv, DRV_P_EXC_KIND, DRV_EXC_SINE);
+    (void)drv_set_u32(&drv, DRV_P_EXC_PERIOD, 2048u);
+    (void)drv_set_u32(&drv, DRV_P_EXC_SETTLE_PERIODS, 0u);
+    (void)drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, BENCH_STEPS / 2048u + 1u);
+    if (drv_set_u32(&drv, DRV_P_STAT_HARMONICS, 8u) != DRV_OK ||
+        drv_set_u32(&drv, DRV_P_STAT_SIGNALS, DRV_SIG_REFERENCE | DRV_SIG_PLANT_INPUT | DRV_SIG_MOTOR_ANGLE) != DRV_OK ||
+        drv_set_u32(&drv, DRV_P_STAT_POWER, DRV_SIG_ERROR) != DRV_OK || drv_run_start(&drv) != DRV_OK) {
+        put("BENCH error statistics run refused\n");
+        return;
+    }
+    /* one free-running count over all steps (no reset per step, so the 1-tick reading
+     * granularity, ~6 instructions, averages out); the same number of empty read pairs
+     * measures the reads' own cost */
+    ticks_start();
+    uint32_t read_total = 0u, step_total = 0u, bg_total = 0u;
+    for (uint32_t i = 0; i < BENCH_STEPS; i++) {
+        uint32_t t0 = ticks_now();
+        uint32_t t1 = ticks_now();
+        read_total += ticks_since(t0, t1);
+    }
+    drv_meas_t m = {0.001f, 0.002f};
+    for (uint32_t i = 0; i < BENCH_STEPS; i++) {
+        uint32_t t0 = ticks_now();
+        float u = drv_step(&drv, &m);
+        uint32_t t1 = ticks_now();
+        drv_background(&drv);
+        uint32_t t2 = ticks_now();
+        step_total += ticks_since(t0, t1);
+        bg_total += ticks_since(t1, t2);
+        m.motor_angle_rad += 1e-4f * u;
+    }
+    int wrapped = (MCU_SYST_CSR & MCU_SYST_CSR_COUNTFLAG) != 0u;
+    step_total -= read_total;
+    bg_total -= read_total;
+    uint32_t state = 0u, periods = 0u, overruns = 0u;
+    (void)drv_get_u32(&drv, DRV_P_RUN_STATE, &state);
+    (void)drv_get_u32(&drv, DRV_P_STAT_PERIODS, &periods);
+    (void)drv_get_u32(&drv, DRV_P_STAT_OVERRUNS, &overruns);
+    if (state != DRV_RUN_RECORDING || overruns != 0u || periods != BENCH_STEPS / 2048u) {
+        put("BENCH error statistics not accumulated through the measured steps\n");
+        return;
+    }
+    report("drv_step_sine_stats", step_total, BENCH_STEPS, wrapped);
+    report("background_sine_stats", bg_total, BENCH_STEPS, wrapped);
+}
+
 /* the PIL interrupt's work per step: plant (software double) + drv_step; mean and max */
 static void bench_closed_loop(void)
 {
@@ -210,6 +276,7 @@ int mcu_main(void)
     bench_drive("drv_step_table_64", 64u);
     bench_drive("drv_step_table_1024", 1024u);
     bench_drive("drv_step_sine", 0u);
+    bench_drive_stats();
     bench_closed_loop();
     put("BENCH done\n");
     semihost_exit();

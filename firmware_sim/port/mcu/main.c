@@ -11,7 +11,9 @@
  *   same samples whatever the host's timing between them (the determinism check compares
  *   them with drive_sim's bit for bit). Build with -DPIL_HOLD_IDLE=0 for a control loop
  *   that steps at every tick, as on a real drive.
- * Main loop: bytes from the UART receive ring -> SLCAN parser -> co_node_rx; replies and
+ * Main loop: drv_background (the statistics' sums, with the control interrupt enabled: it
+ *   only takes blocks the interrupt has handed over); bytes from the UART receive ring ->
+ *   SLCAN parser -> co_node_rx; replies and
  *   the node's frames -> transmit ring -> UART; co_node_process with the tick time; WFI
  *   when there is nothing to do. co_node_rx / co_node_process run with the control
  *   interrupt masked (BASEPRI), as docs/porting.md asks of every port; the UART interrupt
@@ -242,6 +244,7 @@ int mcu_main(void)
 
     uint32_t last_tick = 0u;
     for (;;) {
+        drv_background(sim_drv(&g_sim));
         pil_link_rx();
         g_tx_refused = false;
         pil_lock();
