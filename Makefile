@@ -83,10 +83,13 @@ fuzz: setup
 # into .venv here). Each half runs at most MUTATION_BUDGET seconds; results are kept in
 # build/mutation/ and the next call continues with the mutants not run yet.
 MUTATION_BUDGET ?= 3600
+# MUTATION_MODULES="canopen/co_sdo.c analysis/bla.py": only these modules (default: all)
+MUTATION_MODULES ?=
+MUTATION_ONLY = $(if $(strip $(MUTATION_MODULES)),--modules "$(MUTATION_MODULES)")
 mutation: setup $(VENV)/.mutation-tools
-	@$(PY) tools/mutation/cmut.py --budget $(MUTATION_BUDGET)
+	@$(PY) tools/mutation/cmut.py --budget $(MUTATION_BUDGET) $(MUTATION_ONLY)
 	@echo
-	@$(PY) tools/mutation/pymut.py --budget $(MUTATION_BUDGET)
+	@$(PY) tools/mutation/pymut.py --budget $(MUTATION_BUDGET) $(MUTATION_ONLY)
 
 $(VENV)/.mutation-tools: tools/mutation/requirements.txt $(STAMP)
 	$(VENV)/bin/python -m pip install -q --disable-pip-version-check -r tools/mutation/requirements.txt

@@ -111,7 +111,6 @@ typedef struct {
     uint32_t offset;  /* bytes transferred so far */
     uint8_t toggle;
     uint8_t buf[CO_SDO_BUF]; /* non-DOMAIN values */
-    uint32_t idle_us;        /* time since the last client frame */
     uint32_t last_us;
     /* repeated-request handling (a client retry after a lost response) */
     uint8_t last_req[8];

@@ -156,9 +156,7 @@ static const co_od_entry_t *initiate_lookup(co_node_t *n, uint16_t index, uint8_
 static uint32_t prepare_upload(co_node_t *n, const co_od_entry_t *e)
 {
     co_sdo_t *s = &n->sdo;
-    if (!(e->access & CO_ACC_R)) {
-        return CO_SDO_AB_WRITEONLY;
-    }
+    /* the access check (write-only: 0x06010001) is co_od_read's and co_od_domain_size's */
     if (e->type == CO_T_DOMAIN) {
         s->generation = co_od_domain_generation(n, e);
         return co_od_domain_size(n, e, &s->size);
@@ -193,7 +191,6 @@ static void start_transfer(co_sdo_t *s, const co_od_entry_t *e, uint16_t index, 
     s->offset = 0u;
     s->toggle = 0u;
     s->have_last = false;
-    s->idle_us = 0u;
 }
 
 /* Upload initiate (also the pst fallback of a block upload). */
@@ -585,11 +582,11 @@ void co_sdo_rx(co_node_t *n, const co_frame_t *f)
     }
     const uint8_t *r = f->data;
     uint8_t ccs = r[0] >> 5;
-    s->idle_us = 0u;
     s->last_us = n->now_us;
     if (s->state == SDO_BDL_SUB) {
         if (ccs == 4u && r[0] == 0x80u) {
-            s->state = SDO_IDLE; /* client abort */
+            s->state = SDO_IDLE; /* client abort: no answer, and nothing to repeat */
+            s->have_last = false;
             return;
         }
         block_download_segment(n, r);

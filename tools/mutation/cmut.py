@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, ModuleReport, Mutant, MutationError, announce, run_and_report  # noqa: E402
+from common import ROOT, ModuleReport, Mutant, MutationError, announce, fail, pick_modules, run_and_report  # noqa: E402
 
 FW = ROOT / "firmware_sim"
 WORK = ROOT / "build" / "mutation" / "c"
@@ -69,7 +69,7 @@ FLAGS = {
 CC = os.environ.get("CC", "cc")
 # part of every module's digest: change it when the operators or the build change, so that
 # kept results are not mixed with results of another harness
-HARNESS_VERSION = "1"
+HARNESS_VERSION = "2"
 
 # --------------------------------------------------------------------------- operators
 
@@ -260,22 +260,28 @@ def _run_tests(programs, replace, timeout):
 # --------------------------------------------------------------------------- driver
 
 def _digest(module):
-    """What a module's results depend on: every source linked into its test programs, the
-    tests, the generator inputs and this harness."""
+    """What a module's results depend on, as (code, tests): every source linked into its
+    test programs, the generator inputs and this harness; and the test programs with their
+    data. Only the tests changed: the killed mutants stay killed (tests are added, not
+    weakened, here; --restart runs all again), the survivors are run again."""
     if module.startswith("canopen/"):
-        globs = ["canopen/*.c", "canopen/*.h", "canopen/tests/*", "core/drv.h", "tools/odgen.py"]
-        extra = [ROOT / "configs" / "od.yaml"]
+        code_globs = ["canopen/*.c", "canopen/*.h", "core/drv.h", "tools/odgen.py"]
+        test_globs, code_extra, test_extra = ["canopen/tests/*"], [ROOT / "configs" / "od.yaml"], []
     else:
-        globs = ["core/*.c", "core/*.h", "plant/*.c", "plant/*.h", "tests/test_core.c",
-                 "tests/test_plant.c", "tests/th.h", "tools/odgen.py"]
-        extra = [ROOT / "configs" / "od.yaml", ROOT / "tests" / "vectors" / "multisine_vectors.json"]
-    h = hashlib.sha256()
-    h.update(HARNESS_VERSION.encode())
-    for p in sorted({q for g in globs for q in FW.glob(g)}) + extra:
-        if p.is_file():
-            h.update(p.as_posix().encode())
-            h.update(p.read_bytes())
-    return h.hexdigest()
+        code_globs = ["core/*.c", "core/*.h", "plant/*.c", "plant/*.h", "tools/odgen.py"]
+        test_globs = ["tests/test_core.c", "tests/test_plant.c", "tests/th.h"]
+        code_extra = [ROOT / "configs" / "od.yaml"]
+        test_extra = [ROOT / "tests" / "vectors" / "multisine_vectors.json"]
+
+    def digest(globs, extra):
+        h = hashlib.sha256()
+        h.update(HARNESS_VERSION.encode())
+        for p in sorted({q for g in globs for q in FW.glob(g)}) + extra:
+            if p.is_file():
+                h.update(p.relative_to(ROOT).as_posix().encode())
+                h.update(p.read_bytes())
+        return h.hexdigest()
+    return digest(code_globs, code_extra), digest(test_globs, test_extra)
 
 
 def _state_path(module):
@@ -283,12 +289,23 @@ def _state_path(module):
 
 
 def _load_state(module, restart, digest):
+    """Kept results: all of them when nothing changed; the killed and not viable ones when
+    only the tests changed (the survivors are run again); none when the code changed."""
     path = _state_path(module)
+    code, tests = digest
     if not restart and path.exists():
         state = json.loads(path.read_text())
-        if state.get("digest") == digest:
+        if state.get("code_digest") == code:
+            if state.get("tests_digest") != tests:
+                again = [k for k, r in state["results"].items() if r["outcome"] == "survived"]
+                for k in again:
+                    del state["results"][k]
+                print(f"mutation: {module}: the tests changed: {len(again)} survivor(s) run "
+                      f"again, the killed mutants kept", flush=True)
+                state["tests_digest"] = tests
+                path.write_text(json.dumps(state, indent=0))
             return state
-    return {"digest": digest, "results": {}}
+    return {"code_digest": code, "tests_digest": tests, "results": {}}
 
 
 def run_module(module, deadline, restart, digest):
@@ -337,10 +354,14 @@ def report(module):
     path = _state_path(module)
     source = (FW / module).read_text()
     sites = mutants_of(source)
-    state = json.loads(path.read_text()) if path.exists() else {"digest": None, "results": {}}
-    if state.get("digest") != _digest(module):
+    state = json.loads(path.read_text()) if path.exists() else {"results": {}}
+    code, tests = _digest(module)
+    if state.get("code_digest") != code:
         state = {"results": {}}
         rep.note = "not run on the present code yet"
+    elif state.get("tests_digest") != tests:
+        state = {"results": {k: r for k, r in state["results"].items() if r["outcome"] != "survived"}}
+        rep.note = "the tests changed since the last run: its survivors count as pending"
     name = Path(module).name
     lines = source.split("\n")
     for ln, col, op, new in sites:
@@ -355,14 +376,24 @@ def report(module):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--module", action="append", choices=sorted(MODULES),
-                    help="only this module (repeatable); default: all")
+    ap.add_argument("--modules", metavar="LIST",
+                    help="only these modules (space or comma separated, as MUTATION_MODULES; "
+                         "the other driver's names are skipped); default: all")
+    ap.add_argument("--module", action="append", default=[], help="one module (repeatable)")
     ap.add_argument("--budget", type=float, default=float(os.environ.get("MUTATION_BUDGET", 3600)),
                     help="seconds for this run (default 3600); the next run continues")
     ap.add_argument("--report-only", action="store_true", help="print the scores, run nothing")
     ap.add_argument("--restart", action="store_true", help="forget earlier results")
     args = ap.parse_args(argv)
-    modules = args.module or list(MODULES)
+    spec = " ".join(args.module + ([args.modules] if args.modules else [])) or None
+    try:
+        modules = pick_modules(spec, MODULES)
+    except MutationError as exc:
+        fail(str(exc))
+    if not modules:
+        return 0                      # MUTATION_MODULES names only the other driver's modules
+    if not args.report_only and shutil.which(CC) is None:
+        fail(f"mutation: C compiler {CC!r} not found (set CC, or install gcc: make system-deps)")
     signal.signal(signal.SIGTERM, signal.default_int_handler)   # restore the source on a stop
     def run():
         deadline = time.monotonic() + args.budget

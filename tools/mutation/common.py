@@ -28,6 +28,27 @@ def fail(message):
     sys.exit(2)
 
 
+def pick_modules(spec, own):
+    """The modules of ``own`` (this driver's names) named in ``spec`` (MUTATION_MODULES: names
+    separated by spaces or commas, e.g. "canopen/co_sdo.c analysis/bla.py"; a Python module
+    also as "bla" or "bla.py"). Names of the other driver are left to it; a name neither
+    driver knows is an error. None (no spec) means all of ``own``."""
+    if spec is None:
+        return list(own)
+    from cmut import MODULES as c_modules
+    from pymut import MODULES as py_modules
+    known = {m: m for m in c_modules}
+    for short, (path, _) in py_modules.items():
+        known.update({short: short, f"{short}.py": short, path: short})
+    names = [n for n in re.split(r"[\s,]+", spec.strip()) if n]
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise MutationError(
+            f"mutation: unknown module {unknown[0]!r} (C: {', '.join(c_modules)}; Python: "
+            f"{', '.join(v[0] for v in py_modules.values())})")
+    return [m for m in own if m in {known[n] for n in names}]
+
+
 def announce(name, deadline):
     """One progress line: module ``name`` starts, with the budget left until ``deadline``."""
     print(f"mutation: {name}: running (budget left "

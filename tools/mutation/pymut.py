@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ROOT, ModuleReport, Mutant, MutationError, announce, fail, run_and_report  # noqa: E402
+from common import ROOT, ModuleReport, Mutant, MutationError, announce, pick_modules, fail, run_and_report  # noqa: E402
 
 WORK = ROOT / "build" / "mutation" / "py"
 
@@ -69,6 +69,18 @@ def _digest(paths):
         h.update((ROOT / p).read_bytes())
     h.update(KEEP_OPERATORS.pattern.encode())
     return h.hexdigest()
+
+
+def _rerun_survivors(session):
+    """Forget the survivors' results (they run again); the killed mutants stay killed."""
+    import sqlite3
+    con = sqlite3.connect(str(session))
+    try:
+        with con:
+            n = con.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'").rowcount
+    finally:
+        con.close()
+    return n
 
 
 def _refresh_scratch(mod_dir):
@@ -120,13 +132,17 @@ def _prepare(name, force=False):
     mod_dir = WORK / name
     mod_dir.mkdir(parents=True, exist_ok=True)
     session, stamp, config = mod_dir / "session.sqlite", mod_dir / "digest", mod_dir / "config.toml"
-    digest = _digest([module] + tests)
+    # code and tests apart: when only the tests changed (tests added), the killed mutants
+    # stay killed and the survivors run again; a changed module starts over
+    digest = _digest([module]) + "\n" + _digest(tests)
     pkg_root = _refresh_scratch(mod_dir)
-    fresh = force or not session.exists() or not stamp.exists() or stamp.read_text() != digest
-    if not fresh:
+    kept = None if force or not session.exists() or not stamp.exists() else stamp.read_text()
+    if kept == digest:
         return session, config, pkg_root
-    for p in (session, stamp):
-        p.unlink(missing_ok=True)
+    tests_only = kept is not None and kept.split("\n")[0] == digest.split("\n")[0]
+    if not tests_only:
+        for p in (session, stamp):
+            p.unlink(missing_ok=True)
     env = _env(pkg_root)
     # baseline: the selection must pass on the unmutated code, its time sets the timeout
     t0 = time.monotonic()
@@ -137,6 +153,12 @@ def _prepare(name, force=False):
         tail = base.stdout.strip().splitlines()[-1:] or ["(no output)"]
         raise MutationError(f"mutation: {name}: the tests fail on the unmutated code "
                             f"({' '.join(tests)}): {tail[0]}")
+    if tests_only:
+        n = _rerun_survivors(session)
+        stamp.write_text(digest)
+        print(f"mutation: {name}: the tests changed: {n} survivor(s) run again, the killed "
+              f"mutants kept (baseline tests {elapsed:.1f} s)", flush=True)
+        return session, config, pkg_root
     timeout = max(30.0, 5.0 * elapsed)
     target = pkg_root / "fftune" / "analysis" / Path(module).name
     config.write_text(
@@ -251,15 +273,23 @@ def report(name):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--module", action="append", choices=sorted(MODULES),
-                    help="only this module (repeatable); default: all")
+    ap.add_argument("--modules", metavar="LIST",
+                    help="only these modules (space or comma separated, as MUTATION_MODULES; "
+                         "the other driver's names are skipped); default: all")
+    ap.add_argument("--module", action="append", default=[], help="one module (repeatable)")
     ap.add_argument("--budget", type=float, default=float(os.environ.get("MUTATION_BUDGET", 3600)),
                     help="seconds for this run, all modules together (default 3600; "
                          "pending mutants are run by the next call)")
     ap.add_argument("--report-only", action="store_true", help="print the scores, run nothing")
     ap.add_argument("--restart", action="store_true", help="discard the sessions, start over")
     args = ap.parse_args(argv)
-    names = args.module or list(MODULES)
+    spec = " ".join(args.module + ([args.modules] if args.modules else [])) or None
+    try:
+        names = pick_modules(spec, MODULES)
+    except MutationError as exc:
+        fail(str(exc))
+    if not names:
+        return 0                      # MUTATION_MODULES names only the other driver's modules
     # a stop by SIGTERM (or SIGINT, ignored in background jobs) cleans up like Ctrl-C
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:

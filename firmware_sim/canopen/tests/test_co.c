@@ -605,9 +605,10 @@ static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int
     uint8_t r[8] = {0xC6, 0x02, 0x20, 0, 0, 0, 0, 0};
     co_put_u32(&r[4], size);
     const co_frame_t *f = sdo(r);
-    if (f == NULL || (f->data[0] & 0xE0) != 0xA0) {
-        return abort_code(f);
+    if (f == NULL || f->data[0] != 0xA4) { /* scs 5, sc: the server checks the CRC */
+        return f != NULL && f->data[0] == 0x80 ? abort_code(f) : 0xBAD0u;
     }
+    g_reserved_ok &= f->data[1] == 0x02 && f->data[2] == 0x20 && f->data[3] == 0;
     uint8_t blk = f->data[4];
     uint32_t pos = 0;
     uint16_t crc = co_sdo_crc16(0, data, size);
@@ -637,6 +638,9 @@ static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int
             if (f->data[0] == 0x80) {
                 return abort_code(f);
             }
+            if (f->data[0] != 0xA2) { /* scs 5, ss 2: sub-block response */
+                return 0xBAD1u;
+            }
             uint8_t ack = f->data[1];
             g_reserved_ok &= zero_from(f, 3); /* sub-block ack: ackseq, blksize, reserved */
             blk = f->data[2];
@@ -661,8 +665,9 @@ static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int
     }
     if (f->data[0] == 0xA1) {
         g_reserved_ok &= zero_from(f, 1); /* end response: all reserved */
+        return 0u;
     }
-    return f->data[0] == 0xA1 ? 0u : abort_code(f);
+    return f->data[0] == 0x80 ? abort_code(f) : 0xBAD2u;
 }
 
 static void test_block_download(void)
@@ -1052,6 +1057,314 @@ static void test_crc(void)
     CHECK(co_sdo_crc16(0, s, 9) == 0x31C3);
 }
 
+/* ---- SDO rules that mutation testing found untested (docs/testing.md) ---- */
+
+/* A segmented download to a request index/sub; returns the last answer. */
+static const co_frame_t *seg_download(uint8_t init_cmd, uint16_t index, uint8_t sub, uint32_t size,
+                                      const uint8_t *data, uint32_t len, int last)
+{
+    uint8_t init[8] = {init_cmd, (uint8_t)index, (uint8_t)(index >> 8), sub, 0, 0, 0, 0};
+    co_put_u32(&init[4], size);
+    const co_frame_t *f = sdo(init);
+    if (f == NULL || f->data[0] != 0x60) {
+        return f;
+    }
+    uint8_t t = 0;
+    for (uint32_t pos = 0; pos < len || pos == 0; pos += 7) {
+        uint32_t n = len - pos < 7 ? len - pos : 7;
+        int end = last && pos + n >= len;
+        uint8_t seg[8] = {(uint8_t)(t | ((7u - n) << 1) | (end ? 1 : 0)), 0, 0, 0, 0, 0, 0, 0};
+        memcpy(&seg[1], &data[pos], n);
+        f = sdo(seg);
+        if (f == NULL || f->data[0] != (0x20 | t)) {
+            return f;
+        }
+        t ^= 0x10;
+        if (len == 0) {
+            break;
+        }
+    }
+    return f;
+}
+
+/* Sizes: indicated or not, expedited or segmented, the 32-byte buffer of non-DOMAIN values,
+ * read-only before a length error, a zero-byte last segment. */
+static void test_sdo_download_size_rules(void)
+{
+    setup();
+    uint8_t kd[4];
+    co_put_u32(kd, f2u(2.5f));
+    /* segmented, no size indicated (ccs 1, s = 0): accepted, the value written at the end */
+    const co_frame_t *f = seg_download(0x20, 0x2000, 2, 0, kd, 4, 1);
+    CHECK(f && f->data[0] == 0x20 && g_drv.f[DRV_P_KD] == 2.5f);
+    /* a last segment with no data (n = 7) ends the transfer */
+    co_put_u32(kd, f2u(3.5f));
+    f = seg_download(0x20, 0x2000, 2, 0, kd, 4, 0);
+    CHECK(f && f->data[0] == 0x20);
+    uint8_t empty_last[8] = {(uint8_t)(0x10 | (7 << 1) | 1), 0, 0, 0, 0, 0, 0, 0};
+    f = sdo(empty_last);
+    CHECK(f && f->data[0] == 0x30 && g_drv.f[DRV_P_KD] == 3.5f && g_n.sdo.state == 0);
+    /* without a size the server buffers up to CO_SDO_BUF (32) bytes, one more is too long */
+    uint8_t big[40] = {0};
+    f = seg_download(0x20, 0x2000, 2, 0, big, 32, 0);
+    CHECK(f && f->data[0] == 0x20 && g_n.sdo.offset == 32u); /* 5th segment (toggle 0) taken */
+    uint8_t one_more[8] = {(uint8_t)(0x10 | (6 << 1)), 0, 0, 0, 0, 0, 0, 0};
+    CHECK(abort_code(sdo(one_more)) == CO_SDO_AB_DATA_LONG);
+    /* expedited without size (0x22): the object's own size (1 byte here, an odd index) */
+    uint8_t e22[8] = {0x22, 0x03, 0x1A, 0, 0, 0, 0, 0};
+    f = sdo(e22);
+    CHECK(f && f->data[0] == 0x60 && g_n.ram.tpdo_map[3].count == 0);
+    uint8_t m22[8] = {0x22, 0x60, 0x60, 0, 0xFF, 0xAA, 0xBB, 0xCC};
+    f = sdo(m22);
+    CHECK(f && f->data[0] == 0x60 && g_n.ram.mode_display == -1);
+    /* segmented with a size that does not fit a one-byte object: refused at the initiate */
+    uint8_t s2[8] = {0x21, 0x60, 0x60, 0, 2, 0, 0, 0};
+    CHECK(abort_code(sdo(s2)) == CO_SDO_AB_DATA_LONG);
+    uint8_t s0[8] = {0x21, 0x00, 0x20, 1, 3, 0, 0, 0};
+    CHECK(abort_code(sdo(s0)) == CO_SDO_AB_DATA_SHORT);
+    /* read-only comes before a length error */
+    uint8_t ro[8] = {0x2B, 0x00, 0x10, 0, 1, 0, 0, 0}; /* 2 bytes to the 4-byte 0x1000 */
+    CHECK(abort_code(sdo(ro)) == CO_SDO_AB_READONLY);
+    uint8_t ro_dom[8] = {0xC6, 0x21, 0x20, 0, 8, 0, 0, 0}; /* block download to the recorder */
+    CHECK(abort_code(sdo(ro_dom)) == CO_SDO_AB_READONLY);
+    uint8_t ro_seg[8] = {0x21, 0x21, 0x20, 0, 8, 0, 0, 0};
+    CHECK(abort_code(sdo(ro_seg)) == CO_SDO_AB_READONLY);
+    /* the answer names the request's subindex (not a data byte) */
+    uint8_t w1[8] = {0x23, 0x00, 0x20, 1, 0, 0, 0x28, 0x42}; /* 0x2000:1 := 42.0f */
+    f = sdo(w1);
+    CHECK(f && f->data[0] == 0x60 && f->data[3] == 1 && g_drv.f[DRV_P_KP] == 42.0f);
+    /* a segmented download into the table without a size: the length is what came */
+    uint8_t tab[8];
+    co_put_u32(tab, f2u(0.25f));
+    co_put_u32(&tab[4], f2u(-0.5f));
+    f = seg_download(0x20, 0x2002, 0, 0, tab, 8, 1);
+    CHECK(f && f->data[0] == 0x30 && g_drv.table_bytes == 8 && memcmp(g_drv.table, tab, 8) == 0);
+}
+
+/* Expedited upload command bytes (n = 4 - size), a 5-byte string is segmented, reserved
+ * bits of an upload segment request are ignored. */
+static void test_sdo_upload_command_bytes(void)
+{
+    setup();
+    uint8_t u8[8] = {0x40, 0x60, 0x60, 0, 0, 0, 0, 0};
+    const co_frame_t *f = sdo(u8);
+    CHECK(f && f->data[0] == 0x4F && f->data[4] == 8);
+    uint8_t u16[8] = {0x40, 0x17, 0x10, 0, 0, 0, 0, 0};
+    f = sdo(u16);
+    CHECK(f && f->data[0] == 0x4B);
+    uint8_t u32[8] = {0x40, 0x00, 0x10, 0, 0, 0, 0, 0};
+    f = sdo(u32);
+    CHECK(f && f->data[0] == 0x43);
+    uint8_t ver[8] = {0x40, 0x0A, 0x10, 0, 0, 0, 0, 0}; /* "0.1.0": 5 bytes, segmented */
+    f = sdo(ver);
+    CHECK(f && f->data[0] == 0x41 && co_get_u32(&f->data[4]) == 5u);
+    uint8_t s0[8] = {0x61, 0, 0, 0, 0, 0, 0, 0}; /* toggle 0, reserved bit 0 set */
+    f = sdo(s0);
+    CHECK(f && f->data[0] == (0x00 | (2 << 1) | 1) && memcmp(&f->data[1], "0.1.0", 5) == 0);
+    /* the protocol switch threshold: a block upload of at most pst bytes is a normal one */
+    uint8_t bu[8] = {0xA4, 0x08, 0x10, 0, 10, 16, 0, 0}; /* 16-byte name, pst 16 */
+    f = sdo(bu);
+    CHECK(f && f->data[0] == 0x41 && co_get_u32(&f->data[4]) == 16u);
+    bu[5] = 15;
+    f = sdo(bu);
+    CHECK(f && f->data[0] == 0xC6 && co_get_u32(&f->data[4]) == 16u);
+    uint8_t cabort[8] = {0x80, 0x08, 0x10, 0, 0, 0, 0, 0};
+    rx(0x605, cabort, 8);
+    /* a block upload without CRC (cc = 0): the end frame's CRC field is 0 */
+    g_drv.rec_bytes = 10;
+    uint8_t nocrc[8] = {0xA0, 0x21, 0x20, 0, 10, 0, 0, 0};
+    f = sdo(nocrc);
+    CHECK(f && f->data[0] == 0xC6);
+    uint8_t start[8] = {0xA3, 0, 0, 0, 0, 0, 0, 0};
+    g_ntx = 0;
+    rx(0x605, start, 8);
+    CHECK(g_ntx == 2);
+    uint8_t ack[8] = {0xA2, 2, 10, 0, 0, 0, 0, 0};
+    f = sdo(ack);
+    CHECK(f && f->data[0] == (0xC1 | (4 << 2)) && co_get_u16(&f->data[1]) == 0u);
+}
+
+/* Block download: the answers' multiplexer, no CRC, the client's abort (no answer, and a
+ * later frame equal to the last segment is not taken for a repeat), a repeated end. */
+static void test_block_download_protocol_details(void)
+{
+    setup();
+    static uint8_t table[16];
+    for (uint32_t i = 0; i < sizeof table; i++) {
+        table[i] = (uint8_t)(i * 7u + 2u);
+    }
+    uint8_t init[8] = {0xC6, 0x02, 0x20, 0, 16, 0, 0, 0};
+    const co_frame_t *f = sdo(init);
+    CHECK(f && f->data[0] == 0xA4 && f->data[1] == 0x02 && f->data[2] == 0x20 && f->data[3] == 0 &&
+          f->data[4] == 127);
+    uint8_t seg1[8] = {0x01, 0, 0, 0, 0, 0, 0, 0};
+    memcpy(&seg1[1], table, 7);
+    f = sdo(seg1);
+    CHECK(f == NULL);
+    uint8_t cabort[8] = {0x80, 0x02, 0x20, 0, 0, 0, 0, 0x08};
+    f = sdo(cabort);
+    CHECK(f == NULL && g_n.sdo.state == 0);
+    f = sdo(seg1); /* no transfer: a stray segment, not a repeat of the last request */
+    CHECK(abort_code(f) == CO_SDO_AB_CMD);
+    /* without CRC (cc = 0) and without a size: any CRC in the end frame is accepted */
+    uint8_t nocrc[8] = {0xC0, 0x02, 0x20, 0, 0, 0, 0, 0};
+    f = sdo(nocrc);
+    CHECK(f && f->data[0] == 0xA4);
+    f = sdo(seg1);
+    CHECK(f == NULL);
+    uint8_t seg2[8] = {0x02, 0, 0, 0, 0, 0, 0, 0};
+    memcpy(&seg2[1], &table[7], 7);
+    CHECK(sdo(seg2) == NULL);
+    uint8_t seg3[8] = {0x83, table[14], table[15], 0, 0, 0, 0, 0};
+    f = sdo(seg3);
+    CHECK(f && f->data[0] == 0xA2 && f->data[1] == 3);
+    uint8_t end[8] = {(uint8_t)(0xC1 | (5 << 2)), 0x34, 0x12, 0, 0, 0, 0, 0};
+    f = sdo(end);
+    CHECK(f && f->data[0] == 0xA1 && g_drv.table_bytes == 16 && memcmp(g_drv.table, table, 16) == 0);
+    /* the end repeated within the SDO timeout: the same answer, on the server's COB-ID */
+    g_drv.table_bytes = 0;
+    g_ntx = 0;
+    rx(0x605, end, 8);
+    CHECK(g_ntx == 1 && g_tx[0].id == 0x585 && g_tx[0].data[0] == 0xA1 && g_drv.table_bytes == 0);
+    /* an "end" with no transfer (cs = 1) is not an initiate */
+    advance_ms(1100);
+    uint8_t stray_end[8] = {0xC1, 0x02, 0x20, 0, 0, 0, 0, 0};
+    CHECK(abort_code(sdo(stray_end)) == CO_SDO_AB_CMD);
+}
+
+/* Which requests belong to a running transfer: a new initiate of any kind replaces it, a
+ * segment of the other kind aborts it naming the transfer's object. */
+static void test_sdo_request_replaces_or_aborts_transfer(void)
+{
+    setup();
+    g_drv.rec_bytes = 100;
+    uint8_t dl_init[8] = {0x21, 0x00, 0x20, 2, 4, 0, 0, 0};
+    uint8_t up_init[8] = {0x40, 0x08, 0x10, 0, 0, 0, 0, 0};
+    uint8_t bu_init[8] = {0xA4, 0x21, 0x20, 0, 10, 0, 0, 0};
+    uint8_t bd_init[8] = {0xC6, 0x02, 0x20, 0, 8, 0, 0, 0};
+    uint8_t exp_dl[8] = {0x2F, 0x60, 0x60, 0, 0xFF, 0, 0, 0};
+    /* an upload segment (ccs 3) during a download: abort naming 0x2000:2 */
+    CHECK(sdo(dl_init)->data[0] == 0x60);
+    uint8_t useg[8] = {0x60, 0x11, 0x22, 0x33, 0, 0, 0, 0};
+    const co_frame_t *f = sdo(useg);
+    CHECK(abort_code(f) == CO_SDO_AB_CMD && co_get_u16(&f->data[1]) == 0x2000 && f->data[3] == 2);
+    /* ccs 7 during an upload: abort naming 0x1008:0 */
+    CHECK(sdo(up_init)->data[0] == 0x41);
+    uint8_t bad[8] = {0xE0, 0x11, 0x22, 0x33, 0, 0, 0, 0};
+    f = sdo(bad);
+    CHECK(abort_code(f) == CO_SDO_AB_CMD && co_get_u16(&f->data[1]) == 0x1008 && f->data[3] == 0);
+    /* every initiate replaces a running transfer */
+    CHECK(sdo(up_init)->data[0] == 0x41);
+    f = sdo(exp_dl);
+    CHECK(f && f->data[0] == 0x60 && g_n.ram.mode_display == -1);
+    CHECK(sdo(dl_init)->data[0] == 0x60);
+    f = sdo(up_init);
+    CHECK(f && f->data[0] == 0x41);
+    CHECK(sdo(dl_init)->data[0] == 0x60);
+    f = sdo(bu_init);
+    CHECK(f && f->data[0] == 0xC6);
+    CHECK(sdo(dl_init)->data[0] == 0x60);
+    f = sdo(bd_init);
+    CHECK(f && f->data[0] == 0xA4);
+    uint8_t cabort[8] = {0x80, 0x02, 0x20, 0, 0, 0, 0, 0x08}; /* (in a sub-block only this) */
+    CHECK(sdo(cabort) == NULL);
+    /* block upload: before the start, while waiting for the ack, at the end */
+    f = sdo(bu_init);
+    uint8_t e23[8] = {0x23, 0x00, 0x20, 1, 0, 0, 0x80, 0x3F}; /* 0x2000:1 := 1.0f */
+    f = sdo(e23);
+    CHECK(f && f->data[0] == 0x60 && g_drv.f[DRV_P_KP] == 1.0f && g_n.sdo.state == 0);
+    f = sdo(bu_init);
+    uint8_t start[8] = {0xA3, 0, 0, 0, 0, 0, 0, 0};
+    sdo(start);
+    uint8_t e22[8] = {0x22, 0x60, 0x60, 0, 8, 0, 0, 0};
+    f = sdo(e22);
+    CHECK(f && f->data[0] == 0x60 && g_n.ram.mode_display == 8 && g_n.sdo.state == 0);
+    f = sdo(bu_init);
+    sdo(start);
+    uint8_t ack[8] = {0xA2, 10, 10, 0, 0, 0, 0, 0}; /* 100 bytes: 10 + 5 segments */
+    sdo(ack);
+    ack[1] = 5;
+    f = sdo(ack);
+    CHECK(f && (f->data[0] & 0xE3) == 0xC1);
+    f = sdo(dl_init); /* 0x21: not the end confirmation (0xA1) */
+    CHECK(f && f->data[0] == 0x60 && g_n.sdo.state != 0);
+}
+
+/* A repeated request within the SDO timeout (default 1 s, or cfg.sdo_timeout_us) is answered
+ * from the stored response; later, after an abort, or after the client's abort, it is new. */
+static void test_sdo_repeat_window(void)
+{
+    setup();
+    advance_ms(3000);
+    uint8_t w[8] = {0x23, 0x00, 0x20, 2, 0, 0, 0x80, 0x3F}; /* 0x2000:2 := 1.0f */
+    CHECK(sdo(w)->data[0] == 0x60 && g_drv.f[DRV_P_KD] == 1.0f);
+    g_drv.f[DRV_P_KD] = 0.5f;
+    g_now += 1000000u; /* exactly the timeout: still a repeat */
+    co_node_process(&g_n, g_now);
+    CHECK(sdo(w)->data[0] == 0x60 && g_drv.f[DRV_P_KD] == 0.5f);
+    g_now += 1u; /* one microsecond over (the window counts from the first answer) */
+    co_node_process(&g_n, g_now);
+    CHECK(sdo(w)->data[0] == 0x60 && g_drv.f[DRV_P_KD] == 1.0f);
+    /* the client's abort ends it: the same write is executed again */
+    g_drv.f[DRV_P_KD] = 0.5f;
+    uint8_t cabort[8] = {0x80, 0x00, 0x20, 2, 0, 0, 0, 0x08};
+    CHECK(sdo(cabort) == NULL);
+    CHECK(sdo(w)->data[0] == 0x60 && g_drv.f[DRV_P_KD] == 1.0f);
+    /* after the server's abort nothing is repeated: a refused write is refused again */
+    uint8_t nan_w[8] = {0x23, 0x00, 0x20, 2, 0, 0, 0xC0, 0x7F};
+    CHECK(abort_code(sdo(nan_w)) == CO_SDO_AB_INVALID_VALUE);
+    CHECK(abort_code(sdo(nan_w)) == CO_SDO_AB_INVALID_VALUE);
+    /* a configured SDO timeout: 200 ms */
+    setup();
+    g_n.cfg.sdo_timeout_us = 200000u;
+    CHECK(sdo(w)->data[0] == 0x60);
+    g_drv.f[DRV_P_KD] = 0.5f;
+    g_now += 150000u;
+    co_node_process(&g_n, g_now);
+    CHECK(sdo(w)->data[0] == 0x60 && g_drv.f[DRV_P_KD] == 0.5f);
+    g_now += 200001u;
+    co_node_process(&g_n, g_now);
+    CHECK(sdo(w)->data[0] == 0x60 && g_drv.f[DRV_P_KD] == 1.0f);
+    /* the transfer timeout: 1 s exactly is still in time, 1 s + 1 us aborts */
+    setup();
+    uint8_t init[8] = {0x21, 0x00, 0x20, 2, 4, 0, 0, 0};
+    CHECK(sdo(init)->data[0] == 0x60);
+    g_ntx = 0;
+    g_now += 1000000u;
+    co_node_process(&g_n, g_now);
+    CHECK(last_id(0x585) == NULL && g_n.sdo.state != 0);
+    g_now += 1u;
+    co_node_process(&g_n, g_now);
+    CHECK(abort_code(last_id(0x585)) == CO_SDO_AB_TIMEOUT);
+    /* waiting for a block-upload confirmation: 1 s + 100 ms per segment sent, to the us */
+    g_drv.rec_bytes = 7 * 20;
+    uint8_t bu[8] = {0xA4, 0x21, 0x20, 0, 20, 0, 0, 0};
+    CHECK(sdo(bu)->data[0] == 0xC6);
+    uint8_t st[8] = {0xA3, 0, 0, 0, 0, 0, 0, 0};
+    sdo(st);
+    g_ntx = 0;
+    g_now += 3000000u;
+    co_node_process(&g_n, g_now);
+    CHECK(last_id(0x585) == NULL);
+    g_now += 1u;
+    co_node_process(&g_n, g_now);
+    CHECK(abort_code(last_id(0x585)) == CO_SDO_AB_TIMEOUT);
+}
+
+/* co_sdo_init leaves nothing of an earlier state behind. */
+static void test_sdo_init_clears_everything(void)
+{
+    co_sdo_t s;
+    memset(&s, 0x5A, sizeof s);
+    co_sdo_init(&s);
+    const uint8_t *b = (const uint8_t *)&s;
+    int zero = 1;
+    for (size_t i = 0; i < sizeof s; i++) {
+        zero &= b[i] == 0;
+    }
+    CHECK(zero);
+}
+
 int main(void)
 {
     test_crc();
@@ -1073,6 +1386,12 @@ int main(void)
     test_mode_of_operation_gates_runs();
     test_402();
     test_pdo();
+    test_sdo_download_size_rules();
+    test_sdo_upload_command_bytes();
+    test_block_download_protocol_details();
+    test_sdo_request_replaces_or_aborts_transfer();
+    test_sdo_repeat_window();
+    test_sdo_init_clears_everything();
     printf("%d passed, %d failed\n", g_pass, g_fail);
     return g_fail ? 1 : 0;
 }
