@@ -106,3 +106,221 @@ def test_excited_bins_and_period_length_are_checked():
     three = np.ones((2, 2, 3))
     with pytest.raises(InputError, match="N = 3 is too small"):
         robust_bla(three, three)
+
+
+# --- second round (docs/testing.md): known-reference variances, the spectra entry point,
+# --- the transient check, the detection statistics, each against an independent value ------
+
+from scipy import signal  # noqa: E402
+from scipy.stats import binom  # noqa: E402
+
+from fftune.analysis import bla as bla_mod  # noqa: E402
+from fftune.analysis.bla import detect_excited_lines, robust_bla_spectra  # noqa: E402
+
+_B, _A = signal.butter(2, 0.12)
+
+
+def _periodic_filter(x):
+    n = x.shape[-1]
+    _, h = signal.freqz(_B, _A, worN=np.arange(n // 2 + 1) * 2 * np.pi / n)
+    return np.fft.irfft(np.fft.rfft(x, axis=-1) * h, n=n, axis=-1)
+
+
+def test_known_reference_noise_and_total_variance_unbiased():
+    """Open loop with r = u: the known-reference variances equal the analytic noise variance
+    4 sigma^2 / (N |U|^2 M P) of G (|U| the line amplitude), as the known-input ones do."""
+    m, p, n, sigma = 6, 3, 256, 0.02
+    excited, one = _multisine_table(m, n, 100, seed=2)
+    u = np.repeat(one[:, None, :], p, axis=1)
+    y0 = np.repeat(_periodic_filter(one)[:, None, :], p, axis=1)
+    amp = np.abs(np.fft.rfft(one[0]))[excited] * 2 / n
+    truth = 4 * sigma ** 2 / n / amp ** 2 / (m * p)
+    rn, rt = [], []
+    for seed in range(6):
+        y = y0 + sigma * np.random.default_rng(seed).standard_normal(u.shape)
+        res = robust_bla(u, y, u, excited_bins=excited)
+        rn.append(np.mean(res.var_noise / truth))
+        rt.append(np.mean(res.var_total / truth))
+    assert np.mean(rn) == pytest.approx(1.0, abs=0.06)
+    assert np.mean(rt) == pytest.approx(1.0, abs=0.12)
+
+
+def test_known_reference_input_noise_through_a_linear_system_leaves_no_variance():
+    """u = r + input noise, y = H u exactly per period: Y and U vary together (their
+    covariance cancels the variance, first-order propagation), G = H exactly; M = P = 2."""
+    m, p, n = 2, 2, 128
+    excited, one = _multisine_table(m, n, 40, seed=4)
+    r = np.repeat(one[:, None, :], p, axis=1)
+    u = r + 0.05 * np.random.default_rng(1).standard_normal(r.shape)
+    y = _periodic_filter(u)
+    res = robust_bla(u, y, r, excited_bins=excited)
+    _, h = signal.freqz(_B, _A, worN=2 * np.pi * excited / n)
+    np.testing.assert_allclose(res.G, h, rtol=1e-9)
+    assert res.var_total is not None and res.var_noise is not None
+    assert np.all(res.var_total < 1e-12 * np.abs(h) ** 2)
+    assert np.all(res.var_noise < 1e-12 * np.abs(h) ** 2)
+
+
+def test_spectra_entry_point_equals_time_domain_one_and_checks_shapes():
+    m, p, n = 3, 3, 256
+    excited, one = _multisine_table(m, n, 90, seed=6)
+    u = np.repeat(one[:, None, :], p, axis=1)
+    y = u + 0.3 * u ** 3 + 1e-3 * np.random.default_rng(2).standard_normal(u.shape)
+    ref = robust_bla(u, y, excited_bins=excited, fs=10.0)
+    bins = np.arange(excited[0], excited[-1] + 1)
+    U, Y = np.fft.rfft(u, axis=-1)[..., bins], np.fft.rfft(y, axis=-1)[..., bins]
+    res = robust_bla_spectra(U, Y, bins=bins, n_period=n, fs=10.0, excited_bins=excited)
+    for name in ("G", "var_total", "var_noise", "var_nl", "odd_db", "even_db"):
+        np.testing.assert_allclose(getattr(res, name), getattr(ref, name), rtol=1e-9, atol=0)
+    assert res.summary["odd_detected"] == ref.summary["odd_detected"] is True
+    for U_bad, Y_bad in ((U[0], Y[0]), (U, Y[..., :-1]), (U, Y[:, :2])):
+        with pytest.raises(InputError, match="spectra"):
+            robust_bla_spectra(U_bad, Y_bad, bins=bins, n_period=n, excited_bins=excited)
+
+
+def test_transient_reference_is_the_median_of_the_later_kept_periods():
+    """expected_db: the median level of the kept periods after the first (documented), and
+    the message quotes it."""
+    n, p, settle = 256, 6, 0
+    excited, one = _multisine_table(2, n, 60, seed=2)
+    u = np.repeat(one[:, None, :], p + settle, axis=1)
+    b, a = signal.butter(2, 0.01)
+    y = signal.lfilter(b, a, u.reshape(2, -1), axis=-1).reshape(u.shape)
+    y = y + 1e-6 * np.random.default_rng(3).standard_normal(y.shape)
+    res = robust_bla(u, y, settle_periods=settle, excited_bins=excited, warn_transient=False)
+    tr = res.transient
+    level = 10 ** (tr.level_db / 10)
+    noise = np.median(level[settle + 1:])
+    np.testing.assert_allclose(tr.expected_db, 10 * np.log10(noise), rtol=1e-12)
+    assert tr.suspect and f"{10 * np.log10(noise):.1f} dB: transient" in tr.message
+    # the steady state is the mean of the last half of the kept periods: the level of a
+    # period is the mean over lines of |Y - centre|^2 re the mean of |centre|^2
+    Y = np.fft.rfft(y, axis=-1)[..., excited]
+    centre = Y[:, -(p // 2):, :].mean(axis=1, keepdims=True)
+    d = np.mean(np.abs(Y - centre) ** 2, axis=(0, 2))
+    np.testing.assert_allclose(level, d / np.mean(np.abs(centre) ** 2), rtol=1e-9)
+
+
+def test_otsu_threshold_and_false_alarm_count_against_definitions():
+    thr, sep = bla_mod._otsu(np.array([0.0, 0.1, 0.2, 0.3, 10.0, 10.2, 10.4]))
+    assert thr == pytest.approx((0.3 + 10.0) / 2) and sep == pytest.approx(10.2 - 0.15)
+    for n_lines, p in ((40, 0.02), (400, 0.0183), (7, 0.3)):
+        k = bla_mod._false_alarm_count(n_lines, p, 1e-3)
+        assert binom.sf(k - 1, n_lines, p) <= 1e-3 and (k == 1 or binom.sf(k - 2, n_lines, p) > 1e-3)
+    assert bla_mod._false_alarm_count(0, 0.1) is None
+
+
+def test_class_stats_against_their_definitions():
+    rng = np.random.default_rng(0)
+    ref = rng.uniform(1.0, 2.0, 50)
+    level = ref * np.concatenate([np.full(45, 0.5), [8.0, 9.0, 10.0, 5.0, 0.9]])
+    nu = 6
+    out = bla_mod._class_stats(level, ref, nu, "x_")
+    ratio = level / ref
+    assert out["x_line_median_re_noise_db"] == pytest.approx(np.median(10 * np.log10(ratio)))
+    assert out["x_lines_over_noise_6db"] == int(np.sum(ratio > 4.0)) == 4
+    p_line = (1 + 4.0 / nu) ** -nu
+    assert out["x_lines_by_noise"] == pytest.approx(50 * p_line)
+    need = out["x_lines_needed"]
+    assert binom.sf(need - 1, 50, p_line) <= 1e-3 < binom.sf(need - 2, 50, p_line)
+    strongest = 50 * (1 + 10.0 / nu) ** -nu <= 1e-3
+    assert out["x_detected"] == (4 >= need or strongest)
+    # one line far above the noise alone is a detection (Bonferroni)
+    one = bla_mod._class_stats(np.append(np.full(20, 1.0), 1e4), np.ones(21), 8, "y_")
+    assert one["y_lines_over_noise_6db"] == 1 and one["y_detected"] is True
+    assert bla_mod._class_stats(level, None, nu, "z_")["z_detected"] is None
+
+
+def test_plant_state_unsure_between_noise_and_detection():
+    base = {"plant_odd_detected": False, "plant_odd_lines_by_noise": 0.3,
+            "plant_odd_lines_needed": 5}
+    state = lambda over: bla_mod._plant_state(dict(base, plant_odd_lines_over_noise_6db=over), "odd")  # noqa: E731
+    assert state(0) == "no" and state(1) == "no" and state(2) == "unsure"
+    assert bla_mod._plant_state(dict(base, plant_odd_detected=True,
+                                     plant_odd_lines_over_noise_6db=6), "odd") == "yes"
+    assert bla_mod._plant_state({"plant_odd_detected": None}, "odd") is None
+
+
+def test_interp_frf_exact_for_power_laws():
+    """log-log interpolation is exact for a power law (double integrator), with 4 lines
+    (linear) and with more (Lagrange), and its leave-one-out error is then 0."""
+    for e in (4, 9):
+        f = np.geomspace(1.0, 50.0, e)
+        g = 1.0 / (1j * 2 * np.pi * f) ** 2 * np.exp(-0.0j)
+        f_at = np.sqrt(f[:-1] * f[1:])
+        g_at, loo = bla_mod._interp_frf(f, g, f_at)
+        np.testing.assert_allclose(g_at, 1.0 / (1j * 2 * np.pi * f_at) ** 2, rtol=1e-9)
+        if e >= 5:
+            assert np.max(loo) < 1e-9
+    f = np.geomspace(1.0, 50.0, 4)
+    g = 1.0 / (1j * 2 * np.pi * f)
+    g_at, _ = bla_mod._interp_frf(f, g, np.sqrt(f[:-1] * f[1:]))
+    np.testing.assert_allclose(g_at, 1.0 / (1j * 2 * np.pi * np.sqrt(f[:-1] * f[1:])), rtol=1e-9)
+
+
+def test_summary_line_figures_against_the_arrays():
+    """line_fraction_nl_over_noise_6db and line_median_odd_re_even_db from the result's own
+    per-line arrays (Figure 3)."""
+    m, p, n = 6, 4, 1024
+    excited, one = _multisine_table(m, n, 200, seed=3)
+    x = _periodic_filter(one)
+    y = np.repeat((x + 0.3 * x ** 3 + 0.1 * x ** 2)[:, None, :], p, axis=1)
+    u = np.repeat(one[:, None, :], p, axis=1)
+    res = robust_bla(u, y + 1e-3 * np.random.default_rng(0).standard_normal(y.shape),
+                     excited_bins=excited)
+    s = res.summary
+    nl = np.where(np.isnan(res.nl_db), -np.inf, res.nl_db)
+    assert s["line_fraction_nl_over_noise_6db"] == pytest.approx(
+        np.mean(nl > res.noise_db + 10 * np.log10(4.0)))
+    assert 0.0 < s["line_fraction_nl_over_noise_6db"] <= 1.0
+    assert s["line_median_odd_re_even_db"] == pytest.approx(
+        np.median(res.odd_db) - np.median(res.even_db))
+
+
+def test_sample_rate_must_be_positive_and_finite():
+    excited, one = _multisine_table(2, 64, 20, seed=1)
+    u = np.repeat(one[:, None, :], 2, axis=1)
+    for fs in (0.0, -1.0, np.inf, np.nan):
+        with pytest.raises(InputError, match="fs must be"):
+            robust_bla(u, u, fs=fs, excited_bins=excited)
+
+
+
+def test_levels_are_line_amplitudes_in_db():
+    """output_db of a linear system: 20 log10 of the output line amplitude |H| a (a the
+    multisine's line amplitude, |DFT| 2 / N)."""
+    m, p, n = 2, 2, 256
+    excited, one = _multisine_table(m, n, 60, seed=8)
+    u = np.repeat(one[:, None, :], p, axis=1)
+    res = robust_bla(u, _periodic_filter(u), excited_bins=excited)
+    amp = np.abs(np.fft.rfft(one[0]))[excited] * 2 / n
+    _, h = signal.freqz(_B, _A, worN=2 * np.pi * excited / n)
+    np.testing.assert_allclose(res.output_db, 20 * np.log10(np.abs(h) * amp), atol=1e-9)
+
+
+def test_known_reference_with_one_realization_or_one_period():
+    excited, one = _multisine_table(1, 128, 40, seed=3)
+    u = np.repeat(one[:, None, :], 3, axis=1)
+    y = _periodic_filter(u) + 1e-3 * np.random.default_rng(0).standard_normal(u.shape)
+    res = robust_bla(u, y, u, excited_bins=excited)
+    assert res.var_total is None and res.var_nl is None and res.var_noise is not None
+    excited, one = _multisine_table(3, 128, 40, seed=3)
+    u = one[:, None, :]
+    res = robust_bla(u, _periodic_filter(u), u, excited_bins=excited)
+    assert res.var_noise is None and res.var_nl is None and res.var_total is not None
+
+
+def test_transient_check_covers_the_top_of_a_wide_band():
+    """More than 256 excited lines: the check samples lines over the whole band, the last
+    one included (a lightly damped mode at the top of the band still rings)."""
+    m, periods, lines = 2, 6, 400
+    bins = np.arange(10, 10 + 2 * lines, 2)                  # every other line excited
+    band = np.arange(bins[0], bins[-1] + 1)
+    rng = np.random.default_rng(0)
+    U = np.zeros((m, periods, band.size), complex)
+    U[..., ::2] = np.exp(2j * np.pi * rng.random((m, 1, lines)))
+    Y = 0.5 * U + 1e-9 * (rng.standard_normal(U.shape) + 1j * rng.standard_normal(U.shape))
+    Y[:, :, -1] += 30.0 * np.exp(-1.5 * np.arange(periods))[None, :]   # the top line decays
+    res = robust_bla_spectra(U, Y, bins=band, n_period=4096, excited_bins=bins,
+                             warn_transient=False)
+    assert res.transient.suspect
