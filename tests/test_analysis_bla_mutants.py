@@ -324,3 +324,39 @@ def test_transient_check_covers_the_top_of_a_wide_band():
     res = robust_bla_spectra(U, Y, bins=band, n_period=4096, excited_bins=bins,
                              warn_transient=False)
     assert res.transient.suspect
+
+
+def test_transient_settle_periods_and_short_records():
+    """settle_differs compares the LAST settle period; with P < 3 kept periods there is no
+    noise reference (expected_db None)."""
+    n = 128
+    excited, one = _multisine_table(2, n, 30, seed=5)
+    u = np.repeat(one[:, None, :], 6, axis=1)
+    y = np.repeat(_periodic_filter(one)[:, None, :], 6, axis=1)
+    y = y + 1e-6 * np.random.default_rng(0).standard_normal(y.shape)
+    y[:, 0] += 5.0 * np.random.default_rng(1).standard_normal((2, n))   # only period 0 is off
+    res = robust_bla(u, y, settle_periods=2, excited_bins=excited, warn_transient=False)
+    assert res.transient.settle_differs is False and not res.transient.suspect
+    res = robust_bla(u, y, settle_periods=1, excited_bins=excited, warn_transient=False)
+    assert res.transient.settle_differs is True
+    res = robust_bla(u[:, :4], y[:, :4], settle_periods=2, excited_bins=excited)
+    assert res.transient.expected_db is None and res.transient.settle_differs is None
+
+
+def test_interp_frf_uses_the_neighbouring_lines_at_the_band_edges():
+    """A first-order low-pass (not a power law): 4-point interpolation from the nearest
+    lines is accurate at the lowest and highest gaps too."""
+    f = np.geomspace(1.0, 100.0, 12)
+    lowpass = lambda ff: 1.0 / (1.0 + 1j * ff / 10.0)  # noqa: E731
+    f_at = np.array([np.sqrt(f[0] * f[1]), np.sqrt(f[-2] * f[-1])])
+    g_at, _ = bla_mod._interp_frf(f, lowpass(f), f_at)
+    np.testing.assert_allclose(g_at, lowpass(f_at), rtol=4e-4)   # wrapped points: 8e-4
+
+
+def test_spectra_must_hold_every_line_of_the_band():
+    n = 64
+    excited = np.array([5, 7, 9, 11])
+    bins = np.array([5, 6, 7, 9, 10, 11])                      # 8 missing
+    U = np.ones((2, 2, bins.size), complex)
+    with pytest.raises(InputError, match=r"every line 5 \.\. 11"):
+        robust_bla_spectra(U, U, bins=bins, n_period=n, excited_bins=excited)
