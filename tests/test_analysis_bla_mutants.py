@@ -360,3 +360,92 @@ def test_spectra_must_hold_every_line_of_the_band():
     U = np.ones((2, 2, bins.size), complex)
     with pytest.raises(InputError, match=r"every line 5 \.\. 11"):
         robust_bla_spectra(U, U, bins=bins, n_period=n, excited_bins=excited)
+
+
+def test_zero_power_message_lists_five_lines_then_dots():
+    excited, one = _multisine_table(2, 128, 40, seed=1)
+    u = np.repeat(one[:, None, :], 2, axis=1)
+    bad = np.append(excited, [42, 44, 46, 48, 50, 52])
+    with pytest.raises(InputError, match=r"zero power at 6 excited line\(s\) 42 Hz, 44 Hz, 46 Hz, "
+                                         r"48 Hz, 50 Hz \.\.\. "):
+        robust_bla(u, u, fs=128.0, excited_bins=bad)
+
+
+def test_float32_record_rounding_floor_at_the_nonexcited_lines():
+    """An exactly periodic float32 record: no spread over the periods, so the noise at the
+    non-excited lines is the rounding floor 4 (q^2 / 12) / N with q = 2 max|y| 2^-24."""
+    n, p = 256, 3
+    excited, one = _multisine_table(2, n, 100, seed=7)
+    u = np.repeat(one[:, None, :], p, axis=1)
+    y = (u + 0.2 * u ** 3).astype(np.float32)
+    res = robust_bla(u, y, excited_bins=excited)
+    q = 2 * float(np.max(np.abs(y))) * 2.0 ** -24
+    np.testing.assert_allclose(res.nonexcited_noise_db, 10 * np.log10(4 * q ** 2 / 12 / n), atol=1e-6)
+
+
+def test_summary_noise_re_output_median_against_the_arrays():
+    excited, one = _multisine_table(3, 256, 80, seed=2)
+    u = np.repeat(one[:, None, :], 3, axis=1)
+    y = u + 0.1 * u ** 3 + 1e-2 * np.random.default_rng(5).standard_normal(u.shape)
+    s = robust_bla(u, y, excited_bins=excited)
+    assert s.summary["line_median_noise_re_output_db"] == pytest.approx(
+        np.median(s.noise_db - s.output_db))
+    assert s.summary["line_median_noise_re_output_db"] < -20
+
+
+_LINEAR = {"odd_detected": False, "even_detected": False, "nl_detected": False,
+           "parity_classifiable": True, "plant_odd_detected": False, "plant_even_detected": False,
+           "plant_odd_lines_over_noise_6db": 0, "plant_odd_lines": 20, "plant_odd_lines_needed": 5,
+           "plant_odd_lines_by_noise": 0.4, "plant_even_lines_over_noise_6db": 1,
+           "plant_even_lines": 80, "plant_even_lines_needed": 9, "plant_even_lines_by_noise": 1.6,
+           "quantisation_floor_db": None}
+
+
+def test_level_verdict_every_cause_and_its_text():
+    v = bla_mod.level_verdict({"odd_detected": None, "even_detected": None, "nl_detected": None})
+    assert v["causes"] == ["cannot tell"] and v["text"].startswith("cannot tell: no noise estimate")
+    v = bla_mod.level_verdict(_LINEAR, None, "1 V rms")
+    assert v == {"causes": ["linear"],
+                 "text": "linear at 1 V rms: no nonlinear distortion above the noise"}
+    v = bla_mod.level_verdict(_LINEAR, 0.02)
+    assert v["causes"] == ["linear"] and v["text"].endswith("(though 2 % of the samples at u_max)")
+    # a plant odd nonlinearity: named, with its counts and median
+    odd = dict(_LINEAR, odd_detected=True, nl_detected=True, plant_odd_detected=True,
+               plant_odd_lines_over_noise_6db=12, plant_odd_line_median_re_noise_db=9.25)
+    v = bla_mod.level_verdict(odd, 0.0, "3 V rms")
+    assert v["causes"] == ["plant odd nonlinearity"]
+    assert v["text"] == ("plant odd nonlinearity (12 of 20 odd lines 6 dB over what noise, BLA "
+                         "interpolation and quantisation explain, median +9.2 dB)")
+    v = bla_mod.level_verdict(dict(odd, plant_odd_line_median_re_noise_db=None), 0.01)
+    assert v["causes"] == ["plant odd nonlinearity", "drive output saturation"]
+    assert "explain); also drive output saturation (1 % of the samples at u_max)" in v["text"]
+    # the loop is nonlinear, the plant-referred lines are not: named by what is known
+    loop = dict(_LINEAR, odd_detected=True, nl_detected=True)
+    v = bla_mod.level_verdict(loop, 0.004, "3 V rms")
+    assert v["causes"] == ["drive output saturation"]
+    assert v["text"].startswith("odd lines: drive output saturation at 3 V rms (0.4 % of the "
+                                "samples at u_max); the distortion enters at the plant input")
+    v = bla_mod.level_verdict(dict(_LINEAR, nl_detected=True), 0.0)
+    assert v["causes"] == ["loop nonlinearity outside the plant"]
+    assert v["text"].startswith("non-excited lines: distortion in the loop")
+    v = bla_mod.level_verdict(dict(loop, quantisation_floor_db=-85.0), 0.0)
+    assert v["causes"] == ["quantisation floor"] and "(-85.0 dB per line)" in v["text"]
+    # no parity with this grid: the whole non-excited class
+    full = {"odd_detected": None, "even_detected": None, "nl_detected": True,
+            "parity_classifiable": False, "grid": "full with removed lines",
+            "plant_nonexcited_detected": True, "plant_nonexcited_lines_over_noise_6db": 7,
+            "plant_nonexcited_lines": 30, "plant_nonexcited_lines_needed": 3,
+            "plant_nonexcited_line_median_re_noise_db": -1.0, "quantisation_floor_db": None}
+    v = bla_mod.level_verdict(full)
+    assert v["causes"] == ["plant nonlinearity (parity not classifiable with this grid)"]
+    assert v["text"] == ("plant nonlinearity, (parity not classifiable with this grid) (7 of 30 "
+                         "lines 6 dB over what noise, BLA interpolation and quantisation explain, "
+                         "median -1.0 dB); no odd/even claim: full with removed lines grid")
+    # some lines over the noise, too few to tell
+    v = bla_mod.level_verdict(dict(loop, plant_odd_lines_over_noise_6db=3), 0.0)
+    assert v["causes"] == ["cannot tell"]
+    assert v["text"] == ("cannot tell whether the plant is nonlinear at the odd lines: 3 of 20 "
+                         "over the noise, 5 needed (more detection lines: a longer period or a "
+                         "wider band)")
+    # by_noise above 0.5 widens "no": 3 over with 1.6 expected from noise
+    assert bla_mod._plant_state(dict(_LINEAR, plant_even_lines_over_noise_6db=3), "even") == "no"
