@@ -115,7 +115,7 @@ from scipy import signal  # noqa: E402
 from scipy.stats import binom  # noqa: E402
 
 from fftune.analysis import bla as bla_mod  # noqa: E402
-from fftune.analysis.bla import detect_excited_lines, robust_bla_spectra  # noqa: E402
+from fftune.analysis.bla import TransientWarning, detect_excited_lines, robust_bla_spectra  # noqa: E402
 
 _B, _A = signal.butter(2, 0.12)
 
@@ -178,10 +178,11 @@ def test_spectra_entry_point_equals_time_domain_one_and_checks_shapes():
             robust_bla_spectra(U_bad, Y_bad, bins=bins, n_period=n, excited_bins=excited)
 
 
-def test_transient_reference_is_the_median_of_the_later_kept_periods():
+@pytest.mark.parametrize("p", [6, 3])
+def test_transient_reference_is_the_median_of_the_later_kept_periods(p):
     """expected_db: the median level of the kept periods after the first (documented), and
     the message quotes it."""
-    n, p, settle = 256, 6, 0
+    n, settle = 256, 0
     excited, one = _multisine_table(2, n, 60, seed=2)
     u = np.repeat(one[:, None, :], p + settle, axis=1)
     b, a = signal.butter(2, 0.01)
@@ -189,10 +190,10 @@ def test_transient_reference_is_the_median_of_the_later_kept_periods():
     y = y + 1e-6 * np.random.default_rng(3).standard_normal(y.shape)
     res = robust_bla(u, y, settle_periods=settle, excited_bins=excited, warn_transient=False)
     tr = res.transient
-    level = 10 ** (tr.level_db / 10)
+    level = np.nan_to_num(10 ** (tr.level_db / 10))          # NaN dB: no power (to_db)
     noise = np.median(level[settle + 1:])
     np.testing.assert_allclose(tr.expected_db, 10 * np.log10(noise), rtol=1e-12)
-    assert tr.suspect and f"{10 * np.log10(noise):.1f} dB: transient" in tr.message
+    assert p < 6 or (tr.suspect and f"{10 * np.log10(noise):.1f} dB: transient" in tr.message)
     # the steady state is the mean of the last half of the kept periods: the level of a
     # period is the mean over lines of |Y - centre|^2 re the mean of |centre|^2
     Y = np.fft.rfft(y, axis=-1)[..., excited]
@@ -310,9 +311,10 @@ def test_known_reference_with_one_realization_or_one_period():
     assert res.var_noise is None and res.var_nl is None and res.var_total is not None
 
 
-def test_transient_check_covers_the_top_of_a_wide_band():
-    """More than 256 excited lines: the check samples lines over the whole band, the last
-    one included (a lightly damped mode at the top of the band still rings)."""
+@pytest.mark.parametrize("ringing", [-1, 0], ids=["top", "bottom"])
+def test_transient_check_covers_the_top_of_a_wide_band(ringing):
+    """More than 256 excited lines: the check samples lines over the whole band, the first
+    and the last one included (a lightly damped mode at an end of the band still rings)."""
     m, periods, lines = 2, 6, 400
     bins = np.arange(10, 10 + 2 * lines, 2)                  # every other line excited
     band = np.arange(bins[0], bins[-1] + 1)
@@ -320,7 +322,7 @@ def test_transient_check_covers_the_top_of_a_wide_band():
     U = np.zeros((m, periods, band.size), complex)
     U[..., ::2] = np.exp(2j * np.pi * rng.random((m, 1, lines)))
     Y = 0.5 * U + 1e-9 * (rng.standard_normal(U.shape) + 1j * rng.standard_normal(U.shape))
-    Y[:, :, -1] += 30.0 * np.exp(-1.5 * np.arange(periods))[None, :]   # the top line decays
+    Y[:, :, ringing] += 30.0 * np.exp(-1.5 * np.arange(periods))[None, :]   # one end decays
     res = robust_bla_spectra(U, Y, bins=band, n_period=4096, excited_bins=bins,
                              warn_transient=False)
     assert res.transient.suspect
@@ -449,3 +451,42 @@ def test_level_verdict_every_cause_and_its_text():
                          "wider band)")
     # by_noise above 0.5 widens "no": 3 over with 1.6 expected from noise
     assert bla_mod._plant_state(dict(_LINEAR, plant_even_lines_over_noise_6db=3), "even") == "no"
+
+
+def test_tiny_signals_and_bad_settle_and_bins_messages():
+    """Detection is scale invariant (a 1e-6 multisine is not "zero power"); settle periods
+    must be >= 0; the bin range error quotes the range given."""
+    designs = multisine_realizations(2, 1.0, 256, k_min=1, k_max=60, seed=4, rms=1e-6)
+    u = np.repeat(np.stack([d.period for d in designs])[:, None, :], 2, axis=1)
+    np.testing.assert_array_equal(detect_excited_lines(u), designs[0].excited)
+    with pytest.raises(InputError, match="settle periods"):
+        robust_bla(u, u, settle_periods=-1)
+    with pytest.raises(InputError, match=r"got 0 \.\. 5"):
+        robust_bla(u, u, excited_bins=[0, 3, 5])
+
+
+def test_odd_grid_without_odd_detection_lines_has_no_odd_re_even_median():
+    """Every odd bin excited: no non-excited odd line, so no odd/even median (None)."""
+    n = 128
+    excited = np.arange(1, 40, 2)
+    rng = np.random.default_rng(0)
+    spec = np.zeros(n // 2 + 1, complex)
+    spec[excited] = np.exp(2j * np.pi * rng.random(excited.size))
+    one = np.fft.irfft(spec, n=n)
+    u = np.tile(one, (2, 2, 1))
+    res = robust_bla(u, u + 0.1 * u ** 2 + 1e-6 * rng.standard_normal(u.shape), excited_bins=excited)
+    assert res.odd_bins.size == 0 and res.even_bins.size > 0
+    assert res.summary["line_median_odd_re_even_db"] is None
+
+
+def test_spectra_transient_warning_points_at_the_caller():
+    m, periods = 2, 6
+    bins = np.arange(10, 40)
+    excited = bins[::2]
+    U = np.zeros((m, periods, bins.size), complex)
+    U[..., ::2] = 1.0
+    Y = 0.5 * U
+    Y[:, 0, ::2] += 5.0
+    with pytest.warns(TransientWarning) as rec:
+        robust_bla_spectra(U, Y, bins=bins, n_period=256, excited_bins=excited)
+    assert rec[0].filename == __file__
