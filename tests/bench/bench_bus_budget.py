@@ -79,7 +79,7 @@ def main():
                               (q_runs, plan["quantify"].stats_bytes, tb["quantify"]["bus"]))
     host_per_run = tb["total"]["host"] / max(meas, 1)
     print(f"measured at 1 Mbit/s: {1e3 * s_run:.1f} ms of bus per run (parameters, start, read-back), "
-          f"{1e3 / s_byte / 1e3:.1f} kB/s of recording upload, host {1e3 * host_per_run:.0f} ms per run "
+          f"{1 / s_byte / 1e3:.1f} kB/s of recording upload, host {1e3 * host_per_run:.0f} ms per run "
           f"({meas} runs)")
 
     paper_cfg = load_config(os.path.join(REPO, "configs", "paper.yaml"))
