@@ -115,7 +115,8 @@ from scipy import signal  # noqa: E402
 from scipy.stats import binom  # noqa: E402
 
 from fftune.analysis import bla as bla_mod  # noqa: E402
-from fftune.analysis.bla import TransientWarning, detect_excited_lines, robust_bla_spectra  # noqa: E402
+from fftune.analysis.bla import (TransientWarning, detect_excited_lines,  # noqa: E402
+                                 estimate_quantisation_step, robust_bla_spectra)
 
 _B, _A = signal.butter(2, 0.12)
 
@@ -193,7 +194,8 @@ def test_transient_reference_is_the_median_of_the_later_kept_periods(p):
     level = np.nan_to_num(10 ** (tr.level_db / 10))          # NaN dB: no power (to_db)
     noise = np.median(level[settle + 1:])
     np.testing.assert_allclose(tr.expected_db, 10 * np.log10(noise), rtol=1e-12)
-    assert p < 6 or (tr.suspect and f"{10 * np.log10(noise):.1f} dB: transient" in tr.message)
+    assert p < 6 or (tr.suspect and f"{10 * np.log10(noise):.1f} dB: transient" in tr.message
+                     and f"by {10 * np.log10(level[settle]):.1f} dB re the output" in tr.message)
     # the steady state is the mean of the last half of the kept periods: the level of a
     # period is the mean over lines of |Y - centre|^2 re the mean of |centre|^2
     Y = np.fft.rfft(y, axis=-1)[..., excited]
@@ -214,7 +216,7 @@ def test_otsu_threshold_and_false_alarm_count_against_definitions():
 def test_class_stats_against_their_definitions():
     rng = np.random.default_rng(0)
     ref = rng.uniform(1.0, 2.0, 50)
-    level = ref * np.concatenate([np.full(45, 0.5), [8.0, 9.0, 10.0, 5.0, 0.9]])
+    level = ref * np.concatenate([np.full(45, 0.5), [8.0, 9.0, 10.0, 5.0, 3.5]])
     nu = 6
     out = bla_mod._class_stats(level, ref, nu, "x_")
     ratio = level / ref
@@ -245,7 +247,7 @@ def test_plant_state_unsure_between_noise_and_detection():
 def test_interp_frf_exact_for_power_laws():
     """log-log interpolation is exact for a power law (double integrator), with 4 lines
     (linear) and with more (Lagrange), and its leave-one-out error is then 0."""
-    for e in (4, 9):
+    for e in (4, 5, 9):
         f = np.geomspace(1.0, 50.0, e)
         g = 1.0 / (1j * 2 * np.pi * f) ** 2 * np.exp(-0.0j)
         f_at = np.sqrt(f[:-1] * f[1:])
@@ -270,6 +272,10 @@ def test_summary_line_figures_against_the_arrays():
     res = robust_bla(u, y + 1e-3 * np.random.default_rng(0).standard_normal(y.shape),
                      excited_bins=excited)
     s = res.summary
+    nu = m * (p - 1)                       # complex degrees of freedom of the noise estimate
+    assert s["odd_lines_by_noise"] == pytest.approx(res.odd_bins.size * (1 + 4 / nu) ** -nu)
+    assert s["plant_above_noise_lines"] == int(np.sum(res.plant_db > res.plant_expected_db
+                                                      + 10 * np.log10(4.0)))
     nl = np.where(np.isnan(res.nl_db), -np.inf, res.nl_db)
     assert s["line_fraction_nl_over_noise_6db"] == pytest.approx(
         np.mean(nl > res.noise_db + 10 * np.log10(4.0)))
@@ -490,3 +496,21 @@ def test_spectra_transient_warning_points_at_the_caller():
     with pytest.warns(TransientWarning) as rec:
         robust_bla_spectra(U, Y, bins=bins, n_period=256, excited_bins=excited)
     assert rec[0].filename == __file__
+
+
+def test_line_detection_gap_and_empty_lines_and_few_levels():
+    """separation_db is the largest gap between the sorted line levels (dB); an empty line
+    list is refused; two distinct values are too few to call a signal quantised."""
+    excited, one = _multisine_table(2, 256, 60, seed=9)
+    x = np.repeat(one[:, None, :], 2, axis=1) + 1e-5 * np.random.default_rng(0).standard_normal((2, 2, 256))
+    found, info = detect_excited_lines(x, return_info=True)
+    np.testing.assert_array_equal(found, excited)
+    spec = np.fft.rfft(x.sum(axis=1), axis=-1)
+    level = np.sort(10 * np.log10(np.mean(np.abs(spec) ** 2, axis=0)[1:128]))
+    assert info["separation_db"] == pytest.approx(np.max(np.diff(level)), rel=1e-9)
+    with pytest.raises(InputError, match="none given"):
+        robust_bla(x, x, excited_bins=[])
+    assert estimate_quantisation_step(np.array([0.0, 0.5, 0.5, 0.0])) is None
+    steps = np.arange(5) * 0.25
+    assert estimate_quantisation_step(steps) == pytest.approx(0.25)
+    assert estimate_quantisation_step(steps, max_levels=4) is None
