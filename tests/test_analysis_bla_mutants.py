@@ -465,7 +465,7 @@ def test_tiny_signals_and_bad_settle_and_bins_messages():
     designs = multisine_realizations(2, 1.0, 256, k_min=1, k_max=60, seed=4, rms=1e-6)
     u = np.repeat(np.stack([d.period for d in designs])[:, None, :], 2, axis=1)
     np.testing.assert_array_equal(detect_excited_lines(u), designs[0].excited)
-    with pytest.raises(InputError, match="settle periods"):
+    with pytest.raises(InputError, match=r"settle periods T = -1 must be in 0 \.\. 1 "):
         robust_bla(u, u, settle_periods=-1)
     with pytest.raises(InputError, match=r"got 0 \.\. 5"):
         robust_bla(u, u, excited_bins=[0, 3, 5])
@@ -514,3 +514,33 @@ def test_line_detection_gap_and_empty_lines_and_few_levels():
     steps = np.arange(5) * 0.25
     assert estimate_quantisation_step(steps) == pytest.approx(0.25)
     assert estimate_quantisation_step(steps, max_levels=4) is None
+
+
+def test_otsu_maximises_the_between_class_variance():
+    v = np.sort(np.random.default_rng(3).uniform(0.0, 1.0, 60) ** 2)
+    scores = [k * (v.size - k) * (v[k:].mean() - v[:k].mean()) ** 2 for k in range(1, v.size)]
+    k = 1 + int(np.argmax(scores))
+    thr, _ = bla_mod._otsu(v)
+    assert thr == pytest.approx((v[k - 1] + v[k]) / 2)
+
+
+def test_notes_reference_checks_and_level_lists():
+    excited, one = _multisine_table(2, 128, 40, seed=1)
+    u = np.repeat(one[:, None, :], 2, axis=1)
+    res = robust_bla(u, u, fs=128.0)
+    assert f"{excited.size} lines {excited[0]:g} .. {excited[-1]:g} Hz" in res.notes[0]
+    assert res.var_total is not None                     # known input, M = 2
+    # the reference's zero power is checked per line; a weak line (1e-5) is not zero
+    r = u.copy()
+    spec = np.fft.rfft(r, axis=-1)
+    spec[..., excited[3]] *= 1e-5
+    r_weak = np.fft.irfft(spec, n=128, axis=-1)
+    assert robust_bla(u, u, r_weak, excited_bins=excited).known_reference
+    spec[..., excited[3]] = 0
+    with pytest.raises(InputError, match=r"reference r: zero power at 1 excited line"):
+        robust_bla(u, u, np.fft.irfft(spec, n=128, axis=-1), excited_bins=excited)
+    # the quantisation floor 4 (q^2 / 12) / N
+    res = robust_bla(u, u, excited_bins=excited, y_quantisation_step=0.01)
+    assert res.summary["quantisation_floor_db"] == pytest.approx(10 * np.log10(0.01 ** 2 / (3 * 128)))
+    with pytest.raises(InputError, match="same number of levels"):
+        bla_mod.bla_levels([u, u], [u])
