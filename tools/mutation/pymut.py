@@ -73,15 +73,23 @@ def _digest(paths):
 
 
 def _rerun_survivors(session):
-    """Forget the survivors' results (they run again); the killed mutants stay killed."""
+    """Forget the survivors' results (they run again); the killed mutants stay killed. Until
+    it has run again, such a mutant still counts as a survivor in the report (its job ids
+    are kept in rerun.json beside the session)."""
+    import json
     import sqlite3
+    rerun = session.parent / "rerun.json"
     con = sqlite3.connect(str(session))
     try:
         with con:
-            n = con.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'").rowcount
+            ids = [r[0] for r in con.execute(
+                "SELECT job_id FROM work_results WHERE test_outcome = 'SURVIVED'")]
+            con.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'")
     finally:
         con.close()
-    return n
+    old = json.loads(rerun.read_text()) if rerun.exists() else []
+    rerun.write_text(json.dumps(sorted(set(old) | set(ids))))
+    return len(ids)
 
 
 def _refresh_scratch(mod_dir):
@@ -142,7 +150,7 @@ def _prepare(name, force=False):
         return session, config, pkg_root
     tests_only = kept is not None and kept.split("\n")[0] == digest.split("\n")[0]
     if not tests_only:
-        for p in (session, stamp):
+        for p in (session, stamp, mod_dir / "rerun.json"):
             p.unlink(missing_ok=True)
     env = _env(pkg_root)
     # baseline: the selection must pass on the unmutated code, its time sets the timeout
@@ -246,6 +254,9 @@ def report(name):
         rep.note = "not run yet"
         return rep
     source = (ROOT / module).read_text(encoding="utf-8").splitlines()
+    import json
+    rerun_file = WORK / name / "rerun.json"
+    rerun = set(json.loads(rerun_file.read_text())) if rerun_file.exists() else set()
     with use_db(str(session), WorkDB.Mode.open) as db:
         results = dict(db.results)
         for item in db.work_items:
@@ -255,7 +266,10 @@ def report(name):
             if res is not None and res.worker_outcome == WorkerOutcome.SKIPPED:
                 continue
             original = source[line - 1].strip() if line <= len(source) else ""
-            if res is None:
+            if res is None and item.job_id in rerun:
+                # survived the earlier tests, not run on the present ones yet: a survivor
+                outcome, mutated = "survived", "(survived the earlier tests; not run again yet)"
+            elif res is None:
                 outcome, mutated = "pending", ""
             else:
                 o, mutated = _diff_lines(res.diff)
