@@ -196,3 +196,62 @@ def test_signed_root_search_uncertainty():
         res = SignedRootSearch(lo, hi).run(lambda k: 0.25 - k)
         assert res.converged and res.k_fc == 0.25 and res.uncertainty == 0.0
         assert res.n_evaluations == (1 if lo == 0.25 else 2)
+
+
+# --- the K_fc search's point statistics (docs/testing.md): first-order propagation checked
+# --- against a numerical gradient, the per-period variances against numpy ------------------
+
+from fftune.analysis.tuning import KfcSearch, odd_ratio, reference_phases, signed_odd_ratio  # noqa: E402
+
+
+def _relay(k_fc, fc=0.3, amplitude=0.5, gain=1.0, k_max=7):
+    h = np.zeros(k_max, dtype=complex)
+    h[0] = gain + 4 * (fc - k_fc) / (np.pi * amplitude)
+    for k in range(3, k_max + 1, 2):
+        h[k - 1] = (-1) ** ((k - 1) // 2) * 4 * (fc - k_fc) / (k * np.pi * amplitude)
+    return h * np.exp(0.3j)
+
+
+def _delta_method_std(f, H, H_var, P, eps=1e-7):
+    """sqrt(sum_j |grad_j f|^2 H_var_j / 2 / P): circular lines, numerical gradient."""
+    var = 0.0
+    for j in range(H.size):
+        for unit in (1.0, 1j):
+            dH = np.zeros(H.size, complex)
+            dH[j] = unit * eps
+            g = (f(H + dH) - f(H - dH)) / (2 * eps)
+            var += g ** 2 * H_var[j] / 2
+    return np.sqrt(var / P)
+
+
+def test_moment_point_standard_errors_are_first_order_propagation():
+    H = _relay(0.05)
+    H_var = np.array([4e-6, 1e-7, 3e-6, 2e-6, 1e-6, 5e-7, 2e-7])
+    P = 4
+    search = KfcSearch(0.0, 1.0)
+    k = search.ask()
+    search.tell_moments(k, H, H_var, P)
+    pt = search.points[k]
+    assert pt.ratio == pytest.approx(odd_ratio(H))
+    assert pt.ratio_std == pytest.approx(_delta_method_std(odd_ratio, H, H_var, P), rel=1e-5)
+    phases = reference_phases(_relay(0.0))
+    s, s_se = search._signed([pt], phases)
+    assert s[0] == pytest.approx(signed_odd_ratio(H, phases))
+    assert s_se[0] == pytest.approx(
+        _delta_method_std(lambda h: signed_odd_ratio(h, phases), H, H_var, P), rel=1e-5)
+
+
+def test_period_point_variances_and_a_motor_that_does_not_move():
+    rng = np.random.default_rng(2)
+    Hp = _relay(0.1) + 1e-3 * (rng.standard_normal((5, 7)) + 1j * rng.standard_normal((5, 7)))
+    search = KfcSearch(0.0, 1.0)
+    k = search.ask()
+    search.tell(k, Hp)
+    pt = search.points[k]
+    np.testing.assert_allclose(pt.H_var, np.var(Hp.real, axis=0, ddof=1) + np.var(Hp.imag, axis=0, ddof=1))
+    assert pt.ratio_std == pytest.approx(np.std(odd_ratio(Hp), ddof=1) / np.sqrt(5))
+    still = KfcSearch(0.0, 1.0)
+    k = still.ask()
+    H = np.full(7, 1e-7 + 0j)
+    still.tell_moments(k, H, np.zeros(7), 4)
+    assert np.isinf(still.points[k].ratio)
