@@ -255,3 +255,30 @@ def test_period_point_variances_and_a_motor_that_does_not_move():
     H = np.full(7, 1e-7 + 0j)
     still.tell_moments(k, H, np.zeros(7), 4)
     assert np.isinf(still.points[k].ratio)
+
+
+def test_first_interior_point_is_the_secant_root_of_s():
+    """Ends told (upper first, then lower): the third experiment is where the straight line
+    through s(lower) > 0 > s(upper) crosses zero (not the midpoint)."""
+    search = KfcSearch(0.0, 1.0)
+    H = {}
+    for _ in range(2):
+        k = search.ask()
+        H[k] = _relay(k)
+        search.tell_moments(k, H[k], np.full(7, 1e-10), 4)
+    phases = reference_phases(H[0.0] - H[1.0])
+    s0, s1 = signed_odd_ratio(H[0.0], phases), signed_odd_ratio(H[1.0], phases)
+    assert s0 > 0 > s1
+    assert search.ask() == pytest.approx(s0 / (s0 - s1))
+    assert abs(s0 / (s0 - s1) - 0.5) > 0.05
+
+
+def test_smallest_ratio_at_the_drive_limit_fails_with_the_top_bracket():
+    search = KfcSearch(0.0, 0.05, k_limit=0.12)
+    while not search.done:
+        k = search.ask()
+        search.tell_moments(k, _relay(k), np.full(7, 1e-10), 4)
+    res = search.result
+    assert not res.converged and "drive's limit" in res.reason
+    ks = sorted(p.k_fc for p in res.points)
+    assert res.bracket == (ks[-2], ks[-1]) and ks[-1] == pytest.approx(0.12)
