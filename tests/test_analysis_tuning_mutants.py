@@ -282,3 +282,32 @@ def test_smallest_ratio_at_the_drive_limit_fails_with_the_top_bracket():
     assert not res.converged and "drive's limit" in res.reason
     ks = sorted(p.k_fc for p in res.points)
     assert res.bracket == (ks[-2], ks[-1]) and ks[-1] == pytest.approx(0.12)
+
+
+def test_both_ends_under_compensated_extend_to_the_extrapolated_zero():
+    """s(lower) > s(upper) > 0: the third experiment is 1.15 x the zero of the line through
+    both ends, kept within [1.25, 4] x upper and the drive's limit."""
+    search = KfcSearch(0.0, 0.1, k_limit=1.0)
+    H = {}
+    for _ in range(2):
+        k = search.ask()
+        H[k] = _relay(k)
+        search.tell_moments(k, H[k], np.full(7, 1e-10), 4)
+    phases = reference_phases(H[0.0] - H[0.1])
+    s0, s1 = signed_odd_ratio(H[0.0], phases), signed_odd_ratio(H[0.1], phases)
+    assert s0 > s1 > 0
+    root = 0.1 * s0 / (s0 - s1)
+    expected = min(1.0, max(0.125, min(0.4, 1.15 * root)))
+    assert expected > 0.125
+    assert search.ask() == pytest.approx(expected) and search.extended_to == pytest.approx(expected)
+
+
+def test_t_factor_and_empty_bracket():
+    from scipy.stats import t as student_t
+
+    from fftune.analysis.errors import InputError
+    from fftune.analysis.tuning import SignedRootSearch, _t_factor
+    assert _t_factor(10 ** 7) == pytest.approx(1.0, abs=1e-3)   # 2 sigma of a normal
+    assert _t_factor(3) == pytest.approx(student_t.ppf(0.9772, 3) / 2)
+    with pytest.raises(InputError):
+        SignedRootSearch(1.0, 1.0)
