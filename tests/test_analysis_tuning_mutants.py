@@ -311,3 +311,16 @@ def test_t_factor_and_empty_bracket():
     assert _t_factor(3) == pytest.approx(student_t.ppf(0.9772, 3) / 2)
     with pytest.raises(InputError):
         SignedRootSearch(1.0, 1.0)
+
+
+def test_clean_search_converges_on_the_signed_root_and_says_so():
+    """Noise-free relay: the signed-root regime, verified by s = 0 at the estimate (not by
+    a bracketed sign change), K_fc* = Fc."""
+    search = KfcSearch(0.0, 1.0, max_experiments=12)
+    while not search.done:
+        k = search.ask()
+        search.tell_moments(k, _relay(k), np.full(7, 1e-12), 4)
+    res = search.result
+    assert res.converged and res.regime == "signed root", res.reason
+    assert res.k_fc == pytest.approx(0.3, abs=1e-3)
+    assert "has s = " in res.reason and "bracketed" not in res.reason
