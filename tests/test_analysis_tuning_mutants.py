@@ -260,17 +260,18 @@ def test_period_point_variances_and_a_motor_that_does_not_move():
 def test_first_interior_point_is_the_secant_root_of_s():
     """Ends told (upper first, then lower): the third experiment is where the straight line
     through s(lower) > 0 > s(upper) crosses zero (not the midpoint)."""
-    search = KfcSearch(0.0, 1.0)
+    search = KfcSearch(0.1, 1.0)
     H = {}
     for _ in range(2):
         k = search.ask()
         H[k] = _relay(k)
         search.tell_moments(k, H[k], np.full(7, 1e-10), 4)
-    phases = reference_phases(H[0.0] - H[1.0])
-    s0, s1 = signed_odd_ratio(H[0.0], phases), signed_odd_ratio(H[1.0], phases)
+    phases = reference_phases(H[0.1] - H[1.0])
+    s0, s1 = signed_odd_ratio(H[0.1], phases), signed_odd_ratio(H[1.0], phases)
     assert s0 > 0 > s1
-    assert search.ask() == pytest.approx(s0 / (s0 - s1))
-    assert abs(s0 / (s0 - s1) - 0.5) > 0.05
+    secant = 0.1 + 0.9 * s0 / (s0 - s1)
+    assert search.ask() == pytest.approx(secant)
+    assert abs(secant - 0.55) > 0.05
 
 
 def test_smallest_ratio_at_the_drive_limit_fails_with_the_top_bracket():
@@ -287,18 +288,18 @@ def test_smallest_ratio_at_the_drive_limit_fails_with_the_top_bracket():
 def test_both_ends_under_compensated_extend_to_the_extrapolated_zero():
     """s(lower) > s(upper) > 0: the third experiment is 1.15 x the zero of the line through
     both ends, kept within [1.25, 4] x upper and the drive's limit."""
-    search = KfcSearch(0.0, 0.1, k_limit=1.0)
+    search = KfcSearch(0.05, 0.25, k_limit=2.0)
     H = {}
     for _ in range(2):
         k = search.ask()
         H[k] = _relay(k)
         search.tell_moments(k, H[k], np.full(7, 1e-10), 4)
-    phases = reference_phases(H[0.0] - H[0.1])
-    s0, s1 = signed_odd_ratio(H[0.0], phases), signed_odd_ratio(H[0.1], phases)
+    phases = reference_phases(H[0.05] - H[0.25])
+    s0, s1 = signed_odd_ratio(H[0.05], phases), signed_odd_ratio(H[0.25], phases)
     assert s0 > s1 > 0
-    root = 0.1 * s0 / (s0 - s1)
-    expected = min(1.0, max(0.125, min(0.4, 1.15 * root)))
-    assert expected > 0.125
+    root = 0.05 + 0.2 * s0 / (s0 - s1)
+    expected = 1.15 * root
+    assert 1.25 * 0.25 < expected < 4 * 0.25          # inside the clamps
     assert search.ask() == pytest.approx(expected) and search.extended_to == pytest.approx(expected)
 
 
@@ -324,3 +325,21 @@ def test_clean_search_converges_on_the_signed_root_and_says_so():
     assert res.converged and res.regime == "signed root", res.reason
     assert res.k_fc == pytest.approx(0.3, abs=1e-3)
     assert "has s = " in res.reason and "bracketed" not in res.reason
+
+
+def test_ratio_minimiser_step_is_the_vertex_of_the_parabola_in_r_squared():
+    """Odd phases that rotate with K_fc: the next experiment is the vertex of the parabola
+    through r^2 at the smallest ratio and its two neighbours (numpy polyfit as reference)."""
+    def rotating(k):
+        h = _relay(k)
+        return h * np.exp(1j * 7.0 * np.arange(1, 8) * k * (np.arange(1, 8) > 1))
+    search = KfcSearch(0.0, 1.0)
+    for k in (0.0, 0.2, 0.27, 0.36, 0.45, 0.6, 1.0):
+        search.points[k] = search._point_from_moments(k, rotating(k), np.full(7, 1e-12), 4)
+    est = search._estimate(0.2, 0.6)
+    assert search.regime == "ratio minimiser" and not est["stop"]
+    near = (0.2, 0.27, 0.36)                        # the smallest ratio and its neighbours
+    c = np.polyfit(near, [odd_ratio(rotating(k)) ** 2 for k in near], 2)
+    vertex = -c[1] / (2 * c[0])
+    assert 0.2 + 0.016 < vertex < 0.36 - 0.016 and abs(vertex - 0.27) > 0.008  # a parabolic step
+    assert est["next"] == pytest.approx(vertex, rel=1e-9)
