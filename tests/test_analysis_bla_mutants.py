@@ -544,3 +544,9 @@ def test_notes_reference_checks_and_level_lists():
     assert res.summary["quantisation_floor_db"] == pytest.approx(10 * np.log10(0.01 ** 2 / (3 * 128)))
     with pytest.raises(InputError, match="same number of levels"):
         bla_mod.bla_levels([u, u], [u])
+
+
+def test_one_excited_odd_line_is_an_odd_grid_not_odd_odd():
+    from fftune.analysis.bla import classify_grid
+    assert classify_grid([5], 64)["grid"] == "odd"
+    assert classify_grid([5, 9, 13], 64)["grid"] == "odd-odd"
