@@ -343,3 +343,10 @@ def test_ratio_minimiser_step_is_the_vertex_of_the_parabola_in_r_squared():
     vertex = -c[1] / (2 * c[0])
     assert 0.2 + 0.016 < vertex < 0.36 - 0.016 and abs(vertex - 0.27) > 0.008  # a parabolic step
     assert est["next"] == pytest.approx(vertex, rel=1e-9)
+
+
+def test_signed_root_search_without_sign_change_reports_the_smaller_objective():
+    from fftune.analysis.tuning import SignedRootSearch
+    res = SignedRootSearch(0.2, 1.0).run(lambda k: 2.0 - k)      # no sign change
+    assert not res.converged and res.n_evaluations == 2
+    assert res.k_fc == 1.0                 # |s(1.0)| = 1.0 < |s(0.2)| = 1.8
