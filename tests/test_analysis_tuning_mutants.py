@@ -250,6 +250,17 @@ def test_period_point_variances_and_a_motor_that_does_not_move():
     pt = search.points[k]
     np.testing.assert_allclose(pt.H_var, np.var(Hp.real, axis=0, ddof=1) + np.var(Hp.imag, axis=0, ddof=1))
     assert pt.ratio_std == pytest.approx(np.std(odd_ratio(Hp), ddof=1) / np.sqrt(5))
+    phases = reference_phases(_relay(0.0))
+    _, s_se = search._signed([pt], phases)
+    assert s_se[0] == pytest.approx(np.std(signed_odd_ratio(Hp, phases), ddof=1) / np.sqrt(5))
+    # a first harmonic that averages out over the periods: the motor does not move
+    flip = _relay(0.1)[None, :] * np.array([1, -1, 1, -1 + 1e-5])[:, None]
+    flip[:, 1:] = 1e-9
+    k = search.ask()
+    search.tell(k, flip)
+    assert np.isinf(search.points[k].ratio)
+    two = KfcSearch(0.0, 1.0)
+    two.tell_moments(two.ask(), _relay(0.5), np.full(7, 1e-8), 2)      # P = 2 is enough
     still = KfcSearch(0.0, 1.0)
     k = still.ask()
     H = np.full(7, 1e-7 + 0j)
