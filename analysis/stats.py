@@ -14,6 +14,11 @@ its DFT, which is P x mean), their period-to-period spread, and the rms tracking
 The drive computes them in float32 while the run records (firmware_sim/core/stat.h,
 object 0x2041, docs/firmware.md); :func:`harmonic_stats` computes the same numbers from
 raw samples in float64, so a run captured both ways can be compared (``capture: both``).
+
+Multisine runs: per line of a host-configured list (object 0x2042) the drive accumulates the
+means of the per-period spectra of u, y, r and the period-to-period (co)variances of U and Y
+(firmware_sim/core/lstat.h, object 0x2043): :func:`parse_line_stats` reads them,
+:func:`line_stats` computes the same from raw samples in float64.
 """
 from dataclasses import dataclass, field
 
@@ -22,7 +27,8 @@ import numpy as np
 from fftune.analysis.errors import InputError
 from fftune.analysis.hosidf import hosidf_from_lines
 
-__all__ = ["SIGNAL_BITS", "HarmonicStats", "parse_stats", "harmonic_stats", "hosidf_from_stats",
+__all__ = ["SIGNAL_BITS", "HarmonicStats", "parse_stats", "LineStats", "parse_line_stats", "line_stats",
+           "harmonic_stats", "hosidf_from_stats",
            "period_hosidf_moments", "period_noise_rms", "relative_difference", "STAT_K_MAX",
            "STAT_SIG_MAX"]
 
@@ -328,3 +334,115 @@ def relative_difference(a, b, scale=None):
     a, b = np.asarray(a), np.asarray(b)
     s = np.max(np.abs(b)) if scale is None else scale
     return float(np.max(np.abs(a - b)) / s) if s > 0 else float(np.max(np.abs(a - b)))
+
+
+# ---- multisine line statistics (object 0x2042 line list, 0x2043 data; core/lstat.h) ----
+
+LSTAT_LINES_MAX = 128   # lines the drive_sim build holds (0x2040:9 tells a drive's own limit)
+LSTAT_LINE_FLOATS = 10
+
+
+@dataclass
+class LineStats:
+    """Line statistics of one periodic (multisine) run, per line of the configured list.
+
+    Attributes
+    ----------
+    periods : int
+        P, the recorded periods accumulated.
+    bins : ndarray of int, shape (L,)
+        DFT bins of the lines.
+    U, Y, R : ndarray of complex, shape (L,)
+        Means over periods of the per-period DFT (numpy ``rfft`` scaling, no 1/N) of the
+        plant input u, the motor angle y and the reference r.
+    var_u, var_y : ndarray, shape (L,)
+        sum_p |X_p - mean|^2 / (P - 1); NaN when P < 2.
+    cov_yu : ndarray of complex, shape (L,)
+        sum_p (Y_p - mean Y) conj(U_p - mean U) / (P - 1); NaN when P < 2.
+    """
+
+    periods: int
+    bins: np.ndarray
+    U: np.ndarray
+    Y: np.ndarray
+    R: np.ndarray
+    var_u: np.ndarray
+    var_y: np.ndarray
+    cov_yu: np.ndarray
+
+
+def parse_line_stats(data):
+    """The drive's line statistics (object 0x2043, little-endian) as :class:`LineStats`.
+
+    Layout: u32 P; u16 L; u8 status; u8 0; per line: u32 bin; f32 mean U re, im, mean Y
+    re, im, mean R re, im, var U, var Y, cov YU re, im (variances and covariance over
+    periods with 1 / (P - 1), 0 when P < 2).
+
+    Raises
+    ------
+    InputError
+        Too short, a length that does not match L, an unknown status, or bins that are not
+        strictly ascending and positive.
+    """
+    data = bytes(data)
+    if len(data) < 8:
+        raise InputError(f"line statistics data: {len(data)} bytes, need at least the 8-byte header")
+    periods = int.from_bytes(data[0:4], "little")
+    nlines = int.from_bytes(data[4:6], "little")
+    status, pad = data[6], data[7]
+    if status or pad:
+        raise InputError(f"line statistics data: unknown status 0x{status:02X}/0x{pad:02X} in the header")
+    expected = 8 + (4 + 4 * LSTAT_LINE_FLOATS) * nlines
+    if len(data) != expected:
+        raise InputError(f"line statistics data: {len(data)} bytes, the header's {nlines} lines need {expected}")
+    rec = np.frombuffer(data[8:], dtype=np.dtype([("bin", "<u4"), ("v", "<f4", (LSTAT_LINE_FLOATS,))]))
+    bins = rec["bin"].astype(np.int64)
+    if bins.size and (bins[0] < 1 or np.any(np.diff(bins) <= 0)):
+        raise InputError("line statistics data: bins not strictly ascending from 1")
+    v = rec["v"].astype(np.float64)
+    nan = np.full(nlines, np.nan)
+    many = periods > 1
+    return LineStats(periods=periods, bins=bins, U=v[:, 0] + 1j * v[:, 1], Y=v[:, 2] + 1j * v[:, 3],
+                     R=v[:, 4] + 1j * v[:, 5], var_u=v[:, 6] if many else nan,
+                     var_y=v[:, 7] if many else nan,
+                     cov_yu=(v[:, 8] + 1j * v[:, 9]) if many else nan + 0j)
+
+
+def line_stats(u, y, r, *, n, bins):
+    """The drive's line statistics computed from raw samples, in float64.
+
+    Parameters
+    ----------
+    u, y, r : array_like, shape (P * N,)
+        Plant input, motor angle and reference of the recorded periods.
+    n : int
+        Period N in samples.
+    bins : array_like of int
+        The lines (DFT bins, 1 <= bin < N/2).
+
+    Returns
+    -------
+    LineStats
+    """
+    n = int(n)
+    bins = np.asarray(bins, dtype=np.int64).reshape(-1)
+    if bins.size and (bins.min() < 1 or 2 * bins.max() >= n):
+        raise InputError(f"line statistics: bins must lie in 1 .. N/2 - 1 = {n // 2 - 1}")
+    spec = {}
+    for name, x in (("u", u), ("y", y), ("r", r)):
+        x = np.asarray(x, dtype=np.float64).reshape(-1)
+        if x.size == 0 or x.size % n:
+            raise InputError(f"line statistics: {name} has {x.size} samples, not a whole number of periods of {n}")
+        spec[name] = np.fft.rfft(x.reshape(-1, n), axis=1)[:, bins]
+    periods = spec["u"].shape[0]
+    mean = {k: v.mean(axis=0) for k, v in spec.items()}
+    du, dy = spec["u"] - mean["u"], spec["y"] - mean["y"]
+    if periods > 1:
+        var_u = np.sum(np.abs(du) ** 2, axis=0) / (periods - 1)
+        var_y = np.sum(np.abs(dy) ** 2, axis=0) / (periods - 1)
+        cov_yu = np.sum(dy * np.conj(du), axis=0) / (periods - 1)
+    else:
+        var_u = var_y = np.full(bins.size, np.nan)
+        cov_yu = var_u + 0j
+    return LineStats(periods=periods, bins=bins, U=mean["u"], Y=mean["y"], R=mean["r"], var_u=var_u,
+                     var_y=var_y, cov_yu=cov_yu)

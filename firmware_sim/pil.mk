@@ -13,7 +13,11 @@ MCU_DIR    := port/mcu
 # Deployable flags as `make cross`; -ffp-contract=off is spelled out (it is the ISO C mode's
 # default) because the determinism check compares the samples with drive_sim bit for bit.
 MCU_CPU    := -mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard -mthumb
-MCU_BASE   := $(CSTD) $(WARN) -O2 -g $(MCU_CPU) -ffp-contract=off -ffunction-sections -fdata-sections
+# LSTAT_LINES_MAX: the 128 KiB RAM holds the PIL recorder and table; the line statistics
+# (core/lstat.h, 48 bytes per line) get 16 lines here (0x2040:9 tells the host). In MCU_BASE:
+# every object that sees drv_t (core, canopen, the plant's sim_t) must agree on its layout.
+MCU_BASE   := $(CSTD) $(WARN) -O2 -g $(MCU_CPU) -ffp-contract=off -ffunction-sections -fdata-sections \
+              -DLSTAT_LINES_MAX=16u
 MCU_DEPLOY := $(MCU_BASE) -Wdouble-promotion -ffreestanding -fsingle-precision-constant -fno-math-errno
 # The plant simulation is double precision (software floating point on the M4F) and must
 # not take -fsingle-precision-constant; its error messages go through mcu_snprintf.

@@ -87,6 +87,10 @@ uint32_t co_od_abort_from_drv(drv_status_t st)
         return CO_SDO_AB_TYPE_MISMATCH;
     case DRV_E_INCOMPATIBLE:
         return CO_SDO_AB_PARAM_INCOMPAT;
+    case DRV_E_VALUE:
+        return CO_SDO_AB_INVALID_VALUE;
+    case DRV_E_TOO_LONG:
+        return CO_SDO_AB_DATA_LONG;
     default:
         return CO_SDO_AB_GENERAL;
     }
@@ -321,11 +325,15 @@ uint32_t co_od_domain_size(co_node_t *n, const co_od_entry_t *e, uint32_t *size)
         *size = drv_table_size_bytes(n->drv);
         return 0u;
     }
-    if (e->ref == CO_DOMAIN_STATS) {
+    if (e->ref == CO_DOMAIN_STATS || e->ref == CO_DOMAIN_LINE_STATS) {
         if (co_node_run_active(n)) {
             return CO_SDO_AB_DATA_DEV_STATE; /* being accumulated */
         }
-        *size = drv_stat_size_bytes(n->drv);
+        *size = e->ref == CO_DOMAIN_STATS ? drv_stat_size_bytes(n->drv) : drv_line_stats_size_bytes(n->drv);
+        return 0u;
+    }
+    if (e->ref == CO_DOMAIN_STAT_LINES) {
+        *size = drv_lines_size_bytes(n->drv);
         return 0u;
     }
     return CO_SDO_AB_GENERAL;
@@ -334,7 +342,7 @@ uint32_t co_od_domain_size(co_node_t *n, const co_od_entry_t *e, uint32_t *size)
 uint32_t co_od_domain_generation(co_node_t *n, const co_od_entry_t *e)
 {
     uint32_t counter = 0u;
-    if (e->ref == CO_DOMAIN_RECORDER || e->ref == CO_DOMAIN_STATS) {
+    if (e->ref == CO_DOMAIN_RECORDER || e->ref == CO_DOMAIN_STATS || e->ref == CO_DOMAIN_LINE_STATS) {
         (void)drv_get_u32(n->drv, DRV_P_RUN_COUNTER, &counter);
     } else if (e->ref == CO_DOMAIN_TABLE) {
         counter = drv_table_generation(n->drv); /* a multisine run start rewrites it */
@@ -355,6 +363,13 @@ uint32_t co_od_domain_read(co_node_t *n, const co_od_entry_t *e, uint32_t off, u
             return CO_SDO_AB_DATA_DEV_STATE;
         }
         st = drv_stat_read(n->drv, off, dst, len);
+    } else if (e->ref == CO_DOMAIN_LINE_STATS) {
+        if (co_node_run_active(n)) {
+            return CO_SDO_AB_DATA_DEV_STATE;
+        }
+        st = drv_line_stats_read(n->drv, off, dst, len);
+    } else if (e->ref == CO_DOMAIN_STAT_LINES) {
+        st = drv_lines_read(n->drv, off, dst, len);
     } else if (e->ref == CO_DOMAIN_TABLE) {
         st = drv_table_read(n->drv, off, dst, len);
     } else {
@@ -369,6 +384,20 @@ uint32_t co_od_domain_begin(co_node_t *n, const co_od_entry_t *e, uint32_t size,
 {
     if (!(e->access & CO_ACC_W)) {
         return CO_SDO_AB_READONLY;
+    }
+    if (e->ref == CO_DOMAIN_STAT_LINES) {
+        uint32_t cap = 0u;
+        (void)drv_get_u32(n->drv, DRV_P_STAT_LINES_CAP, &cap);
+        if (co_node_run_active(n)) {
+            return CO_SDO_AB_DATA_DEV_STATE;
+        }
+        if (size_known && size > 2u * cap) {
+            return CO_SDO_AB_DATA_LONG; /* more lines than the drive holds */
+        }
+        if (size_known && size == 0u) {
+            return CO_SDO_AB_DATA_SHORT; /* no lines: 0x2040:7 = 0 switches them off */
+        }
+        return 0u;
     }
     if (e->ref != CO_DOMAIN_TABLE) {
         return CO_SDO_AB_GENERAL;
@@ -387,6 +416,9 @@ uint32_t co_od_domain_begin(co_node_t *n, const co_od_entry_t *e, uint32_t size,
 
 uint32_t co_od_domain_write(co_node_t *n, const co_od_entry_t *e, uint32_t off, const uint8_t *src, uint32_t len)
 {
+    if (e->ref == CO_DOMAIN_STAT_LINES) {
+        return co_od_abort_from_drv(drv_lines_write(n->drv, off, src, len));
+    }
     if (e->ref != CO_DOMAIN_TABLE) {
         return CO_SDO_AB_GENERAL;
     }
@@ -398,6 +430,12 @@ uint32_t co_od_domain_write(co_node_t *n, const co_od_entry_t *e, uint32_t off, 
 
 uint32_t co_od_domain_commit(co_node_t *n, const co_od_entry_t *e, uint32_t total)
 {
+    if (e->ref == CO_DOMAIN_STAT_LINES) {
+        if (total == 0u) {
+            return CO_SDO_AB_DATA_SHORT;
+        }
+        return co_od_abort_from_drv(drv_lines_commit(n->drv, total)); /* odd: 0x06070010 */
+    }
     if (e->ref != CO_DOMAIN_TABLE) {
         return CO_SDO_AB_GENERAL;
     }

@@ -59,7 +59,13 @@ typedef struct {
     uint32_t entry[CO_PDO_MAX_ENTRIES]; /* index << 16 | sub << 8 | bit length */
 } co_pdo_map_t;
 
-typedef enum { CO_DOMAIN_TABLE = 0, CO_DOMAIN_RECORDER = 1, CO_DOMAIN_STATS = 2 } co_domain_id_t;
+typedef enum {
+    CO_DOMAIN_TABLE = 0,
+    CO_DOMAIN_RECORDER = 1,
+    CO_DOMAIN_STATS = 2,
+    CO_DOMAIN_STAT_LINES = 3, /* line list (rw) */
+    CO_DOMAIN_LINE_STATS = 4  /* line statistics data (ro) */
+} co_domain_id_t;
 
 struct co_node;
 typedef struct co_od_entry co_od_entry_t;

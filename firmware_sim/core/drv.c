@@ -75,6 +75,7 @@ drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
     run_init(&drv->run);
     (void)rec_init(&drv->rec, storage->rec_buf, storage->rec_capacity);
     stat_init(&drv->stat);
+    lstat_init(&drv->lstat);
     drv->exc_kind = DRV_EXC_NONE;
     drv->exc_inject = DRV_INJECT_REFERENCE;
     drv->run_inject = DRV_INJECT_REFERENCE;
@@ -146,6 +147,7 @@ static bool drv_exc_param(drv_param_id_t id)
     case DRV_P_EXC_RECORD_PERIODS: case DRV_P_MS_K_MIN: case DRV_P_MS_K_MAX: case DRV_P_MS_GROUP:
     case DRV_P_MS_SEED: case DRV_P_MS_REALIZATION: case DRV_P_REC_SIGNALS:
     case DRV_P_STAT_HARMONICS: case DRV_P_STAT_SIGNALS: case DRV_P_STAT_POWER:
+    case DRV_P_STAT_LINE_MODE:
         return true;
     default:
         return false;
@@ -226,6 +228,10 @@ drv_status_t drv_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value)
     case DRV_P_STAT_POWER: v = drv->stat.pmask; break;
     case DRV_P_STAT_PERIODS: v = drv->stat.overrun ? 0u : drv->stat.periods; break;
     case DRV_P_STAT_OVERRUNS: v = drv->stat.overruns; break;
+    case DRV_P_STAT_LINE_MODE: v = drv->lstat.mode; break;
+    case DRV_P_STAT_LINES: v = drv->lstat.nlines; break;
+    case DRV_P_STAT_LINES_CAP: v = LSTAT_LINES_MAX; break;
+    case DRV_P_STAT_LINE_PERIODS: v = drv->lstat.periods; break;
     case DRV_P_STAT_BYTES: v = stat_size_bytes(&drv->stat); break;
     default: return DRV_E_NO_PARAM;
     }
@@ -277,6 +283,8 @@ drv_status_t drv_set_u32(drv_t *drv, drv_param_id_t id, uint32_t value)
         return stat_set_signals(&drv->stat, value) == STAT_OK ? DRV_OK : DRV_E_RANGE_HIGH;
     case DRV_P_STAT_POWER:
         return stat_set_power(&drv->stat, value) == STAT_OK ? DRV_OK : DRV_E_RANGE_HIGH;
+    case DRV_P_STAT_LINE_MODE:
+        return lstat_set_mode(&drv->lstat, value) == LSTAT_OK ? DRV_OK : DRV_E_RANGE_HIGH;
     case DRV_P_RUN_COMMAND:
         if (value == 1u) {
             return drv_run_start(drv);
@@ -372,6 +380,13 @@ drv_status_t drv_run_start(drv_t *drv)
     case STAT_E_NYQUIST: return drv_refuse(drv, DRV_STOP_STAT_NYQUIST, DRV_E_INCOMPATIBLE);
     default: return drv_refuse(drv, DRV_STOP_STAT_NOT_SINE, DRV_E_INCOMPATIBLE);
     }
+    /* line statistics: the FFT work space is the table's download staging buffer (no
+     * download while a run is active) */
+    switch (lstat_check(&drv->lstat, n, drv->rec.signals, drv->table_stage != NULL ? drv->table_capacity : 0u)) {
+    case LSTAT_OK: break;
+    case LSTAT_E_NYQUIST: return drv_refuse(drv, DRV_STOP_STAT_NYQUIST, DRV_E_INCOMPATIBLE);
+    default: return drv_refuse(drv, DRV_STOP_STAT_LINES, DRV_E_INCOMPATIBLE);
+    }
     int gst = 0;
     switch (drv->exc_kind) {
     case DRV_EXC_SINE:
@@ -400,6 +415,7 @@ drv_status_t drv_run_start(drv_t *drv)
     }
     rec_clear(&drv->rec);
     stat_begin(&drv->stat, n);
+    lstat_begin(&drv->lstat, n);
     drv->run_inject = drv->exc_inject;
     (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);
     return DRV_OK;
@@ -534,9 +550,21 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
 
 /* ---- recorder, statistics and table byte streams ---- */
 
+/* One recorded period's line spectra, if the recorder holds one not yet done (samples
+ * is the interrupt's count: read once, everything below it is written). */
+static bool drv_lines_step(drv_t *drv)
+{
+    if (drv->lstat.nl_run == 0u) {
+        return false; /* no line statistics this run: no call */
+    }
+    const uint32_t done = *(const volatile uint32_t *)&drv->rec.samples;
+    return lstat_process(&drv->lstat, drv->rec.buf, drv->rec.nsel, done, drv->table_stage);
+}
+
 void drv_background(drv_t *drv)
 {
     stat_process(&drv->stat);
+    (void)drv_lines_step(drv);
 }
 
 /* A reader after the run gets the final statistics: what the background has not consumed
@@ -545,7 +573,56 @@ static void drv_stat_settle(drv_t *drv)
 {
     if (!run_active(&drv->run)) {
         stat_finish(&drv->stat);
+        while (drv_lines_step(drv)) {
+        }
     }
+}
+
+drv_status_t drv_lines_write(drv_t *drv, uint32_t offset, const uint8_t *src, uint32_t len)
+{
+    if (run_active(&drv->run)) {
+        return DRV_E_STATE;
+    }
+    switch (lstat_write(&drv->lstat, offset, src, len)) {
+    case LSTAT_OK: return DRV_OK;
+    case LSTAT_E_LENGTH: return DRV_E_TOO_LONG;
+    default: return DRV_E_GENERAL;
+    }
+}
+
+drv_status_t drv_lines_commit(drv_t *drv, uint32_t total_len_bytes)
+{
+    if (run_active(&drv->run)) {
+        return DRV_E_STATE;
+    }
+    switch (lstat_commit(&drv->lstat, total_len_bytes, drv->exc_period)) {
+    case LSTAT_OK: return DRV_OK;
+    case LSTAT_E_LENGTH: return DRV_E_TOO_LONG;
+    case LSTAT_E_ODD: return DRV_E_LENGTH;
+    default: return DRV_E_VALUE;
+    }
+}
+
+uint32_t drv_lines_size_bytes(const drv_t *drv)
+{
+    return lstat_list_size_bytes(&drv->lstat);
+}
+
+drv_status_t drv_lines_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    return lstat_list_read(&drv->lstat, offset, dst, len) == 0 ? DRV_OK : DRV_E_LENGTH;
+}
+
+uint32_t drv_line_stats_size_bytes(drv_t *drv)
+{
+    drv_stat_settle(drv);
+    return lstat_size_bytes(&drv->lstat);
+}
+
+drv_status_t drv_line_stats_read(drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    drv_stat_settle(drv);
+    return lstat_read(&drv->lstat, offset, dst, len) == 0 ? DRV_OK : DRV_E_LENGTH;
 }
 
 uint32_t drv_stat_size_bytes(drv_t *drv)
@@ -575,6 +652,7 @@ drv_status_t drv_table_write(drv_t *drv, uint32_t offset, const uint8_t *src, ui
     if (run_active(&drv->run)) {
         return DRV_E_STATE;
     }
+    drv_stat_settle(drv); /* the staging buffer is the line spectra's work space */
     uint32_t cap = drv->table_capacity * 4u;
     if (offset > cap || len > cap - offset || (src == NULL && len != 0u)) {
         return DRV_E_LENGTH;
@@ -591,6 +669,7 @@ drv_status_t drv_table_commit(drv_t *drv, uint32_t total_len_bytes)
     if (run_active(&drv->run)) {
         return DRV_E_STATE;
     }
+    drv_stat_settle(drv); /* the swap changes the line spectra's work space */
     uint32_t n = total_len_bytes / 4u;
     if (total_len_bytes % 4u != 0u || n < 2u || n > drv->table_capacity) {
         return DRV_E_LENGTH;

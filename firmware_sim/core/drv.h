@@ -29,9 +29,12 @@ typedef enum {
     DRV_E_NO_FIT,        /* run would not fit the recorder      -> 0x08000022 (last error tells) */
     DRV_E_LENGTH,        /* bad data length / offset            -> 0x06070010 */
     DRV_E_GENERAL,       /*                                     -> 0x08000000 */
-    DRV_E_INCOMPATIBLE   /* parameters inconsistent with each other (run start: sine at or
+    DRV_E_INCOMPATIBLE,  /* parameters inconsistent with each other (run start: sine at or
                             above Nyquist, bad multisine band, table x amplitude overflows)
                                                                 -> 0x06040043 */
+    DRV_E_VALUE,         /* a value outside its range in downloaded data (line list bin)
+                                                                -> 0x06090030 */
+    DRV_E_TOO_LONG       /* downloaded data longer than the drive holds -> 0x06070012 */
 } drv_status_t;
 
 /* Run states (RUN_STATE parameter). */
@@ -56,7 +59,9 @@ typedef enum {
     DRV_STOP_MEAS_FAULT = 7,     /* (added by core) non-finite measurement: FAULT, output 0 */
     DRV_STOP_OUTPUT_FAULT = 8,   /* controller output not finite (overflow / NaN): FAULT, output 0 */
     DRV_STOP_STAT_NYQUIST = 9,   /* refused: statistics harmonic K x sine cycles >= N / 2 */
-    DRV_STOP_STAT_NOT_SINE = 10  /* refused: harmonic statistics asked for a run without a sine */
+    DRV_STOP_STAT_NOT_SINE = 10, /* refused: harmonic statistics asked for a run without a sine */
+    DRV_STOP_STAT_LINES = 11     /* refused: line statistics need a power-of-two period within the
+                                    table capacity and the recorder holding r, u, y */
 } drv_stop_reason_t;
 
 /* Excitation kinds (EXC_KIND) and injection points (EXC_INJECT). */
@@ -171,5 +176,17 @@ void drv_background(drv_t *drv);
  * background context (the CANopen layer's), not from the control interrupt. */
 uint32_t drv_stat_size_bytes(drv_t *drv);
 drv_status_t drv_stat_read(drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
+
+/* Line statistics of periodic runs (lstat.h). The line list (object 0x2042): u16 LE bins
+ * written into a staging list, checked at the commit against EXC_PERIOD (DRV_E_VALUE: bin
+ * 0, at or above N/2, not ascending; DRV_E_LENGTH: odd bytes; DRV_E_TOO_LONG: more than
+ * STAT_LINES_CAP lines) and only then the list; DRV_E_STATE while a run is active. The
+ * data (0x2043) as the statistics above: not const, the rest is computed at the read. */
+drv_status_t drv_lines_write(drv_t *drv, uint32_t offset, const uint8_t *src, uint32_t len);
+drv_status_t drv_lines_commit(drv_t *drv, uint32_t total_len_bytes);
+uint32_t drv_lines_size_bytes(const drv_t *drv);
+drv_status_t drv_lines_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
+uint32_t drv_line_stats_size_bytes(drv_t *drv);
+drv_status_t drv_line_stats_read(drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
 
 #endif /* DRV_H */

@@ -10,6 +10,7 @@
 
 #include "ctl.h"
 #include "gen.h"
+#include "lstat.h"
 #include "rec.h"
 #include "run.h"
 #include "stat.h"
@@ -45,6 +46,7 @@ typedef struct {
      * Cortex-M4's short load/store offsets (vldr: 1020 bytes), costing drv_step an address
      * computation per access */
     stat_t stat;
+    lstat_t lstat;           /* line statistics of periodic runs (lstat.h) */
 } drv_t;
 
 #endif /* DRV_STATE_H */

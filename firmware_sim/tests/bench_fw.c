@@ -6,6 +6,10 @@
  *   bench_fw instr sine N         plant) inside bench_fw_drive_steps, for callgrind
  *   bench_fw instr sine-stats N   the sine with the harmonic statistics on (K = 8, 3 signals:
  *                                 reference, plant input, motor angle; power of the error)
+ *   bench_fw lines N              one recorded period of a multisine run (N samples, r, u, y)
+ *                                 through the line statistics (128 lines, core/lstat.h):
+ *                                 the background's drv_background after the run, for
+ *                                 callgrind --toggle-collect=lstat_process
  *   bench_fw fft N                the per-period spectra of a multisine run's 3 signals:
  *                                 2 complex FFTs of N points (u + j y, r) inside bench_fw_fft
  */
@@ -221,8 +225,48 @@ static int bench_fft(uint32_t n)
     return st;
 }
 
+static int bench_lines(uint32_t n)
+{
+    drv_t drv;
+    static float stage_buf[8192];
+    drv_storage_t st = {rec_buf, (uint32_t)(sizeof rec_buf / sizeof rec_buf[0]), tab_buf, 8192u, 2560.0f, stage_buf};
+    if (!fft_is_pow2(n) || n < 512u || n > 8192u || drv_init(&drv, &st) != DRV_OK) {
+        fprintf(stderr, "bench_fw: lines N: a power of two in 512 .. 8192\n");
+        return 2;
+    }
+    uint16_t bins[LSTAT_LINES_MAX];
+    for (uint32_t i = 0; i < LSTAT_LINES_MAX; i++) {
+        bins[i] = (uint16_t)(1u + i);
+    }
+    drv_enable(&drv, true);
+    (void)drv_set_u32(&drv, DRV_P_REC_SIGNALS, 0x07u);
+    (void)drv_set_u32(&drv, DRV_P_EXC_KIND, DRV_EXC_MULTISINE);
+    (void)drv_set_u32(&drv, DRV_P_EXC_PERIOD, n);
+    (void)drv_set_u32(&drv, DRV_P_MS_K_MIN, 1u);
+    (void)drv_set_u32(&drv, DRV_P_MS_K_MAX, 100u);
+    (void)drv_set_f32(&drv, DRV_P_EXC_AMPLITUDE, 0.3f);
+    (void)drv_set_u32(&drv, DRV_P_EXC_SETTLE_PERIODS, 0u);
+    (void)drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, 1u);
+    if (drv_lines_write(&drv, 0u, (const uint8_t *)bins, sizeof bins) != DRV_OK ||
+        drv_lines_commit(&drv, sizeof bins) != DRV_OK || drv_set_u32(&drv, DRV_P_STAT_LINE_MODE, 1u) != DRV_OK ||
+        drv_run_start(&drv) != DRV_OK) {
+        fprintf(stderr, "bench_fw: line statistics run refused\n");
+        return 2;
+    }
+    bench_fw_drive_steps(&drv, n); /* records the period; no background yet */
+    drv_background(&drv);          /* the period's spectra at the 128 lines */
+    uint32_t periods = 0u;
+    (void)drv_get_u32(&drv, DRV_P_STAT_LINE_PERIODS, &periods);
+    printf("lines: N = %u, %u lines, %u period(s) accumulated\n", (unsigned)n, (unsigned)LSTAT_LINES_MAX,
+           (unsigned)periods);
+    return periods == 1u ? 0 : 2;
+}
+
 int main(int argc, char **argv)
 {
+    if (argc == 3 && strcmp(argv[1], "lines") == 0) {
+        return bench_lines((uint32_t)strtoul(argv[2], NULL, 10));
+    }
     if (argc == 3 && strcmp(argv[1], "fft") == 0) {
         return bench_fft((uint32_t)strtoul(argv[2], NULL, 10));
     }

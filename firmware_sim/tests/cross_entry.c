@@ -39,6 +39,13 @@ void cross_entry(void)
     (void)drv_rec_read(&cross_drv, 0u, cross_bytes, 4u);
     (void)drv_stat_size_bytes(&cross_drv);
     (void)drv_stat_read(&cross_drv, 0u, cross_bytes, 4u);
+    drv_background(&cross_drv);
+    (void)drv_lines_write(&cross_drv, 0u, cross_bytes, 4u);
+    (void)drv_lines_commit(&cross_drv, 4u);
+    (void)drv_lines_size_bytes(&cross_drv);
+    (void)drv_lines_read(&cross_drv, 0u, cross_bytes, 4u);
+    (void)drv_line_stats_size_bytes(&cross_drv);
+    (void)drv_line_stats_read(&cross_drv, 0u, cross_bytes, 8u);
     drv_get_monitor(&cross_drv, &mon);
     (void)drv_fault(&cross_drv);
     drv_run_abort(&cross_drv, DRV_STOP_ABORT_CMD);

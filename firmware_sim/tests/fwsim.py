@@ -19,7 +19,7 @@ PARAMS_H = os.path.join(FW, "build", "gen", "od_params.h")
 
 DRV_OK = 0
 STATUS = ["OK", "NO_PARAM", "READ_ONLY", "NOT_FINITE", "RANGE_HIGH", "RANGE_LOW", "STATE",
-          "NO_FIT", "LENGTH", "GENERAL", "INCOMPATIBLE"]
+          "NO_FIT", "LENGTH", "GENERAL", "INCOMPATIBLE", "VALUE", "TOO_LONG"]
 SIG_BITS = {"reference": 0, "plant_input": 1, "motor_angle": 2, "load_angle": 3, "error": 4}
 
 
@@ -68,6 +68,10 @@ def load_lib():
         "drv_rec_read": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
         "drv_stat_size_bytes": (u32, [vp]),
         "drv_stat_read": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
+        "drv_lines_write": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
+        "drv_lines_commit": (ctypes.c_int, [vp, u32]),
+        "drv_line_stats_size_bytes": (u32, [vp]),
+        "drv_line_stats_read": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
         "drv_table_size_bytes": (u32, [vp]),
         "drv_table_read": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
         "drv_table_write": (ctypes.c_int, [vp, u32, ctypes.c_char_p, u32]),
@@ -181,6 +185,19 @@ class FwSim:
         size = self.lib.drv_stat_size_bytes(self.drv)
         buf = ctypes.create_string_buffer(max(size, 1))
         self._check(self.lib.drv_stat_read(self.drv, 0, buf, size), "stat read")
+        return buf.raw[:size]
+
+    def set_lines(self, bins):
+        """Write and commit the line list (object 0x2042: u16 LE bins)."""
+        raw = np.asarray(bins, dtype="<u2").tobytes()
+        self._check(self.lib.drv_lines_write(self.drv, 0, raw, len(raw)), "line list write")
+        self._check(self.lib.drv_lines_commit(self.drv, len(raw)), "line list commit")
+
+    def line_stats_bytes(self):
+        """The line statistics data (object 0x2043) as bytes (parse_line_stats)."""
+        size = self.lib.drv_line_stats_size_bytes(self.drv)
+        buf = ctypes.create_string_buffer(max(size, 1))
+        self._check(self.lib.drv_line_stats_read(self.drv, 0, buf, size), "line statistics read")
         return buf.raw[:size]
 
     def table(self):

@@ -1205,6 +1205,167 @@ static void test_stat_read_right_after_the_run_is_final(void)
     TH_EQ(v, 2u);
 }
 
+/* ---------------- line statistics of multisine runs (lstat.h) ---------------- */
+
+static void lines_setup(drv_t *d, uint32_t n, uint32_t periods, const uint16_t *bins, uint32_t nb)
+{
+    drv_enable(d, true);
+    TH_EQ(drv_set_f32(d, DRV_P_KFC, 0.1f), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_REC_SIGNALS, 0x07u), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_KIND, DRV_EXC_MULTISINE), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_PERIOD, n), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_MS_K_MIN, 2u), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_MS_K_MAX, 40u), DRV_OK);
+    TH_EQ(drv_set_f32(d, DRV_P_EXC_AMPLITUDE, 0.2f), DRV_OK);
+    TH_EQ(drv_set_f32(d, DRV_P_EXC_OFFSET, 0.0f), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_SETTLE_PERIODS, 1u), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_EXC_RECORD_PERIODS, periods), DRV_OK);
+    TH_EQ(drv_lines_write(d, 0u, (const uint8_t *)bins, 2u * nb), DRV_OK);
+    TH_EQ(drv_lines_commit(d, 2u * nb), DRV_OK);
+    TH_EQ(drv_set_u32(d, DRV_P_STAT_LINE_MODE, 1u), DRV_OK);
+}
+
+static void test_line_stats_equal_a_double_dft_of_the_recorded_periods(void)
+{
+    static uint16_t bins[LSTAT_LINES_MAX];
+    static uint8_t got[LSTAT_HEADER_BYTES + LSTAT_LINE_BYTES * LSTAT_LINES_MAX];
+    const uint32_t n = 1024u, periods = 4u, nb = 60u;
+    for (uint32_t i = 0u; i < nb; i++) {
+        bins[i] = (uint16_t)(1u + i); /* excited 2..40 and detection lines around them */
+    }
+    drv_t d = make_drv(REC_CAP);
+    lines_setup(&d, n, periods, bins, nb);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    float motor = 1.5f;
+    for (uint32_t i = 0u; i < (periods + 1u) * n; i++) {
+        motor = stat_step(&d, motor);
+        if (i % 3u == 0u) {
+            drv_background(&d); /* periods pile up; the read finishes them */
+        }
+    }
+    uint32_t size = drv_line_stats_size_bytes(&d);
+    TH_EQ(size, LSTAT_HEADER_BYTES + LSTAT_LINE_BYTES * nb);
+    TH_EQ(drv_line_stats_read(&d, 0u, got, size), DRV_OK);
+    uint32_t p, hdr;
+    memcpy(&p, got, 4u);
+    memcpy(&hdr, got + 4u, 4u);
+    TH_EQ(p, periods);
+    TH_EQ(hdr, nb);
+    /* reference: the DFT in double of the recorded r, u, y (columns 0, 1, 2) */
+    double ymax = 0.0, umax = 0.0, worst_mean = 0.0, worst_sd = 0.0;
+    static double spec[4][60][3][2];
+    for (uint32_t pp = 0u; pp < periods; pp++) {
+        for (uint32_t l = 0u; l < nb; l++) {
+            for (uint32_t s = 0u; s < 3u; s++) {
+                double re = 0.0, im = 0.0;
+                for (uint32_t k = 0u; k < n; k++) {
+                    double x = (double)rec_buf[3u * (pp * n + k) + s];
+                    double a = 2.0 * M_PI * (double)bins[l] * (double)k / (double)n;
+                    re += x * cos(a);
+                    im -= x * sin(a);
+                }
+                spec[pp][l][s][0] = re;
+                spec[pp][l][s][1] = im;
+            }
+        }
+    }
+    for (uint32_t l = 0u; l < nb; l++) {
+        double mr[3] = {0}, mi[3] = {0};
+        for (uint32_t s = 0u; s < 3u; s++) {
+            for (uint32_t pp = 0u; pp < periods; pp++) {
+                mr[s] += spec[pp][l][s][0] / periods;
+                mi[s] += spec[pp][l][s][1] / periods;
+            }
+        }
+        double vu = 0.0, vy = 0.0, cr = 0.0, ci = 0.0;
+        for (uint32_t pp = 0u; pp < periods; pp++) {
+            double dur = spec[pp][l][1][0] - mr[1], dui = spec[pp][l][1][1] - mi[1];
+            double dyr = spec[pp][l][2][0] - mr[2], dyi = spec[pp][l][2][1] - mi[2];
+            vu += (dur * dur + dui * dui) / (periods - 1u);
+            vy += (dyr * dyr + dyi * dyi) / (periods - 1u);
+            cr += (dyr * dur + dyi * dui) / (periods - 1u);
+            ci += (dyi * dur - dyr * dui) / (periods - 1u);
+        }
+        float f[10];
+        uint32_t b;
+        memcpy(&b, got + 8u + LSTAT_LINE_BYTES * l, 4u);
+        memcpy(f, got + 12u + LSTAT_LINE_BYTES * l, 40u);
+        TH_EQ(b, bins[l]);
+        /* order in the data: U, Y, R; reference order here: r 0, u 1, y 2 */
+        const uint32_t col[3] = {1u, 2u, 0u};
+        for (uint32_t s = 0u; s < 3u; s++) {
+            worst_mean = fmax(worst_mean, hypot((double)f[2u * s] - mr[col[s]], (double)f[2u * s + 1u] - mi[col[s]]));
+        }
+        umax = fmax(umax, hypot(mr[1], mi[1]));
+        ymax = fmax(ymax, hypot(mr[2], mi[2]));
+        worst_sd = fmax(worst_sd, fabs(sqrt(fmax((double)f[6], 0.0)) - sqrt(vu)));
+        worst_sd = fmax(worst_sd, fabs(sqrt(fmax((double)f[7], 0.0)) - sqrt(vy)));
+        worst_sd = fmax(worst_sd, fabs(sqrt(hypot((double)f[8], (double)f[9])) - sqrt(hypot(cr, ci))));
+    }
+    /* float32 FFT: within 1e-5 of the largest line; spreads (sd) within 1e-5 of it too */
+    const double scale = fmax(umax, ymax);
+    TH_ASSERT(scale > 1.0);
+    TH_ASSERT(worst_mean <= 1e-5 * scale);
+    TH_ASSERT(worst_sd <= 1e-5 * scale);
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_STAT_LINE_PERIODS, &v), DRV_OK);
+    TH_EQ(v, periods);
+}
+
+static void test_line_list_checks_and_run_refusals(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    static uint16_t bins[LSTAT_LINES_MAX + 1u];
+    for (uint32_t i = 0u; i <= LSTAT_LINES_MAX; i++) {
+        bins[i] = (uint16_t)(1u + i);
+    }
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 512u), DRV_OK);
+    uint16_t good[3] = {3u, 5u, 7u};
+    TH_EQ(drv_lines_write(&d, 0u, (const uint8_t *)good, 6u), DRV_OK);
+    TH_EQ(drv_lines_commit(&d, 6u), DRV_OK);
+    uint16_t nyq[2] = {3u, 256u}; /* N/2 */
+    TH_EQ(drv_lines_write(&d, 0u, (const uint8_t *)nyq, 4u), DRV_OK);
+    TH_EQ(drv_lines_commit(&d, 4u), DRV_E_VALUE);
+    uint16_t zero[1] = {0u};
+    TH_EQ(drv_lines_write(&d, 0u, (const uint8_t *)zero, 2u), DRV_OK);
+    TH_EQ(drv_lines_commit(&d, 2u), DRV_E_VALUE);
+    uint16_t desc[2] = {9u, 4u};
+    TH_EQ(drv_lines_write(&d, 0u, (const uint8_t *)desc, 4u), DRV_OK);
+    TH_EQ(drv_lines_commit(&d, 4u), DRV_E_VALUE);
+    TH_EQ(drv_lines_commit(&d, 3u), DRV_E_LENGTH); /* half a bin */
+    TH_EQ(drv_lines_write(&d, 0u, (const uint8_t *)bins, 2u * (LSTAT_LINES_MAX + 1u)), DRV_E_TOO_LONG);
+    TH_EQ(drv_lines_commit(&d, 2u * (LSTAT_LINES_MAX + 1u)), DRV_E_TOO_LONG);
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_STAT_LINES, &v), DRV_OK);
+    TH_EQ(v, 3u); /* the good list stayed */
+    uint8_t back[6];
+    TH_EQ(drv_lines_read(&d, 0u, back, 6u), DRV_OK);
+    TH_ASSERT(memcmp(back, good, 6u) == 0);
+    TH_EQ(drv_set_u32(&d, DRV_P_STAT_LINE_MODE, 2u), DRV_E_RANGE_HIGH);
+    /* run start (a sine run here: the checks apply to any periodic run): the period changed
+     * below a line; N not a power of two; r, u, y not recorded */
+    lines_setup(&d, 512u, 2u, good, 3u);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_SINE_CYCLES, 1u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 12u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_E_INCOMPATIBLE);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_STAT_NYQUIST);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 24u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_E_INCOMPATIBLE);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_STAT_LINES);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 32u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_REC_SIGNALS, 0x06u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_E_INCOMPATIBLE);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_STAT_LINES);
+    TH_EQ(drv_set_u32(&d, DRV_P_REC_SIGNALS, 0x07u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    TH_EQ(drv_lines_commit(&d, 6u), DRV_E_STATE);
+    TH_EQ(drv_set_u32(&d, DRV_P_STAT_LINE_MODE, 0u), DRV_E_STATE);
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
@@ -1231,5 +1392,7 @@ int main(void)
     TH_RUN(test_stat_deferred_equals_per_sample_reference_bit_for_bit);
     TH_RUN(test_stat_overrun_is_reported_not_delivered);
     TH_RUN(test_stat_read_right_after_the_run_is_final);
+    TH_RUN(test_line_stats_equal_a_double_dft_of_the_recorded_periods);
+    TH_RUN(test_line_list_checks_and_run_refusals);
     return th_finish();
 }

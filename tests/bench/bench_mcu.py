@@ -51,6 +51,7 @@ def m4_counts():
     for name, ticks, steps in re.findall(r"^BENCH (\S+) ticks (\d+) steps (\d+)", out, re.M):
         res[name] = int(ticks) / TICKS_PER_INSTRUCTION / int(steps)
     res["slow_steps"] = int(re.search(r"closed_loop_slow_steps (\d+)", out).group(1))
+    res["lines_count"] = int(re.search(r"lines_count (\d+)", out).group(1))
     return res
 
 
@@ -128,6 +129,9 @@ def main():
     print(f"  sine with harmonic statistics (K = 8 of 3 signals, power of 1), drv_step timed alone per call, "
           f"drv_background between steps: Cortex-M4F {m4['drv_step_sine_stats']:.0f}, background "
           f"{m4['background_sine_stats']:.0f} per step;   {xs} per step")
+    print(f"  line statistics, one multisine period of N = 1024 through drv_background (3 real FFTs, "
+          f"{m4['lines_count']} lines: the PIL build's LSTAT_LINES_MAX): Cortex-M4F {m4['lines_period_1024']:.0f} "
+          f"instructions per period")
     period = 168e6 / 2560
     print(f"PIL control interrupt (sim_step: software-double plant + drv_step, sine run of 4096 steps): "
           f"mean {m4['closed_loop_total']:.0f}, worst {m4['closed_loop_worst']:.0f} instructions per step "

@@ -164,6 +164,68 @@ drv_status_t drv_stat_read(drv_t *d, uint32_t off, uint8_t *dst, uint32_t len)
     return DRV_OK;
 }
 
+/* line list: u16 bins, checked at the commit like core/lstat.c (against EXC_PERIOD) */
+drv_status_t drv_lines_write(drv_t *d, uint32_t off, const uint8_t *src, uint32_t len)
+{
+    uint32_t cap = 2u * d->u[DRV_P_STAT_LINES_CAP];
+    if (active(d)) {
+        return DRV_E_STATE;
+    }
+    if (cap > sizeof d->line_stage || (uint64_t)off + len > cap) {
+        return DRV_E_TOO_LONG;
+    }
+    memcpy((uint8_t *)d->line_stage + off, src, len);
+    return DRV_OK;
+}
+
+drv_status_t drv_lines_commit(drv_t *d, uint32_t total)
+{
+    if (active(d)) {
+        return DRV_E_STATE;
+    }
+    if (total > 2u * d->u[DRV_P_STAT_LINES_CAP]) {
+        return DRV_E_TOO_LONG;
+    }
+    if (total % 2u != 0u) {
+        return DRV_E_LENGTH;
+    }
+    for (uint32_t i = 0; i < total / 2u; i++) {
+        uint32_t b = d->line_stage[i];
+        if (b == 0u || 2u * b >= d->u[DRV_P_EXC_PERIOD] || (i > 0u && b <= d->line_stage[i - 1u])) {
+            return DRV_E_VALUE;
+        }
+    }
+    memcpy(d->lines, d->line_stage, total);
+    d->nlines = total / 2u;
+    d->u[DRV_P_STAT_LINES] = d->nlines;
+    return DRV_OK;
+}
+
+uint32_t drv_lines_size_bytes(const drv_t *d) { return 2u * d->nlines; }
+
+drv_status_t drv_lines_read(const drv_t *d, uint32_t off, uint8_t *dst, uint32_t len)
+{
+    if ((uint64_t)off + len > 2u * d->nlines) {
+        return DRV_E_LENGTH;
+    }
+    memcpy(dst, (const uint8_t *)d->lines + off, len);
+    return DRV_OK;
+}
+
+/* line statistics data: the 8-byte header + 44 synthetic bytes per line */
+uint32_t drv_line_stats_size_bytes(drv_t *d) { return 8u + 44u * d->nlines; }
+
+drv_status_t drv_line_stats_read(drv_t *d, uint32_t off, uint8_t *dst, uint32_t len)
+{
+    if ((uint64_t)off + len > 8u + 44u * d->nlines) {
+        return DRV_E_LENGTH;
+    }
+    for (uint32_t i = 0; i < len; i++) {
+        dst[i] = rec_byte(off + i);
+    }
+    return DRV_OK;
+}
+
 drv_status_t drv_table_write(drv_t *d, uint32_t off, const uint8_t *src, uint32_t len)
 {
     if (active(d)) {

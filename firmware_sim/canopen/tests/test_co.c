@@ -600,9 +600,15 @@ static void test_sdo_frames_whole_and_multiplexed(void)
 }
 
 /* Block download like python-canopen (optionally dropping segment `drop` once, bad CRC). */
+static uint32_t block_download_to(uint16_t index, const uint8_t *data, uint32_t size, int drop, int bad_crc);
 static uint32_t block_download(const uint8_t *data, uint32_t size, int drop, int bad_crc)
 {
-    uint8_t r[8] = {0xC6, 0x02, 0x20, 0, 0, 0, 0, 0};
+    return block_download_to(0x2002, data, size, drop, bad_crc);
+}
+
+static uint32_t block_download_to(uint16_t index, const uint8_t *data, uint32_t size, int drop, int bad_crc)
+{
+    uint8_t r[8] = {0xC6, (uint8_t)index, (uint8_t)(index >> 8), 0, 0, 0, 0, 0};
     co_put_u32(&r[4], size);
     const co_frame_t *f = sdo(r);
     if (f == NULL || f->data[0] != 0xA4) { /* scs 5, sc: the server checks the CRC */
@@ -697,6 +703,43 @@ static void test_block_download(void)
     enable_402();
     CHECK(sdo_write(0x2010, 1, 1, 1) == 0);
     CHECK(block_download(table, 64, -1, 0) == CO_SDO_AB_DATA_DEV_STATE);
+}
+
+/* The line list 0x2042 (u16 bins): CiA 301 aborts for bad lists, the list kept; the line
+ * statistics 0x2043 readable by block upload, refused while a run is active. */
+static void test_line_list_and_line_statistics(void)
+{
+    setup();
+    static uint16_t bins[200];
+    for (uint32_t i = 0; i < 200; i++) {
+        bins[i] = (uint16_t)(1u + i);
+    }
+    CHECK(sdo_write(0x2001, 5, 1024, 4) == 0); /* EXC_PERIOD N: lines below 512 */
+    CHECK(block_download_to(0x2042, (const uint8_t *)bins, 2u * 60u, -1, 0) == 0);
+    uint32_t v = 0;
+    CHECK(sdo_read_u32(0x2040, 8, &v) == 0 && v == 60u);
+    CHECK(sdo_read_u32(0x2040, 9, &v) == 0 && v == 128u);
+    /* more lines than the drive holds: "data type length too high" at the initiate */
+    CHECK(block_download_to(0x2042, (const uint8_t *)bins, 2u * 129u, -1, 0) == CO_SDO_AB_DATA_LONG);
+    /* a bin at N/2 = 512: "value range of parameter exceeded" (0x06090030) at the end */
+    uint16_t nyq[3] = {10u, 100u, 512u};
+    CHECK(block_download_to(0x2042, (const uint8_t *)nyq, 6u, -1, 0) == CO_SDO_AB_INVALID_VALUE);
+    uint16_t desc[2] = {10u, 9u};
+    CHECK(block_download_to(0x2042, (const uint8_t *)desc, 4u, -1, 0) == CO_SDO_AB_INVALID_VALUE);
+    CHECK(block_download_to(0x2042, (const uint8_t *)bins, 5u, -1, 0) == CO_SDO_AB_TYPE_MISMATCH);
+    CHECK(block_download_to(0x2042, (const uint8_t *)bins, 0u, -1, 0) == CO_SDO_AB_DATA_SHORT);
+    CHECK(sdo_read_u32(0x2040, 8, &v) == 0 && v == 60u); /* the good list stayed */
+    uint16_t crc;
+    uint32_t size = 0;
+    CHECK(block_upload(0x2042, g_buf, sizeof g_buf, -1, 127, &crc, &size) == 0 && size == 120u &&
+          memcmp(g_buf, bins, 120u) == 0);
+    CHECK(block_upload(0x2043, g_buf, sizeof g_buf, -1, 127, &crc, &size) == 0 && size == 8u + 44u * 60u);
+    CHECK(g_buf[100] == rec_byte(100));
+    nmt(0x01);
+    enable_402();
+    CHECK(sdo_write(0x2010, 1, 1, 1) == 0);
+    CHECK(block_upload(0x2043, g_buf, sizeof g_buf, -1, 127, &crc, &size) == CO_SDO_AB_DATA_DEV_STATE);
+    CHECK(block_download_to(0x2042, (const uint8_t *)bins, 4u, -1, 0) == CO_SDO_AB_DATA_DEV_STATE);
 }
 
 static void test_heartbeat(void)
@@ -1375,6 +1418,7 @@ int main(void)
     test_block_upload_zero_length();
     test_sdo_frames_whole_and_multiplexed();
     test_block_download();
+    test_line_list_and_line_statistics();
     test_heartbeat();
     test_producer_write_keeps_the_consumer_armed();
     test_table_upload_aborts_when_the_table_changes();

@@ -32,6 +32,7 @@ static float g_rec[(BENCH_STEPS + 2048u) * 3u]; /* also the sine: period 2048 */
 static float g_tab[BENCH_TABLE];
 static float g_stage[BENCH_TABLE];
 static sim_t g_sim;
+static drv_t g_bench_drv;
 static uart_t g_uart;
 
 void mcu_systick_handler(void)
@@ -109,43 +110,43 @@ static void report(const char *what, uint32_t ticks, uint32_t steps, int wrapped
 /* drv_step alone: as bench_fw instr (table LEN or sine) */
 static void bench_drive(const char *what, uint32_t table_len)
 {
-    static drv_t drv;
+    drv_t *const drvp = &g_bench_drv; /* one drive for the drv_step workloads (RAM) */
     drv_storage_t st = {g_rec, (uint32_t)(sizeof g_rec / sizeof g_rec[0]), g_tab, BENCH_TABLE, 2560.0f, g_stage};
-    if (drv_init(&drv, &st) != DRV_OK) {
+    if (drv_init(drvp, &st) != DRV_OK) {
         put("BENCH error drv_init\n");
         return;
     }
-    drv_enable(&drv, true);
-    (void)drv_set_f32(&drv, DRV_P_KFC, 0.1f);
-    (void)drv_set_f32(&drv, DRV_P_KV, 0.01f);
-    (void)drv_set_u32(&drv, DRV_P_REC_SIGNALS, 0x07u);
-    (void)drv_set_f32(&drv, DRV_P_EXC_AMPLITUDE, 0.5f);
+    drv_enable(drvp, true);
+    (void)drv_set_f32(drvp, DRV_P_KFC, 0.1f);
+    (void)drv_set_f32(drvp, DRV_P_KV, 0.01f);
+    (void)drv_set_u32(drvp, DRV_P_REC_SIGNALS, 0x07u);
+    (void)drv_set_f32(drvp, DRV_P_EXC_AMPLITUDE, 0.5f);
     uint32_t period = table_len ? table_len : 2048u;
     if (table_len) {
         for (uint32_t i = 0; i < table_len; i++) {
             g_tab[i] = (float)(i % 97u) * 0.01f - 0.4f;
         }
-        if (drv_table_write(&drv, 0u, (const uint8_t *)g_tab, table_len * 4u) != DRV_OK ||
-            drv_table_commit(&drv, table_len * 4u) != DRV_OK) {
+        if (drv_table_write(drvp, 0u, (const uint8_t *)g_tab, table_len * 4u) != DRV_OK ||
+            drv_table_commit(drvp, table_len * 4u) != DRV_OK) {
             put("BENCH error table\n");
             return;
         }
     }
-    (void)drv_set_u32(&drv, DRV_P_EXC_KIND, table_len ? DRV_EXC_TABLE : DRV_EXC_SINE);
-    (void)drv_set_u32(&drv, DRV_P_EXC_PERIOD, period);
-    (void)drv_set_u32(&drv, DRV_P_EXC_SETTLE_PERIODS, 0u);
-    (void)drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, BENCH_STEPS / period + 1u);
-    if (drv_run_start(&drv) != DRV_OK) {
+    (void)drv_set_u32(drvp, DRV_P_EXC_KIND, table_len ? DRV_EXC_TABLE : DRV_EXC_SINE);
+    (void)drv_set_u32(drvp, DRV_P_EXC_PERIOD, period);
+    (void)drv_set_u32(drvp, DRV_P_EXC_SETTLE_PERIODS, 0u);
+    (void)drv_set_u32(drvp, DRV_P_EXC_RECORD_PERIODS, BENCH_STEPS / period + 1u);
+    if (drv_run_start(drvp) != DRV_OK) {
         put("BENCH error run refused\n");
         return;
     }
     ticks_start();
     uint32_t t0 = ticks_now();
-    bench_drive_steps(&drv, BENCH_STEPS);
+    bench_drive_steps(drvp, BENCH_STEPS);
     uint32_t t1 = ticks_now();
     int wrapped = (MCU_SYST_CSR & MCU_SYST_CSR_COUNTFLAG) != 0u;
     uint32_t state = 0u;
-    (void)drv_get_u32(&drv, DRV_P_RUN_STATE, &state);
+    (void)drv_get_u32(drvp, DRV_P_RUN_STATE, &state);
     if (state != DRV_RUN_RECORDING) {
         put("BENCH error run not recording through the measured steps\n");
         return;
@@ -157,24 +158,24 @@ static void bench_drive(const char *what, uint32_t table_len)
  * each timed alone per call, the counter reads' own cost subtracted */
 static void bench_drive_stats(void)
 {
-    static drv_t drv;
+    drv_t *const drvp = &g_bench_drv; /* one drive for the drv_step workloads (RAM) */
     drv_storage_t st = {g_rec, (uint32_t)(sizeof g_rec / sizeof g_rec[0]), g_tab, BENCH_TABLE, 2560.0f, g_stage};
-    if (drv_init(&drv, &st) != DRV_OK) {
+    if (drv_init(drvp, &st) != DRV_OK) {
         put("BENCH error drv_init\n");
         return;
     }
-    drv_enable(&drv, true);
-    (void)drv_set_f32(&drv, DRV_P_KFC, 0.1f);
-    (void)drv_set_f32(&drv, DRV_P_KV, 0.01f);
-    (void)drv_set_u32(&drv, DRV_P_REC_SIGNALS, 0x07u);
-    (void)drv_set_f32(&drv, DRV_P_EXC_AMPLITUDE, 0.5f);
-    (void)drv_set_u32(&drv, DRV_P_EXC_KIND, DRV_EXC_SINE);
-    (void)drv_set_u32(&drv, DRV_P_EXC_PERIOD, 2048u);
-    (void)drv_set_u32(&drv, DRV_P_EXC_SETTLE_PERIODS, 0u);
-    (void)drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, BENCH_STEPS / 2048u + 1u);
-    if (drv_set_u32(&drv, DRV_P_STAT_HARMONICS, 8u) != DRV_OK ||
-        drv_set_u32(&drv, DRV_P_STAT_SIGNALS, DRV_SIG_REFERENCE | DRV_SIG_PLANT_INPUT | DRV_SIG_MOTOR_ANGLE) != DRV_OK ||
-        drv_set_u32(&drv, DRV_P_STAT_POWER, DRV_SIG_ERROR) != DRV_OK || drv_run_start(&drv) != DRV_OK) {
+    drv_enable(drvp, true);
+    (void)drv_set_f32(drvp, DRV_P_KFC, 0.1f);
+    (void)drv_set_f32(drvp, DRV_P_KV, 0.01f);
+    (void)drv_set_u32(drvp, DRV_P_REC_SIGNALS, 0x07u);
+    (void)drv_set_f32(drvp, DRV_P_EXC_AMPLITUDE, 0.5f);
+    (void)drv_set_u32(drvp, DRV_P_EXC_KIND, DRV_EXC_SINE);
+    (void)drv_set_u32(drvp, DRV_P_EXC_PERIOD, 2048u);
+    (void)drv_set_u32(drvp, DRV_P_EXC_SETTLE_PERIODS, 0u);
+    (void)drv_set_u32(drvp, DRV_P_EXC_RECORD_PERIODS, BENCH_STEPS / 2048u + 1u);
+    if (drv_set_u32(drvp, DRV_P_STAT_HARMONICS, 8u) != DRV_OK ||
+        drv_set_u32(drvp, DRV_P_STAT_SIGNALS, DRV_SIG_REFERENCE | DRV_SIG_PLANT_INPUT | DRV_SIG_MOTOR_ANGLE) != DRV_OK ||
+        drv_set_u32(drvp, DRV_P_STAT_POWER, DRV_SIG_ERROR) != DRV_OK || drv_run_start(drvp) != DRV_OK) {
         put("BENCH error statistics run refused\n");
         return;
     }
@@ -191,9 +192,9 @@ static void bench_drive_stats(void)
     drv_meas_t m = {0.001f, 0.002f};
     for (uint32_t i = 0; i < BENCH_STEPS; i++) {
         uint32_t t0 = ticks_now();
-        float u = drv_step(&drv, &m);
+        float u = drv_step(drvp, &m);
         uint32_t t1 = ticks_now();
-        drv_background(&drv);
+        drv_background(drvp);
         uint32_t t2 = ticks_now();
         step_total += ticks_since(t0, t1);
         bg_total += ticks_since(t1, t2);
@@ -203,15 +204,62 @@ static void bench_drive_stats(void)
     step_total -= read_total;
     bg_total -= read_total;
     uint32_t state = 0u, periods = 0u, overruns = 0u;
-    (void)drv_get_u32(&drv, DRV_P_RUN_STATE, &state);
-    (void)drv_get_u32(&drv, DRV_P_STAT_PERIODS, &periods);
-    (void)drv_get_u32(&drv, DRV_P_STAT_OVERRUNS, &overruns);
+    (void)drv_get_u32(drvp, DRV_P_RUN_STATE, &state);
+    (void)drv_get_u32(drvp, DRV_P_STAT_PERIODS, &periods);
+    (void)drv_get_u32(drvp, DRV_P_STAT_OVERRUNS, &overruns);
     if (state != DRV_RUN_RECORDING || overruns != 0u || periods != BENCH_STEPS / 2048u) {
         put("BENCH error statistics not accumulated through the measured steps\n");
         return;
     }
     report("drv_step_sine_stats", step_total, BENCH_STEPS, wrapped);
     report("background_sine_stats", bg_total, BENCH_STEPS, wrapped);
+}
+
+/* line statistics (lstat.h) of one recorded multisine period of N = BENCH_TABLE: the
+ * background's drv_background after the run (3 real FFTs of N, LSTAT_LINES_MAX lines) */
+static void bench_lines(void)
+{
+    drv_t *const drvp = &g_bench_drv; /* one drive for the drv_step workloads (RAM) */
+    drv_storage_t st = {g_rec, (uint32_t)(sizeof g_rec / sizeof g_rec[0]), g_tab, BENCH_TABLE, 2560.0f, g_stage};
+    uint16_t bins[LSTAT_LINES_MAX];
+    for (uint32_t i = 0; i < LSTAT_LINES_MAX; i++) {
+        bins[i] = (uint16_t)(1u + i);
+    }
+    if (drv_init(drvp, &st) != DRV_OK) {
+        put("BENCH error drv_init\n");
+        return;
+    }
+    drv_enable(drvp, true);
+    (void)drv_set_u32(drvp, DRV_P_REC_SIGNALS, 0x07u);
+    (void)drv_set_u32(drvp, DRV_P_EXC_KIND, DRV_EXC_MULTISINE);
+    (void)drv_set_u32(drvp, DRV_P_EXC_PERIOD, BENCH_TABLE);
+    (void)drv_set_u32(drvp, DRV_P_MS_K_MIN, 1u);
+    (void)drv_set_u32(drvp, DRV_P_MS_K_MAX, 100u);
+    (void)drv_set_f32(drvp, DRV_P_EXC_AMPLITUDE, 0.3f);
+    (void)drv_set_u32(drvp, DRV_P_EXC_SETTLE_PERIODS, 0u);
+    (void)drv_set_u32(drvp, DRV_P_EXC_RECORD_PERIODS, 1u);
+    if (drv_lines_write(drvp, 0u, (const uint8_t *)bins, sizeof bins) != DRV_OK ||
+        drv_lines_commit(drvp, sizeof bins) != DRV_OK || drv_set_u32(drvp, DRV_P_STAT_LINE_MODE, 1u) != DRV_OK ||
+        drv_run_start(drvp) != DRV_OK) {
+        put("BENCH error line statistics run refused\n");
+        return;
+    }
+    bench_drive_steps(drvp, BENCH_TABLE);
+    ticks_start();
+    uint32_t t0 = ticks_now();
+    drv_background(drvp);
+    uint32_t t1 = ticks_now();
+    int wrapped = (MCU_SYST_CSR & MCU_SYST_CSR_COUNTFLAG) != 0u;
+    uint32_t periods = 0u;
+    (void)drv_get_u32(drvp, DRV_P_STAT_LINE_PERIODS, &periods);
+    if (periods != 1u) {
+        put("BENCH error line statistics not computed\n");
+        return;
+    }
+    report("lines_period_1024", ticks_since(t0, t1), 1u, wrapped);
+    put("BENCH lines_count ");
+    put_u32(LSTAT_LINES_MAX);
+    put("\n");
 }
 
 /* the PIL interrupt's work per step: plant (software double) + drv_step; mean and max */
@@ -277,6 +325,7 @@ int mcu_main(void)
     bench_drive("drv_step_table_1024", 1024u);
     bench_drive("drv_step_sine", 0u);
     bench_drive_stats();
+    bench_lines();
     bench_closed_loop();
     put("BENCH done\n");
     semihost_exit();

@@ -1,0 +1,94 @@
+/*
+ * lstat.h - on-drive line statistics of periodic (multisine / table) runs (deployable,
+ * float32, no heap).
+ *
+ * For a line list configured by the host (DFT bins 1 <= k < N/2, strictly ascending, at most
+ * LSTAT_LINES_MAX) and each recorded period p of N samples, the per-period spectra
+ *
+ *     X_p[k] = sum_{n=0}^{N-1} (x_p[n] - x0) exp(-j 2 pi k n / N)        (numpy rfft at bin k)
+ *
+ * of the reference r, the plant input u and the motor angle y (x0 = the signal's first
+ * recorded sample: no change for k >= 1, a position offset stays out of the float32 FFT),
+ * then over periods Welford's running means of U, Y, R and sums of squared deviations of
+ * U and Y and of the cross term (Y_p - mean Y) conj(U_p - mean U): the sufficient statistics
+ * of the robust BLA with known reference (docs/analysis.md) of one realization.
+ *
+ * Computed in the background (lstat_process, from drv_background), one period per call,
+ * from the samples already in the recorder (which must hold r, u and y); the FFT work
+ * space is N floats the integrator provides (the drive passes the table's download staging
+ * buffer, unused while a run is active). Per signal and period: one N/2-point complex FFT
+ * (fft.h) of the real samples packed two per complex value, then per line the split of the
+ * even / odd halves (one sinf/cosf pair per line).
+ *
+ * Line statistics data (object 0x2043, little-endian):
+ *   u32 periods P; u16 lines L; u8 status (0); u8 0;
+ *   per line: u32 bin; f32 mean U re, im; mean Y re, im; mean R re, im;
+ *             var U, var Y (sum |X_p - mean|^2 / (P - 1), 0 when P < 2);
+ *             cov YU re, im (sum (Y_p - mean Y) conj(U_p - mean U) / (P - 1)).
+ */
+#ifndef LSTAT_H
+#define LSTAT_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#ifndef LSTAT_LINES_MAX
+#define LSTAT_LINES_MAX 128u /* lines the drive holds (a port may build with fewer) */
+#endif
+#define LSTAT_HEADER_BYTES 8u
+#define LSTAT_LINE_FLOATS 10u
+#define LSTAT_LINE_BYTES (4u + 4u * LSTAT_LINE_FLOATS)
+#define LSTAT_N_MIN 8u
+
+typedef enum {
+    LSTAT_OK = 0,
+    LSTAT_E_LENGTH = 1,  /* list longer than LSTAT_LINES_MAX, or bytes beyond it */
+    LSTAT_E_ODD = 2,     /* not a whole number of u16 bins */
+    LSTAT_E_VALUE = 3,   /* bin 0, at or above N/2, or not strictly ascending */
+    LSTAT_E_NYQUIST = 4, /* run start: a line at or above N/2 of this run's period */
+    LSTAT_E_SETUP = 5    /* run start: N not a power of two >= 8 within the work space, or
+                            the recorder does not hold r, u and y */
+} lstat_status_t;
+
+typedef struct {
+    /* configuration */
+    uint16_t stage[LSTAT_LINES_MAX];  /* the list being downloaded */
+    uint16_t lines[LSTAT_LINES_MAX];  /* the committed list */
+    uint32_t nlines;
+    uint32_t mode;                    /* 0 off, 1 on */
+    /* latched at run start */
+    uint32_t nl_run;                  /* lines this run, 0 = off */
+    uint32_t n;                       /* period */
+    /* background */
+    uint32_t next_period;             /* next recorded period to transform */
+    uint32_t periods;                 /* periods accumulated */
+    float x0[3];                      /* r, u, y first recorded samples */
+    float mean[LSTAT_LINES_MAX][6];   /* U re, im, Y re, im, R re, im */
+    float m2[LSTAT_LINES_MAX][4];     /* sum |dU|^2, sum |dY|^2, sum dY conj dU re, im */
+    float du[LSTAT_LINES_MAX][2];     /* this period's U - new mean U (for the cross term) */
+} lstat_t;
+
+void lstat_init(lstat_t *ls);
+/* Line list download: bytes of u16 LE bins into the staging list; commit checks the
+ * staged list against the period n (EXC_PERIOD now) and only then makes it the list. */
+lstat_status_t lstat_write(lstat_t *ls, uint32_t offset, const uint8_t *src, uint32_t len);
+lstat_status_t lstat_commit(lstat_t *ls, uint32_t total_bytes, uint32_t n);
+uint32_t lstat_list_size_bytes(const lstat_t *ls);
+int lstat_list_read(const lstat_t *ls, uint32_t offset, uint8_t *dst, uint32_t len);
+lstat_status_t lstat_set_mode(lstat_t *ls, uint32_t mode);
+
+/* Run start: would a run of period n with recorder signal mask rec_signals and a work
+ * space of work_floats be accepted? (LSTAT_OK when off.) */
+lstat_status_t lstat_check(const lstat_t *ls, uint32_t n, uint32_t rec_signals, uint32_t work_floats);
+/* Start of a run (after lstat_check): clears the statistics. */
+void lstat_begin(lstat_t *ls, uint32_t n);
+/* Background: transform the next recorded period if the recorder holds it (samples_done
+ * samples of nsel values each, r, u, y the first three); work: n floats. At most one
+ * period per call; returns true if it did one. */
+bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t samples_done, float *work);
+
+uint32_t lstat_size_bytes(const lstat_t *ls);
+/* -1 if [offset, offset+len) is not inside the data. */
+int lstat_read(const lstat_t *ls, uint32_t offset, uint8_t *dst, uint32_t len);
+
+#endif /* LSTAT_H */
