@@ -561,6 +561,15 @@ static bool drv_lines_step(drv_t *drv)
     return lstat_process(&drv->lstat, drv->rec.buf, drv->rec.nsel, done, drv->table_stage);
 }
 
+bool drv_background_catch_up(drv_t *drv)
+{
+    if (!stat_pending(&drv->stat)) {
+        return false;
+    }
+    stat_process(&drv->stat);
+    return true;
+}
+
 void drv_background(drv_t *drv)
 {
     stat_process(&drv->stat);

@@ -169,7 +169,11 @@ bool drv_fault(const drv_t *drv);
  * overrun counter 0x2040:6 counts it). Bounded: at most 2 blocks per call. Safe against the
  * control interrupt on a single core without masking it. */
 void drv_background(drv_t *drv);
-
+/* The harmonic statistics' share of drv_background alone (bounded: at most 2 blocks), if a
+ * block waits: for a port whose main loop can be starved by back-to-back control
+ * interrupts (an emulator under host load: port/mcu), called at the end of the control
+ * interrupt while its main loop is NOT inside drv_background (the port's flag). */
+bool drv_background_catch_up(drv_t *drv); /* true if it took a block */
 /* On-drive run statistics (stat.h): the byte stream of object 0x2041, valid after DONE.
  * Not const: with no run active, both first consume what the background has not (the
  * run's last samples), so a read right after the run sees the final values. Call from the

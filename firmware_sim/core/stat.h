@@ -126,6 +126,11 @@ void stat_flush(stat_t *st);
 
 /* Background: consume the blocks handed over, in order (bounded: at most 2 blocks). */
 void stat_process(stat_t *st);
+/* Is a block handed over and not yet taken? */
+static inline bool stat_pending(const stat_t *st)
+{
+    return st->ready[st->rblk] != 0u;
+}
 /* Background, no run active: stat_process, so the statistics are the run's final ones. */
 void stat_finish(stat_t *st);
 /* End of the period: the period's sums into the running statistics (stat_process). */

@@ -40,6 +40,7 @@ void cross_entry(void)
     (void)drv_stat_size_bytes(&cross_drv);
     (void)drv_stat_read(&cross_drv, 0u, cross_bytes, 4u);
     drv_background(&cross_drv);
+    (void)drv_background_catch_up(&cross_drv);
     (void)drv_lines_write(&cross_drv, 0u, cross_bytes, 4u);
     (void)drv_lines_commit(&cross_drv, 4u);
     (void)drv_lines_size_bytes(&cross_drv);
