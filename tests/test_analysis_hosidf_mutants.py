@@ -183,3 +183,20 @@ def test_given_f0_tolerance_near_bin_one_and_the_record_named():
     big = np.stack([tone([(100, 1.0)], n * 16)[0], tone([(7, 1.0)], n * 16)[0]]).reshape(2, 1, 1, -1)
     with pytest.raises(InputError, match=re.escape("(record (1, 0))")):
         hosidf(big, big, fs=fs * 16, f0=[100.00005, 7.3], n_harmonics=3)
+
+
+def test_hosidf_from_lines_by_definition_and_keyword_only_sizes():
+    """H_k = Y_k exp(-j k angle U_1) / |U_1| per repeat, then the mean; amplitude 2 |U_1| / (N P);
+    N, P and fs are keyword-only (a positional 64 cannot be taken for N by mistake)."""
+    import numpy as np
+    import pytest
+
+    from fftune.analysis.hosidf import hosidf_from_lines
+    U1 = np.array([3.0 * np.exp(0.4j), 3.0 * np.exp(0.4j)])
+    Yk = np.array([[1.0 + 1.0j, 0.2j], [1.0 + 1.2j, 0.1]])
+    res = hosidf_from_lines(U1, Yk, 4, n=64, n_blocks=2, fs=100.0)
+    expected = (Yk * np.exp(-1j * np.array([1, 2]) * 0.4) / 3.0).mean(axis=0)
+    np.testing.assert_allclose(res.H, expected, rtol=1e-12)
+    assert res.amplitude == pytest.approx(2 * 3.0 / (64 * 2)) and res.f0 == pytest.approx(4 * 100.0 / 64)
+    with pytest.raises(TypeError):
+        hosidf_from_lines(U1, Yk, 4, 64, 2, 100.0)
