@@ -200,3 +200,15 @@ def test_hosidf_from_lines_by_definition_and_keyword_only_sizes():
     assert res.amplitude == pytest.approx(2 * 3.0 / (64 * 2)) and res.f0 == pytest.approx(4 * 100.0 / 64)
     with pytest.raises(TypeError):
         hosidf_from_lines(U1, Yk, 4, 64, 2, 100.0)
+
+
+def test_too_short_blocks_are_refused_for_batched_records_too():
+    """(experiments, R, P, N) with N = 3: no line between DC and Nyquist to find a sine on."""
+    import numpy as np
+    import pytest
+
+    from fftune.analysis.errors import InputError
+    from fftune.analysis.hosidf import hosidf
+    u = np.ones((2, 3, 2, 3))
+    with pytest.raises(InputError, match="too short"):
+        hosidf(u, u, fs=1.0)
