@@ -749,8 +749,18 @@ class DriveClient:
         index, sub = 0x2021, 0
 
         def do():
-            with self.node.sdo[index].open("rb", block_transfer=True) as fh:
-                return fh.read()
+            from canopen.sdo.exceptions import SdoCommunicationError
+            try:
+                with self.node.sdo[index].open("rb", block_transfer=True) as fh:
+                    return fh.read()
+            except AttributeError as exc:
+                # python-canopen 2.x: a lost end-of-upload frame makes
+                # BlockUploadStream._end_upload call self.abort, which does not exist; do
+                # what it meant (abort the transfer, report the timeout)
+                if "abort" not in str(exc):
+                    raise
+                self.node.sdo.abort(0x05040000)
+                raise SdoCommunicationError("No SDO response received (end of the block upload)") from None
 
         saved = BlockUploadStream.blksize
         try:

@@ -340,3 +340,33 @@ def test_drive_reboot_during_a_run_is_noticed_by_its_boot_up(tmp_path):
         print(f"reboot noticed {noticed * 1000:.0f} ms after the NMT reset: {msg}")
     finally:
         drive.stop()
+
+
+def test_lost_end_of_block_upload_is_a_clear_error_not_a_library_crash(recorded, monkeypatch):
+    """python-canopen's BlockUploadStream._end_upload calls ``self.abort`` (which it does
+    not have) when the drive's end-of-upload frame is lost: an AttributeError instead of
+    its SdoCommunicationError (seen at 1 % frame loss). The client turns that into the
+    abort the library meant and one error line naming 0x2021; the drive serves on."""
+    from canopen.sdo.client import BlockUploadStream
+    from canopen.sdo.exceptions import SdoCommunicationError
+    drive, reference = recorded
+
+    def end_upload_with_lost_response(self):
+        try:
+            raise SdoCommunicationError("No SDO response received")
+        except SdoCommunicationError:
+            self.abort(0x05040000)        # as python-canopen 2.x does: no such method
+            raise
+
+    assert not hasattr(BlockUploadStream, "abort")   # the library bug this works around
+    c = _client(drive.port)
+    try:
+        monkeypatch.setattr(BlockUploadStream, "_end_upload", end_upload_with_lost_response)
+        with pytest.raises(FftuneError) as exc:
+            c.upload_recording(block_sizes=(127,))
+        msg = str(exc.value)
+        assert "0x2021" in msg and "end of the block upload" in msg and "\n" not in msg
+        monkeypatch.undo()
+        assert c.upload_recording() == reference
+    finally:
+        c.close()
