@@ -395,7 +395,6 @@ class _TuneProbe:
             H, H_var, n_periods = _stats.period_hosidf_moments(
                 rec.stats, u_name="reference", y_name="motor_angle", n_harmonics=c["harmonics"])
             H_periods = None
-            noise_rad = _stats.period_noise_rms(rec.stats, "motor_angle", self.n)
             rms_error = rec.stats.rms("error")
         else:
             # each recorded period as a repeat: H_repeats are the per-period HOSIDFs
@@ -404,10 +403,14 @@ class _TuneProbe:
             hos = _hosidf_estimate(r, y, fs=self.s.fs_hz, n_harmonics=c["harmonics"],
                                    f0=c["frequency_hz"])
             H, H_periods, H_var, n_periods = hos.H, hos.H_repeats, None, y.shape[0]
-            # measurement noise of the angle: its spread over the recorded periods
-            y_p = y[:, 0, :]
-            noise_rad = float(np.sqrt(np.sum((y_p - y_p.mean(axis=0)) ** 2) / (y_p.size - self.n)))
             rms_error = float(np.sqrt(np.mean(rec.signals["error"] ** 2)))
+        if "motor_angle" in rec.signals:
+            # measurement noise of the angle: its spread over the recorded periods
+            y_p = _blocks(rec.signals["motor_angle"], self.n)
+            noise_rad = float(np.sqrt(np.sum((y_p - y_p.mean(axis=0)) ** 2) / (y_p.size - self.n)))
+        else:
+            # statistics only: from the line variances (an upper bound, see the check in tune)
+            noise_rad = _stats.period_noise_rms(rec.stats, "motor_angle", self.n)
         moving = np.abs(H[0]) > 1e-6
         point = {
             "kfc": float(np.float32(kfc)), "kv": float(np.float32(kv)), "amplitude": float(amplitude),
@@ -562,7 +565,7 @@ def tune(session):
     if outcome.converged and p_lo is not None and \
             p_lo["angle_noise_rad"] > MAX_NOISE_RE_AMPLITUDE * probe.amplitude:
         outcome.converged = False
-        from_lines = p_lo["H_periods"] is None
+        from_lines = "motor_angle" not in p_lo["record"].signals
         outcome.reason = (
             f"the angle noise ({p_lo['angle_noise_rad']:.2g} rad, "
             + ("from the period-to-period variance at the harmonic lines (drive statistics: it "

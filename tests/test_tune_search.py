@@ -188,3 +188,21 @@ def test_matrix_rows_through_canopen_on_drive_sim(tmp_path, name):
     assert t["search"]["converged"] and abs(t["k_fc_star_error_re_truth"]) <= 0.02
     assert t["k_fc_star"] == pytest.approx(direct["k_fc_star"], rel=1e-3)
     assert t["search"]["experiments"] == direct["search"]["experiments"]
+
+
+def test_statistics_only_noise_check_is_an_upper_bound_that_says_so(tmp_path):
+    """With one settle period the loop is still settling in the first recorded period. The
+    spread of the samples over the periods (raw, both) dilutes that over every line; the
+    line variances of the statistics carry it at the harmonic lines and overstate the
+    angle noise: the search is refused with the reason and the fix, never a wrong K_fc*."""
+    short = {"frequency_hz": 1.25, "period_samples": 2048, "settle_periods": 1, "amplitude_rad": 0.5,
+             "search": {"k_fc_max": 0.3}}
+    out = {mode: bench_tune.run_row({}, dict(short, capture=mode), str(tmp_path / mode))
+           for mode in ("raw", "stats", "both")}
+    for mode in ("raw", "both"):
+        t = out[mode]
+        assert t["search"]["converged"], (mode, t["search"]["stop_reason"])
+        assert abs(t["k_fc_star"] / t["true_coulomb_v"] - 1) <= 0.02
+    s = out["stats"]["search"]
+    assert not s["converged"] and out["stats"]["k_fc_star"] is None
+    assert "harmonic lines" in s["stop_reason"] and "tune.settle_periods" in s["stop_reason"]
