@@ -361,3 +361,30 @@ def test_signed_root_search_without_sign_change_reports_the_smaller_objective():
     res = SignedRootSearch(0.2, 1.0).run(lambda k: 2.0 - k)      # no sign change
     assert not res.converged and res.n_evaluations == 2
     assert res.k_fc == 1.0                 # |s(1.0)| = 1.0 < |s(0.2)| = 1.8
+
+
+def _rotating(k):
+    """Odd phases that rotate with K_fc: the search falls back on the ratio minimiser."""
+    return _relay(k) * np.exp(1j * 7.0 * np.arange(1, 8) * k * (np.arange(1, 8) > 1))
+
+
+@pytest.mark.parametrize("width_in_tol, stops", [(1.9, True), (2.5, False)])
+def test_ratio_minimiser_stops_when_the_bracket_is_two_tolerances(width_in_tol, stops):
+    """The ratio minimiser stops when the bracket around the smallest ratio is at most
+    2 tol wide, with sigma = max(width / (2 sqrt 3), tol) = tol there."""
+    tol = 0.004
+    search = KfcSearch(0.0, 1.0, xtol=tol, rtol=0.0)
+    x = 0.3
+    w = width_in_tol * tol
+    for k in (0.0, 0.2, 0.27, x - w / 2, x, x + w / 2, 0.36, 0.45, 0.6, 1.0):
+        search.points[k] = search._point_from_moments(k, _rotating(k), np.full(7, 1e-12), 4)
+    est = search._estimate(0.2, 0.6)
+    assert search.regime == "ratio minimiser" and est["stop"] is stops
+    if stops:
+        res = est["result"]
+        assert res.converged and res.k_fc == x and res.sigma == pytest.approx(tol)
+        assert res.bracket == pytest.approx((x - w / 2, x + w / 2))
+
+
+def test_ratio_minimizer_default_xtol_is_a_thousandth_of_the_bracket():
+    assert RatioMinimizer(0.2, 1.0).xtol == pytest.approx(0.8e-3)
