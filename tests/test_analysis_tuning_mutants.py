@@ -383,6 +383,7 @@ def test_ratio_minimiser_stops_when_the_bracket_is_two_tolerances(width_in_tol, 
     if stops:
         res = est["result"]
         assert res.converged and res.k_fc == x and res.sigma == pytest.approx(tol)
+        assert np.isfinite(res.sigma_signed) and res.sigma_signed > 0   # pooled s noise
         assert res.bracket == pytest.approx((x - w / 2, x + w / 2))
 
 
