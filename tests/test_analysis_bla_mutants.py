@@ -550,3 +550,29 @@ def test_one_excited_odd_line_is_an_odd_grid_not_odd_odd():
     from fftune.analysis.bla import classify_grid
     assert classify_grid([5], 64)["grid"] == "odd"
     assert classify_grid([5, 9, 13], 64)["grid"] == "odd-odd"
+
+
+def test_small_helpers_by_definition():
+    from fftune.analysis.bla import classify_grid
+    assert classify_grid([2, 4, 8], 64)["grid"] == "even"
+    assert bla_mod._median_db([np.nan, 1.0, 2.0]) == 1.0          # NaN counts as -inf
+    # a line with no power at all is no detection
+    out = bla_mod._class_stats(np.append(np.ones(30), 0.0), np.ones(31), 6, "z_")
+    assert out["z_detected"] is False
+    # 4 lines over with 1.6 expected from noise: more than 2 x 1.6, fewer than needed
+    s = {"plant_odd_detected": False, "plant_odd_lines_by_noise": 1.6,
+         "plant_odd_lines_needed": 9, "plant_odd_lines_over_noise_6db": 4}
+    assert bla_mod._plant_state(s, "odd") == "unsure"
+
+
+def test_spectra_default_rate_and_a_reference_line_120_db_down_is_zero():
+    excited, one = _multisine_table(2, 128, 40, seed=1)
+    u = np.repeat(one[:, None, :], 2, axis=1)
+    bins = np.arange(excited[0], excited[-1] + 1)
+    U = np.fft.rfft(u, axis=-1)[..., bins]
+    res = robust_bla_spectra(U, U, bins=bins, n_period=128, excited_bins=excited)
+    np.testing.assert_allclose(res.freq, excited / 128)               # fs = 1 by default
+    spec = np.fft.rfft(u, axis=-1)
+    spec[..., excited[3]] *= 1e-7
+    with pytest.raises(InputError, match=r"reference r: zero power at 1 excited line"):
+        robust_bla(u, u, np.fft.irfft(spec, n=128, axis=-1), excited_bins=excited)
