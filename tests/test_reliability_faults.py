@@ -48,17 +48,19 @@ def _client(port, **kw):
 def recorded(tmp_path_factory):
     """A drive with one finished recording and its clean block upload."""
     drive = start_drive(tmp_path_factory.mktemp("faults"))
-    clean = _client(drive.port)
-    clean.enable()
-    rec = clean.run(RUN, signals=SIGNALS)
-    data = clean.upload_recording()
-    n_samples = RUN["exc_period"] * RUN["exc_record_periods"]
-    assert len(data) == n_samples * len(SIGNALS) * 4
-    assert np.array_equal(np.frombuffer(data, "<f4").reshape(n_samples, -1)[:, 1],
-                          rec.signals["plant_input"].astype(np.float32))
-    clean.close()
-    yield drive, data
-    drive.stop()
+    try:        # (also when the set-up fails: no drive_sim left running)
+        clean = _client(drive.port)
+        clean.enable()
+        rec = clean.run(RUN, signals=SIGNALS)
+        data = clean.upload_recording()
+        n_samples = RUN["exc_period"] * RUN["exc_record_periods"]
+        assert len(data) == n_samples * len(SIGNALS) * 4
+        assert np.array_equal(np.frombuffer(data, "<f4").reshape(n_samples, -1)[:, 1],
+                              rec.signals["plant_input"].astype(np.float32))
+        clean.close()
+        yield drive, data
+    finally:
+        drive.stop()
 
 
 @pytest.mark.parametrize("loss", [0.001, 0.01, 0.05])
