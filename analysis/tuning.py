@@ -500,10 +500,12 @@ class KfcSearchResult:
 def _t_factor(dof):
     """t_{0.977, dof} / 2: scales a standard error estimated with ``dof`` degrees of
     freedom so that +-2 sigma is a 95 % interval (1 for many dof)."""
-    from scipy.stats import t as student_t
+    # the inverse of Student's t CDF from scipy.special (= scipy.stats.t.ppf, without
+    # importing scipy.stats: 0.9 s here, about 30 s in the emulated test guest)
+    from scipy.special import stdtrit
     if dof < 1:
         return np.inf
-    return float(student_t.ppf(0.9772, dof)) / 2.0
+    return float(stdtrit(dof, 0.9772)) / 2.0
 
 
 class KfcSearch(_GeneratorSearch):

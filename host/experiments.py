@@ -18,7 +18,6 @@ from fftune.analysis.hosidf import hosidf as _hosidf_estimate  # (fftune.analysi
 from fftune.analysis import stats as _stats
 from fftune.analysis.stats import harmonic_stats, hosidf_from_stats
 from fftune.analysis import tuning as _tuning
-from fftune.analysis.bla import bla_levels, estimate_quantisation_step, level_verdict
 from fftune.analysis.errors import FftuneError
 from fftune.analysis.multisine import drive_lines, drive_multisine
 from fftune.host.captures import CaptureStore
@@ -165,6 +164,10 @@ def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
     results : dict
     levels : fftune.analysis.bla.BLALevels
     """
+    # here, not at the top: a tune-only session (and the emulated test guest) skips
+    # loading the BLA module and scipy.stats
+    from fftune.analysis.bla import bla_levels, estimate_quantisation_step, level_verdict
+
     q_note = None
     if y_quantisation_step is None:
         y_quantisation_step = estimate_quantisation_step(np.concatenate([y.ravel() for y in y_lv]))
