@@ -1,5 +1,6 @@
 /* lstat.c - see lstat.h. */
 #include "lstat.h"
+#include "words.h"
 
 #include <math.h>
 #include <stddef.h>
@@ -247,15 +248,12 @@ static uint32_t lstat_word(const lstat_t *ls, uint32_t i)
     return w.u;
 }
 
+static uint32_t lstat_word_of(const void *ctx, uint32_t i)
+{
+    return lstat_word((const lstat_t *)ctx, i);
+}
+
 int lstat_read(const lstat_t *ls, uint32_t offset, uint8_t *dst, uint32_t len)
 {
-    uint32_t size = lstat_size_bytes(ls);
-    if (offset > size || len > size - offset || (dst == NULL && len != 0u)) {
-        return -1;
-    }
-    for (uint32_t b = 0u; b < len; b++) {
-        uint32_t pos = offset + b;
-        dst[b] = (uint8_t)(lstat_word(ls, pos / 4u) >> (8u * (pos % 4u)));
-    }
-    return 0;
+    return words_read(lstat_size_bytes(ls), lstat_word_of, ls, offset, dst, len);
 }

@@ -1,5 +1,6 @@
 /* stat.c - see stat.h. */
 #include "stat.h"
+#include "words.h"
 
 #include <stdatomic.h> /* atomic_signal_fence only: a compiler barrier, no library call */
 #include <stddef.h>
@@ -297,15 +298,12 @@ static uint32_t stat_word(const stat_t *st, uint32_t i)
     return w.u;
 }
 
+static uint32_t stat_word_of(const void *ctx, uint32_t i)
+{
+    return stat_word((const stat_t *)ctx, i);
+}
+
 int stat_read(const stat_t *st, uint32_t offset, uint8_t *dst, uint32_t len)
 {
-    uint32_t size = stat_size_bytes(st);
-    if (offset > size || len > size - offset || (dst == NULL && len != 0u)) {
-        return -1;
-    }
-    for (uint32_t b = 0u; b < len; b++) {
-        uint32_t pos = offset + b;
-        dst[b] = (uint8_t)(stat_word(st, pos / 4u) >> (8u * (pos % 4u)));
-    }
-    return 0;
+    return words_read(stat_size_bytes(st), stat_word_of, st, offset, dst, len);
 }
