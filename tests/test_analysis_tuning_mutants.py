@@ -389,3 +389,65 @@ def test_ratio_minimiser_stops_when_the_bracket_is_two_tolerances(width_in_tol, 
 
 def test_ratio_minimizer_default_xtol_is_a_thousandth_of_the_bracket():
     assert RatioMinimizer(0.2, 1.0).xtol == pytest.approx(0.8e-3)
+
+
+# --- round 3 (issue 16): the K_fc search's rules, each against what it is for -------------
+
+def test_told_k_fc_must_match_within_1e_12_near_zero():
+    """Near K_fc = 0 the told value must match the asked one within 1e-12 absolute (not
+    2e-12): a host that rounds the gain it ran is caught."""
+    search = SignedRootSearch(1e-3, 1.0)
+    with pytest.raises(InputError, match="asked"):
+        search.tell(1e-3 + 1.5e-12, 1.0)
+    search.tell(1e-3 + 0.9e-12, 1.0)
+
+
+def test_t_factor_with_one_degree_of_freedom_is_finite():
+    """One degree of freedom (two periods at one experiment) still gives a (wide) interval:
+    Student's t with 1 dof, not 'infinitely uncertain'; none at all gives inf."""
+    from scipy.stats import t as student_t
+
+    from fftune.analysis.tuning import _t_factor
+    assert _t_factor(1) == pytest.approx(student_t.ppf(0.9772, 1) / 2)
+    assert np.isfinite(_t_factor(1)) and _t_factor(0) == np.inf
+
+
+def test_kfc_search_runs_with_the_smallest_budget_of_three_experiments():
+    search = KfcSearch(0.0, 1.0, max_experiments=3)
+    assert search.max_experiments == 3
+    res = search.run(lambda k: _relay(k)[None, :] + 1e-6 * np.arange(2)[:, None])
+    assert not res.converged and res.n_experiments == 3 and "max_experiments (now 3)" in res.reason
+    with pytest.raises(InputError, match="max_experiments must be >= 3"):
+        KfcSearch(0.0, 1.0, max_experiments=2)
+
+
+def test_ratio_standard_error_is_continuous_where_the_odd_lines_vanish():
+    """With every odd line exactly 0 (q = 0, where the gradient formula divides by q) the
+    ratio's standard error is the limit of the general formula as the lines go to 0 (equal
+    line variances), not a different constant."""
+    search = KfcSearch(0.0, 1.0)
+    H = np.array([2.0, 0, 0, 0, 0, 0, 0], complex)
+    H_var = np.full(7, 1e-6)
+    at_zero = search._point_from_moments(0.5, H, H_var, 4)
+    tiny = H.copy()
+    tiny[2], tiny[4], tiny[6] = 1e-9, 1e-9j, -1e-9
+    near_zero = search._point_from_moments(0.5, tiny, H_var, 4)
+    assert at_zero.ratio == 0.0
+    assert at_zero.ratio_std == pytest.approx(near_zero.ratio_std, rel=1e-9)
+    # sqrt(n v / (2 n^2) / |H_1|^2 / P) with n = 3 lines of variance v
+    assert at_zero.ratio_std == pytest.approx(np.sqrt(3e-6 / 18 / 4 / 4))
+
+
+def test_first_interior_point_too_close_to_an_end_is_the_midpoint():
+    """A secant root within 5 % of the bracket from an end says little (one end dominates):
+    the third experiment is the midpoint instead."""
+    search = KfcSearch(0.0, 1.0)
+    H = {}
+    for _ in range(2):
+        k = search.ask()
+        H[k] = _relay(k, fc=0.02)
+        search.tell_moments(k, H[k], np.full(7, 1e-10), 4)
+    phases = reference_phases(H[0.0] - H[1.0])
+    s0, s1 = signed_odd_ratio(H[0.0], phases), signed_odd_ratio(H[1.0], phases)
+    assert 0 < s0 / (s0 - s1) < 0.05                  # the secant root: near the lower end
+    assert search.ask() == 0.5
