@@ -451,3 +451,93 @@ def test_first_interior_point_too_close_to_an_end_is_the_midpoint():
     s0, s1 = signed_odd_ratio(H[0.0], phases), signed_odd_ratio(H[1.0], phases)
     assert 0 < s0 / (s0 - s1) < 0.05                  # the secant root: near the lower end
     assert search.ask() == 0.5
+
+
+# The verification rules of KfcSearch._estimate on hand-made experiments: H_1 = 1 and the
+# odd lines H_3 = H_5 = H_7 = s + j f, so that the signed objective is s (reference phase
+# 0), the ratio sqrt(s^2 + f^2), and both have the standard error SIGMA (line variances).
+SIGMA, PERIODS = 1e-3, 4
+
+
+def _shaped(s, floor=0.0, sigma=SIGMA):
+    H = np.zeros(7, complex)
+    H[0] = 1.0
+    H[2] = H[4] = H[6] = s + 1j * floor
+    H_var = np.zeros(7)
+    H_var[2] = H_var[4] = H_var[6] = 6 * PERIODS * sigma ** 2
+    return H, H_var, PERIODS
+
+
+def _made(points, **kw):
+    """A KfcSearch holding experiments {k: s or (s, floor[, sigma])}."""
+    search = KfcSearch(0.0, 1.0, **kw)
+    for k, spec in points.items():
+        search.points[k] = search._point_from_moments(k, *_shaped(*np.atleast_1d(spec)))
+    return search
+
+
+def _sigma_noise(slope, n_points, sigma=SIGMA):
+    """The documented noise part of sigma(K_fc*): the pooled standard error of s through the
+    slope, times t_{0.977, dof} / 2 with dof = the experiments' periods - 1, summed."""
+    from fftune.analysis.tuning import _t_factor
+    return sigma / abs(slope) * _t_factor(n_points * (PERIODS - 1))
+
+
+def test_made_experiments_have_the_intended_objective_and_noise():
+    search = _made({0.1: 0.2, 0.5: (-0.1, 0.05)})
+    s, s_se = search._signed(search._sorted(), np.zeros(3))
+    np.testing.assert_allclose(s, [0.2, -0.1], rtol=1e-12)
+    np.testing.assert_allclose(s_se, SIGMA, rtol=1e-12)
+    assert search.points[0.5].ratio == pytest.approx(np.hypot(0.1, 0.05), rel=1e-12)
+    assert search.points[0.5].ratio_std == pytest.approx(SIGMA, rel=1e-12)
+
+
+def test_estimate_verified_by_s_zero_at_a_measured_point():
+    """s = 0.5 (0.3 - K) measured at K = 0.3: verified there, sigma = the noise part alone."""
+    search = _made({0.0: 0.15, 0.2: 0.05, 0.3: 0.0, 0.4: -0.05, 1.0: -0.35})
+    est = search._estimate(0.2, 0.4)
+    assert est["stop"]
+    res = est["result"]
+    assert res.converged and res.regime == "signed root" and res.k_fc == pytest.approx(0.3, abs=1e-15)
+    assert res.slope == pytest.approx(-0.5, rel=1e-12)
+    assert res.sigma_signed == pytest.approx(SIGMA, rel=1e-12)
+    assert res.sigma == pytest.approx(_sigma_noise(0.5, 5), rel=1e-12)
+    assert res.bracket == (0.2, 0.4) and res.n_experiments == 5
+    assert "K_fc = 0.3 has s = 0 (noise 0.001)" in res.reason
+
+
+def test_estimate_uses_the_over_compensated_secant_inside_the_sign_change():
+    """Under-compensated s bends (stick-slip), over-compensated it is linear: the next
+    experiment is where the line through the two over-compensated points nearest the root
+    crosses zero, not the interpolation across the sign change."""
+    under = {0.0: 0.15 + 0.27, 0.2: 0.05 + 0.03}         # 0.5 (0.3 - K) + 3 (0.3 - K)^2
+    search = _made({**under, 0.4: -0.05, 0.5: -0.1, 1.0: -0.35})
+    est = search._estimate(0.2, 0.5)
+    assert not est["stop"] and est["next"] == pytest.approx(0.3, abs=1e-12)
+    # an over-compensated side that flattens: its secant falls outside the sign change and
+    # the linear interpolation across the sign change is used
+    search = _made({**under, 0.4: -0.05, 0.5: -0.06, 1.0: -0.35})
+    est = search._estimate(0.2, 0.5)
+    assert not est["stop"] and est["next"] == pytest.approx(0.2 + 0.2 * 0.08 / 0.13, rel=1e-12)
+
+
+@pytest.mark.parametrize("offset", [2e-4, -2e-4])
+def test_estimate_on_an_unverified_measured_point_probes_one_tolerance_beside_it(offset):
+    """The estimate falls on a measured point (within a quarter tolerance) whose ratio is
+    too high to verify it: the next experiment is one tolerance beside the estimate, on
+    the side of the sign change (towards the other sign of s)."""
+    k_m = 0.3 + offset
+    search = _made({0.0: 0.15, 0.2: 0.05, k_m: (0.5 * (0.3 - k_m), 0.1), 0.4: -0.05, 1.0: -0.35})
+    est = search._estimate(0.2, 0.4)
+    tol = _sigma_noise(0.5, 5)
+    assert tol > 0.3 * 5e-3                            # the noise sets the tolerance
+    assert not est["stop"]
+    assert est["next"] == pytest.approx(0.3 - np.sign(offset) * tol, rel=1e-9)
+
+
+def test_estimate_probe_outside_the_sign_change_falls_back_to_its_midpoint():
+    k_m, k_n = 0.2998, 0.301
+    search = _made({0.0: 0.15, 0.2: 0.05, k_m: (0.5 * (0.3 - k_m), 0.1), k_n: 0.5 * (0.3 - k_n),
+                    0.4: -0.05, 1.0: -0.35})
+    est = search._estimate(0.2, 0.4)
+    assert not est["stop"] and est["next"] == pytest.approx(0.5 * (k_m + k_n), rel=1e-12)
