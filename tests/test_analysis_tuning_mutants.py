@@ -541,3 +541,46 @@ def test_estimate_probe_outside_the_sign_change_falls_back_to_its_midpoint():
                     0.4: -0.05, 1.0: -0.35})
     est = search._estimate(0.2, 0.4)
     assert not est["stop"] and est["next"] == pytest.approx(0.5 * (k_m + k_n), rel=1e-12)
+
+
+@pytest.mark.parametrize("excess, verified", [(-1e-3, True), (1e-3, False)])
+def test_estimate_verification_ratio_within_two_standard_errors_and_one_percent(excess, verified):
+    """The ratio at the verification may exceed the smallest other measured ratio (here
+    far away, at K = 1) by at most 2 combined standard errors plus 1 % of it."""
+    best = 0.35
+    floor = best + 2 * np.hypot(SIGMA, SIGMA) + 0.01 * best + excess
+    # a ratio floor of 0.4 around the optimum: its neighbours are higher (a local minimum)
+    search = _made({0.0: (0.15, 0.4), 0.2: (0.05, 0.4), 0.3: (0.0, floor), 0.4: (-0.05, 0.4),
+                    1.0: -best})
+    est = search._estimate(0.2, 0.4)
+    assert est["stop"] is verified
+    if not verified:
+        assert est["next"] == pytest.approx(0.3 - _sigma_noise(0.5, 5), rel=1e-9)   # s = 0: below
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_estimate_verification_needs_a_local_minimum_of_the_ratio(side):
+    """Within the 1 % allowance of the smallest ratio, but the nearest measured point on
+    one side lies below the verification's ratio by more than 2 standard errors: not a
+    local minimum, not verified. Within 2 standard errors it is."""
+    band = 2 * np.hypot(SIGMA, SIGMA)
+    for extra, verified in ((1.5e-4, False), (-1.5e-4, True)):
+        low, high = 0.025, (0.025, 0.05)             # ratios 0.025 and 0.056 beside K = 0.3
+        near = {0.25: low, 0.35: (-high[0], high[1])} if side == "left" else \
+            {0.25: high, 0.35: -low}
+        search = _made({0.0: 0.15, 0.2: 0.05, **near, 0.3: (0.0, low + band + extra),
+                        0.4: -0.05, 1.0: -0.35})
+        assert search._estimate(0.2, 0.4)["stop"] is verified, (side, extra)
+
+
+def test_s_rising_within_its_noise_still_counts_as_falling():
+    """Monotone within the noise: a rise of s between neighbours up to 2 standard errors
+    of their difference is tolerated (the noisier point's error counts), a larger one
+    sends the search to the ratio minimiser."""
+    big = 0.01
+    for rise, regime in ((1.8 * np.hypot(big, SIGMA), "signed root"),
+                         (2.2 * np.hypot(big, SIGMA), "ratio minimiser")):
+        search = _made({0.0: 0.15, 0.2: 0.05, 0.25: (0.04, 0.0, big), 0.3: 0.04 + rise, 0.4: -0.05,
+                        1.0: -0.35})
+        search._estimate(0.2, 0.4)
+        assert search.regime == regime, rise
