@@ -584,3 +584,80 @@ def test_s_rising_within_its_noise_still_counts_as_falling():
                         1.0: -0.35})
         search._estimate(0.2, 0.4)
         assert search.regime == regime, rise
+
+
+def _lack_of_fit(ks, s):
+    """Slope and rms residual (n - 2 dof) of the straight line fitted through (ks, s)."""
+    fit = np.polyfit(ks, s, 1)
+    return fit[0], np.sqrt(np.sum((s - np.polyval(fit, ks)) ** 2) / (len(ks) - 2))
+
+
+@pytest.mark.parametrize("near, how", [((0.25, 0.29, 0.31, 0.35), "has s = 0.015"),
+                                       ((0.24, 0.26, 0.28, 0.29, 0.31, 0.32, 0.34, 0.36),
+                                        "sign change of s bracketed in [0.29, 0.31]")])
+def test_scatter_of_s_from_k_to_k_above_the_noise_sets_sigma(near, how):
+    """s jumps by 0.02 at the root (quantisation, a limit cycle), far more than the period
+    noise: with 4 or more experiments within 25 % of the estimate, the rms residual of a
+    line through them is the noise of s (dof: their number - 2) and the line's slope is
+    the slope; a sign change bracketed within the tolerance verifies."""
+    jump = 0.01
+    s_of = {k: 0.5 * (0.3 - k) + jump * np.sign(0.3 - k) for k in near}
+    search = _made({0.0: 0.15 + jump, 0.2: 0.05 + jump, **s_of, 0.4: -0.05 - jump})
+    est = search._estimate(0.2, 0.4)
+    assert est["stop"]
+    res = est["result"]
+    slope, lof = _lack_of_fit(np.array(near), np.array([s_of[k] for k in near]))
+    assert lof > 5 * SIGMA
+    assert res.converged and how in res.reason and res.k_fc == pytest.approx(0.3, abs=1e-12)
+    assert res.sigma_signed == pytest.approx(lof, rel=1e-9)
+    assert res.slope == pytest.approx(slope, rel=1e-9)
+    from fftune.analysis.tuning import _t_factor
+    sigma = np.hypot(lof / abs(slope) * _t_factor(len(near) - 2), 0.01)       # |K_m - K*| = 0.01
+    if "bracketed" in how:
+        sigma = np.hypot(sigma, 0.02 / np.sqrt(12))       # and the bracket's uniform spread
+    assert res.sigma == pytest.approx(sigma, rel=1e-9)
+
+
+def test_s_on_a_line_keeps_the_period_noise():
+    """Four experiments near the estimate exactly on a line: no lack of fit, sigma from
+    the period noise as without them."""
+    near = {k: 0.5 * (0.3 - k) for k in (0.25, 0.28, 0.3, 0.33, 0.36)}
+    search = _made({0.0: 0.15, 0.2: 0.05, **near, 0.4: -0.05})
+    res = search._estimate(0.2, 0.4)["result"]
+    assert res.converged and res.sigma_signed == pytest.approx(SIGMA, rel=1e-9)
+    assert res.sigma == pytest.approx(_sigma_noise(0.5, 8), rel=1e-9)
+
+
+def _asked(search, s_of_k, n):
+    """The first n experiments the search asks for, told the made-up objective s(K)."""
+    asked = []
+    while not search.done and len(asked) < n:
+        k = search.ask()
+        asked.append(k)
+        search.tell_moments(k, *_shaped(s_of_k(k)))
+    return asked
+
+
+@pytest.mark.parametrize("root, third", [(0.25, 0.25), (0.23, 0.6), (0.95, 0.95), (0.97, 0.6)])
+def test_first_interior_point_kept_unless_within_5_percent_of_an_end(root, third):
+    """On [0.2, 1.0] the secant root of s is the third experiment when it lies 5 % of the
+    bracket (0.04) or more inside it, else the midpoint."""
+    asked = _asked(KfcSearch(0.2, 1.0), lambda k: 0.5 * (root - k), 3)
+    assert asked[:2] == [1.0, 0.2] and asked[2] == pytest.approx(third, abs=1e-12)
+
+
+@pytest.mark.parametrize("root, k_limit, third", [(2.0, 10.0, 1.0), (0.26, 10.0, 0.3125),
+                                                  (0.5, 10.0, 0.575), (0.5, 0.4, 0.4)])
+def test_extension_when_both_ends_are_under_compensated(root, k_limit, third):
+    """s > 0 at both ends and falling: the third experiment is 1.15 x the extrapolated root,
+    within [1.25, 4] x upper and the drive's limit."""
+    asked = _asked(KfcSearch(0.0, 0.25, k_limit=k_limit), lambda k: 0.5 * (root - k), 3)
+    assert asked[2] == pytest.approx(third, rel=1e-12)
+
+
+def test_extension_doubles_the_top_while_its_ratio_is_the_smallest():
+    search = KfcSearch(0.0, 0.25, k_limit=10.0, max_experiments=8)
+    asked = _asked(search, lambda k: 0.5 * (20.0 - k), 8)
+    assert asked == pytest.approx([0.25, 0.0, 1.0, 2.0, 4.0, 8.0, 10.0])
+    res = search.result
+    assert not res.converged and "drive's limit" in res.reason and res.extended_to == 10.0
