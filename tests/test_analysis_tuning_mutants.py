@@ -661,3 +661,107 @@ def test_extension_doubles_the_top_while_its_ratio_is_the_smallest():
     assert asked == pytest.approx([0.25, 0.0, 1.0, 2.0, 4.0, 8.0, 10.0])
     res = search.result
     assert not res.converged and "drive's limit" in res.reason and res.extended_to == 10.0
+
+
+def test_ratio_minimizer_follows_scipy_on_a_shifted_bracket_and_quantised_objectives():
+    """As test_ratio_minimizer_follows_brent_fmin_as_scipy, on a bracket that does not start
+    at 0 and on objectives with many equal values (a quantised measurement)."""
+    objectives = [lambda k: abs(k - 0.71) + 0.02, lambda k: np.round(abs(k - 0.5) * 20) / 20,
+                  lambda k: np.round(np.sqrt((k - 0.93) ** 2 + 0.01) * 8) / 8]
+    for objective in objectives:
+        for lower, upper in ((0.2, 1.3), (0.0, 1.0)):
+            ours = []
+            res = RatioMinimizer(lower, upper, xtol=1e-4, max_evaluations=200).run(
+                lambda k: (ours.append(k), objective(k))[1])
+            ref = []
+            minimize_scalar(lambda k: (ref.append(k), objective(k) ** 2)[1], bounds=(lower, upper),
+                            method="bounded", options={"xatol": 1e-4, "maxiter": 200})
+            assert len(ours) == len(ref)
+            np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-9)
+            assert res.converged
+
+
+def test_ratio_minimizer_says_how_narrow_the_bracket_got():
+    res = RatioMinimizer(0.0, 1.0, xtol=3e-3).run(lambda k: abs(k - 0.3) + 0.01)
+    assert res.converged and res.reason == "bracket below 0.004"      # 4 (xtol / 3 + eps |K|)
+
+
+def test_signed_root_search_result_before_any_evaluation_is_not_converged():
+    res = SignedRootSearch(0.2, 0.6).result
+    assert not res.converged and res.reason == "running" and res.history == []
+
+
+def test_signed_root_search_without_sign_change_and_equal_ends_reports_the_upper():
+    res = SignedRootSearch(0.25, 0.75).run(lambda k: 1.0 + (k - 0.5) ** 2)
+    assert not res.converged and res.k_fc == 0.75
+
+
+def test_a_motor_hardly_moving_within_its_noise_has_no_ratio():
+    """|H_1| below 1e-3 of its own noise (its standard deviation per period): the motor
+    does not follow the sine, the ratio is inf (not a number from noise)."""
+    search = KfcSearch(0.0, 1.0)
+    k = search.ask()
+    H = _relay(0.1) * 0 + 1e-3
+    H_var = np.full(7, 1e-8)
+    H_var[0] = 4.0                                    # sqrt: 2 >> 1e3 |H_1|
+    search.tell_moments(k, H, H_var, 4)
+    assert np.isinf(search.points[k].ratio)
+    k = search.ask()
+    H_var[0] = 0.25                                   # sqrt: 0.5 < 1e3 |H_1|
+    search.tell_moments(k, H, H_var, 4)
+    assert np.isfinite(search.points[k].ratio)
+
+
+def test_both_ends_under_compensated_at_the_drive_limit_take_the_midpoint():
+    """upper = k_limit (the default): no room to extend, the third experiment is the
+    midpoint and the search says it hit the drive's limit; no experiment is repeated."""
+    search = KfcSearch(0.0, 0.25)
+    asked = _asked(search, lambda k: 0.5 * (2.0 - k), 8)
+    assert asked[2] == 0.125 and search.extended_to is None
+    assert len(set(asked)) == len(asked)
+    assert search.done and "drive's limit" in search.result.reason
+
+
+@pytest.mark.parametrize("which, offset, repeat", [(1, 5e-10, True), (1, 1.5e-9, False),
+                                                   (2, -2e-9, True), (2, -4e-9, False)])
+def test_a_step_onto_a_measured_experiment_stalls_the_search(which, offset, repeat):
+    """A next experiment within 1e-9 of a measured one (relative above |K| = 1; here 0.3
+    and 3.0) cannot add information: the search stops, not converged, and says so."""
+    search = KfcSearch(0.0, 3.0, max_experiments=12)
+    search._estimate = lambda a, b: {"stop": False, "next": sorted(search.points)[which] + offset}
+    asked = _asked(search, lambda k: 0.5 * (0.3 - k), 3)
+    assert asked[2] == pytest.approx(0.3)
+    assert search.done is repeat
+    if repeat:
+        assert "stalled" in search.result.reason and not search.result.converged
+    else:
+        assert search.ask() == sorted(search.points)[which] + offset
+
+
+def test_s_at_the_nearest_point_beyond_its_noise_is_not_verified():
+    """Under-compensated s is offset by 3.8 standard errors (a stuck motor), the over-
+    compensated points put the root at 0.3: the experiment 5e-4 beside the root is within
+    the tolerance but its s is not 0 within 2 standard errors (plus slope x tolerance):
+    not verified, the next experiment is the estimate itself."""
+    jump = 3.8 * SIGMA
+    search = _made({0.0: 0.15 + jump, 0.2995: 0.5 * (0.3 - 0.2995) + jump, 0.31: -0.005,
+                    0.4: -0.05, 1.0: -0.35})
+    est = search._estimate(0.0, 0.4)
+    assert not est["stop"] and est["next"] == pytest.approx(0.3, abs=1e-12)
+
+
+def _ratios_only(ratios, **kw):
+    """Experiments with s = 0 and the given ratios: the odd phases give no signed root."""
+    return _made({k: (0.0, r) for k, r in ratios.items()}, **kw)
+
+
+def test_ratio_minimiser_rejects_a_parabolic_step_near_the_bracket_end():
+    """Smallest ratio at 0.84 in [0, 1]: the vertex of the parabola through r^2 is taken
+    unless it lies within 10 % of the bracket from its end or within 5 % of 0.84; then a
+    golden-section step into the larger part instead (0.84 - 0.381966 x 0.84)."""
+    golden = 0.84 - 0.381966 * 0.84
+    for vertex, expected in ((0.91, golden), (0.88, golden), (0.895, 0.895)):
+        search = _ratios_only({k: np.sqrt(2.0 * (k - vertex) ** 2 + 0.01) for k in (0.0, 0.84, 1.0)})
+        est = search._estimate(0.0, 1.0)
+        assert search.regime == "ratio minimiser" and not est["stop"]
+        assert est["next"] == pytest.approx(expected, rel=1e-9), vertex
