@@ -765,3 +765,24 @@ def test_ratio_minimiser_rejects_a_parabolic_step_near_the_bracket_end():
         est = search._estimate(0.0, 1.0)
         assert search.regime == "ratio minimiser" and not est["stop"]
         assert est["next"] == pytest.approx(expected, rel=1e-9), vertex
+
+
+def test_a_sub_bracket_keeps_the_reference_phases_of_the_bracket_that_holds_it():
+    """Near the optimum a quadrature component (the ratio's floor) turns the odd phases:
+    the sub-bracket's own ends would give phases under which s rises (ratio minimiser).
+    The earlier bracket that holds it, with s falling over it, keeps the signed root."""
+    search = _made({0.0: 0.15, 0.4: -0.05, 1.0: -0.35})
+    first = search._estimate(0.0, 0.4)
+    assert search.regime == "signed root" and first["next"] == pytest.approx(0.3)
+    for k, spec in {0.25: (0.025, 0.2), 0.3: (0.0, 0.25), 0.35: (-0.025, 0.0)}.items():
+        search.points[k] = search._point_from_moments(k, *_shaped(*spec))
+    own, _ = search._signed([search.points[k] for k in (0.25, 0.3, 0.35)], search._phases(0.25, 0.35))
+    assert own[1] - own[0] > 0.04                                # rises with its own phases
+    search._estimate(0.25, 0.35)
+    assert search.regime == "signed root"
+    search._estimate(0.25, 0.4)                                 # sharing its upper end
+    assert search.regime == "signed root"
+    # a bracket the earlier one does not hold: its own phases, the ratio minimiser here
+    search.points[0.45] = search._point_from_moments(0.45, *_shaped(-0.075, 0.3))
+    search._estimate(0.3, 0.45)
+    assert search.regime == "ratio minimiser"
