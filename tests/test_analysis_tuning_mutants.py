@@ -786,3 +786,29 @@ def test_a_sub_bracket_keeps_the_reference_phases_of_the_bracket_that_holds_it()
     search.points[0.45] = search._point_from_moments(0.45, *_shaped(-0.075, 0.3))
     search._estimate(0.3, 0.45)
     assert search.regime == "ratio minimiser"
+
+
+def test_golden_step_of_the_ratio_minimiser_goes_into_the_lower_half_on_a_tie():
+    """Equal halves around the smallest ratio (0.5 in [0, 1]) and a parabolic vertex too
+    close to it (0.51): the golden-section step goes into the lower half."""
+    search = _ratios_only({k: np.sqrt(2.0 * (k - 0.51) ** 2 + 0.01) for k in (0.0, 0.5, 1.0)})
+    est = search._estimate(0.0, 1.0)
+    assert search.regime == "ratio minimiser"
+    assert est["next"] == pytest.approx(0.5 - 0.381966 * 0.5, rel=1e-12)
+
+
+def test_per_period_points_of_a_motor_that_does_not_move():
+    """|H_1| ~ 1e-7 in every period (steady, so not 'averaged out'): below the absolute
+    floor 1e-6, the motor does not move: no ratio (inf) and no spread (0); a point without
+    a ratio gets no signed objective (NaN) and does not stop the others'."""
+    search = KfcSearch(0.0, 1.0)
+    k = search.ask()
+    search.tell(k, np.full((4, 7), 1e-7 + 0j) + 1e-9 * np.arange(4)[:, None])
+    assert np.isinf(search.points[k].ratio) and search.points[k].ratio_std == 0.0
+    k2 = search.ask()
+    search.tell_moments(k2, np.full(7, 1e-7 + 0j), np.zeros(7), 4)
+    assert np.isinf(search.points[k2].ratio) and search.points[k2].ratio_std == 0.0
+    moving = search._point_from_moments(0.5, *_shaped(0.1))
+    s, s_se = search._signed([search.points[k], search.points[k2], moving], np.zeros(3))
+    assert np.isnan(s[:2]).all() and np.isnan(s_se[:2]).all()
+    assert s[2] == pytest.approx(0.1) and s_se[2] == pytest.approx(SIGMA)
