@@ -666,7 +666,8 @@ def test_extension_doubles_the_top_while_its_ratio_is_the_smallest():
 def test_ratio_minimizer_follows_scipy_on_a_shifted_bracket_and_quantised_objectives():
     """As test_ratio_minimizer_follows_brent_fmin_as_scipy, on a bracket that does not start
     at 0 and on objectives with many equal values (a quantised measurement)."""
-    objectives = [lambda k: abs(k - 0.71) + 0.02, lambda k: np.round(abs(k - 0.5) * 20) / 20,
+    objectives = [lambda k: abs(k - 0.71) + 0.02, lambda k: abs(k - 0.55) ** 0.5 + 0.01,
+                  lambda k: np.round(abs(k - 0.5) * 20) / 20,
                   lambda k: np.round(np.sqrt((k - 0.93) ** 2 + 0.01) * 8) / 8]
     for objective in objectives:
         for lower, upper in ((0.2, 1.3), (0.0, 1.0)):
