@@ -813,3 +813,15 @@ def test_per_period_points_of_a_motor_that_does_not_move():
     s, s_se = search._signed([search.points[k], search.points[k2], moving], np.zeros(3))
     assert np.isnan(s[:2]).all() and np.isnan(s_se[:2]).all()
     assert s[2] == pytest.approx(0.1) and s_se[2] == pytest.approx(SIGMA)
+
+
+def test_local_minimum_rule_looks_at_the_nearest_point_on_each_side_only():
+    """A lower ratio farther out (here at K = 0.1, with the 1 % allowance) does not make
+    the verification fail: only the nearest measured point on each side must not be below
+    it by more than the noise."""
+    best = 0.35
+    floor = best + 2 * np.hypot(SIGMA, SIGMA) + 0.01 * best - 1e-3
+    search = _made({0.0: (0.15, 0.4), 0.1: (0.1, np.sqrt(best ** 2 - 0.1 ** 2)), 0.2: (0.05, 0.4),
+                    0.3: (0.0, floor), 0.4: (-0.05, 0.4), 1.0: -best})
+    assert search.points[0.1].ratio == pytest.approx(best)
+    assert search._estimate(0.2, 0.4)["stop"]
