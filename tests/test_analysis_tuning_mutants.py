@@ -756,13 +756,15 @@ def _ratios_only(ratios, **kw):
     return _made({k: (0.0, r) for k, r in ratios.items()}, **kw)
 
 
-def test_ratio_minimiser_rejects_a_parabolic_step_near_the_bracket_end():
-    """Smallest ratio at 0.84 in [0, 1]: the vertex of the parabola through r^2 is taken
-    unless it lies within 10 % of the bracket from its end or within 5 % of 0.84; then a
-    golden-section step into the larger part instead (0.84 - 0.381966 x 0.84)."""
-    golden = 0.84 - 0.381966 * 0.84
-    for vertex, expected in ((0.91, golden), (0.88, golden), (0.895, 0.895)):
-        search = _ratios_only({k: np.sqrt(2.0 * (k - vertex) ** 2 + 0.01) for k in (0.0, 0.84, 1.0)})
+@pytest.mark.parametrize("x, cases", [
+    (0.84, ((0.91, 0.84 - 0.381966 * 0.84), (0.88, 0.84 - 0.381966 * 0.84), (0.895, 0.895))),
+    (0.16, ((0.09, 0.16 + 0.381966 * 0.84), (0.12, 0.16 + 0.381966 * 0.84), (0.105, 0.105)))])
+def test_ratio_minimiser_rejects_a_parabolic_step_near_the_bracket_end(x, cases):
+    """Smallest ratio at x in [0, 1]: the vertex of the parabola through r^2 is taken
+    unless it lies within 10 % of the bracket from its end or within 5 % of x; then a
+    golden-section step into the larger part instead."""
+    for vertex, expected in cases:
+        search = _ratios_only({k: np.sqrt(2.0 * (k - vertex) ** 2 + 0.01) for k in (0.0, x, 1.0)})
         est = search._estimate(0.0, 1.0)
         assert search.regime == "ratio minimiser" and not est["stop"]
         assert est["next"] == pytest.approx(expected, rel=1e-9), vertex
