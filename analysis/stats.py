@@ -28,6 +28,7 @@ from fftune.analysis.errors import InputError
 from fftune.analysis.hosidf import hosidf_from_lines
 
 __all__ = ["SIGNAL_BITS", "HarmonicStats", "parse_stats", "LineStats", "parse_line_stats", "line_stats",
+           "line_moments",
            "harmonic_stats", "hosidf_from_stats",
            "period_hosidf_moments", "period_noise_rms", "relative_difference", "STAT_K_MAX",
            "STAT_SIG_MAX"]
@@ -446,3 +447,54 @@ def line_stats(u, y, r, *, n, bins):
         cov_yu = var_u + 0j
     return LineStats(periods=periods, bins=bins, U=mean["u"], Y=mean["y"], R=mean["r"], var_u=var_u,
                      var_y=var_y, cov_yu=cov_yu)
+
+
+def line_moments(stats, *, reference=None):
+    """The line moments of M realizations (:class:`fftune.analysis.bla.LineMoments`, what
+    :func:`fftune.analysis.bla.robust_bla_moments` reads) from their line statistics.
+
+    Parameters
+    ----------
+    stats : sequence of LineStats
+        One per realization, all with the same lines and periods.
+    reference : array_like of complex, shape (M, L), optional
+        The reference's spectrum at the lines per realization, replacing the statistics'
+        mean R: the excitation the host generated (a disturbance added at the plant input
+        is not what the drive records as its reference). The reference is taken as exactly
+        periodic either way (the drive plays it from its table).
+
+    Returns
+    -------
+    LineMoments
+    """
+    from fftune.analysis.bla import LineMoments
+
+    stats = list(stats)
+    if not stats:
+        raise InputError("line statistics: no realization")
+    first = stats[0]
+    for m, st in enumerate(stats):
+        if st.periods != first.periods or not np.array_equal(st.bins, first.bins):
+            raise InputError(f"line statistics of realization {m}: {st.periods} periods at "
+                             f"{st.bins.size} lines, realization 0 has {first.periods} at "
+                             f"{first.bins.size} (the same lines and periods are needed)")
+    p = int(first.periods)
+    if p < 1:
+        raise InputError("line statistics: 0 periods accumulated")
+
+    def stack(name):
+        return np.stack([np.asarray(getattr(st, name)) for st in stats])
+
+    # sums of squared deviations: (P - 1) x the drive's variance (none with P = 1)
+    k = float(p - 1)
+    if p > 1:
+        ss_u, ss_y, s_yu = k * stack("var_u"), k * stack("var_y"), k * stack("cov_yu")
+    else:
+        shape = (len(stats), first.bins.size)
+        ss_u, ss_y, s_yu = np.zeros(shape), np.zeros(shape), np.zeros(shape, complex)
+    R = stack("R") if reference is None else np.asarray(reference, dtype=complex)
+    if R.shape != (len(stats), first.bins.size):
+        raise InputError(f"line statistics: reference spectra of shape {R.shape}, expected "
+                         f"({len(stats)}, {first.bins.size}) (realizations, lines)")
+    return LineMoments(bins=first.bins, n_periods=p, U=stack("U"), Y=stack("Y"), ss_u=ss_u,
+                       ss_y=ss_y, s_yu=s_yu, R=R, ss_r=None)
