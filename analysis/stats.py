@@ -360,6 +360,9 @@ class LineStats:
         sum_p |X_p - mean|^2 / (P - 1); NaN when P < 2.
     cov_yu : ndarray of complex, shape (L,)
         sum_p (Y_p - mean Y) conj(U_p - mean U) / (P - 1); NaN when P < 2.
+    saturated_samples : int or None
+        Recorded samples whose plant input sat at the drive's limit (object 0x2040:11),
+        None when not known.
     """
 
     periods: int
@@ -370,6 +373,40 @@ class LineStats:
     var_u: np.ndarray
     var_y: np.ndarray
     cov_yu: np.ndarray
+    saturated_samples: int = None
+
+    def to_dict(self):
+        """A JSON-ready dict (complex as [re, im] pairs, NaN as None); :meth:`from_dict`
+        inverts it."""
+        def real(v):
+            return [float(x) if np.isfinite(x) else None for x in np.asarray(v, dtype=float)]
+
+        def cplx(v):
+            return [[float(z.real), float(z.imag)] if np.isfinite(z) else None for z in np.asarray(v)]
+        return {"periods": int(self.periods), "bins": [int(b) for b in self.bins],
+                "U": cplx(self.U), "Y": cplx(self.Y), "R": cplx(self.R), "var_u": real(self.var_u),
+                "var_y": real(self.var_y), "cov_yu": cplx(self.cov_yu),
+                "saturated_samples": None if self.saturated_samples is None else int(self.saturated_samples)}
+
+    @classmethod
+    def from_dict(cls, d):
+        def real(v):
+            return np.array([np.nan if x is None else float(x) for x in v])
+
+        def cplx(v):
+            return np.array([complex(np.nan, np.nan) if z is None else complex(z[0], z[1]) for z in v])
+        try:
+            out = cls(periods=int(d["periods"]), bins=np.asarray(d["bins"], dtype=np.int64),
+                      U=cplx(d["U"]), Y=cplx(d["Y"]), R=cplx(d["R"]), var_u=real(d["var_u"]),
+                      var_y=real(d["var_y"]), cov_yu=cplx(d["cov_yu"]))
+            sat = d.get("saturated_samples")
+            out.saturated_samples = None if sat is None else int(sat)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise InputError(f"line statistics: malformed block ({exc})") from None
+        if any(np.shape(getattr(out, k)) != out.bins.shape for k in ("U", "Y", "R", "var_u", "var_y", "cov_yu")):
+            raise InputError(f"line statistics: malformed block (arrays of other lengths than "
+                             f"the {out.bins.size} bins)")
+        return out
 
 
 def parse_line_stats(data):
