@@ -251,6 +251,25 @@ def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
     return results, levels
 
 
+def detect_lines(c, fs, src="config"):
+    """The detect step's DFT lines at the drive's rate ``fs`` (Hz): k_min, k_max of the
+    band, the design (:func:`fftune.analysis.multisine.drive_lines`) and the lines of the
+    drive's line statistics: every line from the lowest to the highest excited one (the
+    excited lines and the detection lines between them)."""
+    n = c["period_samples"]
+    k_min = max(1, int(math.ceil(c["band_hz"][0] * n / fs - 1e-9)))
+    k_max = int(math.floor(c["band_hz"][1] * n / fs + 1e-9))
+    if k_max >= n // 2:
+        k_max = n // 2 - 1
+    if k_min > k_max:
+        raise FftuneError(f"{src}: key 'detect.band_hz': no DFT line of fs/N = {fs / n:g} Hz "
+                          f"in {c['band_hz']}")
+    lines = drive_lines(n, k_min, k_max, c["group"], c["seed"])
+    if len(lines.excited) == 0:
+        raise FftuneError(f"{src}: key 'detect.band_hz': no excited line in the band")
+    return k_min, k_max, lines, np.arange(lines.excited[0], lines.excited[-1] + 1)
+
+
 def _bla_levels_from_moments(moments_lv, *, n_period, fs, excited_bins, y_quantisation_step):
     """:class:`fftune.analysis.bla.BLALevels` from per-level line moments."""
     from fftune.analysis.bla import BLALevels, robust_bla_moments
@@ -284,21 +303,8 @@ def detect(session):
     """
     c = session.cfg["detect"]
     fs, n = session.fs_hz, c["period_samples"]
-    src = session.cfg.get("_source", "config")
-    k_min = max(1, int(math.ceil(c["band_hz"][0] * n / fs - 1e-9)))
-    k_max = int(math.floor(c["band_hz"][1] * n / fs + 1e-9))
-    if k_max >= n // 2:
-        k_max = n // 2 - 1
-    if k_min > k_max:
-        raise FftuneError(f"{src}: key 'detect.band_hz': no DFT line of fs/N = {fs / n:g} Hz "
-                          f"in {c['band_hz']}")
-    lines = drive_lines(n, k_min, k_max, c["group"], c["seed"])
-    if len(lines.excited) == 0:
-        raise FftuneError(f"{src}: key 'detect.band_hz': no excited line in the band")
+    k_min, k_max, lines, band = detect_lines(c, fs, session.cfg.get("_source", "config"))
     capture = session.capture_mode("detect")
-    # the drive's line statistics: every line from the lowest to the highest excited one
-    # (the excited lines and the detection lines between them)
-    band = np.arange(lines.excited[0], lines.excited[-1] + 1)
     capture_note = None
     if capture != "raw" and c.get("capture") is None:
         # chosen by default, not asked for: raw samples where the drive cannot hold the lines
