@@ -143,6 +143,10 @@ def test_fftune_detect_on_statistics_over_canopen(tmp_path, capsys):
     bins = doc["line_stats"]["bins"]
     assert bins == list(range(bins[0], bins[-1] + 1)) and det["k_min"] <= bins[0] < bins[-1] <= det["k_max"]
     assert doc["line_stats"]["periods"] == 2 and doc["stats"] is None
+    # offline analysis of such a directory: no samples, and it says where the analysis is
+    assert main(["analyze", "bla", str(out / "captures")]) != 0
+    err = capsys.readouterr().err
+    assert "2 statistics-only captures" in err and "results.yaml" in err
 
 
 def test_more_lines_than_the_drive_holds_is_one_error_line(tmp_path, capsys):
