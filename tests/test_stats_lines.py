@@ -96,6 +96,17 @@ def test_drive_line_statistics_equal_float64_of_the_samples(noisy_plant, n, peri
     assert np.median(np.sqrt(ref.var_y)) > 3e-5 * np.max(np.abs(ref.Y))
 
 
+def test_drive_holds_1024_lines(noisy_plant):
+    """drive_sim's capacity (0x2040:9 = LSTAT_LINES_MAX = 1024): every line from 1 to 1024 of
+    N = 4096, the demo's excitation (bins 4 .. 160 at N = 4096) inside them."""
+    n, periods = 4096, 3
+    bins = np.arange(1, 1025)
+    data, st = _fwsim_run(noisy_plant, n=n, periods=periods, bins=bins, k_max=160, settle=2)
+    assert st.bins.size == 1024
+    ref = line_stats(data[:, 1], data[:, 2], data[:, 0], n=n, bins=bins)
+    _check(st, ref)
+
+
 @pytest.fixture(scope="module", params=[1e-5, 0.0], ids=["noise1e-5", "noise0"])
 def quiet_plant(request, tmp_path_factory):
     """The two-mass plant with 10 urad measurement noise or none, ideal encoder: the
@@ -132,7 +143,7 @@ def test_quiet_plant_variances_relative_to_themselves(quiet_plant, n, periods, i
 def test_line_list_refused_beyond_n_half_and_capacity_through_the_c_core():
     with FwSim(TWOMASS) as sim:
         sim.configure(exc_period=256)
-        raw = np.arange(1, 130, dtype="<u2").tobytes()   # 129 lines: one more than the drive holds
+        raw = np.arange(1, 1026, dtype="<u2").tobytes()  # 1025 lines: one more than the drive holds
         assert sim.lib.drv_lines_write(sim.drv, 0, raw, len(raw)) == 12   # DRV_E_TOO_LONG
         ok = np.array([5, 9], dtype="<u2").tobytes()
         assert sim.lib.drv_lines_write(sim.drv, 0, ok, 4) == 0
@@ -140,7 +151,7 @@ def test_line_list_refused_beyond_n_half_and_capacity_through_the_c_core():
         bad = np.array([5, 128], dtype="<u2").tobytes()   # N/2
         assert sim.lib.drv_lines_write(sim.drv, 0, bad, 4) == 0
         assert sim.lib.drv_lines_commit(sim.drv, 4) == 11  # DRV_E_VALUE
-        assert sim.get("STAT_LINES") == 2 and sim.get("STAT_LINES_CAP") == 128
+        assert sim.get("STAT_LINES") == 2 and sim.get("STAT_LINES_CAP") == 1024
 
 
 def test_parse_line_stats_rejects_inconsistent_data_and_line_stats_its_input():
@@ -210,7 +221,7 @@ def test_line_list_aborts_over_canopen(drive):
     sdo = drive.node.sdo
     drive.set("exc_period", 1024)
     cap = int(drive.get("stat_lines_cap"))
-    assert cap == 128
+    assert cap == 1024   # drive_sim's LSTAT_LINES_MAX (core/lstat.h), the EDS default of 0x2040:9
     sdo.download(0x2042, 0, np.array([3, 5, 7], dtype="<u2").tobytes())       # segmented
     assert int(drive.get("stat_lines")) == 3
     sdo.download(0x2042, 0, np.array([4, 6], dtype="<u2").tobytes())          # expedited

@@ -43,7 +43,7 @@
 #include <stdint.h>
 
 #ifndef LSTAT_LINES_MAX
-#define LSTAT_LINES_MAX 128u /* lines the drive holds (a port may build with fewer) */
+#define LSTAT_LINES_MAX 1024u /* lines the drive holds (a port may build with fewer: -DLSTAT_LINES_MAX) */
 #endif
 #define LSTAT_HEADER_BYTES 8u
 #define LSTAT_LINE_FLOATS 10u
