@@ -22,8 +22,10 @@ static void lstat_clear(lstat_t *ls)
     }
     for (uint32_t i = 0u; i < LSTAT_LINES_MAX; i++) {
         lstat_line_t *a = &ls->acc[i];
-        for (uint32_t j = 0u; j < 6u; j++) {
+        for (uint32_t j = 0u; j < 4u; j++) {
             a->base[j] = 0.0f;
+        }
+        for (uint32_t j = 0u; j < 6u; j++) {
             a->mean[j] = 0.0f;
         }
         for (uint32_t j = 0u; j < 4u; j++) {
@@ -159,15 +161,15 @@ static void lstat_bin(const float *w, uint32_t n, uint32_t k, float *xr, float *
     *xi = ei + c * oi - s * orr;
 }
 
-/* Into work (n/2 complex values, packed and conjugated), then inverse-transformed: period 0
- * of recorder column col minus its first sample (p = 0), or period p minus period 0 sample
- * by sample (p >= 1: d_p = x_p - x_0, lstat.h). */
+/* Into work (n/2 complex values, packed and conjugated), then inverse-transformed: period p
+ * of recorder column col minus its first recorded sample (shift = false), or minus period 0
+ * sample by sample (shift = true, p >= 1: d_p = x_p - x_0, lstat.h). */
 static void lstat_transform(const lstat_t *ls, const float *rec, uint32_t nsel, uint32_t p, uint32_t col,
-                            float *work)
+                            bool shift, float *work)
 {
     const uint32_t n = ls->n;
     const float *src = rec + ((size_t)p * n) * nsel + col;
-    if (p == 0u) {
+    if (!shift) {
         const float x0 = ls->x0[col];
         for (uint32_t i = 0u; i < n; i += 2u) {
             work[i] = src[(size_t)i * nsel] - x0;
@@ -183,19 +185,23 @@ static void lstat_transform(const lstat_t *ls, const float *rec, uint32_t nsel, 
     (void)fft_inverse_complex(work, n / 2u); /* n a power of two: checked at the start */
 }
 
-/* Period 0: the base spectra X_0 of u, y, r; D_0 = 0 is the first period of the means and
- * sums, which stay 0. */
+/* Period 0: the base spectra X_0 of u and y (D_0 = 0 is the first period of their means and
+ * sums, which stay 0) and the first of r's means. */
 static void lstat_base(lstat_t *ls, const float *rec, uint32_t nsel, float *work)
 {
     const uint32_t n = ls->n;
-    /* recorder columns (bit order): 0 reference r, 1 plant input u, 2 motor angle y;
-     * slot in base: U 0, Y 2, R 4 */
-    static const uint8_t cols[3] = {1u, 2u, 0u};
-    for (uint32_t s = 0u; s < 3u; s++) {
-        lstat_transform(ls, rec, nsel, 0u, cols[s], work);
-        for (uint32_t i = 0u; i < ls->nl_run; i++) {
-            lstat_bin(work, n, ls->lines[i], &ls->acc[i].base[2u * s], &ls->acc[i].base[2u * s + 1u]);
-        }
+    /* recorder columns (bit order): 0 reference r, 1 plant input u, 2 motor angle y */
+    lstat_transform(ls, rec, nsel, 0u, 1u, false, work);
+    for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_bin(work, n, ls->lines[i], &ls->acc[i].base[0], &ls->acc[i].base[1]);
+    }
+    lstat_transform(ls, rec, nsel, 0u, 2u, false, work);
+    for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_bin(work, n, ls->lines[i], &ls->acc[i].base[2], &ls->acc[i].base[3]);
+    }
+    lstat_transform(ls, rec, nsel, 0u, 0u, false, work);
+    for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_bin(work, n, ls->lines[i], &ls->acc[i].mean[4], &ls->acc[i].mean[5]);
     }
 }
 
@@ -220,7 +226,7 @@ bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t sample
     }
     ls->periods++;
     const float w = 1.0f / (float)ls->periods;
-    lstat_transform(ls, rec, nsel, p, 1u, work); /* D of U */
+    lstat_transform(ls, rec, nsel, p, 1u, true, work); /* D of U */
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
         lstat_line_t *a = &ls->acc[i];
         float xr, xi;
@@ -232,7 +238,7 @@ bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t sample
         a->du[1] = xi - a->mean[1];
         a->m2[0] += dr * a->du[0] + di * a->du[1];
     }
-    lstat_transform(ls, rec, nsel, p, 2u, work); /* D of Y */
+    lstat_transform(ls, rec, nsel, p, 2u, true, work); /* D of Y */
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
         lstat_line_t *a = &ls->acc[i];
         float xr, xi;
@@ -245,7 +251,7 @@ bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t sample
         a->m2[2] += dr * a->du[0] + di * a->du[1];
         a->m2[3] += di * a->du[0] - dr * a->du[1];
     }
-    lstat_transform(ls, rec, nsel, p, 0u, work); /* D of R */
+    lstat_transform(ls, rec, nsel, p, 0u, false, work); /* X of R */
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
         lstat_line_t *a = &ls->acc[i];
         float xr, xi;
@@ -278,7 +284,7 @@ static uint32_t lstat_word(const lstat_t *ls, uint32_t i)
     }
     const lstat_line_t *a = &ls->acc[line];
     const float inv = ls->periods > 1u ? 1.0f / (float)(ls->periods - 1u) : 0.0f;
-    w.f = (r <= 6u) ? a->base[r - 1u] + a->mean[r - 1u] : a->m2[r - 7u] * inv;
+    w.f = (r <= 4u) ? a->base[r - 1u] + a->mean[r - 1u] : (r <= 6u) ? a->mean[r - 1u] : a->m2[r - 7u] * inv;
     return w.u;
 }
 

@@ -21,7 +21,9 @@
  * of squared deviations |D_p - mean D|^2 of U and Y and the co-moment
  * (D_Y,p - mean D_Y) conj(D_U,p - mean D_U), the same as those of X (a shift by a constant
  * changes no deviation). Reported: mean X = X_0 + mean D, the variances and covariance from
- * the sums of D.
+ * the sums of D. The reference r has no spread in the data: its mean is Welford's of X_p
+ * itself (x_p[n] - x_0[0] transformed; no base: 8 bytes a line less), as accurate as
+ * X_0 + mean D would be (both carry X_0's rounding relative to the largest line).
  *
  * Computed in the background (lstat_process, from drv_background), one period per call,
  * from the samples already in the recorder (which must hold r, u and y); the FFT work
@@ -62,8 +64,8 @@ typedef enum {
 
 /* One line's accumulators (signal order U, Y, R; re, im). */
 typedef struct {
-    float base[6];  /* X_0: period 0's spectra of U, Y, R */
-    float mean[6];  /* Welford mean of D_p = X_p - X_0 of U, Y, R over p = 0 .. */
+    float base[4];  /* X_0: period 0's spectra of U, Y */
+    float mean[6];  /* Welford means of D_p = X_p - X_0 of U, Y over p = 0 ..; of X_p of R */
     float m2[4];    /* sum |dD_U|^2, sum |dD_Y|^2, sum dD_Y conj dD_U re, im */
     float du[2];    /* this period's D_U - new mean D_U (for the cross term) */
 } lstat_line_t;
