@@ -86,7 +86,7 @@ def _fwsim_run(plant, *, n, periods, bins, k_max, inject=0, rms=0.3, settle=1):
 
 @pytest.mark.parametrize("n,periods,inject", [(1024, 4, 0), (4096, 3, 1)], ids=["N1024_ref", "N4096_input"])
 def test_drive_line_statistics_equal_float64_of_the_samples(noisy_plant, n, periods, inject):
-    k_max = min(n // 16, 60)                        # at most 2 k_max - 1 <= 128 lines
+    k_max = min(n // 16, 60)                        # 2 k_max - 1 lines
     bins = np.arange(1, 2 * k_max)                  # excited lines and the detection lines between
     data, st = _fwsim_run(noisy_plant, n=n, periods=periods, bins=bins, k_max=k_max, inject=inject)
     r, u, y = data[:, 0], data[:, 1], data[:, 2]
