@@ -339,7 +339,7 @@ def relative_difference(a, b, scale=None):
 
 # ---- multisine line statistics (object 0x2042 line list, 0x2043 data; core/lstat.h) ----
 
-LSTAT_LINES_MAX = 128   # lines the drive_sim build holds (0x2040:9 tells a drive's own limit)
+LSTAT_LINES_MAX = 1024  # lines the drive_sim build holds (0x2040:9 tells a drive's own limit)
 LSTAT_LINE_FLOATS = 10
 
 
