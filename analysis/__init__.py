@@ -19,6 +19,8 @@ robust_bla             -- robust BLA with total, noise and nonlinear variances.
 bla_levels             -- robust BLA at several excitation levels.
 detect_excited_lines   -- excited DFT bins of a periodic multisine.
 robust_bla_spectra     -- the same from per-period spectra at the band's lines.
+robust_bla_moments     -- the same from line moments (a drive's line statistics).
+LineMoments            -- per-realization means and (co)variances over periods at lines.
 classify_grid          -- which odd/even claims an excitation grid allows.
 level_verdict          -- the cause a level's detection supports (plant, saturation ...).
 
@@ -31,6 +33,8 @@ Line statistics (what the drive accumulates instead of recording)
 harmonic_stats         -- per-period DFT at k f0: mean and variance over periods, in float64.
 parse_stats            -- the drive's statistics upload (object 0x2041).
 hosidf_from_stats      -- the HOSIDFs of :func:`hosidf` from line statistics.
+LineStats, parse_line_stats, line_stats -- multisine line statistics (object 0x2043).
+line_moments           -- LineMoments of M realizations from their LineStats.
 
 Feed-forward tuning
 -------------------
@@ -59,14 +63,16 @@ from fftune.analysis.hosidf import HosidfResult, hosidf
 _LAZY = {
     "fftune.analysis.bla": ("BLALevels", "BLAResult", "TransientWarning", "bla_levels",
                             "classify_grid", "detect_excited_lines", "level_verdict",
-                            "robust_bla", "robust_bla_spectra"),
+                            "robust_bla", "robust_bla_spectra", "robust_bla_moments",
+                            "LineMoments"),
     "fftune.analysis.capture": ("export_csv", "export_mat", "load_experiment", "read_run",
                                 "write_run"),
     "fftune.analysis.multisine": ("Multisine", "crest_factor", "design_multisine",
                                   "drive_multisine", "multisine_realizations",
                                   "random_odd_multisine"),
     "fftune.analysis.stats": ("HarmonicStats", "harmonic_stats", "hosidf_from_stats",
-                              "parse_stats"),
+                              "parse_stats", "LineStats", "line_stats", "parse_line_stats",
+                              "line_moments"),
     "fftune.analysis.tuning": ("RatioMinimizer", "SignedRootSearch", "TuningResult",
                                "odd_ratio", "signed_odd_ratio"),
 }

@@ -32,7 +32,8 @@ import scipy.fft
 from fftune.analysis.errors import InputError
 
 __all__ = ["BLAResult", "TransientCheck", "TransientWarning", "BLALevels",
-           "detect_excited_lines", "robust_bla", "robust_bla_spectra", "bla_levels",
+           "detect_excited_lines", "robust_bla", "robust_bla_spectra", "robust_bla_moments",
+           "LineMoments", "bla_levels",
            "classify_grid", "level_verdict", "estimate_quantisation_step", "to_db"]
 
 
@@ -595,6 +596,42 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     return res
 
 
+@dataclass
+class LineMoments:
+    """Sufficient statistics of a periodic experiment at a set of DFT lines: per
+    realization, the means over the P kept periods of the per-period spectra and the
+    sums of squared deviations (what the robust BLA with known reference reads; a drive
+    can accumulate them while it runs, :mod:`fftune.analysis.stats`).
+
+    Attributes
+    ----------
+    bins : ndarray of int, shape (L,)
+        DFT bins, ascending.
+    n_periods : int
+        P, the periods each mean is taken over.
+    U, Y : ndarray of complex, shape (M, L)
+        mean_p X_p of the input and output spectra (numpy ``rfft`` scaling, no 1/N).
+    ss_u, ss_y : ndarray, shape (M, L)
+        sum_p |X_p - mean|^2.
+    s_yu : ndarray of complex, shape (M, L)
+        sum_p (Y_p - mean Y) conj(U_p - mean U).
+    R : ndarray of complex, shape (M, L), or None
+        mean_p R_p of the reference (None: no reference).
+    ss_r : ndarray, shape (M, L), or None
+        sum_p |R_p - mean|^2 (None: the reference is taken as exactly periodic, 0).
+    """
+
+    bins: np.ndarray
+    n_periods: int
+    U: np.ndarray
+    Y: np.ndarray
+    ss_u: np.ndarray
+    ss_y: np.ndarray
+    s_yu: np.ndarray
+    R: np.ndarray = None
+    ss_r: np.ndarray = None
+
+
 def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0,
                        excited_bins, warn_transient=True, y_quantisation_step=None,
                        y_rounding=0.0, _get=None, _shape=None, _known_ref=False):
@@ -645,10 +682,116 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
         raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1}")
     n_per = n_total - settle
     band = np.arange(excited[0], excited[-1] + 1)
+    pos = _band_positions(bins, band)
+    is_exc = np.isin(band, excited)
+    known_ref = R is not None if _get is None else _known_ref
+    if _get is None:
+        def _get(m):
+            return U[m][:, pos], Y[m][:, pos], None if R is None else R[m][:, pos]
+    # Per realization (its (T+P, lines) spectra stay in cache): reductions over the
+    # periods only, (M, lines)-sized results: the line moments, plus the excited lines
+    # of every period for the transient check (and the per-period ratio without a
+    # reference).
+    exc_i = np.flatnonzero(is_exc)
+    c = np.complex128
+    L = band.size
+    Y_exc = np.empty((n_real, n_total, exc_i.size), c)
+    mU, mY, mR = np.empty((n_real, L), c), np.empty((n_real, L), c), np.empty((n_real, L), c)
+    ss_u, ss_y, ss_r = np.empty((n_real, L)), np.empty((n_real, L)), np.empty((n_real, L))
+    s_yu = np.empty((n_real, L), c)
+    G_per = None if known_ref else (np.empty((n_real, exc_i.size), c), np.empty((n_real, exc_i.size)))
+    for m in range(n_real):
+        Um, Ym, Rm = _get(m)
+        Y_exc[m] = Ym[:, exc_i]
+        mU[m], dU, ss_u[m] = _spread2(Um[settle:])
+        mY[m], dY, ss_y[m] = _spread2(Ym[settle:])
+        s_yu[m] = np.einsum("pk,pk->k", dY, np.conj(dU))
+        if Rm is not None:
+            mR[m], _, ss_r[m] = _spread2(Rm[settle:])
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                G = Ym[settle:, exc_i] / Um[settle:, exc_i]
+            G_per[0][m], _, G_per[1][m] = _spread2(G)
+    mom = LineMoments(bins=band, n_periods=n_per, U=mU, Y=mY, ss_u=ss_u, ss_y=ss_y, s_yu=s_yu,
+                      R=mR if known_ref else None, ss_r=ss_r if known_ref else None)
+    return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=Y_exc,
+                             G_per=G_per, warn_transient=warn_transient,
+                             y_quantisation_step=y_quantisation_step, y_rounding=y_rounding)
+
+
+def _band_positions(bins, band):
+    """Columns of ``bins`` that hold the lines ``band`` (every one must be there)."""
     pos = np.searchsorted(bins, band)
     if np.any(pos >= bins.size) or np.any(bins[np.minimum(pos, bins.size - 1)] != band):
         raise InputError(f"spectra: bins must hold every line {band[0]} .. {band[-1]} "
                          f"between the lowest and the highest excited line")
+    return pos
+
+
+def robust_bla_moments(moments, *, n_period, fs=1.0, excited_bins, y_quantisation_step=None,
+                       y_rounding=0.0):
+    """The robust BLA with known reference from line moments (:class:`LineMoments`), e.g.
+    a drive's line statistics: the same estimate as :func:`robust_bla` of the samples.
+
+    Parameters
+    ----------
+    moments : LineMoments
+        With the reference ``R`` (the moments hold no per-period ratio, so only the
+        known-reference estimate is possible); its bins must hold every line from the
+        lowest to the highest excited one.
+    n_period : int
+        Samples per period N.
+    fs : float
+        Sample rate (Hz).
+    excited_bins : array_like of int
+        Excited bins (the design grid).
+    y_quantisation_step, y_rounding
+        As in :func:`robust_bla_spectra`.
+
+    Returns
+    -------
+    BLAResult
+        Its ``transient`` is not checked (the moments keep no single period): the note
+        says so.
+    """
+    n = int(n_period)
+    if not np.isfinite(fs) or fs <= 0:
+        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    if moments.R is None:
+        raise InputError("line moments: the reference R is needed (known-reference estimate)")
+    excited = _validate_lines(excited_bins, n)
+    bins = np.asarray(moments.bins, dtype=np.int64).reshape(-1)
+    band = np.arange(excited[0], excited[-1] + 1)
+    pos = _band_positions(bins, band)
+    fields = ("U", "Y", "ss_u", "ss_y", "s_yu", "R", "ss_r")
+    arrays = {}
+    for name in fields:
+        value = getattr(moments, name)
+        if value is None:
+            arrays[name] = None
+            continue
+        value = np.asarray(value)
+        if value.ndim != 2 or value.shape[1] != bins.size or value.shape[0] != np.shape(moments.U)[0]:
+            raise InputError(f"line moments {name}: expected shape (M, {bins.size}) like U "
+                             f"{np.shape(moments.U)}, got {value.shape}")
+        arrays[name] = value[:, pos]
+    if int(moments.n_periods) < 1:
+        raise InputError(f"line moments: P = {moments.n_periods} periods, need at least 1")
+    mom = LineMoments(bins=band, n_periods=int(moments.n_periods), **arrays)
+    return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=0, Y_exc=None, G_per=None,
+                             warn_transient=False, y_quantisation_step=y_quantisation_step,
+                             y_rounding=y_rounding)
+
+
+def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transient,
+                      y_quantisation_step, y_rounding):
+    """The estimate and the detection from the line moments over the band (bins from the
+    lowest to the highest excited line). ``Y_exc`` (M, T + P, E): every period's output
+    at the excited lines for the transient check (None: not checked). ``G_per``: per
+    realization the mean and sum of squared deviations over periods of Y / U at the
+    excited lines (the estimate without a reference; None with one)."""
+    band = mom.bins
+    n_real, n_per = mom.U.shape[0], mom.n_periods
     is_exc = np.isin(band, excited)
     det_bins = band[~is_exc]
     gridinfo = classify_grid(excited, n)
@@ -674,60 +817,23 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
                 f"{', '.join(f'{excited[i] * fs / n:g} Hz' for i in low[:5])}"
                 f"{' ...' if low.size > 5 else ''} (wrong excited lines?)")
 
-    known_ref = R is not None if _get is None else _known_ref
-    if _get is None:
-        def _get(m):
-            return U[m][:, pos], Y[m][:, pos], None if R is None else R[m][:, pos]
-    # Per realization (its (T+P, lines) spectra stay in cache): reductions over the
-    # periods only, (M, lines)-sized results. The plant-referred residual Y - g U at the
-    # non-excited lines follows from the period means, sums of squares and the U-Y
-    # cross sum, so it needs no per-period array either.
-    exc_i = np.flatnonzero(is_exc)
-    det_i = np.flatnonzero(~is_exc)
-    n_exc, n_det = exc_i.size, det_i.size
-    c = np.complex128
-    Y_exc = np.empty((n_real, n_total, n_exc), c)
-    u_power = np.zeros(n_exc)
-    U_mean_e, Y_mean_e = np.empty((n_real, n_exc), c), np.empty((n_real, n_exc), c)
-    yd, ud = np.empty((n_real, n_det), c), np.empty((n_real, n_det), c)
-    yd_ss, ud_ss = np.empty((n_real, n_det)), np.empty((n_real, n_det))
-    yud = np.empty((n_real, n_det), c)
-    xd, xd_ss, xe = (np.empty((n_real, n_det), c), np.empty((n_real, n_det)),
-                     np.empty((n_real, n_exc), c))
-    if not known_ref:
-        G_m, G_ss = np.empty((n_real, n_exc), c), np.empty((n_real, n_exc))
+    known_ref = G_per is None
+    exc_i, det_i = np.flatnonzero(is_exc), np.flatnonzero(~is_exc)
+    U_mean_e, Y_mean_e = mom.U[:, exc_i], mom.Y[:, exc_i]
+    # sum over realizations and periods of |U_p|^2 = P |mean|^2 + sum |deviation|^2
+    u_power = np.sum(n_per * np.abs(U_mean_e) ** 2 + mom.ss_u[:, exc_i], axis=0)
+    ud, yd = mom.U[:, det_i], mom.Y[:, det_i]
+    ud_ss, yd_ss, yud = mom.ss_u[:, det_i], mom.ss_y[:, det_i], mom.s_yu[:, det_i]
+    if known_ref:
+        R_mean = xe = mom.R[:, exc_i]
+        xd = mom.R[:, det_i]
+        xd_ss = np.zeros(xd.shape) if mom.ss_r is None else mom.ss_r[:, det_i]
     else:
-        R_mean = np.empty((n_real, n_exc), c)
-        U_m, Y_m = np.empty((n_real, n_exc), c), np.empty((n_real, n_exc), c)
-        su2, sy2 = np.empty((n_real, n_exc)), np.empty((n_real, n_exc))
-        syu = np.empty((n_real, n_exc), c)
-    for m in range(n_real):
-        Um, Ym, Rm = _get(m)
-        Y_exc[m] = Ym[:, exc_i]
-        U_e, Y_e = Um[settle:, exc_i], Ym[settle:, exc_i]
-        u_power += _abs2_sum(U_e, axis=0)
-        U_mean_e[m] = np.add.reduce(U_e, axis=0) / n_per
-        Y_mean_e[m] = np.add.reduce(Y_e, axis=0) / n_per
-        U_d, Y_d = Um[settle:, det_i], Ym[settle:, det_i]
-        ud[m], dU, ud_ss[m] = _spread2(U_d)
-        yd[m], dY, yd_ss[m] = _spread2(Y_d)
-        yud[m] = np.einsum("pk,pk->k", dY, np.conj(dU))
-        if Rm is None:
-            xd[m], xd_ss[m], xe[m] = ud[m], ud_ss[m], U_mean_e[m]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                G = Y_e / U_e
-            G_m[m], _, G_ss[m] = _spread2(G)
-        else:
-            xd[m], _, xd_ss[m] = _spread2(Rm[settle:, det_i])
-            R_mean[m] = xe[m] = np.add.reduce(Rm[settle:, exc_i], axis=0) / n_per
-            with np.errstate(divide="ignore", invalid="ignore"):
-                rot = np.conj(R_mean[m] / np.abs(R_mean[m]))
-            U_m[m], dU, su2[m] = _spread2(U_e * rot)
-            Y_m[m], dY, sy2[m] = _spread2(Y_e * rot)
-            syu[m] = np.einsum("pk,pk->k", dY, np.conj(dU))
+        xd, xd_ss, xe = ud, ud_ss, U_mean_e
     check_power("input u", u_power)
     notes = []
     if not known_ref:
+        G_m, G_ss = G_per
         check_finite(G_m)
         G = G_m.mean(axis=0)
         var_total = var_noise = None
@@ -738,6 +844,12 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
         u_level = np.mean(np.abs(U_mean_e) ** 2, axis=0)
     else:
         check_power("reference r", np.sum(np.abs(R_mean) ** 2, axis=0))
+        # rotate each realization by conj(R / |R|) (removes its random phase); the sums
+        # of squared deviations and the cross sum do not change under the rotation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rot = np.conj(R_mean / np.abs(R_mean))
+        U_m, Y_m = U_mean_e * rot, Y_mean_e * rot
+        su2, sy2, syu = mom.ss_u[:, exc_i], mom.ss_y[:, exc_i], mom.s_yu[:, exc_i]
         U_bar, Y_bar = U_m.mean(axis=0), Y_m.mean(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
             G = Y_bar / U_bar
@@ -893,16 +1005,22 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
                     f"interaction with the structure. The output's non-excited lines then "
                     f"carry the linear response to it too (the plant_* figures remove it)"
                     + ("; give the reference (--columns ...,r=NAME) for a known-reference "
-                       "estimate" if R is None else ""))
+                       "estimate" if not known_ref else ""))
     else:
         notes.append("no non-excited line between the lowest and the highest excited line: "
                      "no nonlinear detection possible with this excitation")
 
-    transient = _transient(Y_exc, settle, n_per)
+    if Y_exc is not None:
+        transient = _transient(Y_exc, settle, n_per)
+    else:
+        transient = TransientCheck(level_db=np.array([]), message="not checked: line moments "
+                                   "keep no single period")
+        notes.append("transient not checked: the line moments (statistics) keep no single "
+                     "period; let the settle periods cover the loop's settling")
     if transient.suspect:
         notes.append(transient.message)
-        if warn_transient:
-            warnings.warn(transient.message, TransientWarning, stacklevel=2)
+        if warn_transient:     # (called from robust_bla_spectra: point at its caller)
+            warnings.warn(transient.message, TransientWarning, stacklevel=3)
 
     return BLAResult(
         fs=float(fs), n_period=n, bins=excited, freq=freq, G=G,

@@ -397,9 +397,15 @@ def load_experiment(directory, *, experiment=None, level_index=None):
     if level_index is not None:
         runs = [r for r in runs if r.meta["level_index"] == level_index]
     if not runs:
+        import glob
+        import os
+        n_stats = len(glob.glob(os.path.join(glob.escape(str(directory)), "*.stats.json")))
         raise InputError(f"{directory}: no capture run"
                          + (f" of experiment {experiment!r}" if experiment else "")
-                         + (f" at level {level_index}" if level_index is not None else ""))
+                         + (f" at level {level_index}" if level_index is not None else "")
+                         + (f" with samples ({n_stats} statistics-only captures .stats.json: the "
+                            f"session's results.yaml holds their analysis; samples need capture: "
+                            f"raw or both)" if n_stats else ""))
     kinds = sorted({r.meta["experiment"] for r in runs})
     if len(kinds) > 1:
         raise InputError(f"{directory}: runs of several experiments ({', '.join(kinds)}): "

@@ -28,6 +28,7 @@ from fftune.analysis.errors import InputError
 from fftune.analysis.hosidf import hosidf_from_lines
 
 __all__ = ["SIGNAL_BITS", "HarmonicStats", "parse_stats", "LineStats", "parse_line_stats", "line_stats",
+           "line_moments",
            "harmonic_stats", "hosidf_from_stats",
            "period_hosidf_moments", "period_noise_rms", "relative_difference", "STAT_K_MAX",
            "STAT_SIG_MAX"]
@@ -338,7 +339,7 @@ def relative_difference(a, b, scale=None):
 
 # ---- multisine line statistics (object 0x2042 line list, 0x2043 data; core/lstat.h) ----
 
-LSTAT_LINES_MAX = 128   # lines the drive_sim build holds (0x2040:9 tells a drive's own limit)
+LSTAT_LINES_MAX = 1024  # lines the drive_sim build holds (0x2040:9 tells a drive's own limit)
 LSTAT_LINE_FLOATS = 10
 
 
@@ -359,6 +360,9 @@ class LineStats:
         sum_p |X_p - mean|^2 / (P - 1); NaN when P < 2.
     cov_yu : ndarray of complex, shape (L,)
         sum_p (Y_p - mean Y) conj(U_p - mean U) / (P - 1); NaN when P < 2.
+    saturated_samples : int or None
+        Recorded samples whose plant input sat at the drive's limit (object 0x2040:11),
+        None when not known.
     """
 
     periods: int
@@ -369,6 +373,40 @@ class LineStats:
     var_u: np.ndarray
     var_y: np.ndarray
     cov_yu: np.ndarray
+    saturated_samples: int = None
+
+    def to_dict(self):
+        """A JSON-ready dict (complex as [re, im] pairs, NaN as None); :meth:`from_dict`
+        inverts it."""
+        def real(v):
+            return [float(x) if np.isfinite(x) else None for x in np.asarray(v, dtype=float)]
+
+        def cplx(v):
+            return [[float(z.real), float(z.imag)] if np.isfinite(z) else None for z in np.asarray(v)]
+        return {"periods": int(self.periods), "bins": [int(b) for b in self.bins],
+                "U": cplx(self.U), "Y": cplx(self.Y), "R": cplx(self.R), "var_u": real(self.var_u),
+                "var_y": real(self.var_y), "cov_yu": cplx(self.cov_yu),
+                "saturated_samples": None if self.saturated_samples is None else int(self.saturated_samples)}
+
+    @classmethod
+    def from_dict(cls, d):
+        def real(v):
+            return np.array([np.nan if x is None else float(x) for x in v])
+
+        def cplx(v):
+            return np.array([complex(np.nan, np.nan) if z is None else complex(z[0], z[1]) for z in v])
+        try:
+            out = cls(periods=int(d["periods"]), bins=np.asarray(d["bins"], dtype=np.int64),
+                      U=cplx(d["U"]), Y=cplx(d["Y"]), R=cplx(d["R"]), var_u=real(d["var_u"]),
+                      var_y=real(d["var_y"]), cov_yu=cplx(d["cov_yu"]))
+            sat = d.get("saturated_samples")
+            out.saturated_samples = None if sat is None else int(sat)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise InputError(f"line statistics: malformed block ({exc})") from None
+        if any(np.shape(getattr(out, k)) != out.bins.shape for k in ("U", "Y", "R", "var_u", "var_y", "cov_yu")):
+            raise InputError(f"line statistics: malformed block (arrays of other lengths than "
+                             f"the {out.bins.size} bins)")
+        return out
 
 
 def parse_line_stats(data):
@@ -446,3 +484,54 @@ def line_stats(u, y, r, *, n, bins):
         cov_yu = var_u + 0j
     return LineStats(periods=periods, bins=bins, U=mean["u"], Y=mean["y"], R=mean["r"], var_u=var_u,
                      var_y=var_y, cov_yu=cov_yu)
+
+
+def line_moments(stats, *, reference=None):
+    """The line moments of M realizations (:class:`fftune.analysis.bla.LineMoments`, what
+    :func:`fftune.analysis.bla.robust_bla_moments` reads) from their line statistics.
+
+    Parameters
+    ----------
+    stats : sequence of LineStats
+        One per realization, all with the same lines and periods.
+    reference : array_like of complex, shape (M, L), optional
+        The reference's spectrum at the lines per realization, replacing the statistics'
+        mean R: the excitation the host generated (a disturbance added at the plant input
+        is not what the drive records as its reference). The reference is taken as exactly
+        periodic either way (the drive plays it from its table).
+
+    Returns
+    -------
+    LineMoments
+    """
+    from fftune.analysis.bla import LineMoments
+
+    stats = list(stats)
+    if not stats:
+        raise InputError("line statistics: no realization")
+    first = stats[0]
+    for m, st in enumerate(stats):
+        if st.periods != first.periods or not np.array_equal(st.bins, first.bins):
+            raise InputError(f"line statistics of realization {m}: {st.periods} periods at "
+                             f"{st.bins.size} lines, realization 0 has {first.periods} at "
+                             f"{first.bins.size} (the same lines and periods are needed)")
+    p = int(first.periods)
+    if p < 1:
+        raise InputError("line statistics: 0 periods accumulated")
+
+    def stack(name):
+        return np.stack([np.asarray(getattr(st, name)) for st in stats])
+
+    # sums of squared deviations: (P - 1) x the drive's variance (none with P = 1)
+    k = float(p - 1)
+    if p > 1:
+        ss_u, ss_y, s_yu = k * stack("var_u"), k * stack("var_y"), k * stack("cov_yu")
+    else:
+        shape = (len(stats), first.bins.size)
+        ss_u, ss_y, s_yu = np.zeros(shape), np.zeros(shape), np.zeros(shape, complex)
+    R = stack("R") if reference is None else np.asarray(reference, dtype=complex)
+    if R.shape != (len(stats), first.bins.size):
+        raise InputError(f"line statistics: reference spectra of shape {R.shape}, expected "
+                         f"({len(stats)}, {first.bins.size}) (realizations, lines)")
+    return LineMoments(bins=first.bins, n_periods=p, U=stack("U"), Y=stack("Y"), ss_u=ss_u,
+                       ss_y=ss_y, s_yu=s_yu, R=R, ss_r=None)

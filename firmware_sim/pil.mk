@@ -14,7 +14,8 @@ MCU_DIR    := port/mcu
 # default) because the determinism check compares the samples with drive_sim bit for bit.
 MCU_CPU    := -mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard -mthumb
 # LSTAT_LINES_MAX: the 128 KiB RAM holds the PIL recorder and table; the line statistics
-# (core/lstat.h, 48 bytes per line) get 16 lines here (0x2040:9 tells the host). In MCU_BASE:
+# (core/lstat.h, 68 bytes per line: 16 lines leave 108 bytes of the RAM) get 16 lines here
+# (0x2040:9 tells the host; drive_sim holds 1024). In MCU_BASE:
 # every object that sees drv_t (core, canopen, the plant's sim_t) must agree on its layout.
 MCU_BASE   := $(CSTD) $(WARN) -O2 -g $(MCU_CPU) -ffp-contract=off -ffunction-sections -fdata-sections \
               -DLSTAT_LINES_MAX=16u

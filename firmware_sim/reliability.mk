@@ -34,10 +34,11 @@ REL_FUZZ_MAX_LEN   ?= fuzz_co_node=2048 fuzz_scd=600
 # The simulated plant is the test fixture, not under test: sanitizers, but no coverage
 # instrumentation (it would double the cost of an execution and steer nothing).
 FZ_PLANT_OBJ := $(PLANT_SRC:plant/%.c=$(FZ_DIR)/plant/%.o)
-$(FZ_DIR)/plant/%.o: plant/%.c $(wildcard plant/*.h) core/drv.h $(GEN)/od_params.h
+# (every core header: sim_t holds drv_t, whose layout lstat.h / stat.h set)
+$(FZ_DIR)/plant/%.o: plant/%.c $(wildcard plant/*.h) $(wildcard core/*.h) $(GEN)/od_params.h
 	@mkdir -p $(@D)
 	$(FZ_CC) $(subst fuzzer$(comma),,$(FZ_CFLAGS)) -c $< -o $@
-$(FZ_DIR)/fuzz_co_node: fuzz/fuzz_co_node.c $(CORE_SRC) $(CO_SRC) $(CO_HDR) $(GEN)/od_table.c $(FZ_PLANT_OBJ)
+$(FZ_DIR)/fuzz_co_node: fuzz/fuzz_co_node.c $(CORE_SRC) $(wildcard core/*.h) $(CO_SRC) $(CO_HDR) $(GEN)/od_table.c $(FZ_PLANT_OBJ)
 	@mkdir -p $(@D)
 	$(FZ_CC) $(FZ_CFLAGS) fuzz/fuzz_co_node.c $(CORE_SRC) $(CO_SRC) $(GEN)/od_table.c $(FZ_PLANT_OBJ) -lm -o $@
 $(FZ_DIR)/fuzz_scd: fuzz/fuzz_scd.c port/scd.c port/scd.h
@@ -103,10 +104,10 @@ ASAN_ENV    := ASAN_OPTIONS=detect_leaks=1:abort_on_error=0:halt_on_error=1 UBSA
 ASAN_TESTS  := $(ASAN_DIR)/test_core $(ASAN_DIR)/test_plant $(if $(REL_HAVE_CO),$(ASAN_DIR)/co_test)
 ASAN_BINS   := $(ASAN_TESTS) $(if $(REL_HAVE_PORT),$(ASAN_DIR)/drive_sim)
 
-$(ASAN_DIR)/test_core: tests/test_core.c tests/th.h $(GEN)/ms_vectors.h $(CORE_SRC) $(PLANT_SRC)
+$(ASAN_DIR)/test_core: tests/test_core.c tests/th.h $(GEN)/ms_vectors.h $(CORE_SRC) $(PLANT_SRC) $(wildcard core/*.h plant/*.h)
 	@mkdir -p $(@D)
 	$(ASAN_CC) $(CSTD) $(WARN) $(ASAN_FLAGS) -D_DEFAULT_SOURCE $(FW_INC) -Itests $< $(CORE_SRC) $(PLANT_SRC) -lm -o $@
-$(ASAN_DIR)/test_plant: tests/test_plant.c tests/th.h $(CORE_SRC) $(PLANT_SRC)
+$(ASAN_DIR)/test_plant: tests/test_plant.c tests/th.h $(CORE_SRC) $(PLANT_SRC) $(wildcard core/*.h plant/*.h)
 	@mkdir -p $(@D)
 	$(ASAN_CC) $(CSTD) $(WARN) $(ASAN_FLAGS) -D_DEFAULT_SOURCE $(FW_INC) -Itests $< $(CORE_SRC) $(PLANT_SRC) -lm -o $@
 $(ASAN_DIR)/co_test: $(CO_SRC) $(CO_TEST_SRC) $(wildcard canopen/tests/*.h) $(CO_HDR) $(GEN)/od_table.c $(CO_DOUBLE)/drv.h

@@ -15,7 +15,7 @@ import numpy as np
 
 from fftune.analysis import capture as _capture
 from fftune.analysis.errors import FftuneError
-from fftune.analysis.stats import HarmonicStats
+from fftune.analysis.stats import HarmonicStats, LineStats
 from fftune.host import __version__
 from fftune.host.atomic import write_atomic
 from fftune.host.drive import RunRecord
@@ -74,7 +74,7 @@ class CaptureStore:
             if rec is None:
                 rec = srec
             else:
-                rec.stats = srec.stats
+                rec.stats, rec.line_stats = srec.stats, srec.line_stats
         return rec
 
     def save(self, key, rec, *, experiment, request, config, identity, level_index=0,
@@ -109,9 +109,11 @@ class CaptureStore:
                 "layout": LAYOUT,
             },
         }
-        if rec.stats is not None:
+        line_stats = getattr(rec, "line_stats", None)
+        if rec.stats is not None or line_stats is not None:
             doc = {"format": "fftune-stats", "version": 1, "meta": _jsonable(meta),
-                   "stats": rec.stats.to_dict()}
+                   "stats": None if rec.stats is None else rec.stats.to_dict(),
+                   "line_stats": None if line_stats is None else line_stats.to_dict()}
             try:
                 write_atomic(self.stats_path(key), json.dumps(doc, indent=1), overwrite=False)
             except FileExistsError:
@@ -130,7 +132,11 @@ def _load_stats(path, request):
         with open(path, "r", encoding="utf-8") as fh:
             doc = json.load(fh)
         meta = doc["meta"]
-        stats = HarmonicStats.from_dict(doc["stats"])
+        stats = None if doc["stats"] is None else HarmonicStats.from_dict(doc["stats"])
+        lines = doc.get("line_stats")
+        line_stats = None if lines is None else LineStats.from_dict(lines)
+        if stats is None and line_stats is None:
+            raise ValueError("neither harmonic nor line statistics in it")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise FftuneError(f"{path}: not a readable statistics capture ({exc})") from None
     extra = meta.get("metadata", {})
@@ -146,7 +152,7 @@ def _load_stats(path, request):
                      record_periods=int(meta["record_periods"]),
                      run_counter=int(extra.get("run_counter", 0)),
                      t_start=ts(meta.get("started_at")), t_end=ts(meta.get("finished_at")), meta=meta,
-                     stats=stats)
+                     stats=stats, line_stats=line_stats)
 
 
 def _iso(t):

@@ -53,6 +53,9 @@ DEFAULTS = {
         "k_fc": 0.0,
         "k_v": 0.0,
         "encoder_step_rad": None,   # motor angle quantisation step; None: found from the data
+        # raw | stats | both; None: stats on a real drive or a simulated bus with a bitrate
+        # (raw when the band has more lines than the drive's line statistics hold)
+        "capture": None,
     },
     "quantify": {
         "enabled": True,
@@ -260,6 +263,8 @@ def validate(raw, path="<config>"):
     d["rms_levels"] = expand_values(d["rms_levels"], path, "detect.rms_levels")
     _number(cfg, path, "detect.k_fc", low=0, high=100)
     _number(cfg, path, "detect.k_v", low=0, high=100)
+    if d["capture"] is not None:
+        _choice(cfg, path, "detect.capture", CAPTURE_MODES)
 
     q = cfg["quantify"]
     _bool(cfg, path, "quantify.enabled")

@@ -143,6 +143,8 @@ class RunRecord:
     meta: dict = field(default_factory=dict)
     # on-drive line statistics (fftune.analysis.stats.HarmonicStats) when captured
     stats: object = None
+    # on-drive multisine line statistics (fftune.analysis.stats.LineStats) when captured
+    line_stats: object = None
 
 
 def sdo_abort_text(exc):
@@ -554,7 +556,7 @@ class DriveClient:
 
     # ---- runs -------------------------------------------------------------------------
     def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"),
-            desc="run", capture="raw", stats=None):
+            desc="run", capture="raw", stats=None, lines=None):
         """Set ``parameters``, start a run, wait for it, upload and check the recording
         and/or the drive's line statistics.
 
@@ -572,28 +574,40 @@ class DriveClient:
         stats : dict, optional
             With ``capture`` 'stats' or 'both': ``{"harmonics": K, "signals": [names],
             "power": [names]}`` (:func:`stats_parameters`).
+        lines : array_like of int, optional
+            With ``capture`` 'stats' or 'both' (multisine runs): the DFT bins of the
+            drive's line statistics (object 0x2042; read back as 0x2043). The drive
+            computes them from its recorder, which then holds r, u and y; only the
+            statistics cross the bus with 'stats'.
 
         Returns
         -------
         RunRecord
-            ``signals`` empty with ``capture='stats'``; ``stats`` set unless 'raw'.
+            ``signals`` empty with ``capture='stats'``; ``stats`` (harmonic statistics)
+            or ``line_stats`` (with ``lines``) set unless 'raw'.
         """
         from tqdm import tqdm
 
         if capture not in CAPTURE_MODES:
             raise FftuneError(f"capture mode {capture!r}: expected one of {', '.join(CAPTURE_MODES)}")
+        want_lines = lines is not None and capture != "raw"
         mask = 0
         if capture != "stats":
             for name in signals:
                 mask |= 1 << SIGNAL_BITS[name]
         order = [n for n, b in sorted(SIGNAL_BITS.items(), key=lambda kv: kv[1]) if mask >> b & 1]
+        if want_lines:
+            # the drive transforms the recorded periods of r, u and y in its background
+            mask |= sum(1 << SIGNAL_BITS[s] for s in ("reference", "plant_input", "motor_angle"))
         self.set_parameters(dict(parameters, rec_signals=mask))
         self._set_stats(stats if capture != "raw" else None)
+        self._set_lines(lines if want_lines else None, parameters)
         counter0 = int(self.get("run_counter"))
         boots0 = self._bootups
         t_start = time.time()
         self._run_active = True  # (also if the start's answer is lost): close() stops it
-        self._start_run(stats if capture != "raw" else None, parameters)
+        self._start_run_checked(stats if capture != "raw" and not want_lines else None,
+                                lines if want_lines else None, parameters)
         t_wait = time.monotonic()
         self._waiting_for_run = True
         total = int(self.get("run_total"))
@@ -632,28 +646,37 @@ class DriveClient:
                               "its recording is lost")
         n = int(params["exc_period"])
         rec_periods = int(params["exc_record_periods"])
-        run_stats = self.upload_stats() if capture != "raw" else None
+        run_stats = self.upload_stats() if capture != "raw" and not want_lines else None
+        run_lines = self.upload_line_stats() if want_lines else None
+        if run_lines is not None and "stat_line_saturated" in PARAMS:
+            run_lines.saturated_samples = int(self.get("stat_line_saturated"))
         data = self.upload_recording() if capture != "stats" else b""
         if self._bootups != boots0:
             raise FftuneError(f"node {self.opts.node_id} rebooted during the run (boot-up seen); "
                               "its recording is lost")
         expected_samples = rec_periods * n
         nsig = len(order)
-        if len(data) != expected_samples * nsig * 4:
+        if capture != "stats" and len(data) != expected_samples * nsig * 4:
             raise FftuneError(f"recording from node {self.opts.node_id}: {len(data)} bytes, expected "
                               f"{expected_samples} samples x {nsig} signals x 4 bytes = "
                               f"{expected_samples * nsig * 4}")
         self.time_account["runs"] += 1
         self.time_account["excitation_s"] += (int(params["exc_settle_periods"]) + rec_periods) * n / float(params["fs"])
-        arr = np.frombuffer(data, dtype="<f4").reshape(expected_samples, nsig)
-        sig = {name: arr[:, i].astype(np.float64) for i, name in enumerate(order)}
-        if run_stats is not None and run_stats.periods != rec_periods:
-            raise FftuneError(f"statistics from node {self.opts.node_id}: {run_stats.periods} periods "
-                              f"accumulated, the run recorded {rec_periods}")
+        sig = {}
+        if capture != "stats":
+            arr = np.frombuffer(data, dtype="<f4").reshape(expected_samples, nsig)
+            sig = {name: arr[:, i].astype(np.float64) for i, name in enumerate(order)}
+        for what, got in (("statistics", run_stats), ("line statistics", run_lines)):
+            if got is not None and got.periods != rec_periods:
+                raise FftuneError(f"{what} from node {self.opts.node_id}: {got.periods} periods "
+                                  f"accumulated, the run recorded {rec_periods}")
+        if run_lines is not None and not np.array_equal(run_lines.bins, np.asarray(lines, dtype=np.int64)):
+            raise FftuneError(f"line statistics from node {self.opts.node_id}: {run_lines.bins.size} "
+                              f"lines, not the {len(lines)} lines written to 0x2042")
         return RunRecord(signals=sig, parameters=params, fs_hz=float(params["fs"]),
                          period_samples=n, settle_periods=int(params["exc_settle_periods"]),
                          record_periods=rec_periods, run_counter=int(self.get("run_counter")),
-                         t_start=t_start, t_end=t_end, stats=run_stats)
+                         t_start=t_start, t_end=t_end, stats=run_stats, line_stats=run_lines)
 
     # ---- on-drive statistics (object 0x2040 / 0x2041, firmware_sim/core/stat.h) ----------
     def _set_stats(self, stats):
@@ -675,6 +698,73 @@ class DriveClient:
             except FftuneError as exc:
                 raise FftuneError(f"statistics: {exc} ({limits[name]})") from None
 
+    def _set_lines(self, lines, parameters):
+        """Write the line list 0x2042 and turn the line statistics on (off for None). The
+        drive checks the list against its period and capacity; its SDO abort comes back
+        as one error line naming the limit."""
+        from canopen.sdo.exceptions import SdoAbortedError
+
+        if "stat_line_mode" not in PARAMS or 0x2042 not in self.node.object_dictionary:
+            if lines is None:
+                return
+            raise FftuneError(f"node {self.opts.node_id}: its EDS has no line statistics objects "
+                              f"0x2042/0x2043 (capture: stats of a multisine run needs firmware "
+                              f"with on-drive line statistics)")
+        if lines is None:
+            if "stat_line_mode" not in parameters:   # (a caller's own setting stays)
+                self.set("stat_line_mode", 0)
+            return
+        bins = np.asarray(lines, dtype=np.int64).reshape(-1)
+        if bins.size == 0 or bins.min() < 0 or bins.max() > 0xFFFF:
+            raise FftuneError(f"line statistics: {bins.size} lines, bins must be 1 .. 65535")
+        raw = bins.astype("<u2").tobytes()
+        n = int(parameters.get("exc_period", 0)) or int(self.get("exc_period"))
+
+        aborted = []
+
+        def do():
+            try:
+                self.node.sdo.download(0x2042, 0, raw)
+            except SdoAbortedError as exc:
+                aborted.append(exc)
+                raise
+        try:
+            self._sdo_call("download of", 0x2042, 0, do)
+        except FftuneError:
+            if not aborted:
+                raise
+            exc = aborted[0]
+            text = sdo_abort_text(exc)
+            if exc.code == 0x06070012:
+                cap = int(self.get("stat_lines_cap"))
+                raise FftuneError(f"line statistics: {bins.size} lines (bins {bins[0]} .. {bins[-1]}), "
+                                  f"the drive holds at most {cap} (object 0x2040:9 Lines capacity): "
+                                  f"{text}; use capture: raw for this step, or fewer lines (a "
+                                  f"narrower band or a shorter period)") from None
+            if exc.code == 0x06090030:
+                bad = bins[(bins < 1) | (2 * bins >= n)]
+                where = f"line {bad[0]} is at or above" if bad.size else "a line is not below"
+                raise FftuneError(f"line statistics: {where} N/2 = {n // 2} (fs/2) of the period "
+                                  f"N = {n}, or the bins are not strictly ascending from 1: "
+                                  f"{text}") from None
+            raise
+        self.set("stat_line_mode", 1)
+
+    def upload_line_stats(self):
+        """The drive's line statistics of the last run (0x2043) as
+        :class:`fftune.analysis.stats.LineStats`."""
+        from fftune.analysis.stats import parse_line_stats
+
+        index, sub = 0x2043, 0
+
+        def do():
+            return self.node.sdo.upload(index, sub)
+        data = self._sdo_call("upload of", index, sub, do)
+        try:
+            return parse_line_stats(data)
+        except FftuneError as exc:
+            raise FftuneError(f"line statistics from node {self.opts.node_id}: {exc}") from None
+
     def _start_run(self, stats, parameters):
         """Run command 1; a refusal for the statistics names the limit (last stop reason)."""
         try:
@@ -693,6 +783,19 @@ class DriveClient:
                 raise FftuneError(f"statistics: harmonic statistics need a sine run (exc_kind 1): "
                                   f"{exc}") from None
             raise
+
+    def _start_run_checked(self, stats, lines, parameters):
+        """:meth:`_start_run`, with the drive's refusal of the line statistics named."""
+        try:
+            self._start_run(stats, parameters)
+        except FftuneError as exc:
+            if lines is None or int(self.get("run_last_error")) != 11:
+                raise
+            n = int(parameters.get("exc_period", 0))
+            raise FftuneError(f"line statistics: the drive refused the run (stop reason 11: "
+                              f"{STOP_REASONS.get(11, 'line statistics set-up')}): each line "
+                              f"below N/2 = {n // 2}, N a power of two >= 8 within the table "
+                              f"capacity, the recorder holding r, u, y: {exc}") from None
 
     def upload_stats(self):
         """The drive's statistics of the last run (0x2041, a few hundred bytes at most) as

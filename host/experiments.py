@@ -71,13 +71,14 @@ class Session:
         return "stats" if (self.truth is None or bus_model) else "raw"
 
     def run(self, experiment, key, request, level_index=0, realization=0, extra_signals=None,
-            stats=None, signals=None):
+            stats=None, signals=None, lines=None):
         """The run ``key`` of ``experiment`` with drive parameters ``request``, measured or
         loaded from an earlier capture with the same request. ``extra_signals`` (name ->
         array of the record's length, e.g. the excitation the drive generated but does
         not record) are stored in the capture beside the recorded ones, as float32.
         ``stats`` (``fftune.host.drive.stats_parameters``) asks the drive for its line
-        statistics when the step's capture mode is 'stats' or 'both'. ``signals``: the
+        statistics when the step's capture mode is 'stats' or 'both', ``lines`` (DFT
+        bins) its multisine line statistics. ``signals``: the
         recorder signals to upload (default: the drive client's), only what the analysis
         reads: every recorded float crosses the bus."""
         request = dict(self.controller, **request)
@@ -85,8 +86,10 @@ class Session:
         if rec is not None:
             self.counts["resumed"] += 1
             return rec
-        capture = self.capture_mode(experiment) if stats else "raw"
-        kwargs = {"capture": capture, "stats": stats} if capture != "raw" else {}
+        capture = self.capture_mode(experiment) if (stats or lines is not None) else "raw"
+        kwargs = {}
+        if capture != "raw":
+            kwargs = {"capture": capture, "stats": stats} if stats else {"capture": capture, "lines": lines}
         if signals is not None:
             kwargs["signals"] = tuple(signals)
         rec = self.drive.run(request, desc=key, **kwargs)
@@ -141,13 +144,15 @@ def _run_u_max(session, rec):
 
 
 def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
-                    u_max=None, y_quantisation_step=None):
+                    u_max=None, y_quantisation_step=None, moments_lv=None, n_period=None,
+                    saturation_lv=None):
     """Closed-loop and plant-referred detection at each level, with the verdict.
 
     Parameters
     ----------
     u_lv, y_lv, r_lv : list of ndarray (M, P, N)
-        Plant input (after saturation), motor angle and the excitation, per level.
+        Plant input (after saturation), motor angle and the excitation, per level
+        (None with ``moments_lv``).
     fs : float
         Sample rate (Hz).
     excited_bins : ndarray of int
@@ -157,7 +162,15 @@ def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
     u_max : float, optional
         Drive output limit (V) for the saturation fraction.
     y_quantisation_step : float, optional
-        Encoder step (rad); estimated from the recorded angle when None.
+        Encoder step (rad); estimated from the recorded angle when None (not with
+        ``moments_lv``: no samples).
+    moments_lv : list of fftune.analysis.bla.LineMoments, optional
+        Instead of the samples: per level the line moments of the M realizations (the
+        drive's line statistics, :func:`fftune.analysis.stats.line_moments`), with the
+        reference; ``n_period`` (N) is then needed.
+    saturation_lv : list of float, optional
+        With ``moments_lv``: per level the fraction of samples at u_max, if the drive
+        counted it (None: not evaluated).
 
     Returns
     -------
@@ -169,15 +182,28 @@ def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
     from fftune.analysis.bla import bla_levels, estimate_quantisation_step, level_verdict
 
     q_note = None
-    if y_quantisation_step is None:
-        y_quantisation_step = estimate_quantisation_step(np.concatenate([y.ravel() for y in y_lv]))
-        q_note = "estimated from the recorded motor angle" if y_quantisation_step else \
-            "no quantisation step found in the recorded angle (ideal or fine encoder)"
-    levels = bla_levels(u_lv, y_lv, r_lv, fs=fs, settle_periods=0, excited_bins=excited_bins,
-                        warn_transient=False, y_quantisation_step=y_quantisation_step)
+    if moments_lv is not None:
+        if y_quantisation_step is None:
+            q_note = ("not known: the line statistics keep no samples to estimate it from "
+                      "(set detect.encoder_step_rad)")
+        levels = _bla_levels_from_moments(moments_lv, n_period=n_period, fs=fs,
+                                          excited_bins=excited_bins,
+                                          y_quantisation_step=y_quantisation_step)
+        n_real, n_per = moments_lv[0].U.shape[0], moments_lv[0].n_periods
+    else:
+        if y_quantisation_step is None:
+            y_quantisation_step = estimate_quantisation_step(np.concatenate([y.ravel() for y in y_lv]))
+            q_note = "estimated from the recorded motor angle" if y_quantisation_step else \
+                "no quantisation step found in the recorded angle (ideal or fine encoder)"
+        levels = bla_levels(u_lv, y_lv, r_lv, fs=fs, settle_periods=0, excited_bins=excited_bins,
+                            warn_transient=False, y_quantisation_step=y_quantisation_step)
+        n_real, n_per = u_lv[0].shape[0], u_lv[0].shape[1]
     per_level = []
     for i, (rms, res) in enumerate(zip(rms_levels, levels.results)):
-        sat = _saturation_fraction(u_lv[i], u_max)
+        if moments_lv is None:
+            sat = _saturation_fraction(u_lv[i], u_max)
+        else:
+            sat = None if saturation_lv is None else saturation_lv[i]
         v = level_verdict(res.summary, sat, f"level {i} ({rms:g} {unit} rms)")
         per_level.append({
             "rms_requested": _f(rms),
@@ -214,7 +240,7 @@ def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
     g = levels.G
     spread_db = float(np.max(20 * np.log10(np.abs(g).max(0) / np.abs(g).min(0)))) if len(g) > 1 else 0.0
     results = {
-        "realizations": int(u_lv[0].shape[0]), "periods": int(u_lv[0].shape[1]),
+        "realizations": int(n_real), "periods": int(n_per),
         "excited_lines": int(len(excited_bins)), "grid": levels.results[0].grid,
         "u_max_v": _f(u_max),
         "encoder_step_rad": _f(y_quantisation_step), "encoder_step_source": q_note or "given",
@@ -223,6 +249,46 @@ def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
         "verdict": "; ".join(parts),
     }
     return results, levels
+
+
+def detect_lines(c, fs, src="config"):
+    """The detect step's DFT lines at the drive's rate ``fs`` (Hz): k_min, k_max of the
+    band, the design (:func:`fftune.analysis.multisine.drive_lines`) and the lines of the
+    drive's line statistics: every line from the lowest to the highest excited one (the
+    excited lines and the detection lines between them)."""
+    n = c["period_samples"]
+    k_min = max(1, int(math.ceil(c["band_hz"][0] * n / fs - 1e-9)))
+    k_max = int(math.floor(c["band_hz"][1] * n / fs + 1e-9))
+    if k_max >= n // 2:
+        k_max = n // 2 - 1
+    if k_min > k_max:
+        raise FftuneError(f"{src}: key 'detect.band_hz': no DFT line of fs/N = {fs / n:g} Hz "
+                          f"in {c['band_hz']}")
+    lines = drive_lines(n, k_min, k_max, c["group"], c["seed"])
+    if len(lines.excited) == 0:
+        raise FftuneError(f"{src}: key 'detect.band_hz': no excited line in the band")
+    return k_min, k_max, lines, np.arange(lines.excited[0], lines.excited[-1] + 1)
+
+
+def _bla_levels_from_moments(moments_lv, *, n_period, fs, excited_bins, y_quantisation_step):
+    """:class:`fftune.analysis.bla.BLALevels` from per-level line moments."""
+    from fftune.analysis.bla import BLALevels, robust_bla_moments
+
+    if not n_period:
+        raise FftuneError("detect from line statistics: the period N is needed")
+    n = int(n_period)
+    results, rms = [], []
+    for mom in moments_lv:
+        # float32 records: the rounding floor of y from a bound of its amplitude (the sum
+        # of its line amplitudes; the position offset is not in the statistics)
+        y_bound = float(np.max(np.sum(np.abs(mom.Y), axis=1))) * 2.0 / n
+        results.append(robust_bla_moments(mom, n_period=n, fs=fs, excited_bins=excited_bins,
+                                          y_quantisation_step=y_quantisation_step,
+                                          y_rounding=y_bound * 2.0 ** -24))
+        # Parseval over the lines (the excitation has no DC and no Nyquist line)
+        rms.append(float(np.sqrt(np.mean(2.0 * np.sum(np.abs(mom.R) ** 2, axis=1))) / n))
+    return BLALevels(rms=np.array(rms), results=results, freq=results[0].freq,
+                     G=np.stack([res.G for res in results]))
 
 
 def detect(session):
@@ -237,53 +303,108 @@ def detect(session):
     """
     c = session.cfg["detect"]
     fs, n = session.fs_hz, c["period_samples"]
-    src = session.cfg.get("_source", "config")
-    k_min = max(1, int(math.ceil(c["band_hz"][0] * n / fs - 1e-9)))
-    k_max = int(math.floor(c["band_hz"][1] * n / fs + 1e-9))
-    if k_max >= n // 2:
-        k_max = n // 2 - 1
-    if k_min > k_max:
-        raise FftuneError(f"{src}: key 'detect.band_hz': no DFT line of fs/N = {fs / n:g} Hz "
-                          f"in {c['band_hz']}")
-    lines = drive_lines(n, k_min, k_max, c["group"], c["seed"])
-    if len(lines.excited) == 0:
-        raise FftuneError(f"{src}: key 'detect.band_hz': no excited line in the band")
-    u_lv, y_lv, r_lv = [], [], []
+    k_min, k_max, lines, band = detect_lines(c, fs, session.cfg.get("_source", "config"))
+    capture = session.capture_mode("detect")
+    capture_note = None
+    if capture != "raw" and c.get("capture") is None:
+        # chosen by default, not asked for: raw samples where the drive cannot hold the lines
+        try:
+            cap = int(session.drive.get("stat_lines_cap"))
+        except (FftuneError, KeyError, AttributeError):
+            cap = None
+        if cap is None or band.size > cap:
+            capture_note = (f"raw samples: the band's {band.size} lines exceed the "
+                            f"{cap} lines the drive's line statistics hold (object 0x2040:9)"
+                            if cap is not None else
+                            "raw samples: the drive has no line statistics (object 0x2040:9)")
+            session.log(f"detect: {capture_note}")
+            capture = "raw"
+    u_lv, y_lv, r_lv, mom_lv, sat_lv = [], [], [], [], []
     # what the robust BLA reads (the excitation added at the plant input is regenerated
     # here, not recorded): 2 of the 4 signals, half the upload
     detect_signals = ("plant_input", "motor_angle") + (("reference",) if c["inject"] == "reference" else ())
+    u_max = None
     for li, rms in enumerate(c["rms_levels"]):
-        u_m, y_m, r_m = [], [], []
+        u_m, y_m, r_m, st_m, ref_m = [], [], [], [], []
         for m in range(c["realizations"]):
             req = {"exc_kind": EXC_KINDS["multisine"], "exc_inject": INJECT[c["inject"]],
                    "exc_amplitude": float(rms), "exc_offset": 0.0, "exc_period": n,
                    "exc_settle_periods": c["settle_periods"], "exc_record_periods": c["periods"],
                    "ms_k_min": k_min, "ms_k_max": k_max, "ms_group": c["group"],
                    "ms_seed": c["seed"], "ms_realization": m, "kfc": c["k_fc"], "kv": c["k_v"]}
+            # The drive does not record the disturbance it adds at the plant input; it is the
+            # same design (docs/multisine.md), regenerated here: stored with a raw capture as
+            # 'excitation' (so that `fftune analyze` repeats the known-reference estimate),
+            # and the reference of the line statistics.
+            one = drive_multisine(n, k_min, k_max, c["group"], c["seed"], m, rms)
             extra = None
-            if c["inject"] == "plant_input":
-                # The drive does not record the disturbance it adds; it is the same design
-                # (docs/multisine.md), stored with the capture as 'excitation' so that
-                # `fftune analyze` of the captures repeats the known-reference estimate.
-                one = drive_multisine(n, k_min, k_max, c["group"], c["seed"], m, rms)
+            if c["inject"] == "plant_input" and capture != "stats":
                 extra = {"excitation": np.tile(one, c["periods"])}
             rec = session.run("detect", f"detect-L{li:02d}-M{m:02d}", req, level_index=li,
-                              realization=m, extra_signals=extra, signals=detect_signals)
+                              realization=m, extra_signals=extra, signals=detect_signals,
+                              lines=band if capture != "raw" else None)
             u_max = _run_u_max(session, rec)
-            u_m.append(_blocks(rec.signals["plant_input"], n))
-            y_m.append(_blocks(rec.signals["motor_angle"], n))
-            r_name = "reference" if c["inject"] == "reference" else "excitation"
-            r_m.append(_blocks(rec.signals[r_name], n))
-        u_lv.append(np.stack(u_m))
-        y_lv.append(np.stack(y_m))
-        r_lv.append(np.stack(r_m))
-    results, levels = detect_analysis(
-        u_lv, y_lv, r_lv, fs=fs, excited_bins=lines.excited, rms_levels=c["rms_levels"],
-        unit="V" if c["inject"] == "plant_input" else "rad", u_max=u_max,
-        y_quantisation_step=c.get("encoder_step_rad"))
+            if capture != "raw":
+                if rec.line_stats is None:
+                    raise FftuneError(f"detect run L{li:02d} M{m:02d}: capture {capture} but no line "
+                                      f"statistics from the drive (nor in its capture)")
+                st_m.append(rec.line_stats)
+                ref_m.append(np.fft.rfft(np.asarray(one, dtype=np.float64))[band])
+            if capture != "stats":
+                u_m.append(_blocks(rec.signals["plant_input"], n))
+                y_m.append(_blocks(rec.signals["motor_angle"], n))
+                r_name = "reference" if c["inject"] == "reference" else "excitation"
+                r_m.append(_blocks(rec.signals[r_name], n))
+        if capture != "stats":
+            u_lv.append(np.stack(u_m))
+            y_lv.append(np.stack(y_m))
+            r_lv.append(np.stack(r_m))
+        if capture != "raw":
+            mom_lv.append(_stats.line_moments(st_m, reference=np.stack(ref_m)))
+            counts = [st.saturated_samples for st in st_m]
+            sat_lv.append(None if any(k is None for k in counts) else
+                          sum(counts) / float(len(counts) * c["periods"] * n))
+    kwargs = dict(fs=fs, excited_bins=lines.excited, rms_levels=c["rms_levels"],
+                  unit="V" if c["inject"] == "plant_input" else "rad", u_max=u_max,
+                  y_quantisation_step=c.get("encoder_step_rad"))
+    if capture == "stats":
+        results, levels = detect_analysis(None, None, None, moments_lv=mom_lv, n_period=n,
+                                          saturation_lv=sat_lv, **kwargs)
+    else:
+        results, levels = detect_analysis(u_lv, y_lv, r_lv, **kwargs)
+    if capture == "both":
+        # the audit: the drive's float32 statistics against the samples' float64 estimate
+        stats_res, from_stats = detect_analysis(None, None, None, moments_lv=mom_lv, n_period=n,
+                                                saturation_lv=sat_lv, **kwargs)
+        results["stats_vs_raw"] = dict(
+            _stats_vs_raw(levels, from_stats),
+            same_causes=all(a["causes"] == b["causes"] for a, b in
+                            zip(results["levels"], stats_res["levels"])),
+            max_abs_diff_saturation_fraction=max(
+                (abs(a["saturation_fraction"] - b["saturation_fraction"]) for a, b in
+                 zip(results["levels"], stats_res["levels"])
+                 if a["saturation_fraction"] is not None and b["saturation_fraction"] is not None),
+                default=None))
     head = {"inject": c["inject"], "fs_hz": fs, "period_samples": n, "k_min": k_min,
-            "k_max": k_max}
+            "k_max": k_max, "capture": capture}
+    if capture_note:
+        head["capture_note"] = capture_note
     return dict(head, **results), levels
+
+
+def _stats_vs_raw(raw, stats):
+    """Largest relative differences over levels between the estimate from the drive's line
+    statistics and from the samples: G (re max |G|), var_total, var_noise (re max of each)."""
+    out = {}
+    for name in ("G", "var_total", "var_noise"):
+        worst = 0.0
+        for a, b in zip(raw.results, stats.results):
+            x, y = getattr(a, name), getattr(b, name)
+            if x is None or y is None:
+                continue
+            worst = max(worst, float(np.max(np.abs(np.asarray(y) - x)) / max(np.max(np.abs(x)), 1e-300)))
+        out[f"max_rel_diff_{name}"] = worst
+    return out
 
 
 # ---------------------------------------------------------------------------------------

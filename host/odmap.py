@@ -26,6 +26,8 @@ STOP_REASONS = {
     8: "controller output not finite (fault)",
     9: "statistics line above fs/2 (harmonics x sine cycles >= N/2)",
     10: "harmonic statistics asked for a run without a sine",
+    11: "line statistics set-up (a line at or above N/2, N not a power of two within the "
+        "table capacity, or the recorder not holding r, u, y)",
 }
 EXC_KINDS = {"none": 0, "sine": 1, "table": 2, "multisine": 3}
 INJECT = {"reference": 0, "plant_input": 1}

@@ -10,9 +10,10 @@ experiment: `make bench` prints it for configs/paper.yaml at 1 Mbit/s.
 """
 from dataclasses import dataclass
 
-from fftune.analysis.stats import STAT_K_MAX
+from fftune.analysis.stats import LSTAT_LINE_FLOATS, LSTAT_LINES_MAX, STAT_K_MAX
 
-__all__ = ["StepPlan", "experiment_plan", "bus_rates", "project", "STATS_HEADER_BYTES"]
+__all__ = ["StepPlan", "experiment_plan", "bus_rates", "project", "STATS_HEADER_BYTES",
+           "line_stats_bytes"]
 
 STATS_HEADER_BYTES = 8
 FLOAT_BYTES = 4
@@ -50,7 +51,13 @@ class StepPlan:
     note: str = ""
 
 
-def experiment_plan(cfg, fs_hz):
+def line_stats_bytes(n_lines):
+    """Bytes of one multisine run's line statistics (object 0x2043): header, per line its
+    bin and 10 float32."""
+    return STATS_HEADER_BYTES + (4 + 4 * LSTAT_LINE_FLOATS) * int(n_lines)
+
+
+def experiment_plan(cfg, fs_hz, lines_capacity=LSTAT_LINES_MAX):
     """The :class:`StepPlan` of each enabled step of a validated configuration.
 
     Parameters
@@ -59,6 +66,8 @@ def experiment_plan(cfg, fs_hz):
         :func:`fftune.host.config.load_config` output.
     fs_hz : float
         The drive's controller rate (Hz).
+    lines_capacity : int
+        Lines the drive's line statistics hold (object 0x2040:9; default: drive_sim's).
 
     Returns
     -------
@@ -69,11 +78,16 @@ def experiment_plan(cfg, fs_hz):
     d = cfg["detect"]
     if d["enabled"]:
         runs = len(d["rms_levels"]) * d["realizations"]
+        from fftune.host.experiments import detect_lines
         n_sig = 3 if d["inject"] == "reference" else 2
+        band = detect_lines(d, fs, cfg.get("_source", "config"))[3]
+        fits = band.size <= lines_capacity
         out.append(StepPlan(
             "detect", runs, runs * (d["settle_periods"] + d["periods"]) * d["period_samples"] / fs,
-            runs * d["periods"] * d["period_samples"] * n_sig * FLOAT_BYTES, None,
-            "multisine line statistics are not wired to detect: raw in both modes"))
+            runs * d["periods"] * d["period_samples"] * n_sig * FLOAT_BYTES,
+            runs * line_stats_bytes(band.size) if fits else None,
+            f"line statistics of {band.size} lines" if fits else
+            f"{band.size} lines > the {lines_capacity} the drive holds: raw only"))
     q = cfg["quantify"]
     if q["enabled"]:
         runs = len(q["rms_levels"]) * len(q["frequencies_hz"]) * q["repeats"]

@@ -90,17 +90,26 @@ class FwSimDrive:
         return out
 
     def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"), desc="run",
-            capture="raw", stats=None):
-        """As :meth:`fftune.host.drive.DriveClient.run` (capture 'raw', 'stats' or 'both')."""
-        from fftune.analysis.stats import parse_stats
+            capture="raw", stats=None, lines=None):
+        """As :meth:`fftune.host.drive.DriveClient.run` (capture 'raw', 'stats' or 'both';
+        ``lines``: the multisine line statistics)."""
+        from fftune.analysis.stats import parse_line_stats, parse_stats
         from fftune.host.drive import stats_parameters
+        want_lines = lines is not None and capture != "raw"
         mask = 0
         if capture != "stats":
             for s in signals:
                 mask |= 1 << SIGNAL_BITS[s]
+        names = [n for n, b in sorted(SIGNAL_BITS.items(), key=lambda kv: kv[1]) if mask >> b & 1]
+        if want_lines:
+            mask |= 0x07
         self.set_parameters(dict(parameters, rec_signals=mask))
         self.set_parameters(stats_parameters(stats) if capture != "raw" and stats else
                             {"stat_harmonics": 0, "stat_signals": 0, "stat_power": 0})
+        if want_lines:
+            self.sim.set_lines(lines)
+        if want_lines or "stat_line_mode" not in parameters:
+            self.set("stat_line_mode", 1 if want_lines else 0)
         t0 = time.time()
         self.sim.start()
         self.sim.run_until_idle()
@@ -109,10 +118,13 @@ class FwSimDrive:
         rec = int(self.sim.get("EXC_RECORD_PERIODS"))
         sig = {}
         if capture != "stats":
-            data, names = self.sim.record()
-            sig = {name: data[:, i].astype(np.float64) for i, name in enumerate(names)}
-        run_stats = parse_stats(self.sim.stats_bytes()) if capture != "raw" else None
+            data, rec_names = self.sim.record()
+            sig = {name: data[:, i].astype(np.float64) for i, name in enumerate(rec_names) if name in names}
+        run_stats = parse_stats(self.sim.stats_bytes()) if capture != "raw" and not want_lines else None
+        run_lines = parse_line_stats(self.sim.line_stats_bytes()) if want_lines else None
+        if run_lines is not None:
+            run_lines.saturated_samples = int(self.sim.get("STAT_LINE_SATURATED"))
         return RunRecord(signals=sig, parameters=self.read_parameters(), fs_hz=float(self.sim.get("FS")),
                          period_samples=n, settle_periods=int(self.sim.get("EXC_SETTLE_PERIODS")),
                          record_periods=rec, run_counter=self.runs, t_start=t0, t_end=time.time(),
-                         stats=run_stats)
+                         stats=run_stats, line_stats=run_lines)

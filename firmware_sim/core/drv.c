@@ -232,6 +232,7 @@ drv_status_t drv_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value)
     case DRV_P_STAT_LINES: v = drv->lstat.nlines; break;
     case DRV_P_STAT_LINES_CAP: v = LSTAT_LINES_MAX; break;
     case DRV_P_STAT_LINE_PERIODS: v = drv->lstat.periods; break;
+    case DRV_P_STAT_LINE_SATURATED: v = drv->sat_samples; break;
     case DRV_P_STAT_BYTES: v = stat_size_bytes(&drv->stat); break;
     default: return DRV_E_NO_PARAM;
     }
@@ -416,6 +417,8 @@ drv_status_t drv_run_start(drv_t *drv)
     rec_clear(&drv->rec);
     stat_begin(&drv->stat, n);
     lstat_begin(&drv->lstat, n);
+    drv->sat_scanned = 0u;
+    drv->sat_samples = 0u;
     drv->run_inject = drv->exc_inject;
     (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);
     return DRV_OK;
@@ -550,6 +553,30 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
 
 /* ---- recorder, statistics and table byte streams ---- */
 
+/* The recorded samples of u below `done` not looked at yet: count those at the output
+ * limit (the clamp in ctl_step returns exactly +-u_max). In the background, from the
+ * recorder, so that drv_step pays nothing for it. */
+static void drv_sat_scan(drv_t *drv, uint32_t done)
+{
+    uint32_t col = REC_NUM_SIGNALS;
+    for (uint32_t i = 0u; i < drv->rec.nsel; i++) {
+        if (drv->rec.sel[i] == 1u) { /* signal 1: plant input u */
+            col = i;
+        }
+    }
+    if (col == REC_NUM_SIGNALS || drv->rec.buf == NULL) {
+        drv->sat_scanned = done;
+        return;
+    }
+    const float u_max = drv->ctl.u_max;
+    for (uint32_t k = drv->sat_scanned; k < done; k++) {
+        if (fabsf(drv->rec.buf[(size_t)k * drv->rec.nsel + col]) >= u_max) {
+            drv->sat_samples++;
+        }
+    }
+    drv->sat_scanned = done;
+}
+
 /* One recorded period's line spectra, if the recorder holds one not yet done (samples
  * is the interrupt's count: read once, everything below it is written). */
 static bool drv_lines_step(drv_t *drv)
@@ -558,6 +585,7 @@ static bool drv_lines_step(drv_t *drv)
         return false; /* no line statistics this run: no call */
     }
     const uint32_t done = *(const volatile uint32_t *)&drv->rec.samples;
+    drv_sat_scan(drv, done);
     return lstat_process(&drv->lstat, drv->rec.buf, drv->rec.nsel, done, drv->table_stage);
 }
 

@@ -47,6 +47,10 @@ typedef struct {
      * computation per access */
     stat_t stat;
     lstat_t lstat;           /* line statistics of periodic runs (lstat.h) */
+    /* with the line statistics: recorded samples of u at the output limit, counted in
+     * the background from the recorder (STAT_LINE_SATURATED) */
+    uint32_t sat_scanned;    /* recorded samples looked at */
+    uint32_t sat_samples;    /* of them with |u| >= u_max */
 } drv_t;
 
 #endif /* DRV_STATE_H */

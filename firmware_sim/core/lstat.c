@@ -21,14 +21,18 @@ static void lstat_clear(lstat_t *ls)
         ls->x0[s] = 0.0f;
     }
     for (uint32_t i = 0u; i < LSTAT_LINES_MAX; i++) {
+        lstat_line_t *a = &ls->acc[i];
+        for (uint32_t j = 0u; j < 4u; j++) {
+            a->base[j] = 0.0f;
+        }
         for (uint32_t j = 0u; j < 6u; j++) {
-            ls->mean[i][j] = 0.0f;
+            a->mean[j] = 0.0f;
         }
         for (uint32_t j = 0u; j < 4u; j++) {
-            ls->m2[i][j] = 0.0f;
+            a->m2[j] = 0.0f;
         }
-        ls->du[i][0] = 0.0f;
-        ls->du[i][1] = 0.0f;
+        a->du[0] = 0.0f;
+        a->du[1] = 0.0f;
     }
 }
 
@@ -157,19 +161,48 @@ static void lstat_bin(const float *w, uint32_t n, uint32_t k, float *xr, float *
     *xi = ei + c * oi - s * orr;
 }
 
-/* Period p's samples of recorder column col, minus x0, packed and conjugated into work
- * (n/2 complex), then inverse-transformed. */
+/* Into work (n/2 complex values, packed and conjugated), then inverse-transformed: period p
+ * of recorder column col minus its first recorded sample (shift = false), or minus period 0
+ * sample by sample (shift = true, p >= 1: d_p = x_p - x_0, lstat.h). */
 static void lstat_transform(const lstat_t *ls, const float *rec, uint32_t nsel, uint32_t p, uint32_t col,
-                            float *work)
+                            bool shift, float *work)
 {
     const uint32_t n = ls->n;
     const float *src = rec + ((size_t)p * n) * nsel + col;
-    const float x0 = ls->x0[col];
-    for (uint32_t i = 0u; i < n; i += 2u) {
-        work[i] = src[(size_t)i * nsel] - x0;
-        work[i + 1u] = -(src[(size_t)(i + 1u) * nsel] - x0);
+    if (!shift) {
+        const float x0 = ls->x0[col];
+        for (uint32_t i = 0u; i < n; i += 2u) {
+            work[i] = src[(size_t)i * nsel] - x0;
+            work[i + 1u] = -(src[(size_t)(i + 1u) * nsel] - x0);
+        }
+    } else {
+        const float *src0 = rec + col;
+        for (uint32_t i = 0u; i < n; i += 2u) {
+            work[i] = src[(size_t)i * nsel] - src0[(size_t)i * nsel];
+            work[i + 1u] = src0[(size_t)(i + 1u) * nsel] - src[(size_t)(i + 1u) * nsel];
+        }
     }
     (void)fft_inverse_complex(work, n / 2u); /* n a power of two: checked at the start */
+}
+
+/* Period 0: the base spectra X_0 of u and y (D_0 = 0 is the first period of their means and
+ * sums, which stay 0) and the first of r's means. */
+static void lstat_base(lstat_t *ls, const float *rec, uint32_t nsel, float *work)
+{
+    const uint32_t n = ls->n;
+    /* recorder columns (bit order): 0 reference r, 1 plant input u, 2 motor angle y */
+    lstat_transform(ls, rec, nsel, 0u, 1u, false, work);
+    for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_bin(work, n, ls->lines[i], &ls->acc[i].base[0], &ls->acc[i].base[1]);
+    }
+    lstat_transform(ls, rec, nsel, 0u, 2u, false, work);
+    for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_bin(work, n, ls->lines[i], &ls->acc[i].base[2], &ls->acc[i].base[3]);
+    }
+    lstat_transform(ls, rec, nsel, 0u, 0u, false, work);
+    for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_bin(work, n, ls->lines[i], &ls->acc[i].mean[4], &ls->acc[i].mean[5]);
+    }
 }
 
 bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t samples_done, float *work)
@@ -186,39 +219,45 @@ bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t sample
         for (uint32_t s = 0u; s < 3u; s++) {
             ls->x0[s] = rec[s];
         }
+        lstat_base(ls, rec, nsel, work);
+        ls->periods = 1u;
+        ls->next_period = 1u;
+        return true;
     }
     ls->periods++;
     const float w = 1.0f / (float)ls->periods;
-    /* recorder columns (bit order): 0 reference r, 1 plant input u, 2 motor angle y */
-    lstat_transform(ls, rec, nsel, p, 1u, work); /* U */
+    lstat_transform(ls, rec, nsel, p, 1u, true, work); /* D of U */
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_line_t *a = &ls->acc[i];
         float xr, xi;
         lstat_bin(work, n, ls->lines[i], &xr, &xi);
-        const float dr = xr - ls->mean[i][0], di = xi - ls->mean[i][1];
-        ls->mean[i][0] += dr * w;
-        ls->mean[i][1] += di * w;
-        ls->du[i][0] = xr - ls->mean[i][0];
-        ls->du[i][1] = xi - ls->mean[i][1];
-        ls->m2[i][0] += dr * ls->du[i][0] + di * ls->du[i][1];
+        const float dr = xr - a->mean[0], di = xi - a->mean[1];
+        a->mean[0] += dr * w;
+        a->mean[1] += di * w;
+        a->du[0] = xr - a->mean[0];
+        a->du[1] = xi - a->mean[1];
+        a->m2[0] += dr * a->du[0] + di * a->du[1];
     }
-    lstat_transform(ls, rec, nsel, p, 2u, work); /* Y */
+    lstat_transform(ls, rec, nsel, p, 2u, true, work); /* D of Y */
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_line_t *a = &ls->acc[i];
         float xr, xi;
         lstat_bin(work, n, ls->lines[i], &xr, &xi);
-        const float dr = xr - ls->mean[i][2], di = xi - ls->mean[i][3];
-        ls->mean[i][2] += dr * w;
-        ls->mean[i][3] += di * w;
-        ls->m2[i][1] += dr * (xr - ls->mean[i][2]) + di * (xi - ls->mean[i][3]);
-        /* co-moment: (Y_p - old mean Y) conj(U_p - new mean U) */
-        ls->m2[i][2] += dr * ls->du[i][0] + di * ls->du[i][1];
-        ls->m2[i][3] += di * ls->du[i][0] - dr * ls->du[i][1];
+        const float dr = xr - a->mean[2], di = xi - a->mean[3];
+        a->mean[2] += dr * w;
+        a->mean[3] += di * w;
+        a->m2[1] += dr * (xr - a->mean[2]) + di * (xi - a->mean[3]);
+        /* co-moment: (D_Y,p - old mean) conj(D_U,p - new mean) */
+        a->m2[2] += dr * a->du[0] + di * a->du[1];
+        a->m2[3] += di * a->du[0] - dr * a->du[1];
     }
-    lstat_transform(ls, rec, nsel, p, 0u, work); /* R */
+    lstat_transform(ls, rec, nsel, p, 0u, false, work); /* X of R */
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        lstat_line_t *a = &ls->acc[i];
         float xr, xi;
         lstat_bin(work, n, ls->lines[i], &xr, &xi);
-        ls->mean[i][4] += (xr - ls->mean[i][4]) * w;
-        ls->mean[i][5] += (xi - ls->mean[i][5]) * w;
+        a->mean[4] += (xr - a->mean[4]) * w;
+        a->mean[5] += (xi - a->mean[5]) * w;
     }
     ls->next_period = p + 1u;
     return true;
@@ -243,8 +282,9 @@ static uint32_t lstat_word(const lstat_t *ls, uint32_t i)
     if (r == 0u) {
         return ls->lines[line];
     }
+    const lstat_line_t *a = &ls->acc[line];
     const float inv = ls->periods > 1u ? 1.0f / (float)(ls->periods - 1u) : 0.0f;
-    w.f = (r <= 6u) ? ls->mean[line][r - 1u] : ls->m2[line][r - 7u] * inv;
+    w.f = (r <= 4u) ? a->base[r - 1u] + a->mean[r - 1u] : (r <= 6u) ? a->mean[r - 1u] : a->m2[r - 7u] * inv;
     return w.u;
 }
 

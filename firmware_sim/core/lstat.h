@@ -5,20 +5,32 @@
  * For a line list configured by the host (DFT bins 1 <= k < N/2, strictly ascending, at most
  * LSTAT_LINES_MAX) and each recorded period p of N samples, the per-period spectra
  *
- *     X_p[k] = sum_{n=0}^{N-1} (x_p[n] - x0) exp(-j 2 pi k n / N)        (numpy rfft at bin k)
+ *     X_p[k] = sum_{n=0}^{N-1} x_p[n] exp(-j 2 pi k n / N)               (numpy rfft at bin k)
  *
- * of the reference r, the plant input u and the motor angle y (x0 = the signal's first
- * recorded sample: no change for k >= 1, a position offset stays out of the float32 FFT),
- * then over periods Welford's running means of U, Y, R and sums of squared deviations of
- * U and Y and of the cross term (Y_p - mean Y) conj(U_p - mean U): the sufficient statistics
- * of the robust BLA with known reference (docs/analysis.md) of one realization.
+ * of the reference r, the plant input u and the motor angle y, and over periods their means
+ * and the period-to-period variances of U and Y and covariance of Y and U: the sufficient
+ * statistics of the robust BLA with known reference (docs/analysis.md) of one realization.
+ *
+ * Shifted data (the numerically sound way to a variance that is small beside the mean):
+ * period 0's spectrum X_0 is the base (computed from x_0[n] - x_0[0]: the same for k >= 1,
+ * a position offset stays out of the float32 FFT); every later period transforms the
+ * sample-wise difference d_p[n] = x_p[n] - x_0[n] (period 0's samples are still in the
+ * recorder; a float32 difference of close values is exact, any other is rounded relative to
+ * itself), so D_p = X_p - X_0 carries float32 FFT rounding relative to |D_p|, not |X_p|.
+ * Welford over p = 0 .. P-1 of D_p (D_0 = 0 counts as a period): the mean of D and the sums
+ * of squared deviations |D_p - mean D|^2 of U and Y and the co-moment
+ * (D_Y,p - mean D_Y) conj(D_U,p - mean D_U), the same as those of X (a shift by a constant
+ * changes no deviation). Reported: mean X = X_0 + mean D, the variances and covariance from
+ * the sums of D. The reference r has no spread in the data: its mean is Welford's of X_p
+ * itself (x_p[n] - x_0[0] transformed; no base: 8 bytes a line less), as accurate as
+ * X_0 + mean D would be (both carry X_0's rounding relative to the largest line).
  *
  * Computed in the background (lstat_process, from drv_background), one period per call,
  * from the samples already in the recorder (which must hold r, u and y); the FFT work
  * space is N floats the integrator provides (the drive passes the table's download staging
  * buffer, unused while a run is active). Per signal and period: one N/2-point complex FFT
- * (fft.h) of the real samples packed two per complex value, then per line the split of the
- * even / odd halves (one sinf/cosf pair per line).
+ * (fft.h) of the real samples (or differences) packed two per complex value, then per line
+ * the split of the even / odd halves (one sinf/cosf pair per line).
  *
  * Line statistics data (object 0x2043, little-endian):
  *   u32 periods P; u16 lines L; u8 status (0); u8 0;
@@ -33,7 +45,7 @@
 #include <stdint.h>
 
 #ifndef LSTAT_LINES_MAX
-#define LSTAT_LINES_MAX 128u /* lines the drive holds (a port may build with fewer) */
+#define LSTAT_LINES_MAX 1024u /* lines the drive holds (a port may build with fewer: -DLSTAT_LINES_MAX) */
 #endif
 #define LSTAT_HEADER_BYTES 8u
 #define LSTAT_LINE_FLOATS 10u
@@ -50,6 +62,14 @@ typedef enum {
                             the recorder does not hold r, u and y */
 } lstat_status_t;
 
+/* One line's accumulators (signal order U, Y, R; re, im). */
+typedef struct {
+    float base[4];  /* X_0: period 0's spectra of U, Y */
+    float mean[6];  /* Welford means of D_p = X_p - X_0 of U, Y over p = 0 ..; of X_p of R */
+    float m2[4];    /* sum |dD_U|^2, sum |dD_Y|^2, sum dD_Y conj dD_U re, im */
+    float du[2];    /* this period's D_U - new mean D_U (for the cross term) */
+} lstat_line_t;
+
 typedef struct {
     /* configuration */
     uint16_t stage[LSTAT_LINES_MAX];  /* the list being downloaded */
@@ -63,9 +83,7 @@ typedef struct {
     uint32_t next_period;             /* next recorded period to transform */
     uint32_t periods;                 /* periods accumulated */
     float x0[3];                      /* r, u, y first recorded samples */
-    float mean[LSTAT_LINES_MAX][6];   /* U re, im, Y re, im, R re, im */
-    float m2[LSTAT_LINES_MAX][4];     /* sum |dU|^2, sum |dY|^2, sum dY conj dU re, im */
-    float du[LSTAT_LINES_MAX][2];     /* this period's U - new mean U (for the cross term) */
+    lstat_line_t acc[LSTAT_LINES_MAX]; /* per line: base, mean D, sums */
 } lstat_t;
 
 void lstat_init(lstat_t *ls);

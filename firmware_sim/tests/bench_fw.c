@@ -6,10 +6,14 @@
  *   bench_fw instr sine N         plant) inside bench_fw_drive_steps, for callgrind
  *   bench_fw instr sine-stats N   the sine with the harmonic statistics on (K = 8, 3 signals:
  *                                 reference, plant input, motor angle; power of the error)
- *   bench_fw lines N              one recorded period of a multisine run (N samples, r, u, y)
- *                                 through the line statistics (128 lines, core/lstat.h):
- *                                 the background's drv_background after the run, for
- *                                 callgrind --toggle-collect=lstat_process
+ *   bench_fw lines N [L [P]]      P (1 or 2, default 1) recorded periods of a multisine run
+ *                                 (N samples, r, u, y) through the line statistics (L lines
+ *                                 1 .. L, default 128, at most LSTAT_LINES_MAX and N/2 - 1;
+ *                                 core/lstat.h): the background's drv_background after the
+ *                                 run, for callgrind --toggle-collect=lstat_process. Period 0
+ *                                 is the base (X_0), period 1 a shifted one (x_1 - x_0): the
+ *                                 difference of P = 2 and P = 1 is the cost of every later
+ *                                 period
  *   bench_fw fft N                the per-period spectra of a multisine run's 3 signals:
  *                                 2 complex FFTs of N points (u + j y, r) inside bench_fw_fft
  */
@@ -225,17 +229,19 @@ static int bench_fft(uint32_t n)
     return st;
 }
 
-static int bench_lines(uint32_t n)
+static int bench_lines(uint32_t n, uint32_t nl, uint32_t np)
 {
-    drv_t drv;
+    static drv_t drv; /* about 80 kB with 1024 lines: not on the stack */
     static float stage_buf[8192];
     drv_storage_t st = {rec_buf, (uint32_t)(sizeof rec_buf / sizeof rec_buf[0]), tab_buf, 8192u, 2560.0f, stage_buf};
-    if (!fft_is_pow2(n) || n < 512u || n > 8192u || drv_init(&drv, &st) != DRV_OK) {
-        fprintf(stderr, "bench_fw: lines N: a power of two in 512 .. 8192\n");
+    if (!fft_is_pow2(n) || n < 512u || n > 8192u || nl < 1u || nl > LSTAT_LINES_MAX || 2u * nl >= n ||
+        np < 1u || np > 2u || drv_init(&drv, &st) != DRV_OK) {
+        fprintf(stderr, "bench_fw: lines N [L [P]]: N a power of two in 512 .. 8192, 1 <= L <= %u, L < N/2, "
+                "P 1 or 2\n", (unsigned)LSTAT_LINES_MAX);
         return 2;
     }
-    uint16_t bins[LSTAT_LINES_MAX];
-    for (uint32_t i = 0; i < LSTAT_LINES_MAX; i++) {
+    static uint16_t bins[LSTAT_LINES_MAX];
+    for (uint32_t i = 0; i < nl; i++) {
         bins[i] = (uint16_t)(1u + i);
     }
     drv_enable(&drv, true);
@@ -246,26 +252,32 @@ static int bench_lines(uint32_t n)
     (void)drv_set_u32(&drv, DRV_P_MS_K_MAX, 100u);
     (void)drv_set_f32(&drv, DRV_P_EXC_AMPLITUDE, 0.3f);
     (void)drv_set_u32(&drv, DRV_P_EXC_SETTLE_PERIODS, 0u);
-    (void)drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, 1u);
-    if (drv_lines_write(&drv, 0u, (const uint8_t *)bins, sizeof bins) != DRV_OK ||
-        drv_lines_commit(&drv, sizeof bins) != DRV_OK || drv_set_u32(&drv, DRV_P_STAT_LINE_MODE, 1u) != DRV_OK ||
+    (void)drv_set_u32(&drv, DRV_P_EXC_RECORD_PERIODS, np);
+    if (drv_lines_write(&drv, 0u, (const uint8_t *)bins, 2u * nl) != DRV_OK ||
+        drv_lines_commit(&drv, 2u * nl) != DRV_OK || drv_set_u32(&drv, DRV_P_STAT_LINE_MODE, 1u) != DRV_OK ||
         drv_run_start(&drv) != DRV_OK) {
         fprintf(stderr, "bench_fw: line statistics run refused\n");
         return 2;
     }
-    bench_fw_drive_steps(&drv, n); /* records the period; no background yet */
-    drv_background(&drv);          /* the period's spectra at the 128 lines */
+    bench_fw_drive_steps(&drv, np * n); /* records the periods; no background yet */
+    for (uint32_t p = 0; p < np; p++) {
+        drv_background(&drv); /* one period's spectra at the lines per call */
+    }
     uint32_t periods = 0u;
     (void)drv_get_u32(&drv, DRV_P_STAT_LINE_PERIODS, &periods);
-    printf("lines: N = %u, %u lines, %u period(s) accumulated\n", (unsigned)n, (unsigned)LSTAT_LINES_MAX,
-           (unsigned)periods);
-    return periods == 1u ? 0 : 2;
+    printf("lines: N = %u, %u lines, %u period(s) accumulated; lstat_t %u bytes for LSTAT_LINES_MAX = %u lines: "
+           "%u per line (accumulators %u + 2 x 2 of line list) + %u; drv_t %u bytes\n",
+           (unsigned)n, (unsigned)nl, (unsigned)periods, (unsigned)sizeof(lstat_t), (unsigned)LSTAT_LINES_MAX,
+           (unsigned)(sizeof(lstat_line_t) + 4u), (unsigned)sizeof(lstat_line_t),
+           (unsigned)(sizeof(lstat_t) - (sizeof(lstat_line_t) + 4u) * LSTAT_LINES_MAX), (unsigned)sizeof(drv_t));
+    return periods == np ? 0 : 2;
 }
 
 int main(int argc, char **argv)
 {
-    if (argc == 3 && strcmp(argv[1], "lines") == 0) {
-        return bench_lines((uint32_t)strtoul(argv[2], NULL, 10));
+    if (argc >= 3 && argc <= 5 && strcmp(argv[1], "lines") == 0) {
+        return bench_lines((uint32_t)strtoul(argv[2], NULL, 10), argc > 3 ? (uint32_t)strtoul(argv[3], NULL, 10) : 128u,
+                           argc > 4 ? (uint32_t)strtoul(argv[4], NULL, 10) : 1u);
     }
     if (argc == 3 && strcmp(argv[1], "fft") == 0) {
         return bench_fft((uint32_t)strtoul(argv[2], NULL, 10));
@@ -276,6 +288,6 @@ int main(int argc, char **argv)
     if (argc >= 3 && strcmp(argv[1], "instr") == 0) {
         return bench_instr(argc, argv);
     }
-    fprintf(stderr, "usage: bench_fw rate CONFIG | bench_fw instr table LEN N | bench_fw instr sine[-stats] N\n");
+    fprintf(stderr, "usage: bench_fw rate CONFIG | bench_fw instr table LEN N | bench_fw instr sine[-stats] N | bench_fw lines N [L [P]] | bench_fw fft N\n");
     return 2;
 }

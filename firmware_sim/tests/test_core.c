@@ -7,6 +7,7 @@
 #include "drv.h"
 #include "fft.h"
 #include "gen.h"
+#include "lstat.h"
 #include "ms.h"
 #include "ms_vectors.h"
 #include "th.h"
@@ -1315,6 +1316,151 @@ static void test_line_stats_equal_a_double_dft_of_the_recorded_periods(void)
     TH_EQ(v, periods);
 }
 
+/* Shifted data (lstat.h): periods that differ by a spread far below the float32 resolution
+ * of the lines (a quiet plant: sd / |X| about 1e-6) give variances and covariance within
+ * 1e-5 relative of the float64 statistics of the same float32 samples, and identical
+ * periods give exactly 0 with the means equal to one period's. lstat_* directly, on a
+ * synthetic recorder of r, u, y. */
+#define LQ_N 1024u
+#define LQ_P 5u
+#define LQ_L 60u
+static float lq_rec[3u * LQ_P * LQ_N];
+static float lq_work[LQ_N];
+static lstat_t lq_ls;
+static uint8_t lq_got[LSTAT_HEADER_BYTES + LSTAT_LINE_BYTES * LQ_L];
+
+static uint32_t lq_lcg(uint32_t *s)
+{
+    *s = *s * 1664525u + 1013904223u;
+    return *s >> 8;
+}
+
+/* column c of period p: offset + lines 2, 4 .. 40 (amplitude 1, phases k^2) + noise */
+static void lq_fill(double noise)
+{
+    const double off[3] = {0.25, -3.0, 100.0};
+    uint32_t seed = 12345u;
+    for (uint32_t p = 0u; p < LQ_P; p++) {
+        for (uint32_t i = 0u; i < LQ_N; i++) {
+            double x = 0.0;
+            for (uint32_t k = 2u; k <= 40u; k += 2u) {
+                x += cos(2.0 * M_PI * (double)k * (double)i / LQ_N + 0.1 * (double)(k * k));
+            }
+            double eu = noise * ((double)lq_lcg(&seed) / 16777216.0 - 0.5);
+            double ey = noise * ((double)lq_lcg(&seed) / 16777216.0 - 0.5);
+            double v[3] = {off[0] + x, off[1] + 0.8 * x + eu, off[2] + 1.7 * x - 0.6 * eu + ey};
+            for (uint32_t c = 0u; c < 3u; c++) {
+                lq_rec[3u * (p * LQ_N + i) + c] = (float)v[c];
+            }
+        }
+    }
+}
+
+static void lq_run(uint32_t periods)
+{
+    uint16_t bins[LQ_L];
+    for (uint32_t i = 0u; i < LQ_L; i++) {
+        bins[i] = (uint16_t)(1u + i);
+    }
+    lstat_init(&lq_ls);
+    TH_EQ(lstat_write(&lq_ls, 0u, (const uint8_t *)bins, sizeof bins), LSTAT_OK);
+    TH_EQ(lstat_commit(&lq_ls, sizeof bins, LQ_N), LSTAT_OK);
+    TH_EQ(lstat_set_mode(&lq_ls, 1u), LSTAT_OK);
+    TH_EQ(lstat_check(&lq_ls, LQ_N, 0x07u, LQ_N), LSTAT_OK);
+    lstat_begin(&lq_ls, LQ_N);
+    uint32_t done = 0u;
+    while (lstat_process(&lq_ls, lq_rec, 3u, periods * LQ_N, lq_work)) {
+        done++;
+    }
+    TH_EQ(done, periods);
+    TH_EQ(lstat_size_bytes(&lq_ls), sizeof lq_got);
+    TH_EQ(lstat_read(&lq_ls, 0u, lq_got, sizeof lq_got), 0);
+}
+
+static void test_line_stats_shifted_data_quiet_and_identical_periods(void)
+{
+    /* quiet: noise 1e-4 on samples of about 20 -> line spreads ~1e-6 of the excited lines */
+    lq_fill(1e-4);
+    lq_run(LQ_P);
+    static double spec[LQ_P][LQ_L][3][2];
+    for (uint32_t p = 0u; p < LQ_P; p++) {
+        for (uint32_t l = 0u; l < LQ_L; l++) {
+            for (uint32_t c = 0u; c < 3u; c++) {
+                double re = 0.0, im = 0.0;
+                for (uint32_t i = 0u; i < LQ_N; i++) {
+                    double x = (double)lq_rec[3u * (p * LQ_N + i) + c];
+                    double a = 2.0 * M_PI * (double)(l + 1u) * (double)i / LQ_N;
+                    re += x * cos(a);
+                    im -= x * sin(a);
+                }
+                spec[p][l][c][0] = re;
+                spec[p][l][c][1] = im;
+            }
+        }
+    }
+    double worst_var = 0.0, worst_cov = 0.0, worst_mean = 0.0, worst_mean_own = 0.0, xmax = 0.0, sd_rel = 0.0;
+    for (uint32_t l = 0u; l < LQ_L; l++) {
+        double mr[3] = {0}, mi[3] = {0};
+        for (uint32_t c = 0u; c < 3u; c++) {
+            for (uint32_t p = 0u; p < LQ_P; p++) {
+                mr[c] += spec[p][l][c][0] / LQ_P;
+                mi[c] += spec[p][l][c][1] / LQ_P;
+            }
+            xmax = fmax(xmax, hypot(mr[c], mi[c]));
+        }
+        double vu = 0.0, vy = 0.0, cr = 0.0, ci = 0.0;
+        for (uint32_t p = 0u; p < LQ_P; p++) {
+            double dur = spec[p][l][1][0] - mr[1], dui = spec[p][l][1][1] - mi[1];
+            double dyr = spec[p][l][2][0] - mr[2], dyi = spec[p][l][2][1] - mi[2];
+            vu += (dur * dur + dui * dui) / (LQ_P - 1u);
+            vy += (dyr * dyr + dyi * dyi) / (LQ_P - 1u);
+            cr += (dyr * dur + dyi * dui) / (LQ_P - 1u);
+            ci += (dyi * dur - dyr * dui) / (LQ_P - 1u);
+        }
+        float f[10];
+        memcpy(f, lq_got + 12u + LSTAT_LINE_BYTES * l, 40u);
+        const uint32_t col[3] = {1u, 2u, 0u}; /* data order U, Y, R */
+        for (uint32_t s = 0u; s < 3u; s++) {
+            double e = hypot((double)f[2u * s] - mr[col[s]], (double)f[2u * s + 1u] - mi[col[s]]);
+            double mag = hypot(mr[col[s]], mi[col[s]]);
+            worst_mean = fmax(worst_mean, e);
+            if ((l + 1u) % 2u == 0u && l + 1u <= 40u) { /* excited line: its own magnitude */
+                worst_mean_own = fmax(worst_mean_own, e / mag);
+                sd_rel = fmax(sd_rel, sqrt(s == 0u ? vu : vy) / mag);
+            }
+        }
+        worst_var = fmax(worst_var, fabs((double)f[6] - vu) / vu);
+        worst_var = fmax(worst_var, fabs((double)f[7] - vy) / vy);
+        worst_cov = fmax(worst_cov, hypot((double)f[8] - cr, (double)f[9] - ci) / hypot(cr, ci));
+    }
+    printf("lstat quiet: spread/|X| <= %.2g; rel. error var %.2g, cov %.2g; means %.2g of the largest line, "
+           "%.2g of their own (excited lines)\n", sd_rel, worst_var, worst_cov, worst_mean / xmax, worst_mean_own);
+    TH_ASSERT(sd_rel < 1e-5);          /* far below float32 resolution of the lines */
+    TH_ASSERT(worst_var <= 1e-5);
+    TH_ASSERT(worst_cov <= 1e-5);
+    TH_ASSERT(worst_mean <= 1e-5 * xmax);
+    TH_ASSERT(worst_mean_own <= 1e-5);
+
+    /* identical periods: variances and covariance exactly 0, means those of one period */
+    lq_fill(0.0);
+    lq_run(1u);
+    static uint8_t one[sizeof lq_got];
+    memcpy(one, lq_got, sizeof one);
+    lq_run(LQ_P);
+    uint32_t p;
+    memcpy(&p, lq_got, 4u);
+    TH_EQ(p, LQ_P);
+    for (uint32_t l = 0u; l < LQ_L; l++) {
+        const uint8_t *a = lq_got + 8u + LSTAT_LINE_BYTES * l, *b = one + 8u + LSTAT_LINE_BYTES * l;
+        TH_ASSERT(memcmp(a, b, 4u + 24u) == 0); /* bin and the means: bit for bit */
+        float f[4];
+        memcpy(f, a + 28u, 16u);
+        for (uint32_t j = 0u; j < 4u; j++) {
+            TH_ASSERT(f[j] == 0.0f);
+        }
+    }
+}
+
 static void test_line_list_checks_and_run_refusals(void)
 {
     drv_t d = make_drv(REC_CAP);
@@ -1396,6 +1542,7 @@ int main(void)
     TH_RUN(test_stat_overrun_is_reported_not_delivered);
     TH_RUN(test_stat_read_right_after_the_run_is_final);
     TH_RUN(test_line_stats_equal_a_double_dft_of_the_recorded_periods);
+    TH_RUN(test_line_stats_shifted_data_quiet_and_identical_periods);
     TH_RUN(test_line_list_checks_and_run_refusals);
     return th_finish();
 }

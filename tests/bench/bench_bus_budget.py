@@ -1,13 +1,13 @@
 """Benchmark: a tuning session bound by physics, not by uploads (issue: real bus, real time).
 
 1. `fftune demo --bitrate 1000000 --realtime`: drive_sim steps at its controller rate and
-   every CAN frame takes its time on a simulated 1 Mbit/s bus (port/cbus.c). Quantify and
-   tune upload the drive's line statistics (the default behind a bus model), detect the
-   two recorded signals its robust BLA reads. Printed: results.yaml's time budget
+   every CAN frame takes its time on a simulated 1 Mbit/s bus (port/cbus.c). Detect,
+   quantify and tune upload the drive's line statistics (the default behind a bus model;
+   detect: the multisine line statistics, object 0x2043). Printed: results.yaml's time budget
    (excitation, bus, host per step), the pipeline's wall time and the whole command's
    (drive_sim start, figures, report) against the excitation time (goal <= 1.15 x), and
    K_fc* against the same demo on raw samples without the bus model (goal: within the
-   reported uncertainty).
+   reported uncertainty), and detect's verdict per level from statistics against raw.
 2. configs/paper.yaml at 1 Mbit/s, projected with fftune.host.plan from this run's measured
    cost per run and per byte: excitation, bus and host with statistics and with raw
    samples, side by side.
@@ -54,8 +54,10 @@ def main():
         raw, raw_wall = demo(os.path.join(tmp, "raw"))
         bus, bus_wall = demo(os.path.join(tmp, "bus"), "--bitrate", "1000000", "--realtime")
     tb = bus["time_budget_s"]
+    det_capture = bus["detect"].get("capture", "raw")
     table({k: v for k, v in tb.items()}, "== fftune demo --bitrate 1000000 --realtime: time budget [s] "
-          "(quantify, tune: statistics; detect: 2 recorded signals)")
+          "(quantify, tune: statistics; detect: "
+          + ("line statistics)" if det_capture == "stats" else "2 recorded signals)"))
     exc = tb["total"]["excitation"]
     print(f"pipeline wall / excitation: {tb['total']['wall']:.1f} / {exc:.1f} s = "
           f"{tb['total']['wall'] / exc:.3f} x (goal <= 1.15)")
@@ -70,12 +72,22 @@ def main():
           f"experiments {t_bus['search']['experiments']} / {t_raw['search']['experiments']}; "
           f"raw demo without bus model {raw_wall:.1f} s")
 
+    same = [a["causes"] == b["causes"] for a, b in zip(bus["detect"]["levels"], raw["detect"]["levels"])]
+    print(f"detect from {det_capture} at 1 Mbit/s vs raw samples without bus model: causes equal at "
+          f"{sum(same)} of {len(same)} levels; verdict "
+          f"{'equal' if bus['detect']['verdict'] == raw['detect']['verdict'] else 'DIFFERS'}: "
+          f"{bus['detect']['verdict']!r}"
+          + ("" if bus["detect"]["verdict"] == raw["detect"]["verdict"] else f" vs {raw['detect']['verdict']!r}"))
+
     # cost per run and per byte on this bus, from the two kinds of steps of the same run
     plan = {p.step: p for p in experiment_plan(demo_cfg, bus["drive"]["fs_hz"])}
     meas = bus["experiments"]["measured"]
     q_runs = plan["quantify"].runs
     d_runs = plan["detect"].runs
-    s_run, s_byte = bus_rates((d_runs, plan["detect"].raw_bytes, tb["detect"]["bus"]),
+    d_bytes = plan["detect"].stats_bytes if det_capture == "stats" else plan["detect"].raw_bytes
+    print(f"detect uploaded {d_bytes / 1e3:.1f} kB ({det_capture}; raw samples would be "
+          f"{plan['detect'].raw_bytes / 1e3:.1f} kB)")
+    s_run, s_byte = bus_rates((d_runs, d_bytes, tb["detect"]["bus"]),
                               (q_runs, plan["quantify"].stats_bytes, tb["quantify"]["bus"]))
     host_per_run = tb["total"]["host"] / max(meas, 1)
     print(f"measured at 1 Mbit/s: {1e3 * s_run:.1f} ms of bus per run (parameters, start, read-back), "

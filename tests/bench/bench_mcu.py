@@ -129,7 +129,8 @@ def main():
     print(f"  sine with harmonic statistics (K = 8 of 3 signals, power of 1), drv_step timed alone per call, "
           f"drv_background between steps: Cortex-M4F {m4['drv_step_sine_stats']:.0f}, background "
           f"{m4['background_sine_stats']:.0f} per step;   {xs} per step")
-    print(f"  line statistics, one multisine period of N = 1024 through drv_background (3 real FFTs, "
+    print(f"  line statistics, a later multisine period (shifted data, after the base period 0) of N = 1024 "
+          f"through drv_background (3 real FFTs, "
           f"{m4['lines_count']} lines: the PIL build's LSTAT_LINES_MAX): Cortex-M4F {m4['lines_period_1024']:.0f} "
           f"instructions per period")
     period = 168e6 / 2560

@@ -19,7 +19,7 @@ typedef struct {
     uint8_t table[32768];
     uint32_t table_bytes;     /* committed */
     uint32_t table_generation;
-    uint16_t line_stage[512], lines[512]; /* line list (0x2042), capacity STAT_LINES_CAP */
+    uint16_t line_stage[1024], lines[1024]; /* line list (0x2042), capacity STAT_LINES_CAP */
     uint32_t nlines;
     float target_rad;
     float motor_rad, reference_rad, velocity_rad_s;

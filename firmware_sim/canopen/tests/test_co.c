@@ -710,17 +710,17 @@ static void test_block_download(void)
 static void test_line_list_and_line_statistics(void)
 {
     setup();
-    static uint16_t bins[200];
-    for (uint32_t i = 0; i < 200; i++) {
+    static uint16_t bins[1025];
+    for (uint32_t i = 0; i < 1025; i++) {
         bins[i] = (uint16_t)(1u + i);
     }
     CHECK(sdo_write(0x2001, 5, 1024, 4) == 0); /* EXC_PERIOD N: lines below 512 */
     CHECK(block_download_to(0x2042, (const uint8_t *)bins, 2u * 60u, -1, 0) == 0);
     uint32_t v = 0;
     CHECK(sdo_read_u32(0x2040, 8, &v) == 0 && v == 60u);
-    CHECK(sdo_read_u32(0x2040, 9, &v) == 0 && v == 128u);
+    CHECK(sdo_read_u32(0x2040, 9, &v) == 0 && v == 1024u); /* od.yaml's default (drive_sim's LSTAT_LINES_MAX) */
     /* more lines than the drive holds: "data type length too high" at the initiate */
-    CHECK(block_download_to(0x2042, (const uint8_t *)bins, 2u * 129u, -1, 0) == CO_SDO_AB_DATA_LONG);
+    CHECK(block_download_to(0x2042, (const uint8_t *)bins, 2u * 1025u, -1, 0) == CO_SDO_AB_DATA_LONG);
     /* a bin at N/2 = 512: "value range of parameter exceeded" (0x06090030) at the end */
     uint16_t nyq[3] = {10u, 100u, 512u};
     CHECK(block_download_to(0x2042, (const uint8_t *)nyq, 6u, -1, 0) == CO_SDO_AB_INVALID_VALUE);

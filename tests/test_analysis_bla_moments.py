@@ -1,0 +1,120 @@
+"""The robust BLA from line moments (a drive's line statistics) against the same estimate
+from the samples: fftune.analysis.bla.robust_bla_moments fed by
+fftune.analysis.stats.line_moments(line_stats(...)) must give robust_bla's G, variances,
+levels and verdict flags, on a plant with odd and even distortion and noise, with the
+reference known (closed loop)."""
+import numpy as np
+import pytest
+
+from fftune.analysis.bla import LineMoments, robust_bla, robust_bla_moments
+from fftune.analysis.errors import InputError
+from fftune.analysis.multisine import drive_lines, drive_multisine
+from fftune.analysis.stats import LineStats, line_moments, line_stats
+
+N, M, P, FS = 512, 4, 4, 1000.0
+
+
+def _closed_loop(m, *, rms=1.0, noise=1e-3, a2=0.05, a3=0.2, seed=0):
+    """A closed loop with a static nonlinearity before a first-order plant: r -> u -> y."""
+    lines = drive_lines(N, 3, 100, 4, 11)
+    r = np.tile(drive_multisine(N, 3, 100, 4, 11, m, rms), P + 1)
+    rng = np.random.default_rng(seed + m)
+    y = np.zeros_like(r)
+    u = np.zeros_like(r)
+    state = 0.0
+    for i in range(r.size):
+        u[i] = r[i] - 0.5 * state
+        v = u[i] + a2 * u[i] ** 2 + a3 * u[i] ** 3
+        state = 0.9 * state + 0.1 * v
+        y[i] = state
+    y += noise * rng.standard_normal(y.size)
+    u += 0.1 * noise * rng.standard_normal(u.size)
+    # the first period is the transient: dropped, as the drive drops its settle periods
+    return u[N:], y[N:], r[N:], lines
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return [_closed_loop(m) for m in range(M)]
+
+
+def test_moments_give_the_estimate_of_the_samples(runs):
+    lines = runs[0][3]
+    u = np.stack([x[0].reshape(P, N) for x in runs])
+    y = np.stack([x[1].reshape(P, N) for x in runs])
+    r = np.stack([x[2].reshape(P, N) for x in runs])
+    raw = robust_bla(u, y, r, fs=FS, excited_bins=lines.excited, warn_transient=False)
+    band = np.arange(lines.excited[0], lines.excited[-1] + 1)
+    stats = [line_stats(x[0], x[1], x[2], n=N, bins=band) for x in runs]
+    mom = robust_bla_moments(line_moments(stats), n_period=N, fs=FS, excited_bins=lines.excited)
+    np.testing.assert_allclose(mom.G, raw.G, rtol=1e-10)
+    for name in ("var_total", "var_noise", "var_nl"):
+        np.testing.assert_allclose(getattr(mom, name), getattr(raw, name), rtol=1e-8,
+                                   atol=1e-12 * np.max(np.abs(getattr(raw, name))), err_msg=name)
+    for name in ("output_db", "odd_db", "even_db", "odd_noise_db", "plant_db", "nonexcited_db"):
+        np.testing.assert_allclose(getattr(mom, name), getattr(raw, name), atol=1e-8, err_msg=name)
+    # the distortion is there and both say so (the plant's even and odd terms)
+    assert raw.summary["odd_detected"] and raw.summary["even_detected"]
+    for key, value in raw.summary.items():
+        if isinstance(value, float):
+            assert mom.summary[key] == pytest.approx(value, rel=1e-8, abs=1e-8), key
+        else:
+            assert mom.summary[key] == value, key
+    assert "transient not checked" in " ".join(mom.notes)
+    assert not mom.transient.suspect
+
+
+def test_the_generated_reference_replaces_the_recorded_one(runs):
+    """Plant-input injection: the drive records no excitation, the host's regeneration of it
+    is the reference (line_moments(reference=...))."""
+    lines = runs[0][3]
+    band = np.arange(lines.excited[0], lines.excited[-1] + 1)
+    zero_r = [line_stats(x[0], x[1], np.zeros_like(x[2]), n=N, bins=band) for x in runs]
+    ref = np.stack([np.fft.rfft(drive_multisine(N, 3, 100, 4, 11, m, 1.0))[band] for m in range(M)])
+    with pytest.raises(InputError, match="reference r: zero power"):
+        robust_bla_moments(line_moments(zero_r), n_period=N, fs=FS, excited_bins=lines.excited)
+    good = [line_stats(x[0], x[1], x[2], n=N, bins=band) for x in runs]
+    a = robust_bla_moments(line_moments(zero_r, reference=ref), n_period=N, fs=FS,
+                           excited_bins=lines.excited)
+    b = robust_bla_moments(line_moments(good), n_period=N, fs=FS, excited_bins=lines.excited)
+    np.testing.assert_allclose(a.G, b.G, rtol=1e-9)
+
+
+def test_bad_moments_are_refused_with_the_reason(runs):
+    lines = runs[0][3]
+    band = np.arange(lines.excited[0], lines.excited[-1] + 1)
+    stats = [line_stats(x[0], x[1], x[2], n=N, bins=band) for x in runs]
+    # a gap in the lines: the detection lines between the excited ones are needed
+    gap = [line_stats(x[0], x[1], x[2], n=N, bins=band[band != band[5]]) for x in runs]
+    with pytest.raises(InputError, match="every line"):
+        robust_bla_moments(line_moments(gap), n_period=N, fs=FS, excited_bins=lines.excited)
+    mixed = stats[:2] + [line_stats(runs[2][0][:N], runs[2][1][:N], runs[2][2][:N], n=N, bins=band)]
+    with pytest.raises(InputError, match="realization 2: 1 periods"):
+        line_moments(mixed)
+    with pytest.raises(InputError, match="no realization"):
+        line_moments([])
+    with pytest.raises(InputError, match=r"reference spectra of shape \(1, 3\)"):
+        line_moments(stats, reference=np.ones((1, 3)))
+    mom = line_moments(stats)
+    no_ref = LineMoments(**{**mom.__dict__, "R": None})
+    with pytest.raises(InputError, match="reference R is needed"):
+        robust_bla_moments(no_ref, n_period=N, fs=FS, excited_bins=lines.excited)
+    bad = LineMoments(**{**mom.__dict__, "ss_y": mom.ss_y[:, :5]})
+    with pytest.raises(InputError, match="ss_y: expected shape"):
+        robust_bla_moments(bad, n_period=N, fs=FS, excited_bins=lines.excited)
+    with pytest.raises(InputError, match="sample rate"):
+        robust_bla_moments(mom, n_period=N, fs=float("nan"), excited_bins=lines.excited)
+
+
+def test_one_period_gives_the_estimate_without_noise_variance(runs):
+    lines = runs[0][3]
+    band = np.arange(lines.excited[0], lines.excited[-1] + 1)
+    one = [line_stats(x[0][:N], x[1][:N], x[2][:N], n=N, bins=band) for x in runs]
+    res = robust_bla_moments(line_moments(one), n_period=N, fs=FS, excited_bins=lines.excited)
+    raw = robust_bla(np.stack([x[0][:N].reshape(1, N) for x in runs]),
+                     np.stack([x[1][:N].reshape(1, N) for x in runs]),
+                     np.stack([x[2][:N].reshape(1, N) for x in runs]), fs=FS,
+                     excited_bins=lines.excited, warn_transient=False)
+    assert res.var_noise is None and res.var_nl is None
+    np.testing.assert_allclose(res.var_total, raw.var_total, rtol=1e-8)
+    assert isinstance(one[0], LineStats) and np.isnan(one[0].var_u).all()
