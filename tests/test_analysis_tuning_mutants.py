@@ -827,3 +827,21 @@ def test_local_minimum_rule_looks_at_the_nearest_point_on_each_side_only():
                     0.3: (0.0, floor), 0.4: (-0.05, 0.4), 1.0: -best})
     assert search.points[0.1].ratio == pytest.approx(best)
     assert search._estimate(0.2, 0.4)["stop"]
+
+
+def test_signed_root_search_stops_at_a_bracket_of_exactly_two_xtol():
+    """s(0) = 1, s(1) = -3: the secant step lands on 0.25 where s = -1, leaving [0, 0.25]:
+    exactly 2 xtol (xtol = 0.125) stops the search, as below 2 xtol does."""
+    f = lambda k: 1 - 8 * k if k <= 0.25 else -1 - (k - 0.25) * 8 / 3      # noqa: E731
+    res = SignedRootSearch(0.0, 1.0, xtol=0.125).run(f)
+    assert res.converged and res.reason == "bracket below 2 xtol" and res.n_evaluations == 3
+
+
+def test_signed_root_search_stops_at_a_step_of_exactly_xtol():
+    """Two successive secant estimates exactly xtol apart stop the search (step below or
+    at xtol), the bracket still wide."""
+    values = {0.0: 1.0, 1.0: -3.0, 0.25: 0.5}
+    c2 = (0.25 * -3.0 - 1.0 * 0.5) / (-3.0 - 0.5)          # the step after 0.25, as computed
+    res = SignedRootSearch(0.0, 1.0, xtol=abs(c2 - 0.25)).run(lambda k: values.get(k, 0.2))
+    assert [k for k, _ in res.history] == [0.0, 1.0, 0.25, c2]
+    assert res.converged and res.reason == "step below xtol"
