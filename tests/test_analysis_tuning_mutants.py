@@ -521,18 +521,20 @@ def test_estimate_uses_the_over_compensated_secant_inside_the_sign_change():
     assert not est["stop"] and est["next"] == pytest.approx(0.2 + 0.2 * 0.08 / 0.13, rel=1e-12)
 
 
-@pytest.mark.parametrize("offset", [2e-4, -2e-4])
+@pytest.mark.parametrize("offset", [2e-4, -2e-4, 1e-3])
 def test_estimate_on_an_unverified_measured_point_probes_one_tolerance_beside_it(offset):
     """The estimate falls on a measured point (within a quarter tolerance) whose ratio is
     too high to verify it: the next experiment is one tolerance beside the estimate, on
-    the side of the sign change (towards the other sign of s)."""
+    the side of the sign change (towards the other sign of s). Farther from the point
+    (1e-3, half a tolerance) the estimate itself is the next experiment."""
     k_m = 0.3 + offset
     search = _made({0.0: 0.15, 0.2: 0.05, k_m: (0.5 * (0.3 - k_m), 0.1), 0.4: -0.05, 1.0: -0.35})
     est = search._estimate(0.2, 0.4)
     tol = _sigma_noise(0.5, 5)
     assert tol > 0.3 * 5e-3                            # the noise sets the tolerance
     assert not est["stop"]
-    assert est["next"] == pytest.approx(0.3 - np.sign(offset) * tol, rel=1e-9)
+    probe = abs(offset) < 0.25 * tol
+    assert est["next"] == pytest.approx(0.3 - np.sign(offset) * tol * probe, rel=1e-9)
 
 
 def test_estimate_probe_outside_the_sign_change_falls_back_to_its_midpoint():
@@ -845,3 +847,30 @@ def test_signed_root_search_stops_at_a_step_of_exactly_xtol():
     res = SignedRootSearch(0.0, 1.0, xtol=abs(c2 - 0.25)).run(lambda k: values.get(k, 0.2))
     assert [k for k, _ in res.history] == [0.0, 1.0, 0.25, c2]
     assert res.converged and res.reason == "step below xtol"
+
+
+def test_search_defaults():
+    """Defaults a caller relies on: 8 experiments for KfcSearch, xtol 1e-4 of the bracket
+    for SignedRootSearch (as 1e-3 for RatioMinimizer), also off zero."""
+    assert KfcSearch(0.0, 1.0).max_experiments == 8
+    assert SignedRootSearch(0.2, 1.0).xtol == pytest.approx(0.8e-4)
+
+
+def test_a_lower_end_that_does_not_move_leaves_the_ratio_minimiser():
+    """The lower end of the bracket has no ratio (the motor did not move): no reference
+    phases, the ratio minimiser takes a golden-section step into the larger part."""
+    search = _made({0.2: 0.02, 0.5: -0.1, 1.0: -0.35})
+    search.points[0.0] = search._point_from_moments(0.0, np.full(7, 1e-7 + 0j), np.zeros(7), 4)
+    est = search._estimate(0.0, 0.5)
+    assert search.regime == "ratio minimiser" and not est["stop"]
+    assert est["next"] == pytest.approx(0.2 + 0.381966 * 0.3, rel=1e-12)
+
+
+def test_points_beyond_two_tolerances_of_the_estimate_count_as_other_points():
+    """A measured point 2.5 tolerances beside the estimate is another K_fc (not the same
+    within the resolution): its smaller ratio makes the verification at 0.3 fail."""
+    tol = _sigma_noise(0.5, 6)
+    k_o = 0.3 + 2.5 * tol
+    search = _made({0.0: 0.15, 0.2: 0.05, 0.3: (0.0, 0.01), k_o: 0.5 * (0.3 - k_o), 0.4: -0.05,
+                    1.0: -0.35})
+    assert not search._estimate(0.2, 0.4)["stop"]
