@@ -874,3 +874,30 @@ def test_points_beyond_two_tolerances_of_the_estimate_count_as_other_points():
     search = _made({0.0: 0.15, 0.2: 0.05, 0.3: (0.0, 0.01), k_o: 0.5 * (0.3 - k_o), 0.4: -0.05,
                     1.0: -0.35})
     assert not search._estimate(0.2, 0.4)["stop"]
+
+
+def test_empty_bracket_is_refused_whatever_the_tolerance():
+    for search in (SignedRootSearch, RatioMinimizer):
+        with pytest.raises(InputError, match="lower < upper"):
+            search(1.0, 1.0, xtol=1e-3)
+
+
+def test_stopping_tolerance_has_a_floor():
+    """xtol = rtol = 0: the stopping tolerance is 1e-12, never 0."""
+    search = KfcSearch(0.0, 1.0, xtol=0.0, rtol=0.0)
+    assert search._tol(0.3) == 1e-12 and search._tol(0.0) == 1e-12
+
+
+def test_failed_search_reports_the_measured_point_with_the_smallest_ratio():
+    search = KfcSearch(0.0, 0.05, k_limit=0.12)
+    while not search.done:
+        k = search.ask()
+        search.tell_moments(k, _relay(k), np.full(7, 1e-10), 4)
+    res = search.result
+    assert not res.converged
+    assert res.k_fc == min(res.points, key=lambda p: p.ratio).k_fc == pytest.approx(0.12)
+    # nothing moved: no best point
+    still = KfcSearch(0.0, 1.0, max_experiments=3)
+    while not still.done:
+        still.tell_moments(still.ask(), np.full(7, 1e-7 + 0j), np.zeros(7), 4)
+    assert not still.result.converged and np.isnan(still.result.k_fc)
