@@ -901,3 +901,19 @@ def test_failed_search_reports_the_measured_point_with_the_smallest_ratio():
     while not still.done:
         still.tell_moments(still.ask(), np.full(7, 1e-7 + 0j), np.zeros(7), 4)
     assert not still.result.converged and np.isnan(still.result.k_fc)
+
+
+def test_signed_ratio_std_is_vectorised_over_experiments():
+    from fftune.analysis.tuning import signed_odd_ratio_std
+    rng = np.random.default_rng(4)
+    H = _relay(0.1) + 0.01 * rng.standard_normal((3, 7))
+    H_std = 1e-3 * (1 + rng.random((3, 7)))
+    rows = [signed_odd_ratio_std(h, s, 4) for h, s in zip(H, H_std)]
+    np.testing.assert_allclose(signed_odd_ratio_std(H, H_std, 4), rows, rtol=1e-12)
+
+
+def test_signed_root_search_while_running_reports_the_end_with_the_smaller_objective():
+    search = SignedRootSearch(0.2, 0.6)
+    search.tell(search.ask(), 0.5)
+    search.tell(search.ask(), -0.1)
+    assert search.result.k_fc == 0.6 and search.result.reason == "running"
