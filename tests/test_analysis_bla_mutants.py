@@ -576,3 +576,88 @@ def test_spectra_default_rate_and_a_reference_line_120_db_down_is_zero():
     spec[..., excited[3]] *= 1e-7
     with pytest.raises(InputError, match=r"reference r: zero power at 1 excited line"):
         robust_bla(u, u, np.fft.irfft(spec, n=128, axis=-1), excited_bins=excited)
+
+
+# --- round 3 (issue 16): survivors of the complete run after the line-moments refactor -----
+from fftune.analysis.bla import _class_stats, _local_floor, _transient, classify_grid  # noqa: E402
+
+
+def test_local_floor_is_the_tenth_percentile_of_plus_minus_24_lines():
+    level = np.random.default_rng(3).normal(size=300).cumsum()
+    padded = np.pad(level, 24, mode="reflect")
+    brute = [np.quantile(padded[i:i + 49], 0.1) for i in range(level.size)]
+    np.testing.assert_allclose(_local_floor(level), brute, rtol=0, atol=1e-12)
+
+
+def _lines_excitation(n, excited, gap_db, m=2, p=2, seed=0):
+    """Periodic excitation: the excited bins at 0 dB, every other bin gap_db below."""
+    rng = np.random.default_rng(seed)
+    spec = np.zeros((m, n // 2 + 1), complex)
+    amp = np.full(n // 2 + 1, 10 ** (-gap_db / 20))
+    amp[excited] = 1.0
+    amp[0] = 0.0
+    if n % 2 == 0:
+        amp[n // 2] = 0.0
+    spec[:] = amp * np.exp(2j * np.pi * rng.random((m, n // 2 + 1)))
+    one = np.fft.irfft(spec, n=n, axis=-1)
+    return np.repeat(one[:, None, :], p, axis=1)
+
+
+def test_line_detection_default_gap_is_10_db_and_reaches_the_top_bin():
+    n = 64                                              # 31 usable lines: no local threshold
+    excited = np.array([3, 7, 11, 19, 23, 31])          # 31 = the top usable bin
+    np.testing.assert_array_equal(detect_excited_lines(_lines_excitation(n, excited, 10.5)), excited)
+    with pytest.raises(InputError, match="cannot tell"):
+        detect_excited_lines(_lines_excitation(n, excited, 9.5))
+    np.testing.assert_array_equal(
+        detect_excited_lines(_lines_excitation(n, excited, 9.5), min_gap_db=9.0), excited)
+    odd = np.array([3, 7, 11, 32])                      # N = 65: the top bin is 32
+    np.testing.assert_array_equal(detect_excited_lines(_lines_excitation(65, odd, 30.0)), odd)
+
+
+def test_transient_check_with_one_kept_period_compares_the_settle_period_with_it():
+    """T = 1, P = 1: the steady state is the one kept period; the settle period's level
+    is its difference from it (finite), the kept one's 0."""
+    y = np.ones((2, 2, 3), complex)
+    y[:, 0] *= 1.1
+    check = _transient(y, 1, 1)
+    assert check.level_db[0] == pytest.approx(10 * np.log10(0.01)) and not check.suspect
+
+
+@pytest.mark.parametrize("factor, suspect", [(10.5, True), (9.5, False)])
+def test_transient_flags_a_first_period_10_times_the_later_ones(factor, suspect):
+    """T = 1 settle period and P = 5: the first kept period's level re the steady state
+    (the mean of the last 2) against 10 times the median of the later kept ones (and the
+    settle period's too)."""
+    base, d = np.ones(4, complex), 1e-3 * np.exp(0.7j)
+    periods = np.stack([base + np.sqrt(factor) * d, base + np.sqrt(factor) * d,
+                        base + d, base - d, base + d, base - d])
+    check = _transient(periods[None], 1, 5)
+    np.testing.assert_allclose(10 ** (check.level_db / 10), [factor * 1e-6, factor * 1e-6] + [1e-6] * 4,
+                               rtol=1e-6)
+    assert check.suspect is suspect and check.settle_differs is suspect
+
+
+def test_odd_odd_grid_starting_below_4():
+    assert classify_grid(np.array([3, 7, 11, 15]), 64)["grid"] == "odd-odd"
+    assert classify_grid(np.array([1, 5, 9, 13]), 64)["grid"] == "odd-odd"
+
+
+def test_one_line_far_above_its_noise_is_detected_alone():
+    """A single line 20 times its noise with nu = 12: one line is too few for the count
+    rule (2 needed), but (1 + 20/12)^-12 = 8e-6 <= alpha alone (Bonferroni)."""
+    out = _class_stats(np.array([20.0]), np.array([1.0]), 12, "x_")
+    assert out["x_lines_over_noise_6db"] == 1 and out["x_lines_needed"] == 2
+    assert out["x_detected"] is True
+    assert _class_stats(np.array([5.0]), np.array([1.0]), 12, "x_")["x_detected"] is False
+
+
+def test_lines_over_noise_exactly_as_many_as_needed_is_detected():
+    nu, n = 12, 50
+    p_line = (1 + 4.0 / nu) ** (-nu)
+    need = int(binom.isf(1e-3, n, p_line)) + 1
+    level = np.ones(n)
+    level[:need] = 4.5                                  # 6 dB over, not enough alone
+    out = _class_stats(level, np.ones(n), nu, "x_")
+    assert out["x_lines_over_noise_6db"] == out["x_lines_needed"] == need
+    assert out["x_detected"] is True
