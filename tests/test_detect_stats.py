@@ -183,3 +183,17 @@ def test_a_line_at_nyquist_is_refused_by_the_drive_with_the_limit_named(tmp_path
             assert rec.line_stats.saturated_samples == 0
     finally:
         sim.stop()
+
+
+def test_noise_free_plant_the_drive_float32_floor_is_not_distortion(tmp_path):
+    """An ideal encoder and no noise: the period-to-period spread is ~0, so the float32 FFT
+    rounding of the drive's spectra (the same in every period) would pass for even
+    distortion at the detection lines without its floor; with it both paths agree."""
+    # the demo's detect at its 1 V level (where the unfloored path claimed even lines)
+    res, _ = _detect(tmp_path, {"plant": {"viscous": 2e-3}, "sensor": {"counts_per_rev": 0, "noise_std": 0.0}},
+                     "quiet", capture="both", rms_levels=[1.0], period_samples=4096,
+                     band_hz=[2.5, 100.0], group=5, seed=7, realizations=4, periods=2, settle_periods=2)
+    d = res["stats_vs_raw"]
+    assert d["same_causes"], res["levels"]
+    assert d["max_rel_diff_G"] <= 1e-5
+    assert all("plant even nonlinearity" not in lv["causes"] for lv in res["levels"])
