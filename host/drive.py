@@ -595,10 +595,12 @@ class DriveClient:
         if capture != "stats":
             for name in signals:
                 mask |= 1 << SIGNAL_BITS[name]
-        order = [n for n, b in sorted(SIGNAL_BITS.items(), key=lambda kv: kv[1]) if mask >> b & 1]
+        wanted = {n for n, b in SIGNAL_BITS.items() if mask >> b & 1}
         if want_lines:
             # the drive transforms the recorded periods of r, u and y in its background
             mask |= sum(1 << SIGNAL_BITS[s] for s in ("reference", "plant_input", "motor_angle"))
+        # what the recorder holds, in bit order (with 'both' and lines perhaps more than asked)
+        order = [n for n, b in sorted(SIGNAL_BITS.items(), key=lambda kv: kv[1]) if mask >> b & 1]
         self.set_parameters(dict(parameters, rec_signals=mask))
         self._set_stats(stats if capture != "raw" else None)
         self._set_lines(lines if want_lines else None, parameters)
@@ -665,7 +667,7 @@ class DriveClient:
         sig = {}
         if capture != "stats":
             arr = np.frombuffer(data, dtype="<f4").reshape(expected_samples, nsig)
-            sig = {name: arr[:, i].astype(np.float64) for i, name in enumerate(order)}
+            sig = {name: arr[:, i].astype(np.float64) for i, name in enumerate(order) if name in wanted}
         for what, got in (("statistics", run_stats), ("line statistics", run_lines)):
             if got is not None and got.periods != rec_periods:
                 raise FftuneError(f"{what} from node {self.opts.node_id}: {got.periods} periods "

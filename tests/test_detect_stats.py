@@ -181,6 +181,11 @@ def test_a_line_at_nyquist_is_refused_by_the_drive_with_the_limit_named(tmp_path
             rec = d.run(params, capture="stats", lines=np.arange(3, 101))
             assert rec.line_stats.periods == 2 and rec.signals == {}
             assert rec.line_stats.saturated_samples == 0
+            # 'both': the drive records r, u, y for its statistics; the samples asked for come up
+            rec = d.run(params, capture="both", lines=np.arange(3, 101),
+                        signals=("plant_input", "motor_angle"))
+            assert set(rec.signals) == {"plant_input", "motor_angle"}
+            assert rec.signals["motor_angle"].size == 2 * 1024 and rec.line_stats.periods == 2
     finally:
         sim.stop()
 
