@@ -389,3 +389,531 @@ def test_ratio_minimiser_stops_when_the_bracket_is_two_tolerances(width_in_tol, 
 
 def test_ratio_minimizer_default_xtol_is_a_thousandth_of_the_bracket():
     assert RatioMinimizer(0.2, 1.0).xtol == pytest.approx(0.8e-3)
+
+
+# --- round 3 (issue 16): the K_fc search's rules, each against what it is for -------------
+
+def test_told_k_fc_must_match_within_1e_12_near_zero():
+    """Near K_fc = 0 the told value must match the asked one within 1e-12 absolute (not
+    2e-12): a host that rounds the gain it ran is caught."""
+    search = SignedRootSearch(1e-3, 1.0)
+    with pytest.raises(InputError, match="asked"):
+        search.tell(1e-3 + 1.5e-12, 1.0)
+    search.tell(1e-3 + 0.9e-12, 1.0)
+
+
+def test_t_factor_with_one_degree_of_freedom_is_finite():
+    """One degree of freedom (two periods at one experiment) still gives a (wide) interval:
+    Student's t with 1 dof, not 'infinitely uncertain'; none at all gives inf."""
+    from scipy.stats import t as student_t
+
+    from fftune.analysis.tuning import _t_factor
+    assert _t_factor(1) == pytest.approx(student_t.ppf(0.9772, 1) / 2)
+    assert np.isfinite(_t_factor(1)) and _t_factor(0) == np.inf
+
+
+def test_kfc_search_runs_with_the_smallest_budget_of_three_experiments():
+    search = KfcSearch(0.0, 1.0, max_experiments=3)
+    assert search.max_experiments == 3
+    res = search.run(lambda k: _relay(k)[None, :] + 1e-6 * np.arange(2)[:, None])
+    assert not res.converged and res.n_experiments == 3 and "max_experiments (now 3)" in res.reason
+    with pytest.raises(InputError, match="max_experiments must be >= 3"):
+        KfcSearch(0.0, 1.0, max_experiments=2)
+
+
+def test_ratio_standard_error_is_continuous_where_the_odd_lines_vanish():
+    """With every odd line exactly 0 (q = 0, where the gradient formula divides by q) the
+    ratio's standard error is the limit of the general formula as the lines go to 0 (equal
+    line variances), not a different constant."""
+    search = KfcSearch(0.0, 1.0)
+    H = np.array([2.0, 0, 0, 0, 0, 0, 0], complex)
+    H_var = np.full(7, 1e-6)
+    at_zero = search._point_from_moments(0.5, H, H_var, 4)
+    tiny = H.copy()
+    tiny[2], tiny[4], tiny[6] = 1e-9, 1e-9j, -1e-9
+    near_zero = search._point_from_moments(0.5, tiny, H_var, 4)
+    assert at_zero.ratio == 0.0
+    assert at_zero.ratio_std == pytest.approx(near_zero.ratio_std, rel=1e-9)
+    # sqrt(n v / (2 n^2) / |H_1|^2 / P) with n = 3 lines of variance v
+    assert at_zero.ratio_std == pytest.approx(np.sqrt(3e-6 / 18 / 4 / 4))
+
+
+def test_first_interior_point_too_close_to_an_end_is_the_midpoint():
+    """A secant root within 5 % of the bracket from an end says little (one end dominates):
+    the third experiment is the midpoint instead."""
+    search = KfcSearch(0.0, 1.0)
+    H = {}
+    for _ in range(2):
+        k = search.ask()
+        H[k] = _relay(k, fc=0.02)
+        search.tell_moments(k, H[k], np.full(7, 1e-10), 4)
+    phases = reference_phases(H[0.0] - H[1.0])
+    s0, s1 = signed_odd_ratio(H[0.0], phases), signed_odd_ratio(H[1.0], phases)
+    assert 0 < s0 / (s0 - s1) < 0.05                  # the secant root: near the lower end
+    assert search.ask() == 0.5
+
+
+# The verification rules of KfcSearch._estimate on hand-made experiments: H_1 = 1 and the
+# odd lines H_3 = H_5 = H_7 = s + j f, so that the signed objective is s (reference phase
+# 0), the ratio sqrt(s^2 + f^2), and both have the standard error SIGMA (line variances).
+SIGMA, PERIODS = 1e-3, 4
+
+
+def _shaped(s, floor=0.0, sigma=SIGMA):
+    H = np.zeros(7, complex)
+    H[0] = 1.0
+    H[2] = H[4] = H[6] = s + 1j * floor
+    H_var = np.zeros(7)
+    H_var[2] = H_var[4] = H_var[6] = 6 * PERIODS * sigma ** 2
+    return H, H_var, PERIODS
+
+
+def _made(points, **kw):
+    """A KfcSearch holding experiments {k: s or (s, floor[, sigma])}."""
+    search = KfcSearch(0.0, 1.0, **kw)
+    for k, spec in points.items():
+        search.points[k] = search._point_from_moments(k, *_shaped(*np.atleast_1d(spec)))
+    return search
+
+
+def _sigma_noise(slope, n_points, sigma=SIGMA):
+    """The documented noise part of sigma(K_fc*): the pooled standard error of s through the
+    slope, times t_{0.977, dof} / 2 with dof = the experiments' periods - 1, summed."""
+    from fftune.analysis.tuning import _t_factor
+    return sigma / abs(slope) * _t_factor(n_points * (PERIODS - 1))
+
+
+def test_made_experiments_have_the_intended_objective_and_noise():
+    search = _made({0.1: 0.2, 0.5: (-0.1, 0.05)})
+    s, s_se = search._signed(search._sorted(), np.zeros(3))
+    np.testing.assert_allclose(s, [0.2, -0.1], rtol=1e-12)
+    np.testing.assert_allclose(s_se, SIGMA, rtol=1e-12)
+    assert search.points[0.5].ratio == pytest.approx(np.hypot(0.1, 0.05), rel=1e-12)
+    assert search.points[0.5].ratio_std == pytest.approx(SIGMA, rel=1e-12)
+
+
+def test_estimate_verified_by_s_zero_at_a_measured_point():
+    """s = 0.5 (0.3 - K) measured at K = 0.3: verified there, sigma = the noise part alone."""
+    search = _made({0.0: 0.15, 0.2: 0.05, 0.3: 0.0, 0.4: -0.05, 1.0: -0.35})
+    est = search._estimate(0.2, 0.4)
+    assert est["stop"]
+    res = est["result"]
+    assert res.converged and res.regime == "signed root" and res.k_fc == pytest.approx(0.3, abs=1e-15)
+    assert res.slope == pytest.approx(-0.5, rel=1e-12)
+    assert res.sigma_signed == pytest.approx(SIGMA, rel=1e-12)
+    assert res.sigma == pytest.approx(_sigma_noise(0.5, 5), rel=1e-12)
+    assert res.bracket == (0.2, 0.4) and res.n_experiments == 5
+    assert "K_fc = 0.3 has s = 0 (noise 0.001)" in res.reason
+
+
+def test_estimate_uses_the_over_compensated_secant_inside_the_sign_change():
+    """Under-compensated s bends (stick-slip), over-compensated it is linear: the next
+    experiment is where the line through the two over-compensated points nearest the root
+    crosses zero, not the interpolation across the sign change."""
+    under = {0.0: 0.15 + 0.27, 0.2: 0.05 + 0.03}         # 0.5 (0.3 - K) + 3 (0.3 - K)^2
+    search = _made({**under, 0.4: -0.05, 0.5: -0.1, 1.0: -0.35})
+    est = search._estimate(0.2, 0.5)
+    assert not est["stop"] and est["next"] == pytest.approx(0.3, abs=1e-12)
+    # an over-compensated side that flattens: its secant falls outside the sign change and
+    # the linear interpolation across the sign change is used
+    search = _made({**under, 0.4: -0.05, 0.5: -0.06, 1.0: -0.35})
+    est = search._estimate(0.2, 0.5)
+    assert not est["stop"] and est["next"] == pytest.approx(0.2 + 0.2 * 0.08 / 0.13, rel=1e-12)
+
+
+@pytest.mark.parametrize("offset", [2e-4, -2e-4, 1e-3])
+def test_estimate_on_an_unverified_measured_point_probes_one_tolerance_beside_it(offset):
+    """The estimate falls on a measured point (within a quarter tolerance) whose ratio is
+    too high to verify it: the next experiment is one tolerance beside the estimate, on
+    the side of the sign change (towards the other sign of s). Farther from the point
+    (1e-3, half a tolerance) the estimate itself is the next experiment."""
+    k_m = 0.3 + offset
+    search = _made({0.0: 0.15, 0.2: 0.05, k_m: (0.5 * (0.3 - k_m), 0.1), 0.4: -0.05, 1.0: -0.35})
+    est = search._estimate(0.2, 0.4)
+    tol = _sigma_noise(0.5, 5)
+    assert tol > 0.3 * 5e-3                            # the noise sets the tolerance
+    assert not est["stop"]
+    probe = abs(offset) < 0.25 * tol
+    assert est["next"] == pytest.approx(0.3 - np.sign(offset) * tol * probe, rel=1e-9)
+
+
+def test_estimate_probe_outside_the_sign_change_falls_back_to_its_midpoint():
+    k_m, k_n = 0.2998, 0.301
+    search = _made({0.0: 0.15, 0.2: 0.05, k_m: (0.5 * (0.3 - k_m), 0.1), k_n: 0.5 * (0.3 - k_n),
+                    0.4: -0.05, 1.0: -0.35})
+    est = search._estimate(0.2, 0.4)
+    assert not est["stop"] and est["next"] == pytest.approx(0.5 * (k_m + k_n), rel=1e-12)
+
+
+@pytest.mark.parametrize("excess, verified", [(-1e-3, True), (1e-3, False)])
+def test_estimate_verification_ratio_within_two_standard_errors_and_one_percent(excess, verified):
+    """The ratio at the verification may exceed the smallest other measured ratio (here
+    far away, at K = 1) by at most 2 combined standard errors plus 1 % of it."""
+    best = 0.35
+    floor = best + 2 * np.hypot(SIGMA, SIGMA) + 0.01 * best + excess
+    # a ratio floor of 0.4 around the optimum: its neighbours are higher (a local minimum)
+    search = _made({0.0: (0.15, 0.4), 0.2: (0.05, 0.4), 0.3: (0.0, floor), 0.4: (-0.05, 0.4),
+                    1.0: -best})
+    est = search._estimate(0.2, 0.4)
+    assert est["stop"] is verified
+    if not verified:
+        assert est["next"] == pytest.approx(0.3 - _sigma_noise(0.5, 5), rel=1e-9)   # s = 0: below
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_estimate_verification_needs_a_local_minimum_of_the_ratio(side):
+    """Within the 1 % allowance of the smallest ratio, but the nearest measured point on
+    one side lies below the verification's ratio by more than 2 standard errors: not a
+    local minimum, not verified. Within 2 standard errors it is."""
+    band = 2 * np.hypot(SIGMA, SIGMA)
+    for extra, verified in ((1.5e-4, False), (-1.5e-4, True)):
+        low, high = 0.025, (0.025, 0.05)             # ratios 0.025 and 0.056 beside K = 0.3
+        near = {0.25: low, 0.35: (-high[0], high[1])} if side == "left" else \
+            {0.25: high, 0.35: -low}
+        search = _made({0.0: 0.15, 0.2: 0.05, **near, 0.3: (0.0, low + band + extra),
+                        0.4: -0.05, 1.0: -0.35})
+        assert search._estimate(0.2, 0.4)["stop"] is verified, (side, extra)
+
+
+def test_s_rising_within_its_noise_still_counts_as_falling():
+    """Monotone within the noise: a rise of s between neighbours up to 2 standard errors
+    of their difference is tolerated (the noisier point's error counts), a larger one
+    sends the search to the ratio minimiser."""
+    big = 0.01
+    for rise, regime in ((1.8 * np.hypot(big, SIGMA), "signed root"),
+                         (2.2 * np.hypot(big, SIGMA), "ratio minimiser")):
+        search = _made({0.0: 0.15, 0.2: 0.05, 0.25: (0.04, 0.0, big), 0.3: 0.04 + rise, 0.4: -0.05,
+                        1.0: -0.35})
+        search._estimate(0.2, 0.4)
+        assert search.regime == regime, rise
+
+
+def _lack_of_fit(ks, s):
+    """Slope and rms residual (n - 2 dof) of the straight line fitted through (ks, s)."""
+    fit = np.polyfit(ks, s, 1)
+    return fit[0], np.sqrt(np.sum((s - np.polyval(fit, ks)) ** 2) / (len(ks) - 2))
+
+
+@pytest.mark.parametrize("near, how", [((0.25, 0.29, 0.31, 0.35), "has s = 0.015"),
+                                       ((0.24, 0.26, 0.28, 0.29, 0.31, 0.32, 0.34, 0.36),
+                                        "sign change of s bracketed in [0.29, 0.31]")])
+def test_scatter_of_s_from_k_to_k_above_the_noise_sets_sigma(near, how):
+    """s jumps by 0.02 at the root (quantisation, a limit cycle), far more than the period
+    noise: with 4 or more experiments within 25 % of the estimate, the rms residual of a
+    line through them is the noise of s (dof: their number - 2) and the line's slope is
+    the slope; a sign change bracketed within the tolerance verifies."""
+    jump = 0.01
+    s_of = {k: 0.5 * (0.3 - k) + jump * np.sign(0.3 - k) for k in near}
+    search = _made({0.0: 0.15 + jump, 0.2: 0.05 + jump, **s_of, 0.4: -0.05 - jump})
+    est = search._estimate(0.2, 0.4)
+    assert est["stop"]
+    res = est["result"]
+    slope, lof = _lack_of_fit(np.array(near), np.array([s_of[k] for k in near]))
+    assert lof > 5 * SIGMA
+    assert res.converged and how in res.reason and res.k_fc == pytest.approx(0.3, abs=1e-12)
+    assert res.sigma_signed == pytest.approx(lof, rel=1e-9)
+    assert res.slope == pytest.approx(slope, rel=1e-9)
+    from fftune.analysis.tuning import _t_factor
+    sigma = np.hypot(lof / abs(slope) * _t_factor(len(near) - 2), 0.01)       # |K_m - K*| = 0.01
+    if "bracketed" in how:
+        sigma = np.hypot(sigma, 0.02 / np.sqrt(12))       # and the bracket's uniform spread
+    assert res.sigma == pytest.approx(sigma, rel=1e-9)
+
+
+def test_s_on_a_line_keeps_the_period_noise():
+    """Four experiments near the estimate exactly on a line: no lack of fit, sigma from
+    the period noise as without them."""
+    near = {k: 0.5 * (0.3 - k) for k in (0.25, 0.28, 0.3, 0.33, 0.36)}
+    search = _made({0.0: 0.15, 0.2: 0.05, **near, 0.4: -0.05})
+    res = search._estimate(0.2, 0.4)["result"]
+    assert res.converged and res.sigma_signed == pytest.approx(SIGMA, rel=1e-9)
+    assert res.sigma == pytest.approx(_sigma_noise(0.5, 8), rel=1e-9)
+
+
+def _asked(search, s_of_k, n):
+    """The first n experiments the search asks for, told the made-up objective s(K)."""
+    asked = []
+    while not search.done and len(asked) < n:
+        k = search.ask()
+        asked.append(k)
+        search.tell_moments(k, *_shaped(s_of_k(k)))
+    return asked
+
+
+@pytest.mark.parametrize("root, third", [(0.25, 0.25), (0.23, 0.6), (0.95, 0.95), (0.97, 0.6)])
+def test_first_interior_point_kept_unless_within_5_percent_of_an_end(root, third):
+    """On [0.2, 1.0] the secant root of s is the third experiment when it lies 5 % of the
+    bracket (0.04) or more inside it, else the midpoint."""
+    asked = _asked(KfcSearch(0.2, 1.0), lambda k: 0.5 * (root - k), 3)
+    assert asked[:2] == [1.0, 0.2] and asked[2] == pytest.approx(third, abs=1e-12)
+
+
+@pytest.mark.parametrize("root, k_limit, third", [(2.0, 10.0, 1.0), (0.26, 10.0, 0.3125),
+                                                  (0.5, 10.0, 0.575), (0.5, 0.4, 0.4)])
+def test_extension_when_both_ends_are_under_compensated(root, k_limit, third):
+    """s > 0 at both ends and falling: the third experiment is 1.15 x the extrapolated root,
+    within [1.25, 4] x upper and the drive's limit."""
+    asked = _asked(KfcSearch(0.0, 0.25, k_limit=k_limit), lambda k: 0.5 * (root - k), 3)
+    assert asked[2] == pytest.approx(third, rel=1e-12)
+
+
+def test_extension_doubles_the_top_while_its_ratio_is_the_smallest():
+    search = KfcSearch(0.0, 0.25, k_limit=10.0, max_experiments=8)
+    asked = _asked(search, lambda k: 0.5 * (20.0 - k), 8)
+    assert asked == pytest.approx([0.25, 0.0, 1.0, 2.0, 4.0, 8.0, 10.0])
+    res = search.result
+    assert not res.converged and "drive's limit" in res.reason and res.extended_to == 10.0
+
+
+def test_ratio_minimizer_follows_scipy_on_a_shifted_bracket_and_quantised_objectives():
+    """As test_ratio_minimizer_follows_brent_fmin_as_scipy, on a bracket that does not start
+    at 0 and on objectives with many equal values (a quantised measurement)."""
+    objectives = [lambda k: abs(k - 0.71) + 0.02, lambda k: abs(k - 0.55) ** 0.5 + 0.01,
+                  lambda k: np.round(abs(k - 0.5) * 20) / 20,
+                  lambda k: np.round(np.sqrt((k - 0.93) ** 2 + 0.01) * 8) / 8]
+    for objective in objectives:
+        for lower, upper in ((0.2, 1.3), (0.0, 1.0)):
+            ours = []
+            res = RatioMinimizer(lower, upper, xtol=1e-4, max_evaluations=200).run(
+                lambda k: (ours.append(k), objective(k))[1])
+            ref = []
+            minimize_scalar(lambda k: (ref.append(k), objective(k) ** 2)[1], bounds=(lower, upper),
+                            method="bounded", options={"xatol": 1e-4, "maxiter": 200})
+            assert len(ours) == len(ref)
+            np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-9)
+            assert res.converged
+
+
+def test_ratio_minimizer_says_how_narrow_the_bracket_got():
+    res = RatioMinimizer(0.0, 1.0, xtol=3e-3).run(lambda k: abs(k - 0.3) + 0.01)
+    assert res.converged and res.reason == "bracket below 0.004"      # 4 (xtol / 3 + eps |K|)
+
+
+def test_signed_root_search_result_before_any_evaluation_is_not_converged():
+    res = SignedRootSearch(0.2, 0.6).result
+    assert not res.converged and res.reason == "running" and res.history == []
+
+
+def test_signed_root_search_without_sign_change_and_equal_ends_reports_the_upper():
+    res = SignedRootSearch(0.25, 0.75).run(lambda k: 1.0 + (k - 0.5) ** 2)
+    assert not res.converged and res.k_fc == 0.75
+
+
+def test_a_motor_hardly_moving_within_its_noise_has_no_ratio():
+    """|H_1| below 1e-3 of its own noise (its standard deviation per period): the motor
+    does not follow the sine, the ratio is inf (not a number from noise)."""
+    search = KfcSearch(0.0, 1.0)
+    k = search.ask()
+    H = _relay(0.1) * 0 + 1e-3
+    H_var = np.full(7, 1e-8)
+    H_var[0] = 4.0                                    # sqrt: 2 >> 1e3 |H_1|
+    search.tell_moments(k, H, H_var, 4)
+    assert np.isinf(search.points[k].ratio)
+    k = search.ask()
+    H_var[0] = 0.25                                   # sqrt: 0.5 < 1e3 |H_1|
+    search.tell_moments(k, H, H_var, 4)
+    assert np.isfinite(search.points[k].ratio)
+
+
+def test_both_ends_under_compensated_at_the_drive_limit_take_the_midpoint():
+    """upper = k_limit (the default): no room to extend, the third experiment is the
+    midpoint and the search says it hit the drive's limit; no experiment is repeated."""
+    search = KfcSearch(0.0, 0.25)
+    asked = _asked(search, lambda k: 0.5 * (2.0 - k), 8)
+    assert asked[2] == 0.125 and search.extended_to is None
+    assert len(set(asked)) == len(asked)
+    assert search.done and "drive's limit" in search.result.reason
+
+
+@pytest.mark.parametrize("which, offset, repeat", [(1, 5e-10, True), (1, 1.5e-9, False),
+                                                   (2, -2e-9, True), (2, -4e-9, False)])
+def test_a_step_onto_a_measured_experiment_stalls_the_search(which, offset, repeat):
+    """A next experiment within 1e-9 of a measured one (relative above |K| = 1; here 0.3
+    and 3.0) cannot add information: the search stops, not converged, and says so."""
+    search = KfcSearch(0.0, 3.0, max_experiments=12)
+    search._estimate = lambda a, b: {"stop": False, "next": sorted(search.points)[which] + offset}
+    asked = _asked(search, lambda k: 0.5 * (0.3 - k), 3)
+    assert asked[2] == pytest.approx(0.3)
+    assert search.done is repeat
+    if repeat:
+        assert "stalled" in search.result.reason and not search.result.converged
+    else:
+        assert search.ask() == sorted(search.points)[which] + offset
+
+
+def test_s_at_the_nearest_point_beyond_its_noise_is_not_verified():
+    """Under-compensated s is offset by 3.8 standard errors (a stuck motor), the over-
+    compensated points put the root at 0.3: the experiment 5e-4 beside the root is within
+    the tolerance but its s is not 0 within 2 standard errors (plus slope x tolerance):
+    not verified, the next experiment is the estimate itself."""
+    jump = 3.8 * SIGMA
+    search = _made({0.0: 0.15 + jump, 0.2995: 0.5 * (0.3 - 0.2995) + jump, 0.31: -0.005,
+                    0.4: -0.05, 1.0: -0.35})
+    est = search._estimate(0.0, 0.4)
+    assert not est["stop"] and est["next"] == pytest.approx(0.3, abs=1e-12)
+
+
+def _ratios_only(ratios, **kw):
+    """Experiments with s = 0 and the given ratios: the odd phases give no signed root."""
+    return _made({k: (0.0, r) for k, r in ratios.items()}, **kw)
+
+
+@pytest.mark.parametrize("x, cases", [
+    (0.84, ((0.91, 0.84 - 0.381966 * 0.84), (0.88, 0.84 - 0.381966 * 0.84), (0.895, 0.895))),
+    (0.16, ((0.09, 0.16 + 0.381966 * 0.84), (0.12, 0.16 + 0.381966 * 0.84), (0.105, 0.105)))])
+def test_ratio_minimiser_rejects_a_parabolic_step_near_the_bracket_end(x, cases):
+    """Smallest ratio at x in [0, 1]: the vertex of the parabola through r^2 is taken
+    unless it lies within 10 % of the bracket from its end or within 5 % of x; then a
+    golden-section step into the larger part instead."""
+    for vertex, expected in cases:
+        search = _ratios_only({k: np.sqrt(2.0 * (k - vertex) ** 2 + 0.01) for k in (0.0, x, 1.0)})
+        est = search._estimate(0.0, 1.0)
+        assert search.regime == "ratio minimiser" and not est["stop"]
+        assert est["next"] == pytest.approx(expected, rel=1e-9), vertex
+
+
+def test_a_sub_bracket_keeps_the_reference_phases_of_the_bracket_that_holds_it():
+    """Near the optimum a quadrature component (the ratio's floor) turns the odd phases:
+    the sub-bracket's own ends would give phases under which s rises (ratio minimiser).
+    The earlier bracket that holds it, with s falling over it, keeps the signed root."""
+    search = _made({0.0: 0.15, 0.4: -0.05, 1.0: -0.35})
+    first = search._estimate(0.0, 0.4)
+    assert search.regime == "signed root" and first["next"] == pytest.approx(0.3)
+    for k, spec in {0.25: (0.025, 0.2), 0.3: (0.0, 0.25), 0.35: (-0.025, 0.0)}.items():
+        search.points[k] = search._point_from_moments(k, *_shaped(*spec))
+    own, _ = search._signed([search.points[k] for k in (0.25, 0.3, 0.35)], search._phases(0.25, 0.35))
+    assert own[1] - own[0] > 0.04                                # rises with its own phases
+    search._estimate(0.25, 0.35)
+    assert search.regime == "signed root"
+    search._estimate(0.25, 0.4)                                 # sharing its upper end
+    assert search.regime == "signed root"
+    # a bracket the earlier one does not hold: its own phases, the ratio minimiser here
+    search.points[0.45] = search._point_from_moments(0.45, *_shaped(-0.075, 0.3))
+    search._estimate(0.3, 0.45)
+    assert search.regime == "ratio minimiser"
+
+
+def test_golden_step_of_the_ratio_minimiser_goes_into_the_lower_half_on_a_tie():
+    """Equal halves around the smallest ratio (0.5 in [0, 1]) and a parabolic vertex too
+    close to it (0.51): the golden-section step goes into the lower half."""
+    search = _ratios_only({k: np.sqrt(2.0 * (k - 0.51) ** 2 + 0.01) for k in (0.0, 0.5, 1.0)})
+    est = search._estimate(0.0, 1.0)
+    assert search.regime == "ratio minimiser"
+    assert est["next"] == pytest.approx(0.5 - 0.381966 * 0.5, rel=1e-12)
+
+
+def test_per_period_points_of_a_motor_that_does_not_move():
+    """|H_1| ~ 1e-7 in every period (steady, so not 'averaged out'): below the absolute
+    floor 1e-6, the motor does not move: no ratio (inf) and no spread (0); a point without
+    a ratio gets no signed objective (NaN) and does not stop the others'."""
+    search = KfcSearch(0.0, 1.0)
+    k = search.ask()
+    search.tell(k, np.full((4, 7), 1e-7 + 0j) + 1e-9 * np.arange(4)[:, None])
+    assert np.isinf(search.points[k].ratio) and search.points[k].ratio_std == 0.0
+    k2 = search.ask()
+    search.tell_moments(k2, np.full(7, 1e-7 + 0j), np.zeros(7), 4)
+    assert np.isinf(search.points[k2].ratio) and search.points[k2].ratio_std == 0.0
+    moving = search._point_from_moments(0.5, *_shaped(0.1))
+    s, s_se = search._signed([search.points[k], search.points[k2], moving], np.zeros(3))
+    assert np.isnan(s[:2]).all() and np.isnan(s_se[:2]).all()
+    assert s[2] == pytest.approx(0.1) and s_se[2] == pytest.approx(SIGMA)
+
+
+def test_local_minimum_rule_looks_at_the_nearest_point_on_each_side_only():
+    """A lower ratio farther out (here at K = 0.1, with the 1 % allowance) does not make
+    the verification fail: only the nearest measured point on each side must not be below
+    it by more than the noise."""
+    best = 0.35
+    floor = best + 2 * np.hypot(SIGMA, SIGMA) + 0.01 * best - 1e-3
+    search = _made({0.0: (0.15, 0.4), 0.1: (0.1, np.sqrt(best ** 2 - 0.1 ** 2)), 0.2: (0.05, 0.4),
+                    0.3: (0.0, floor), 0.4: (-0.05, 0.4), 1.0: -best})
+    assert search.points[0.1].ratio == pytest.approx(best)
+    assert search._estimate(0.2, 0.4)["stop"]
+
+
+def test_signed_root_search_stops_at_a_bracket_of_exactly_two_xtol():
+    """s(0) = 1, s(1) = -3: the secant step lands on 0.25 where s = -1, leaving [0, 0.25]:
+    exactly 2 xtol (xtol = 0.125) stops the search, as below 2 xtol does."""
+    f = lambda k: 1 - 8 * k if k <= 0.25 else -1 - (k - 0.25) * 8 / 3      # noqa: E731
+    res = SignedRootSearch(0.0, 1.0, xtol=0.125).run(f)
+    assert res.converged and res.reason == "bracket below 2 xtol" and res.n_evaluations == 3
+
+
+def test_signed_root_search_stops_at_a_step_of_exactly_xtol():
+    """Two successive secant estimates exactly xtol apart stop the search (step below or
+    at xtol), the bracket still wide."""
+    values = {0.0: 1.0, 1.0: -3.0, 0.25: 0.5}
+    c2 = (0.25 * -3.0 - 1.0 * 0.5) / (-3.0 - 0.5)          # the step after 0.25, as computed
+    res = SignedRootSearch(0.0, 1.0, xtol=abs(c2 - 0.25)).run(lambda k: values.get(k, 0.2))
+    assert [k for k, _ in res.history] == [0.0, 1.0, 0.25, c2]
+    assert res.converged and res.reason == "step below xtol"
+
+
+def test_search_defaults():
+    """Defaults a caller relies on: 8 experiments for KfcSearch, xtol 1e-4 of the bracket
+    for SignedRootSearch (as 1e-3 for RatioMinimizer), also off zero."""
+    assert KfcSearch(0.0, 1.0).max_experiments == 8
+    assert SignedRootSearch(0.2, 1.0).xtol == pytest.approx(0.8e-4)
+
+
+def test_a_lower_end_that_does_not_move_leaves_the_ratio_minimiser():
+    """The lower end of the bracket has no ratio (the motor did not move): no reference
+    phases, the ratio minimiser takes a golden-section step into the larger part."""
+    search = _made({0.2: 0.02, 0.5: -0.1, 1.0: -0.35})
+    search.points[0.0] = search._point_from_moments(0.0, np.full(7, 1e-7 + 0j), np.zeros(7), 4)
+    est = search._estimate(0.0, 0.5)
+    assert search.regime == "ratio minimiser" and not est["stop"]
+    assert est["next"] == pytest.approx(0.2 + 0.381966 * 0.3, rel=1e-12)
+
+
+def test_points_beyond_two_tolerances_of_the_estimate_count_as_other_points():
+    """A measured point 2.5 tolerances beside the estimate is another K_fc (not the same
+    within the resolution): its smaller ratio makes the verification at 0.3 fail."""
+    tol = _sigma_noise(0.5, 6)
+    k_o = 0.3 + 2.5 * tol
+    search = _made({0.0: 0.15, 0.2: 0.05, 0.3: (0.0, 0.01), k_o: 0.5 * (0.3 - k_o), 0.4: -0.05,
+                    1.0: -0.35})
+    assert not search._estimate(0.2, 0.4)["stop"]
+
+
+def test_empty_bracket_is_refused_whatever_the_tolerance():
+    for search in (SignedRootSearch, RatioMinimizer):
+        with pytest.raises(InputError, match="lower < upper"):
+            search(1.0, 1.0, xtol=1e-3)
+
+
+def test_stopping_tolerance_has_a_floor():
+    """xtol = rtol = 0: the stopping tolerance is 1e-12, never 0."""
+    search = KfcSearch(0.0, 1.0, xtol=0.0, rtol=0.0)
+    assert search._tol(0.3) == 1e-12 and search._tol(0.0) == 1e-12
+
+
+def test_failed_search_reports_the_measured_point_with_the_smallest_ratio():
+    search = KfcSearch(0.0, 0.05, k_limit=0.12)
+    while not search.done:
+        k = search.ask()
+        search.tell_moments(k, _relay(k), np.full(7, 1e-10), 4)
+    res = search.result
+    assert not res.converged
+    assert res.k_fc == min(res.points, key=lambda p: p.ratio).k_fc == pytest.approx(0.12)
+    # nothing moved: no best point
+    still = KfcSearch(0.0, 1.0, max_experiments=3)
+    while not still.done:
+        still.tell_moments(still.ask(), np.full(7, 1e-7 + 0j), np.zeros(7), 4)
+    assert not still.result.converged and np.isnan(still.result.k_fc)
+
+
+def test_signed_ratio_std_is_vectorised_over_experiments():
+    from fftune.analysis.tuning import signed_odd_ratio_std
+    rng = np.random.default_rng(4)
+    H = _relay(0.1) + 0.01 * rng.standard_normal((3, 7))
+    H_std = 1e-3 * (1 + rng.random((3, 7)))
+    rows = [signed_odd_ratio_std(h, s, 4) for h, s in zip(H, H_std)]
+    np.testing.assert_allclose(signed_odd_ratio_std(H, H_std, 4), rows, rtol=1e-12)
+
+
+def test_signed_root_search_while_running_reports_the_end_with_the_smaller_objective():
+    search = SignedRootSearch(0.2, 0.6)
+    search.tell(search.ask(), 0.5)
+    search.tell(search.ask(), -0.1)
+    assert search.result.k_fc == 0.6 and search.result.reason == "running"

@@ -35,7 +35,7 @@ MODULES = {
     # the 150-seed Monte Carlo check of the known-reference variances (the slowest test by
     # far) is left out for time; the known-reference var_nl test covers the same lines
     "bla": ("analysis/bla.py", ["tests/test_analysis_bla_mutants.py", "tests/test_analysis_bla.py",
-                                "tests/test_analysis_detect.py",
+                                "tests/test_analysis_bla_moments.py", "tests/test_analysis_detect.py",
                                 "--deselect=tests/test_analysis_bla.py::"
                                 "test_known_reference_variances_match_monte_carlo_spread"]),
     "hosidf": ("analysis/hosidf.py", ["tests/test_analysis_hosidf_mutants.py",
@@ -63,11 +63,11 @@ def _venv_bin(name):
     return str(Path(sys.executable).parent / name)
 
 
-def _digest(paths):
+def _digest(paths, base=ROOT):
     h = hashlib.sha256()
     for p in [p for p in paths if not p.startswith("-")]:
         h.update(p.encode())
-        h.update((ROOT / p).read_bytes())
+        h.update((base / p).read_bytes())
     h.update(KEEP_OPERATORS.pattern.encode())
     return h.hexdigest()
 
@@ -102,19 +102,48 @@ def _refresh_scratch(mod_dir):
     return mod_dir / "pkg"
 
 
+def _snapshot_tests(mod_dir):
+    """A frozen copy of tests/ in a tree that looks like the checkout (build/mutation/py/
+    <module>/tree: tests/ copied, the other top-level entries linked), so that tests edited
+    while a run goes on (the usual way of working on the survivors) do not change the tests
+    the running mutants meet halfway: every mutant of a run meets the tests of its digest."""
+    tree = mod_dir / "tree"
+    if tree.exists():
+        shutil.rmtree(tree)
+    tree.mkdir()
+    for entry in ROOT.iterdir():
+        if entry.name == "tests":
+            shutil.copytree(entry, tree / "tests", ignore=shutil.ignore_patterns("__pycache__"))
+        elif entry.name not in (".git", "build", ".venv"):
+            (tree / entry.name).symlink_to(entry)
+    return tree
+
+
 FORKSERVER = Path(__file__).resolve().parent / "forkserver.py"
 
 
-def _pytest_args(tests):
+def _pytest_args(tests, tree):
     return ["-x", "-q", "-p", "no:cacheprovider", "-W", "ignore", "--timeout=300",
-            f"--rootdir={ROOT}"] + [t if t.startswith("-") else str(ROOT / t) for t in tests]
+            f"--rootdir={tree}"] + [t if t.startswith("-") else str(tree / t) for t in tests]
 
 
-def _test_command(tests, socket_path=None):
-    """pytest on the selection; through the fork server when one is given."""
+def _test_command(tests, tree, socket_path=None):
+    """pytest on the selection (in the frozen tree); through the fork server when one is given."""
     if socket_path is None:
-        return " ".join([sys.executable, "-m", "pytest"] + _pytest_args(tests))
-    return " ".join([sys.executable, str(FORKSERVER), "run", str(socket_path)] + _pytest_args(tests))
+        return " ".join([sys.executable, "-m", "pytest"] + _pytest_args(tests, tree))
+    return " ".join([sys.executable, str(FORKSERVER), "run", str(socket_path)]
+                    + _pytest_args(tests, tree))
+
+
+def _write_config(config, target, timeout, tests, tree, sock):
+    config.write_text(
+        "[cosmic-ray]\n"
+        f'module-path = "{target}"\n'
+        f"timeout = {timeout:.0f}\n"
+        "excluded-modules = []\n"
+        f'test-command = "{_test_command(tests, tree, sock)}"\n\n'
+        "[cosmic-ray.distributor]\n"
+        'name = "local"\n')
 
 
 def _start_forkserver(mod_dir, pkg_root):
@@ -143,8 +172,11 @@ def _prepare(name, force=False):
     session, stamp, config = mod_dir / "session.sqlite", mod_dir / "digest", mod_dir / "config.toml"
     # code and tests apart: when only the tests changed (tests added), the killed mutants
     # stay killed and the survivors run again; a changed module starts over
-    digest = _digest([module]) + "\n" + _digest(tests)
+    tree = _snapshot_tests(mod_dir)
+    digest = _digest([module]) + "\n" + _digest(tests, tree)
     pkg_root = _refresh_scratch(mod_dir)
+    target = pkg_root / "fftune" / "analysis" / Path(module).name
+    sock = mod_dir / "fork.sock"
     kept = None if force or not session.exists() or not stamp.exists() else stamp.read_text()
     if kept == digest:
         return session, config, pkg_root
@@ -155,7 +187,7 @@ def _prepare(name, force=False):
     env = _env(pkg_root)
     # baseline: the selection must pass on the unmutated code, its time sets the timeout
     t0 = time.monotonic()
-    base = subprocess.run(_test_command(tests).split(), cwd=ROOT, env=env,
+    base = subprocess.run(_test_command(tests, tree).split(), cwd=ROOT, env=env,
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     elapsed = time.monotonic() - t0
     if base.returncode != 0:
@@ -169,15 +201,7 @@ def _prepare(name, force=False):
               f"mutants kept (baseline tests {elapsed:.1f} s)", flush=True)
         return session, config, pkg_root
     timeout = max(30.0, 5.0 * elapsed)
-    target = pkg_root / "fftune" / "analysis" / Path(module).name
-    config.write_text(
-        "[cosmic-ray]\n"
-        f'module-path = "{target}"\n'
-        f"timeout = {timeout:.0f}\n"
-        "excluded-modules = []\n"
-        f'test-command = "{_test_command(tests, mod_dir / "fork.sock")}"\n\n'
-        "[cosmic-ray.distributor]\n"
-        'name = "local"\n')
+    _write_config(config, target, timeout, tests, tree, sock)
     init = subprocess.run([_venv_bin("cosmic-ray"), "init", str(config), str(session)], cwd=ROOT,
                           env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     if init.returncode != 0:
