@@ -118,3 +118,61 @@ def test_one_period_gives_the_estimate_without_noise_variance(runs):
     assert res.var_noise is None and res.var_nl is None
     np.testing.assert_allclose(res.var_total, raw.var_total, rtol=1e-8)
     assert isinstance(one[0], LineStats) and np.isnan(one[0].var_u).all()
+
+
+def _one_line_moments(U, Y, R, ss_u=None, ss_y=None, s_yu=None, periods=4):
+    """LineMoments of M realizations at the lines 5 .. 9 (5, 7, 9 excited, 6, 8 not)."""
+    U, Y, R = (np.asarray(x, dtype=complex) for x in (U, Y, R))
+    zeros = np.zeros(U.shape)
+    return LineMoments(bins=np.arange(5, 10), n_periods=periods, U=U, Y=Y,
+                       ss_u=zeros if ss_u is None else ss_u, ss_y=zeros if ss_y is None else ss_y,
+                       s_yu=zeros + 0j if s_yu is None else s_yu, R=R)
+
+
+def test_known_reference_variances_by_their_formulas():
+    """G = mean Y / mean U over the rotated realizations; var_total = (s2y + |G|^2 s2u
+    - 2 Re(conj G c_yu)) / |U|^2 from the spread of the realizations' means, var_noise the
+    same from the period sums / (P (P - 1) M^2) (docs/method.md), computed here by hand."""
+    rng = np.random.default_rng(5)
+    M, L, P = 3, 5, 4
+    R = np.exp(2j * np.pi * rng.random((M, L)))
+    U = (2.0 + 0.3 * rng.standard_normal((M, L))) * R
+    Y = (1.0 - 0.5j + 0.2 * rng.standard_normal((M, L))) * U
+    ss_u, ss_y = 0.1 + rng.random((M, L)), 0.2 + rng.random((M, L))
+    s_yu = 0.05 * (rng.standard_normal((M, L)) + 1j * rng.standard_normal((M, L)))
+    res = robust_bla_moments(_one_line_moments(U, Y, R, ss_u, ss_y, s_yu, periods=P), n_period=64,
+                             fs=0.5, excited_bins=[5, 7, 9])
+    e = [0, 2, 4]
+    rot = np.conj(R[:, e] / np.abs(R[:, e]))
+    Um, Ym = U[:, e] * rot, Y[:, e] * rot
+    Ub, Yb = Um.mean(0), Ym.mean(0)
+    G = Yb / Ub
+    np.testing.assert_allclose(res.G, G, rtol=1e-13)
+    du, dy = Um - Ub, Ym - Yb
+    k = M * (M - 1)
+    s2u, s2y, cyu = (np.abs(du) ** 2).sum(0) / k, (np.abs(dy) ** 2).sum(0) / k, (dy * np.conj(du)).sum(0) / k
+    var_total = (s2y + np.abs(G) ** 2 * s2u - 2 * np.real(np.conj(G) * cyu)) / np.abs(Ub) ** 2
+    np.testing.assert_allclose(res.var_total, var_total, rtol=1e-12)
+    k = P * (P - 1) * M ** 2
+    var_noise = (ss_y[:, e].sum(0) / k + np.abs(G) ** 2 * ss_u[:, e].sum(0) / k
+                 - 2 * np.real(np.conj(G) * s_yu[:, e].sum(0) / k)) / np.abs(Ub) ** 2
+    np.testing.assert_allclose(res.var_noise, var_noise, rtol=1e-12)
+    np.testing.assert_allclose(res.var_nl, M * (var_total - var_noise), rtol=1e-12)
+    assert res.fs == 0.5 and res.freq[0] == pytest.approx(5 * 0.5 / 64)
+
+
+def test_an_excited_line_without_input_power_is_named():
+    """The input's power at an excited line, P |mean U|^2 + its sum of squares over the
+    realizations: 1e-7 of the others in amplitude is 1e-14 in power, "zero"."""
+    M = 3
+    R = np.ones((M, 5), complex)
+    U = np.ones((M, 5), complex)
+    U[:, 2] = 1e-7                     # bin 7
+    with pytest.raises(InputError, match=r"input u: zero power at 1 excited line\(s\) 0.109375 Hz"):
+        robust_bla_moments(_one_line_moments(U, 2 * U, R), n_period=64, fs=1.0, excited_bins=[5, 7, 9])
+    # the sums of squares count too: the same mean with a period-to-period spread is not zero
+    ss_u = np.zeros((M, 5))
+    ss_u[:, 2] = 1e-6
+    res = robust_bla_moments(_one_line_moments(U, 2 * U, R, ss_u=ss_u), n_period=64, fs=1.0,
+                             excited_bins=[5, 7, 9])
+    np.testing.assert_allclose(res.G, 2.0)
