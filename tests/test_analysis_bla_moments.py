@@ -176,3 +176,34 @@ def test_an_excited_line_without_input_power_is_named():
     res = robust_bla_moments(_one_line_moments(U, 2 * U, R, ss_u=ss_u), n_period=64, fs=1.0,
                              excited_bins=[5, 7, 9])
     np.testing.assert_allclose(res.G, 2.0)
+
+
+def test_moments_defaults_and_the_periods_check():
+    M = 3
+    R = np.ones((M, 5), complex)
+    U = np.ones((M, 5), complex)
+    res = robust_bla_moments(_one_line_moments(U, 2 * U, R), n_period=64, excited_bins=[5, 7, 9])
+    assert res.fs == 1.0 and res.settle_periods == 0 and res.n_periods == 4
+    assert res.freq[1] == pytest.approx(7 / 64)
+    with pytest.raises(InputError, match="P = 0 periods"):
+        robust_bla_moments(_one_line_moments(U, 2 * U, R, periods=0), n_period=64, excited_bins=[5, 7, 9])
+
+
+def test_a_noisy_reference_is_not_a_distorted_one():
+    """The reference's spread over periods at the non-excited lines is its noise: a
+    reference with noise but no distortion is not reported distorted (its sums of squares
+    reach the estimator with the known reference)."""
+    rng = np.random.default_rng(3)
+    lines = drive_lines(N, 3, 100, 4, 11)
+    u, y, r = [], [], []
+    for m in range(M):
+        one = drive_multisine(N, 3, 100, 4, 11, m, 1.0)
+        rm = np.tile(one, (P, 1)) + 1e-3 * rng.standard_normal((P, N))
+        r.append(rm)
+        u.append(rm)
+        y.append(0.5 * rm + 1e-3 * rng.standard_normal((P, N)))
+    res = robust_bla(np.stack(u), np.stack(y), np.stack(r), fs=FS, excited_bins=lines.excited,
+                     warn_transient=False)
+    assert res.summary["excitation_nonexcited_re_excited_db"] > -100.0   # the noise is visible
+    assert res.summary["excitation_distorted"] is False
+    np.testing.assert_allclose(np.abs(res.G), 0.5, rtol=1e-2)
