@@ -6,7 +6,7 @@ reference known (closed loop)."""
 import numpy as np
 import pytest
 
-from fftune.analysis.bla import LineMoments, robust_bla, robust_bla_moments
+from fftune.analysis.bla import LineMoments, robust_bla, robust_bla_moments, robust_bla_spectra
 from fftune.analysis.errors import InputError
 from fftune.analysis.multisine import drive_lines, drive_multisine
 from fftune.analysis.stats import LineStats, line_moments, line_stats
@@ -207,3 +207,55 @@ def test_a_noisy_reference_is_not_a_distorted_one():
     assert res.summary["excitation_nonexcited_re_excited_db"] > -100.0   # the noise is visible
     assert res.summary["excitation_distorted"] is False
     np.testing.assert_allclose(np.abs(res.G), 0.5, rtol=1e-2)
+
+
+def test_settle_periods_must_leave_a_period_and_four_samples_are_enough():
+    U = np.ones((2, 3, 5), complex)
+    with pytest.raises(InputError, match=r"settle periods T = 3 must be in 0 \.\. 2"):
+        robust_bla_spectra(U, U, U, bins=np.arange(5, 10), n_period=64, settle_periods=3,
+                           excited_bins=[5, 7, 9])
+    # N = 4: one excited line (bin 1), the smallest period robust_bla takes
+    t = np.arange(4)
+    r = np.stack([np.tile(np.cos(np.pi / 2 * t + ph), (3, 1)) for ph in (0.1, 1.0)])
+    res = robust_bla(r, 3 * r, r, excited_bins=[1], warn_transient=False)
+    np.testing.assert_allclose(res.G, [3.0])
+    with pytest.raises(InputError, match="N = 3 is too small"):
+        robust_bla(r[..., :3], r[..., :3], excited_bins=[1])
+
+
+def test_plant_figures_from_five_excited_lines_and_the_residual_spread():
+    """y = 0.5 u exactly, period by period, with noise in u at every line: the plant-referred
+    residual Y - G U is 0 in each period, so its spread (the cross term cancels the two
+    squares) leaves only the rounding floor; five excited lines are enough for it."""
+    rng = np.random.default_rng(9)
+    n, m_real, p = 64, 3, 4
+    excited = np.array([5, 7, 9, 11, 13])
+    bins = np.arange(5, 14)
+    R = np.zeros((m_real, p, bins.size), complex)
+    R[:, :, np.isin(bins, excited)] = np.exp(2j * np.pi * rng.random((m_real, 1, excited.size)))
+    U = R + 1e-2 * (rng.standard_normal(R.shape) + 1j * rng.standard_normal(R.shape))
+    res = robust_bla_spectra(U, 0.5 * U, R, bins=bins, n_period=n, excited_bins=excited)
+    assert res.plant_db is not None and res.plant_expected_db is not None
+    u_noise_db = 10 * np.log10((2.0 / n) ** 2 * 1e-4 * 2 / p)      # the input's noise per line
+    assert np.max(res.plant_expected_db) < u_noise_db - 100.0
+    four = robust_bla_spectra(U[..., :-1], 0.5 * U[..., :-1], R[..., :-1], bins=bins[:-1], n_period=n,
+                              excited_bins=excited[:-1])
+    assert four.plant_db is None
+
+
+def test_excited_level_of_the_reference_is_per_line_over_realizations():
+    """excitation_nonexcited_re_excited_db: median over the lines of the realizations' mean
+    power, against the same at the non-excited lines (one realization 40 dB louder)."""
+    M = 3
+    R = np.ones((M, 5), complex)
+    R[2] *= 100.0
+    R[:, [1, 3]] = 1e-3                    # the non-excited lines 6 and 8
+    U = R.copy()
+    ss = np.full((M, 5), 1e-8)
+    res = robust_bla_moments(LineMoments(bins=np.arange(5, 10), n_periods=4, U=U, Y=2 * U, ss_u=ss,
+                                         ss_y=ss, s_yu=np.zeros((M, 5), complex), R=R),
+                             n_period=64, excited_bins=[5, 7, 9])
+    exc = np.mean(np.abs(R[:, [0, 2, 4]]) ** 2, axis=0)          # per line over realizations
+    det = np.mean(np.abs(R[:, [1, 3]]) ** 2, axis=0)
+    expected = 10 * np.log10(np.median(det)) - 10 * np.log10(np.median(exc))
+    assert res.summary["excitation_nonexcited_re_excited_db"] == pytest.approx(expected, abs=1e-9)
