@@ -259,3 +259,47 @@ def test_excited_level_of_the_reference_is_per_line_over_realizations():
     det = np.mean(np.abs(R[:, [1, 3]]) ** 2, axis=0)
     expected = 10 * np.log10(np.median(det)) - 10 * np.log10(np.median(exc))
     assert res.summary["excitation_nonexcited_re_excited_db"] == pytest.approx(expected, abs=1e-9)
+
+
+# ---- internals of the detection, by their definitions -----------------------------------------
+
+def test_split_by_gap_keeps_min_lower_values_under_the_split():
+    from fftune.analysis.bla import _split_by_gap
+    # the largest gap (38 dB) leaves exactly 2 values under it: allowed, threshold mid-gap
+    assert _split_by_gap(np.array([50.0, 49.0, 48.0, 10.0, 9.0]), 2) == (29.0, 38.0)
+    # 3 needed under it: the next allowed gap
+    assert _split_by_gap(np.array([50.0, 49.0, 48.0, 10.0, 9.0]), 3) == (49.5, 1.0)
+    assert _split_by_gap(np.array([5.0, 4.0]), 2) == (None, 0.0)
+
+
+def test_false_alarm_count_and_class_detection_at_the_count():
+    from fftune.analysis.bla import _class_stats, _false_alarm_count
+    assert _false_alarm_count(1, 1e-9) == 1          # at least one line, whatever the odds
+    assert _false_alarm_count(0, 0.5) is None
+    nu = 40
+    p_line = (1.0 + 4.0 / nu) ** (-nu)
+    need = _false_alarm_count(50, p_line)
+    level = np.ones(50)
+    level[:need] = 4.5                               # exactly `need` lines 6 dB over (not alone
+    ref = np.ones(50)                                # significant: 50 x p(4.5) > 1e-3)
+    out = _class_stats(level, ref, nu, "x_")
+    assert out["x_lines_over_noise_6db"] == need == out["x_lines_needed"]
+    assert out["x_detected"] is True
+    level[need - 1] = 1.0
+    assert _class_stats(level, ref, nu, "x_")["x_detected"] is False
+    # one complex degree of freedom is enough for the statistics (M = 1, P = 2)
+    assert _class_stats(level, ref, 1, "x_")["x_detected"] is not None
+
+
+def test_duplicate_excited_bins_count_once_and_tiny_excitations_are_found():
+    from fftune.analysis.bla import detect_excited_lines
+    M = 3
+    R = np.ones((M, 5), complex)
+    res = robust_bla_moments(_one_line_moments(R, 2 * R, R), n_period=64, excited_bins=[9, 5, 5, 7])
+    np.testing.assert_array_equal(res.bins, [5, 7, 9])
+    # an excitation of 1e-9 amplitude: its lines stand 120 dB over exact zeros all the same
+    lines = drive_lines(N, 3, 100, 4, 11)
+    x = np.stack([np.tile(drive_multisine(N, 3, 100, 4, 11, m, 1e-9), (2, 1)) for m in range(2)])
+    np.testing.assert_array_equal(detect_excited_lines(x), lines.excited)
+    with pytest.raises(InputError, match="zero power in the input spectrum"):
+        detect_excited_lines(np.zeros((2, 2, 64)))
