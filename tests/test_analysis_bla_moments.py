@@ -303,3 +303,64 @@ def test_duplicate_excited_bins_count_once_and_tiny_excitations_are_found():
     np.testing.assert_array_equal(detect_excited_lines(x), lines.excited)
     with pytest.raises(InputError, match="zero power in the input spectrum"):
         detect_excited_lines(np.zeros((2, 2, 64)))
+
+
+def test_db_helpers_at_zero_and_non_finite_without_warnings():
+    import warnings
+    from fftune.analysis.bla import _db_ratio, to_db
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")          # no log10(0) taken and then discarded
+        np.testing.assert_array_equal(to_db(np.array([0.0, -1.0, 100.0])), [np.nan, np.nan, 20.0])
+    assert _db_ratio(np.inf, 1.0) is None and _db_ratio(1.0, np.nan) is None
+    assert _db_ratio(10.0, 1.0) == pytest.approx(10.0)
+
+
+def test_robust_bla_call_conventions_notes_and_warnings():
+    import warnings
+    from fftune.analysis.bla import TransientWarning
+    n = 64
+    t = np.arange(n)
+    x = sum(np.cos(2 * np.pi * k * t / n + k) for k in (3, 5, 7, 9, 11))
+    r = np.tile(x, (1, 1, 1))                       # M = 1, P = 1: two notes
+    res = robust_bla(r, 2 * r, r, warn_transient=False)
+    assert res.fs == 1.0
+    assert res.notes[0].startswith("excited lines found from the spectrum of r: 5 lines")
+    assert len(res.notes) >= 3
+    with pytest.raises(TypeError):
+        robust_bla(r, 2 * r, r, 2.0)                # fs only by keyword
+    with pytest.raises(InputError, match=r"bins must lie in 1 \.\. 31 for N = 64"):
+        robust_bla(r, 2 * r, r, excited_bins=[40])
+    # a transient: warned once, from robust_bla, pointing at the caller; none when not asked
+    tr = np.tile(x, (2, 4, 1))
+    y = 2 * tr
+    y[:, 0] += 5.0 * np.cos(2 * np.pi * 3 * t / n)
+    with pytest.warns(TransientWarning) as rec:
+        robust_bla(tr, y, tr)
+    assert len(rec) == 1 and rec[0].filename == __file__
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        robust_bla(tr, y, tr, warn_transient=False)
+
+
+def test_quantisation_step_from_three_levels_and_bla_levels_rms_over_all_periods():
+    from fftune.analysis.bla import bla_levels, estimate_quantisation_step
+    assert estimate_quantisation_step([0.0, 0.25, 0.5]) == 0.25
+    assert estimate_quantisation_step([0.0, 0.25]) is None
+    assert estimate_quantisation_step([1.0, 1.0, 1.0]) is None
+    n = 64
+    t = np.arange(n)
+    x = sum(np.cos(2 * np.pi * k * t / n + k) for k in (3, 5, 7, 9, 11))
+    r = np.stack([np.stack([x, x]) * s for s in (1.0, 1.0)])
+    r[:, 0] *= 3.0                                  # the first period louder
+    lv = bla_levels([r], [2 * r], [r], excited_bins=[3, 5, 7, 9, 11], warn_transient=False)
+    assert lv.rms[0] == pytest.approx(np.sqrt(np.mean(r ** 2)))
+
+
+def test_linear_verdict_names_the_saturated_share():
+    from fftune.analysis.bla import level_verdict
+    summary = {"odd_detected": False, "even_detected": False, "nl_detected": False,
+               "parity_classifiable": True}
+    v = level_verdict(summary, 0.01, "1 V rms")
+    assert v["causes"] == ["linear"]
+    assert v["text"] == ("linear at 1 V rms: no nonlinear distortion above the noise "
+                         "(though 1 % of the samples at u_max)")
