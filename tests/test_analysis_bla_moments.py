@@ -364,3 +364,168 @@ def test_linear_verdict_names_the_saturated_share():
     assert v["causes"] == ["linear"]
     assert v["text"] == ("linear at 1 V rms: no nonlinear distortion above the noise "
                          "(though 1 % of the samples at u_max)")
+
+
+def _spectrum_signal(n, amplitudes):
+    """One period of a real signal with the given line amplitudes (bin -> amplitude)."""
+    X = np.zeros(n // 2 + 1, complex)
+    for k, a in amplitudes.items():
+        X[k] = a * n / 2 * np.exp(1j * 0.7 * k)
+    return np.fft.irfft(X, n)
+
+
+def test_excited_lines_found_by_the_gap_and_its_limits():
+    from fftune.analysis.bla import detect_excited_lines
+    n = 32                                            # 15 lines: no local-threshold fallback
+    exc = {1: 1.0, 3: 1.0, 5: 1.0, 9: 1.0, 11: 1.0, 13: 1.0}
+    low = 10 ** (-9.5 / 20)                           # the others 9.5 dB under
+    x = _spectrum_signal(n, {k: exc.get(k, low) for k in range(1, 16)})
+    x = np.tile(x, (2, 2, 1))
+    with pytest.raises(InputError, match="cannot tell excited"):
+        detect_excited_lines(x)                       # gap 9.5 dB < 10 dB
+    found, info = detect_excited_lines(x, min_gap_db=9.5 - 1e-9, return_info=True)
+    np.testing.assert_array_equal(found, sorted(exc))
+    # exactly at the gap: still found (>=)
+    np.testing.assert_array_equal(detect_excited_lines(x, min_gap_db=info["separation_db"]), sorted(exc))
+
+
+def _sloped(n, over_db, slope_db=1.0):
+    """Odd lines excited over a spectrum falling `slope_db` a line; the even lines `over_db`
+    under their odd neighbours: no clean gap overall, a clear one re the local floor."""
+    amps = {}
+    for k in range(1, (n + 1) // 2):
+        lvl = -slope_db * k - (0.0 if k % 2 else over_db)
+        amps[k] = 10 ** (lvl / 20)
+    return np.tile(_spectrum_signal(n, amps), (2, 2, 1))
+
+
+def test_excited_lines_by_the_local_floor_from_64_lines_on():
+    from fftune.analysis.bla import detect_excited_lines
+    x = _sloped(130, 30.0)                            # 64 lines
+    found, info = detect_excited_lines(x, return_info=True)
+    assert info["method"] == "local threshold"
+    # every found line is excited; the top one (63, beside the reflected edge of the
+    # window) may be missed
+    assert set(found) <= set(range(1, 65, 2)) and found.size >= 31
+    assert "3.1 % of the lines lie within 3 dB" in info["note"]     # 2 of 64, at the edges
+    with pytest.raises(InputError, match="cannot tell excited"):
+        detect_excited_lines(_sloped(128, 30.0))      # 63 lines: the gap alone
+    # 15 dB re the local floor: too little separation (needs 2 x 10 dB), though no line lies
+    # within 3 dB of the threshold (128 lines, 0.3 dB a line)
+    with pytest.raises(InputError, match="cannot tell excited"):
+        detect_excited_lines(_sloped(258, 15.0, 0.3))
+    # robust_bla names both how the lines were found and that the input looks distorted
+    res = robust_bla(x, 2 * x, warn_transient=False)
+    assert res.notes[0].startswith(f"excited lines found from the spectrum of u: {found.size} lines")
+    assert res.notes[1].startswith("excited lines found by a threshold on the level re the local floor")
+
+
+def test_transient_check_thresholds_by_construction():
+    """Per period: the excited lines' deviation from the steady state (the mean of the last
+    half), re its power. Kept periods 1 .. 4: the noise is their median after the first
+    (delta^2); the first kept period and the last settle period at 9.5 delta^2 are not
+    over 10 x the noise, at 10.5 delta^2 they are."""
+    d = 1e-2
+    bins = np.arange(5, 10)
+
+    def run(k0, k1):
+        dev = np.array([np.sqrt(k0) * d, np.sqrt(k1) * d, d, d, -d])
+        Y = (1.0 + dev)[None, :, None] * np.ones((2, 5, 5))
+        U = np.ones((2, 5, 5), complex)
+        return robust_bla_spectra(U, Y, bins=bins, n_period=64, settle_periods=1,
+                                  excited_bins=[5, 7, 9], warn_transient=False).transient
+
+    quiet = run(9.5, 9.5)
+    assert quiet.suspect is False and quiet.settle_differs is False
+    np.testing.assert_allclose(10 ** (quiet.level_db / 10), np.array([9.5, 9.5, 1, 1, 1]) * d ** 2, rtol=1e-9)
+    loud = run(10.5, 10.5)
+    assert loud.suspect is True and loud.settle_differs is True
+    # P = 1 kept period: the steady state is that period (level 0 there, finite elsewhere)
+    Y1 = np.ones((2, 2, 5))
+    Y1[:, 0] = 1.3                                    # the settle period 0.3 off
+    one = robust_bla_spectra(np.ones((2, 2, 5), complex), Y1, bins=bins, n_period=64,
+                             settle_periods=1, excited_bins=[5, 7, 9], warn_transient=False).transient
+    np.testing.assert_allclose(10 ** (one.level_db[0] / 10), 0.09, rtol=1e-9)
+    # no output at all: no level to compare with, NaN and no warning
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        zero = robust_bla_spectra(np.ones((2, 3, 5), complex), np.zeros((2, 3, 5)), bins=bins,
+                                  n_period=64, excited_bins=[5, 7, 9], warn_transient=False)
+    assert np.all(np.isnan(zero.transient.level_db))
+
+
+def test_float64_records_keep_their_own_rounding_floor():
+    """y in float64 (not float32 values): the rounding floor is 2^-53 of max|y|, so a
+    distortion 180 dB under the output at an even line is still seen; a float32 floor
+    would hide it."""
+    n = 64
+    x = _spectrum_signal(n, {3: 1.0, 5: 1.0, 7: 1.0, 9: 1.0, 13: 1.0})
+    y = 2 * x + _spectrum_signal(n, {8: 1e-9})
+    res = robust_bla(np.tile(x, (2, 3, 1)), np.tile(y, (2, 3, 1)), np.tile(x, (2, 3, 1)),
+                     excited_bins=[3, 5, 7, 9, 13], warn_transient=False)
+    assert res.summary["even_detected"] is True
+    np.testing.assert_array_equal(res.even_freq, res.even_bins * 1.0 / n)
+
+
+def _crafted(det_levels, det_ratio, r_det_db=None):
+    """Line moments at bins 5 .. 13 (5, 7, 9, 11, 13 excited; 6, 8, 10, 12 not), M = 3, P = 4:
+    the output's period mean at the non-excited lines over its noise as given (input 0
+    there, so the plant-referred residual is the output itself)."""
+    M, P = 3, 4
+    bins = np.arange(5, 14)
+    exc = np.isin(bins, [5, 7, 9, 11, 13])
+    U = np.where(exc, 1.0, 0.0) * np.ones((M, 1)) + 0j
+    R = U.copy()
+    if r_det_db is not None:
+        R[:, ~exc] = 10 ** (r_det_db / 20)
+    Y = 2.0 * U
+    ss_y = np.full((M, bins.size), 1e-6)
+    Y[:, ~exc] = np.sqrt(np.asarray(det_ratio) * 1e-6 / (P * (P - 1))) * np.asarray(det_levels)
+    return LineMoments(bins=bins, n_periods=P, U=U, Y=Y, ss_u=np.zeros((M, bins.size)), ss_y=ss_y,
+                       s_yu=np.zeros((M, bins.size), complex), R=R,
+                       ss_r=np.full((M, bins.size), 1e-40))
+
+
+def test_six_db_counts_by_construction():
+    """A line counts as 6 dB over its noise at 4 x its noise power: ratios 4.5 and 3.5 give one
+    such line of four, plant-referred and in the closed loop alike."""
+    res = robust_bla_moments(_crafted([1, 1, 0, 0], [4.5, 3.5, 1, 1]), n_period=64,
+                             excited_bins=[5, 7, 9, 11, 13])
+    assert res.summary["plant_above_noise_lines"] == 1
+    assert res.summary["nonexcited_lines_over_noise_6db"] == 1
+
+
+def test_nonlinear_over_noise_fraction_at_six_db():
+    """var_total = 4.5 var_noise (ratio var_nl / (M var_noise) 3.5): no line 6 dB over; at
+    5.5 (4.5) every line."""
+    M, P, s = 3, 4, 1e-4
+    bins = np.arange(5, 10)
+    for total_re_noise, expected in ((4.5, 0.0), (5.5, 1.0)):
+        a = np.sqrt(total_re_noise * s / (P * (P - 1)))
+        Y = (2.0 + np.array([a, -a, 0.0]))[:, None] * np.ones((1, 5)) + 0j
+        mom = LineMoments(bins=bins, n_periods=P, U=np.ones((M, 5), complex), Y=Y,
+                          ss_u=np.zeros((M, 5)), ss_y=np.full((M, 5), s),
+                          s_yu=np.zeros((M, 5), complex), R=np.ones((M, 5), complex))
+        res = robust_bla_moments(mom, n_period=64, excited_bins=[5, 7, 9])
+        np.testing.assert_allclose(res.var_total / res.var_noise, total_re_noise, rtol=1e-9)
+        assert res.summary["line_fraction_nl_over_noise_6db"] == expected
+
+
+def test_reference_distortion_is_named_from_100_db_under_the_lines():
+    for db, distorted in ((-100.5, False), (-99.5, True)):
+        res = robust_bla_moments(_crafted([0, 0, 0, 0], [1, 1, 1, 1], r_det_db=db), n_period=64,
+                                 excited_bins=[5, 7, 9, 11, 13])
+        assert res.summary["excitation_nonexcited_re_excited_db"] == pytest.approx(db, abs=1e-9)
+        assert res.summary["excitation_distorted"] is distorted, db
+
+
+def test_grid_with_its_top_line_removed_and_a_quantised_record_far_from_zero():
+    from fftune.analysis.bla import classify_grid, estimate_quantisation_step
+    assert classify_grid([1, 2, 3, 4, 6], 64)["grid"] == "full with removed lines"
+    assert classify_grid([1, 2, 3, 4, 5], 64)["grid"] == "full"
+    # one value off its step by 0.02 q + 3.6 eps max|v|: inside the float32 tolerance (4 eps)
+    v = [0.0, 1.0, 2.0, 1000.0 + 0.02 + 3.6 * np.finfo(np.float32).eps * 1000.0]
+    assert estimate_quantisation_step(v) == 1.0
+    v[-1] = 1000.0 + 0.02 + 4.4 * np.finfo(np.float32).eps * 1000.0
+    assert estimate_quantisation_step(v) is None
