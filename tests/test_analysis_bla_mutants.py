@@ -576,3 +576,209 @@ def test_spectra_default_rate_and_a_reference_line_120_db_down_is_zero():
     spec[..., excited[3]] *= 1e-7
     with pytest.raises(InputError, match=r"reference r: zero power at 1 excited line"):
         robust_bla(u, u, np.fft.irfft(spec, n=128, axis=-1), excited_bins=excited)
+
+
+# --- round 3 (issue 16): survivors of the complete run after the line-moments refactor -----
+from fftune.analysis.bla import _class_stats, _local_floor, _transient, classify_grid  # noqa: E402
+
+
+def test_local_floor_is_the_tenth_percentile_of_plus_minus_24_lines():
+    level = np.random.default_rng(3).normal(size=300).cumsum()
+    padded = np.pad(level, 24, mode="reflect")
+    brute = [np.quantile(padded[i:i + 49], 0.1) for i in range(level.size)]
+    np.testing.assert_allclose(_local_floor(level), brute, rtol=0, atol=1e-12)
+
+
+def _lines_excitation(n, excited, gap_db, m=2, p=2, seed=0):
+    """Periodic excitation: the excited bins at 0 dB, every other bin gap_db below."""
+    rng = np.random.default_rng(seed)
+    spec = np.zeros((m, n // 2 + 1), complex)
+    amp = np.full(n // 2 + 1, 10 ** (-gap_db / 20))
+    amp[excited] = 1.0
+    amp[0] = 0.0
+    if n % 2 == 0:
+        amp[n // 2] = 0.0
+    spec[:] = amp * np.exp(2j * np.pi * rng.random((m, n // 2 + 1)))
+    one = np.fft.irfft(spec, n=n, axis=-1)
+    return np.repeat(one[:, None, :], p, axis=1)
+
+
+def test_line_detection_default_gap_is_10_db_and_reaches_the_top_bin():
+    n = 64                                              # 31 usable lines: no local threshold
+    excited = np.array([3, 7, 11, 19, 23, 31])          # 31 = the top usable bin
+    np.testing.assert_array_equal(detect_excited_lines(_lines_excitation(n, excited, 10.5)), excited)
+    with pytest.raises(InputError, match="cannot tell"):
+        detect_excited_lines(_lines_excitation(n, excited, 9.5))
+    np.testing.assert_array_equal(
+        detect_excited_lines(_lines_excitation(n, excited, 9.5), min_gap_db=9.0), excited)
+    odd = np.array([3, 7, 11, 32])                      # N = 65: the top bin is 32
+    np.testing.assert_array_equal(detect_excited_lines(_lines_excitation(65, odd, 30.0)), odd)
+
+
+def test_transient_check_with_one_kept_period_compares_the_settle_period_with_it():
+    """T = 1, P = 1: the steady state is the one kept period; the settle period's level
+    is its difference from it (finite), the kept one's 0."""
+    y = np.ones((2, 2, 3), complex)
+    y[:, 0] *= 1.1
+    check = _transient(y, 1, 1)
+    assert check.level_db[0] == pytest.approx(10 * np.log10(0.01)) and not check.suspect
+
+
+@pytest.mark.parametrize("factor, suspect", [(10.5, True), (9.5, False)])
+def test_transient_flags_a_first_period_10_times_the_later_ones(factor, suspect):
+    """T = 1 settle period and P = 5: the first kept period's level re the steady state
+    (the mean of the last 2) against 10 times the median of the later kept ones (and the
+    settle period's too)."""
+    base, d = np.ones(4, complex), 1e-3 * np.exp(0.7j)
+    periods = np.stack([base + np.sqrt(factor) * d, base + np.sqrt(factor) * d,
+                        base + d, base - d, base + d, base - d])
+    check = _transient(periods[None], 1, 5)
+    np.testing.assert_allclose(10 ** (check.level_db / 10), [factor * 1e-6, factor * 1e-6] + [1e-6] * 4,
+                               rtol=1e-6)
+    assert check.suspect is suspect and check.settle_differs is suspect
+
+
+def test_odd_odd_grid_starting_below_4():
+    assert classify_grid(np.array([3, 7, 11, 15]), 64)["grid"] == "odd-odd"
+    assert classify_grid(np.array([1, 5, 9, 13]), 64)["grid"] == "odd-odd"
+
+
+def test_one_line_far_above_its_noise_is_detected_alone():
+    """A single line 20 times its noise with nu = 12: one line is too few for the count
+    rule (2 needed), but (1 + 20/12)^-12 = 8e-6 <= alpha alone (Bonferroni)."""
+    out = _class_stats(np.array([20.0]), np.array([1.0]), 12, "x_")
+    assert out["x_lines_over_noise_6db"] == 1 and out["x_lines_needed"] == 2
+    assert out["x_detected"] is True
+    assert _class_stats(np.array([5.0]), np.array([1.0]), 12, "x_")["x_detected"] is False
+
+
+def test_lines_over_noise_exactly_as_many_as_needed_is_detected():
+    nu, n = 12, 50
+    p_line = (1 + 4.0 / nu) ** (-nu)
+    need = int(binom.isf(1e-3, n, p_line)) + 1
+    level = np.ones(n)
+    level[:need] = 4.5                                  # 6 dB over, not enough alone
+    out = _class_stats(level, np.ones(n), nu, "x_")
+    assert out["x_lines_over_noise_6db"] == out["x_lines_needed"] == need
+    assert out["x_detected"] is True
+
+
+def _distorted_excitation(n=512, m=2, p=2, floor_db=-40.0, seed=5, k_max=201, offset=20.0):
+    """Excited lines falling by 44 dB over the band and a broadband distortion floor_db
+    under them everywhere: the sorted levels have no clean gap."""
+    from fftune.analysis.multisine import drive_lines
+    excited = drive_lines(n, 3, k_max, 4, seed).excited
+    k = np.arange(n // 2 + 1)
+    level_db = -40 * np.log10(k + offset)
+    amp = 10 ** ((level_db + floor_db) / 20)
+    amp[excited] = 10 ** (level_db[excited] / 20)
+    amp[0] = amp[n // 2] = 0.0
+    rng = np.random.default_rng(seed)
+    spec = amp * np.exp(2j * np.pi * rng.random((m, k.size)))
+    one = np.fft.irfft(spec, n=n, axis=-1)
+    return excited, np.repeat(one[:, None, :], p, axis=1)
+
+
+def test_distorted_excitation_found_by_the_local_threshold_and_the_note_says_how_sure():
+    excited, x = _distorted_excitation()
+    found, info = detect_excited_lines(x, return_info=True)
+    np.testing.assert_array_equal(found, excited)
+    assert info["method"] == "local threshold" and info["separation_db"] >= 20.0
+    # the note's share of lines within 3 dB of the threshold, by its definition
+    n = x.shape[2]
+    power = np.mean(np.abs(np.fft.rfft(x.sum(axis=1), axis=-1)) ** 2, axis=0)[1:(n + 1) // 2]
+    level = 10 * np.log10(np.maximum(power, power.max() * 1e-12))
+    rel = level - _local_floor(level)
+    thr, _ = bla_mod._otsu(rel)
+    share = np.mean(np.abs(rel - thr) < 3.0)
+    assert share <= 0.05
+    assert f"{100 * share:.1f} % of the lines lie within 3 dB" in info["note"]
+    # robust_bla puts the line note right after the "found from the spectrum" note
+    res = robust_bla(x, 0.5 * x, warn_transient=False)
+    assert res.notes[0].startswith("excited lines found from the spectrum of u")
+    assert res.notes[1] == info["note"]
+    # the local floor needs 64 lines or more (N = 130); with 63 (N = 128) no threshold
+    small = dict(k_max=50, offset=10.0, floor_db=-30.0)
+    excited, x = _distorted_excitation(n=130, **small)
+    np.testing.assert_array_equal(detect_excited_lines(x), excited)
+    with pytest.raises(InputError, match="cannot tell"):
+        detect_excited_lines(_distorted_excitation(n=128, **small)[1])
+
+
+def test_line_detection_zero_input_says_so():
+    with pytest.raises(InputError, match="zero power"):
+        detect_excited_lines(np.zeros((1, 2, 64)))
+
+
+def test_top_bin_of_an_odd_period_is_a_valid_excited_line():
+    n = 65
+    excited = np.array([3, 7, 11, 19, 23, 32])
+    x = _lines_excitation(n, excited, 40.0, m=2, p=2)
+    res = robust_bla(x, 2.0 * x, excited_bins=excited, warn_transient=False)
+    np.testing.assert_array_equal(res.bins, excited)
+    np.testing.assert_allclose(res.G, 2.0, rtol=1e-9)
+    assert res.fs == 1.0 and res.freq[-1] == pytest.approx(32 / 65)        # default fs 1 Hz
+
+
+def test_five_excited_lines_are_enough_for_the_plant_referred_figures():
+    n = 64
+    excited = np.array([3, 7, 11, 19, 23])
+    x = _lines_excitation(n, excited, 200.0, m=2, p=3)
+    rng = np.random.default_rng(0)
+    res = robust_bla(x, 2.0 * x + 1e-6 * rng.standard_normal(x.shape), excited_bins=excited,
+                     warn_transient=False)
+    assert res.plant_db is not None and res.plant_db.size == res.nonexcited_bins.size
+
+
+def test_line_moments_need_one_period_and_have_no_settle_periods():
+    from fftune.analysis.bla import LineMoments, robust_bla_moments
+    e = np.array([3, 5, 7, 9, 11])
+    band = np.arange(3, 12)
+    rng = np.random.default_rng(1)
+    U = np.exp(2j * np.pi * rng.random((2, band.size)))
+    z = np.zeros((2, band.size))
+    mom = LineMoments(bins=band, n_periods=2, U=U, Y=2 * U, ss_u=z + 1e-6, ss_y=z + 4e-6,
+                      s_yu=z + 2e-6 + 0j, R=U, ss_r=z)
+    res = robust_bla_moments(mom, n_period=64, excited_bins=e)
+    np.testing.assert_allclose(res.G, 2.0, rtol=1e-12)
+    assert res.settle_periods == 0 and res.n_periods == 2 and res.fs == 1.0
+    with pytest.raises(InputError, match="P = 0 periods"):
+        robust_bla_moments(LineMoments(**{**mom.__dict__, "n_periods": 0}), n_period=64,
+                           excited_bins=e)
+
+
+def test_negative_nonlinear_variance_is_noted_only_where_it_occurs():
+    n, m, p = 256, 4, 4
+    excited, table = _multisine_table(m, n, 60, seed=2)
+    u = np.repeat(table[:, None, :], p, axis=1)
+    rng = np.random.default_rng(4)
+    noisy = robust_bla(u, u + 0.05 * rng.standard_normal(u.shape), excited_bins=excited)
+    assert noisy.var_nl_negative.any()
+    assert any(note.startswith(f"var_nl < 0 at {int(noisy.var_nl_negative.sum())} of")
+               for note in noisy.notes)
+    distorted = robust_bla(u, u + 0.3 * u ** 3 + 1e-6 * rng.standard_normal(u.shape),
+                           excited_bins=excited)
+    assert not distorted.var_nl_negative.any()
+    assert not any(note.startswith("var_nl < 0") for note in distorted.notes)
+
+
+def test_quantisation_step_of_a_float32_record_far_from_zero():
+    """Multiples of q = 1 mrad stored as float32, some at 5000 rad: their float32 rounding
+    (up to 0.24 q there) is allowed, the step is still found."""
+    k = np.r_[np.arange(60), 5_000_000, 5_000_003]
+    v = (k * 1e-3).astype(np.float32)
+    assert bla_mod.estimate_quantisation_step(v) == pytest.approx(1e-3, rel=1e-6)
+    assert bla_mod.estimate_quantisation_step(np.r_[np.arange(60), 60.3] * 1e-3) is None
+
+
+def test_plant_lines_above_noise_count_by_definition():
+    """plant_above_noise_lines counts the plant-referred lines more than 4 times (6 dB)
+    over what is expected there without plant distortion."""
+    n, m, p = 512, 4, 4
+    excited, table = _multisine_table(m, n, 200, seed=9)
+    u = np.repeat(table[:, None, :], p, axis=1)
+    y = 0.5 * u + 1e-3 * np.random.default_rng(1).standard_normal(u.shape)
+    res = robust_bla(u, y, excited_bins=excited)
+    ratio = 10 ** ((res.plant_db - res.plant_expected_db) / 10)
+    assert np.any((ratio > 3.0) & (ratio <= 4.0))                 # lines just under 6 dB
+    assert res.summary["plant_above_noise_lines"] == int(np.sum(ratio > 4.0)) == 1
