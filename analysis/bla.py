@@ -667,8 +667,9 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     n = int(n_period)
     bins = np.asarray(bins, dtype=np.int64).reshape(-1)
     if _get is None:     # public use: whole arrays; robust_bla passes one realization at a time
-        U, Y = np.asarray(U), np.asarray(Y)
-        R = None if R is None else np.asarray(R)
+        # complex128 (real spectra too: the sums of squares view them as re, im pairs)
+        U, Y = np.asarray(U, dtype=np.complex128), np.asarray(Y, dtype=np.complex128)
+        R = None if R is None else np.asarray(R, dtype=np.complex128)
         for name, arr in (("U", U), ("Y", Y), ("R", R)):
             if arr is not None and (arr.ndim != 3 or arr.shape[2] != bins.size
                                     or arr.shape != U.shape):

@@ -91,8 +91,16 @@ def _import_canlog(args):
     transfers = read_transfers(args.file, node_id)
     sess = session_from_transfers(transfers, eds, node_id)
     if not sess.runs:
+        n_stats = sum(1 for tr in transfers if tr.direction == "upload" and tr.index in (0x2041, 0x2043))
         raise FftuneError(f"{args.file}: no complete run (start command + recorder upload) of node "
-                          f"{node_id} in the log ({len(transfers)} SDO transfers)")
+                          f"{node_id} in the log ({len(transfers)} SDO transfers"
+                          + (f"; {n_stats} uploads of the drive's statistics 0x2041/0x2043: a "
+                             f"session on statistics cannot be replayed, its results.yaml holds "
+                             f"the analysis; log with capture: raw or both" if n_stats else "") + ")")
+    # the log holds recordings: every step replays raw samples (the drive's statistics of a
+    # logged session are not re-derived from frames)
+    for step in ("detect", "quantify", "tune"):
+        cfg[step]["capture"] = "raw"
     print(f"{args.file}: {len(transfers)} SDO transfers, {len(sess.runs)} runs of node {node_id}")
     steps = tuple(s.strip() for s in args.steps.split(",") if s.strip())
     bad = [s for s in steps if s not in ("detect", "quantify", "tune")]

@@ -279,12 +279,21 @@ def _bla_levels_from_moments(moments_lv, *, n_period, fs, excited_bins, y_quanti
     n = int(n_period)
     results, rms = [], []
     for mom in moments_lv:
-        # float32 records: the rounding floor of y from a bound of its amplitude (the sum
-        # of its line amplitudes; the position offset is not in the statistics)
+        # Floors the noise estimate cannot see (the same error in every period):
+        # - the float32 record: the rounding of y, from a bound of its amplitude (the sum of
+        #   its line amplitudes; the position offset is not in the statistics);
+        # - the drive's float32 FFT of period 0 (the base of every mean): rms error per bin
+        #   about eps sqrt(log2 N) ||y||_2, ||y||_2^2 = (2/N) sum |Y_k|^2 over the lines;
+        #   4x that, as the same per-line floor (the uniform rounding floor of
+        #   robust_bla_spectra: y_rounding = error x sqrt(3 / N)).
+        eps = 2.0 ** -24
         y_bound = float(np.max(np.sum(np.abs(mom.Y), axis=1))) * 2.0 / n
+        y_norm = float(np.sqrt(np.max((2.0 / n) * np.sum(np.abs(mom.Y) ** 2, axis=1))))
+        fft_error = 4.0 * eps * np.sqrt(np.log2(n)) * y_norm
+        y_rounding = float(np.hypot(y_bound * eps, fft_error * np.sqrt(3.0 / n)))
         results.append(robust_bla_moments(mom, n_period=n, fs=fs, excited_bins=excited_bins,
                                           y_quantisation_step=y_quantisation_step,
-                                          y_rounding=y_bound * 2.0 ** -24))
+                                          y_rounding=y_rounding))
         # Parseval over the lines (the excitation has no DC and no Nyquist line)
         rms.append(float(np.sqrt(np.mean(2.0 * np.sum(np.abs(mom.R) ** 2, axis=1))) / n))
     return BLALevels(rms=np.array(rms), results=results, freq=results[0].freq,

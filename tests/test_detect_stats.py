@@ -181,5 +181,24 @@ def test_a_line_at_nyquist_is_refused_by_the_drive_with_the_limit_named(tmp_path
             rec = d.run(params, capture="stats", lines=np.arange(3, 101))
             assert rec.line_stats.periods == 2 and rec.signals == {}
             assert rec.line_stats.saturated_samples == 0
+            # 'both': the drive records r, u, y for its statistics; the samples asked for come up
+            rec = d.run(params, capture="both", lines=np.arange(3, 101),
+                        signals=("plant_input", "motor_angle"))
+            assert set(rec.signals) == {"plant_input", "motor_angle"}
+            assert rec.signals["motor_angle"].size == 2 * 1024 and rec.line_stats.periods == 2
     finally:
         sim.stop()
+
+
+def test_noise_free_plant_the_drive_float32_floor_is_not_distortion(tmp_path):
+    """An ideal encoder and no noise: the period-to-period spread is ~0, so the float32 FFT
+    rounding of the drive's spectra (the same in every period) would pass for even
+    distortion at the detection lines without its floor; with it both paths agree."""
+    # the demo's detect at its 1 V level (where the unfloored path claimed even lines)
+    res, _ = _detect(tmp_path, {"plant": {"viscous": 2e-3}, "sensor": {"counts_per_rev": 0, "noise_std": 0.0}},
+                     "quiet", capture="both", rms_levels=[1.0], period_samples=4096,
+                     band_hz=[2.5, 100.0], group=5, seed=7, realizations=4, periods=2, settle_periods=2)
+    d = res["stats_vs_raw"]
+    assert d["same_causes"], res["levels"]
+    assert d["max_rel_diff_G"] <= 1e-5
+    assert all("plant even nonlinearity" not in lv["causes"] for lv in res["levels"])

@@ -35,3 +35,19 @@ def test_log_without_runs_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "idle.log: no complete run (start command + recorder upload) of node 1" in err
     assert "(1 SDO transfers)" in err
+
+
+@pytest.mark.skipif(not os.path.exists(EDS), reason=f"EDS not generated ({EDS} missing; make setup)")
+def test_log_of_a_statistics_session_says_why_it_cannot_be_replayed(tmp_path, capsys):
+    """A session on the drive's statistics uploads 0x2043 / 0x2041, not recordings: the
+    error says so and where the analysis is."""
+    f = tmp_path / "stats.log"
+    with can.Logger(str(f)) as log:
+        log(can.Message(arbitration_id=0x601, data=[0x40, 0x43, 0x20, 0, 0, 0, 0, 0],
+                        is_extended_id=False, timestamp=1.1))
+        log(can.Message(arbitration_id=0x581, data=[0x43, 0x43, 0x20, 0, 0x02, 0, 0, 0],
+                        is_extended_id=False, timestamp=1.2))
+    assert main(["import-canlog", str(f), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "1 uploads of the drive's statistics 0x2041/0x2043" in err[0]
+    assert "results.yaml holds the analysis" in err[0]

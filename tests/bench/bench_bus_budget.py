@@ -73,7 +73,9 @@ def main():
           f"raw demo without bus model {raw_wall:.1f} s")
 
     same = [a["causes"] == b["causes"] for a, b in zip(bus["detect"]["levels"], raw["detect"]["levels"])]
-    print(f"detect from {det_capture} at 1 Mbit/s vs raw samples without bus model: causes equal at "
+    print(f"detect from {det_capture} at 1 Mbit/s vs raw samples without bus model (two sessions: in real "
+          f"time the plant idles longer between runs, so the data differ; borderline causes may too; the "
+          f"same runs through both paths: bench_stats.py): causes equal at "
           f"{sum(same)} of {len(same)} levels; verdict "
           f"{'equal' if bus['detect']['verdict'] == raw['detect']['verdict'] else 'DIFFERS'}: "
           f"{bus['detect']['verdict']!r}"
