@@ -671,6 +671,7 @@ def test_ratio_minimizer_follows_scipy_on_a_shifted_bracket_and_quantised_object
     """As test_ratio_minimizer_follows_brent_fmin_as_scipy, on a bracket that does not start
     at 0 and on objectives with many equal values (a quantised measurement)."""
     objectives = [lambda k: abs(k - 0.71) + 0.02, lambda k: abs(k - 0.55) ** 0.5 + 0.01,
+                  lambda k: abs(k - 0.95) ** 0.5 + 0.01,
                   lambda k: np.round(abs(k - 0.5) * 20) / 20,
                   lambda k: np.round(np.sqrt((k - 0.93) ** 2 + 0.01) * 8) / 8]
     for objective in objectives:
