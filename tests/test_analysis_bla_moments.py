@@ -463,9 +463,11 @@ def test_float64_records_keep_their_own_rounding_floor():
     x = _spectrum_signal(n, {3: 1.0, 5: 1.0, 7: 1.0, 9: 1.0, 13: 1.0})
     y = 2 * x + _spectrum_signal(n, {8: 1e-9})
     res = robust_bla(np.tile(x, (2, 3, 1)), np.tile(y, (2, 3, 1)), np.tile(x, (2, 3, 1)),
-                     excited_bins=[3, 5, 7, 9, 13], warn_transient=False)
+                     excited_bins=[3, 5, 7, 9, 13], warn_transient=False, fs=2.0)
     assert res.summary["even_detected"] is True
-    np.testing.assert_array_equal(res.even_freq, res.even_bins * 1.0 / n)
+    np.testing.assert_array_equal(res.even_freq, res.even_bins * 2.0 / n)
+    assert list(res.odd_bins) == [11]
+    np.testing.assert_array_equal(res.odd_freq, [11 * 2.0 / n])
 
 
 def _crafted(det_levels, det_ratio, r_det_db=None):
@@ -529,3 +531,30 @@ def test_grid_with_its_top_line_removed_and_a_quantised_record_far_from_zero():
     assert estimate_quantisation_step(v) == 1.0
     v[-1] = 1000.0 + 0.02 + 4.4 * np.finfo(np.float32).eps * 1000.0
     assert estimate_quantisation_step(v) is None
+
+
+def test_more_definitions_sample_rate_settle_notes_and_floors():
+    from fftune.analysis.bla import _median_db
+    M = 2
+    R = np.ones((M, 5), complex)
+    U = np.ones((M, 5), complex)
+    U[:, 2] = 1e-5                       # -100 dB: weak, not "zero" (that is -120 dB)
+    for fs in (0.0, -0.5):
+        with pytest.raises(InputError, match="positive sample rate"):
+            robust_bla_moments(_one_line_moments(U, 2 * U, R, periods=2), n_period=64, fs=fs,
+                               excited_bins=[5, 7, 9])
+    res = robust_bla_moments(_one_line_moments(U, 2 * U, R, periods=2), n_period=64, fs=2.0,
+                             excited_bins=[5, 7, 9], y_quantisation_step=1e-3)
+    np.testing.assert_allclose(res.G, 2.0)
+    # M = 2, P = 2: both variances, so neither "M = 1" nor "P = 1" note
+    assert not any(n.startswith(("M = 1", "P = 1")) for n in res.notes)
+    np.testing.assert_allclose(res.even_freq, res.even_bins * 2.0 / 64)
+    q = robust_bla_moments(_crafted([1, 1, 1, 1], [4.5, 3.5, 2, 1]), n_period=64,
+                           excited_bins=[5, 7, 9, 11, 13], y_quantisation_step=1e-3)
+    assert q.summary["plant_line_median_re_quantisation_floor_db"] == pytest.approx(
+        float(np.median(q.plant_db)) - q.quantisation_floor_db, abs=1e-9)
+    Us = np.ones((2, 2, 5), complex)
+    with pytest.raises(InputError, match="settle periods T = -1"):
+        robust_bla_spectra(Us, Us, Us, bins=np.arange(5, 10), n_period=64, settle_periods=-1,
+                           excited_bins=[5, 7, 9])
+    assert _median_db([]) is None and _median_db([5.0]) == 5.0
