@@ -1229,6 +1229,35 @@ static void lines_setup(drv_t *d, uint32_t n, uint32_t periods, const uint16_t *
     TH_EQ(drv_set_u32(d, DRV_P_STAT_LINE_MODE, 1u), DRV_OK);
 }
 
+/* The reference line statistics in double of per-period spectra spec[p][l][signal][re, im]
+ * (signals r, u, y): the means over the periods, and with 1 / (P - 1) the variances of U
+ * and Y and the covariance (Y - mean) conj(U - mean). */
+#define REF_LINES_MAX 60u
+typedef struct {
+    double mr[3], mi[3];
+    double vu, vy, cr, ci;
+} ref_line_t;
+
+static ref_line_t ref_line(const double spec[][REF_LINES_MAX][3][2], uint32_t periods, uint32_t l)
+{
+    ref_line_t r = {{0}, {0}, 0.0, 0.0, 0.0, 0.0};
+    for (uint32_t s = 0u; s < 3u; s++) {
+        for (uint32_t p = 0u; p < periods; p++) {
+            r.mr[s] += spec[p][l][s][0] / periods;
+            r.mi[s] += spec[p][l][s][1] / periods;
+        }
+    }
+    for (uint32_t p = 0u; p < periods; p++) {
+        double dur = spec[p][l][1][0] - r.mr[1], dui = spec[p][l][1][1] - r.mi[1];
+        double dyr = spec[p][l][2][0] - r.mr[2], dyi = spec[p][l][2][1] - r.mi[2];
+        r.vu += (dur * dur + dui * dui) / (periods - 1u);
+        r.vy += (dyr * dyr + dyi * dyi) / (periods - 1u);
+        r.cr += (dyr * dur + dyi * dui) / (periods - 1u);
+        r.ci += (dyi * dur - dyr * dui) / (periods - 1u);
+    }
+    return r;
+}
+
 static void test_line_stats_equal_a_double_dft_of_the_recorded_periods(void)
 {
     static uint16_t bins[LSTAT_LINES_MAX];
@@ -1257,7 +1286,7 @@ static void test_line_stats_equal_a_double_dft_of_the_recorded_periods(void)
     TH_EQ(hdr, nb);
     /* reference: the DFT in double of the recorded r, u, y (columns 0, 1, 2) */
     double ymax = 0.0, umax = 0.0, worst_mean = 0.0, worst_sd = 0.0;
-    static double spec[4][60][3][2];
+    static double spec[4][REF_LINES_MAX][3][2];
     for (uint32_t pp = 0u; pp < periods; pp++) {
         for (uint32_t l = 0u; l < nb; l++) {
             for (uint32_t s = 0u; s < 3u; s++) {
@@ -1274,22 +1303,9 @@ static void test_line_stats_equal_a_double_dft_of_the_recorded_periods(void)
         }
     }
     for (uint32_t l = 0u; l < nb; l++) {
-        double mr[3] = {0}, mi[3] = {0};
-        for (uint32_t s = 0u; s < 3u; s++) {
-            for (uint32_t pp = 0u; pp < periods; pp++) {
-                mr[s] += spec[pp][l][s][0] / periods;
-                mi[s] += spec[pp][l][s][1] / periods;
-            }
-        }
-        double vu = 0.0, vy = 0.0, cr = 0.0, ci = 0.0;
-        for (uint32_t pp = 0u; pp < periods; pp++) {
-            double dur = spec[pp][l][1][0] - mr[1], dui = spec[pp][l][1][1] - mi[1];
-            double dyr = spec[pp][l][2][0] - mr[2], dyi = spec[pp][l][2][1] - mi[2];
-            vu += (dur * dur + dui * dui) / (periods - 1u);
-            vy += (dyr * dyr + dyi * dyi) / (periods - 1u);
-            cr += (dyr * dur + dyi * dui) / (periods - 1u);
-            ci += (dyi * dur - dyr * dui) / (periods - 1u);
-        }
+        const ref_line_t ref = ref_line(spec, periods, l);
+        const double *mr = ref.mr, *mi = ref.mi;
+        const double vu = ref.vu, vy = ref.vy, cr = ref.cr, ci = ref.ci;
         float f[10];
         uint32_t b;
         memcpy(&b, got + 8u + LSTAT_LINE_BYTES * l, 4u);
@@ -1324,6 +1340,7 @@ static void test_line_stats_equal_a_double_dft_of_the_recorded_periods(void)
 #define LQ_N 1024u
 #define LQ_P 5u
 #define LQ_L 60u
+_Static_assert(LQ_L <= REF_LINES_MAX, "the reference spectra hold REF_LINES_MAX lines");
 static float lq_rec[3u * LQ_P * LQ_N];
 static float lq_work[LQ_N];
 static lstat_t lq_ls;
@@ -1382,7 +1399,7 @@ static void test_line_stats_shifted_data_quiet_and_identical_periods(void)
     /* quiet: noise 1e-4 on samples of about 20 -> line spreads ~1e-6 of the excited lines */
     lq_fill(1e-4);
     lq_run(LQ_P);
-    static double spec[LQ_P][LQ_L][3][2];
+    static double spec[LQ_P][REF_LINES_MAX][3][2];   /* LQ_L = REF_LINES_MAX lines */
     for (uint32_t p = 0u; p < LQ_P; p++) {
         for (uint32_t l = 0u; l < LQ_L; l++) {
             for (uint32_t c = 0u; c < 3u; c++) {
@@ -1400,22 +1417,11 @@ static void test_line_stats_shifted_data_quiet_and_identical_periods(void)
     }
     double worst_var = 0.0, worst_cov = 0.0, worst_mean = 0.0, worst_mean_own = 0.0, xmax = 0.0, sd_rel = 0.0;
     for (uint32_t l = 0u; l < LQ_L; l++) {
-        double mr[3] = {0}, mi[3] = {0};
+        const ref_line_t ref = ref_line(spec, LQ_P, l);
+        const double *mr = ref.mr, *mi = ref.mi;
+        const double vu = ref.vu, vy = ref.vy, cr = ref.cr, ci = ref.ci;
         for (uint32_t c = 0u; c < 3u; c++) {
-            for (uint32_t p = 0u; p < LQ_P; p++) {
-                mr[c] += spec[p][l][c][0] / LQ_P;
-                mi[c] += spec[p][l][c][1] / LQ_P;
-            }
             xmax = fmax(xmax, hypot(mr[c], mi[c]));
-        }
-        double vu = 0.0, vy = 0.0, cr = 0.0, ci = 0.0;
-        for (uint32_t p = 0u; p < LQ_P; p++) {
-            double dur = spec[p][l][1][0] - mr[1], dui = spec[p][l][1][1] - mi[1];
-            double dyr = spec[p][l][2][0] - mr[2], dyi = spec[p][l][2][1] - mi[2];
-            vu += (dur * dur + dui * dui) / (LQ_P - 1u);
-            vy += (dyr * dyr + dyi * dyi) / (LQ_P - 1u);
-            cr += (dyr * dur + dyi * dui) / (LQ_P - 1u);
-            ci += (dyi * dur - dyr * dui) / (LQ_P - 1u);
         }
         float f[10];
         memcpy(f, lq_got + 12u + LSTAT_LINE_BYTES * l, 40u);
