@@ -608,8 +608,8 @@ class DriveClient:
         boots0 = self._bootups
         t_start = time.time()
         self._run_active = True  # (also if the start's answer is lost): close() stops it
-        self._start_run_checked(stats if capture != "raw" and not want_lines else None,
-                                lines if want_lines else None, parameters)
+        self._start_run(stats if capture != "raw" and not want_lines else None,
+                        lines if want_lines else None, parameters)
         t_wait = time.monotonic()
         self._waiting_for_run = True
         total = int(self.get("run_total"))
@@ -770,37 +770,29 @@ class DriveClient:
         except FftuneError as exc:
             raise FftuneError(f"line statistics from node {self.opts.node_id}: {exc}") from None
 
-    def _start_run(self, stats, parameters):
+    def _start_run(self, stats, lines, parameters):
         """Run command 1; a refusal for the statistics names the limit (last stop reason)."""
         try:
             self.set("run_command", 1)
         except FftuneError as exc:
-            if stats is None or "stat_harmonics" not in PARAMS:
+            if (stats is None and lines is None) or "stat_harmonics" not in PARAMS:
                 raise
             reason = int(self.get("run_last_error"))
-            if reason == 9:
-                k, c, n = int(stats["harmonics"]), int(parameters.get("exc_sine_cycles", 0)), \
-                    int(parameters.get("exc_period", 0))
+            n = int(parameters.get("exc_period", 0))
+            if reason == 9 and stats is not None:
+                k, c = int(stats["harmonics"]), int(parameters.get("exc_sine_cycles", 0))
                 raise FftuneError(f"statistics: harmonic K = {k} of the sine at bin {c} is line {k * c}, "
                                   f"at or above N/2 = {n / 2:g} (fs/2), the highest line the drive "
                                   f"can accumulate: {exc}") from None
-            if reason == 10:
+            if reason == 10 and stats is not None:
                 raise FftuneError(f"statistics: harmonic statistics need a sine run (exc_kind 1): "
                                   f"{exc}") from None
+            if reason == 11 and lines is not None:
+                raise FftuneError(f"line statistics: the drive refused the run (stop reason 11: "
+                                  f"{STOP_REASONS[11]}): each line below N/2 = {n // 2}, N a power "
+                                  f"of two >= 8 within the table capacity, the recorder holding r, "
+                                  f"u, y: {exc}") from None
             raise
-
-    def _start_run_checked(self, stats, lines, parameters):
-        """:meth:`_start_run`, with the drive's refusal of the line statistics named."""
-        try:
-            self._start_run(stats, parameters)
-        except FftuneError as exc:
-            if lines is None or int(self.get("run_last_error")) != 11:
-                raise
-            n = int(parameters.get("exc_period", 0))
-            raise FftuneError(f"line statistics: the drive refused the run (stop reason 11: "
-                              f"{STOP_REASONS.get(11, 'line statistics set-up')}): each line "
-                              f"below N/2 = {n // 2}, N a power of two >= 8 within the table "
-                              f"capacity, the recorder holding r, u, y: {exc}") from None
 
     def upload_stats(self):
         """The drive's statistics of the last run (0x2041, a few hundred bytes at most) as

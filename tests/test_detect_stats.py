@@ -177,6 +177,14 @@ def test_a_line_at_nyquist_is_refused_by_the_drive_with_the_limit_named(tmp_path
                       "ms_realization": 0, "exc_settle_periods": 1, "exc_record_periods": 2}
             with pytest.raises(FftuneError, match=r"line 512 is at or above N/2 = 512 \(fs/2\).*0x06090030"):
                 d.run(params, capture="stats", lines=[3, 5, 512])
+            # a sine period of 1000 samples: no power of two for the drive's FFT, refused at
+            # the start (stop reason 11) with the conditions named
+            sine = {"exc_kind": 1, "exc_inject": 0, "exc_amplitude": 0.1, "exc_offset": 0.0,
+                    "exc_period": 1000, "exc_sine_cycles": 4, "exc_settle_periods": 1,
+                    "exc_record_periods": 2}
+            with pytest.raises(FftuneError, match=r"line statistics: the drive refused the run "
+                                                  r"\(stop reason 11.*power of two"):
+                d.run(sine, capture="stats", lines=[4, 8, 12])
             # the drive still works: a list inside N/2 gives statistics of the run
             rec = d.run(params, capture="stats", lines=np.arange(3, 101))
             assert rec.line_stats.periods == 2 and rec.signals == {}
