@@ -518,6 +518,13 @@ def line_moments(stats, *, reference=None):
     p = int(first.periods)
     if p < 1:
         raise InputError("line statistics: 0 periods accumulated")
+    for m, st in enumerate(stats):
+        values = [st.U, st.Y, st.R] + ([st.var_u, st.var_y, st.cov_yu] if p > 1 else [])
+        bad = ~np.all([np.isfinite(v) for v in values], axis=0)
+        if bad.any():
+            raise InputError(f"line statistics of realization {m}: non-finite values at "
+                             f"{int(bad.sum())} line(s), first bin {int(st.bins[bad][0])} "
+                             f"(the drive's float32 sums overflowed, or the data are corrupt)")
 
     def stack(name):
         return np.stack([np.asarray(getattr(st, name)) for st in stats])

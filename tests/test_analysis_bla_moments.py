@@ -93,6 +93,10 @@ def test_bad_moments_are_refused_with_the_reason(runs):
         line_moments(mixed)
     with pytest.raises(InputError, match="no realization"):
         line_moments([])
+    import dataclasses
+    nan_y = stats[:1] + [dataclasses.replace(stats[1], Y=np.where(band == band[3], np.nan, stats[1].Y))] + stats[2:]
+    with pytest.raises(InputError, match=rf"realization 1: non-finite values at 1 line\(s\), first bin {band[3]}"):
+        line_moments(nan_y)
     with pytest.raises(InputError, match=r"reference spectra of shape \(1, 3\)"):
         line_moments(stats, reference=np.ones((1, 3)))
     mom = line_moments(stats)
