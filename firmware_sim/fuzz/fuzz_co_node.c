@@ -11,7 +11,8 @@
  *   - after controller steps the plant input is finite and |u| <= u_max (the controller
  *     output stays saturated, whatever parameters were written or tables downloaded:
  *     "plant input finite");
- *   - when the host's heartbeat times out, no run is active afterwards (safe stop).
+ *   - when the host's heartbeat times out, no run is active afterwards (safe stop), and the
+ *     drive is no longer OPERATION ENABLED unless 0x6007 says "no action" (issue 21).
  *
  * Input format: a stream of records, each an opcode byte followed by its operands (a
  * record cut short by the end of the input is ignored); fuzz/gen_seeds.py writes seeds:
@@ -23,9 +24,19 @@
  *   5 steps            lo, hi                        -> (lo | hi << 8) controller steps (at
  *                                                       most 4 when no run is active; 512
  *                                                       per input); process
- *   6 back-pressure    flag                          -> the transmit hook refuses frames
+ *   6 back-pressure    flag                          -> bit 0: the transmit hook refuses
+ *                                                       frames; bits 1..7: the background
+ *                                                       schedule B (below)
  *   7 RPDO             which, len, 8 bytes           -> id 0x200 + 0x100 * (which & 3) + node
  * Opcodes are taken modulo 8.
+ *
+ * Background schedule (the way the MCU port's main loop can run, port/mcu/main.c: its
+ * drv_background falls behind the control interrupt when the bus keeps it busy): B = 0 (the
+ * start of every input) never calls drv_background, the background entirely behind (only the
+ * readers' own catch-up, 0x2041 / 0x2043 uploads, computes anything); B >= 1 calls it after
+ * every B-th controller step and once per time record (a main-loop turn between bus work),
+ * so the background is anywhere from in step (B = 1, as drive_sim) to many periods behind
+ * when the frames that follow change the configuration it reads (issue 21).
  *
  * Structure-aware mutation (LLVMFuzzerCustomMutator): half of the mutations are libFuzzer's
  * own; the other half walk the records and overwrite 4 bytes at a random place of the data
@@ -59,6 +70,8 @@ static sim_t g_sim;
 static co_node_t g_node;
 static plant_config_t g_cfg;
 static bool g_tx_full;
+static uint32_t g_bg_every; /* background schedule B (op 6): 0 never, else every B-th step */
+static uint32_t g_bg_count;
 static bool g_trace;
 static uint32_t g_now;
 
@@ -137,6 +150,10 @@ static void process(void)
     for (unsigned i = 0; i < CO_NUM_HB_CONSUMERS; i++) {
         if (!was_timed_out[i] && g_node.hb.consumer[i].timed_out) {
             fz_check(!co_node_run_active(&g_node), "run still active after heartbeat loss");
+            /* 0x6007 (abort connection option code) other than 0: the drive has left
+             * OPERATION ENABLED (disabled, fault or quick stop) */
+            fz_check(g_node.ram.abort_connection == 0 || g_node.cia402.state != CO402_OPERATION_ENABLED,
+                     "drive still OPERATION ENABLED after heartbeat loss (0x6007 != 0)");
             uint32_t reason = 0;
             (void)drv_get_u32(sim_drv(&g_sim), DRV_P_RUN_LAST_ERROR, &reason);
             (void)reason;
@@ -179,6 +196,8 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     cc.sdo_timeout_us = 500000u;
     cc.table_capacity_bytes = FZ_TABLE_CAPACITY * 4u;
     g_tx_full = false;
+    g_bg_every = 0u;
+    g_bg_count = 0u;
     g_now = 0xFFF00000u; /* wraps around during long inputs: the timers must not care */
     co_node_init(&g_node, &cc, sim_drv(&g_sim), g_now);
 
@@ -230,6 +249,9 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             }
             g_now += (uint32_t)(data[p] | (data[p + 1] << 8)) * 16u;
             p += 2;
+            if (g_bg_every != 0u) {
+                drv_background(sim_drv(&g_sim)); /* a main-loop turn */
+            }
             process();
             break;
         case 5: {
@@ -246,6 +268,9 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             bool stepped = false;
             while (n > 0 && steps_left > 0) {
                 (void)sim_step(&g_sim);
+                if (g_bg_every != 0u && ++g_bg_count % g_bg_every == 0u) {
+                    drv_background(sim_drv(&g_sim));
+                }
                 stepped = true;
                 n--;
                 steps_left--;
@@ -260,7 +285,9 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             if (size - p < 1) {
                 return 0;
             }
-            g_tx_full = (data[p++] & 1u) != 0u;
+            g_tx_full = (data[p] & 1u) != 0u;
+            g_bg_every = (uint32_t)(data[p] >> 1);
+            p++;
             process();
             break;
         default: {
