@@ -31,6 +31,10 @@ DEFAULT_SOCKETCAND_HOST = "127.0.0.1"
 DEFAULT_SOCKETCAND_PORT = 29536
 DEFAULT_SOCKETCAND_CHANNEL = "can0"
 CONNECT_DEADLINE_S = 4.5
+# CiA 402 abort connection option code: what the drive does when the host is lost
+# (0 nothing, 1 fault, 2 disable voltage, 3 quick stop); the host never leaves it at 0.
+ABORT_CONNECTION_INDEX = 0x6007
+ABORT_CONNECTION_DEFAULT = 2
 
 logger = logging.getLogger(__name__)
 
@@ -536,6 +540,7 @@ class DriveClient:
         """NMT OPERATIONAL and CiA 402 OPERATION ENABLED in the excitation-run mode."""
         node = self.node
         self._enabled = True  # from the first attempt on: close() disables again
+        self._arm_abort_connection()
         try:
             node.nmt.state = "PRE-OPERATIONAL"
             node.setup_402_state_machine(read_pdos=True)
@@ -553,6 +558,21 @@ class DriveClient:
                 raise FftuneError(f"enabling node {self.opts.node_id}: {sdo_abort_text(exc)}") from None
             raise FftuneError(f"enabling node {self.opts.node_id} (CiA 402 OPERATION ENABLED): "
                               f"{type(exc).__name__}: {exc}") from None
+
+    def _arm_abort_connection(self):
+        """Before the power stage goes on: the drive's reaction to a lost host (CiA 402
+        0x6007, acted on when the host heartbeat in 0x1016 is missing or NMT ends the
+        connection). A drive set to 0 (no action) would stay enabled after the host died: it
+        is set to 2 (disable voltage); 1 (fault) and 3 (quick stop) are the integrator's
+        choice for the axis and are kept. Drives without 0x6007 are left as they are."""
+        if ABORT_CONNECTION_INDEX not in self.node.object_dictionary:
+            return
+        code = int(self.read(ABORT_CONNECTION_INDEX, 0))
+        if code not in (1, 2, 3):
+            logger.info("node %d: abort connection option code 0x6007 was %d; set to %d (disable "
+                        "voltage when the host is lost)", self.opts.node_id, code,
+                        ABORT_CONNECTION_DEFAULT)
+            self.write(ABORT_CONNECTION_INDEX, 0, ABORT_CONNECTION_DEFAULT)
 
     # ---- runs -------------------------------------------------------------------------
     def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"),

@@ -10,6 +10,16 @@ real drive) is interrupted while the drive is exciting:
 - SIGKILL (no cleanup at all): the armed consumer stops the run within its time.
 - An exception inside the client's ``with`` block during a run: the same safe state.
 
+Issue 21 (0x6007, abort connection option code, default 2 = disable voltage):
+
+- SIGKILL: the drive also leaves OPERATION ENABLED by itself, within the consumer time
+  + 100 ms of the host's last heartbeat (both time stamps the bus server's).
+- Every host end path disables, one test each: normal end (close() after a completed run),
+  an exception (above), Ctrl-C between runs, and a lost bus (the host cannot disable: the
+  drive does). The host's own disable is a CiA 402 shutdown (READY TO SWITCH ON); the
+  drive's reaction to a lost host is SWITCH ON DISABLED: the two are told apart, so a host
+  that skipped its disable would not pass for one that did it.
+
 The observer watches the run state in the drive's TPDO (0x280 + node: run state, progress)
 while the host runs, so that it never competes with the host for the one SDO channel; it
 reads by SDO only after the host is gone.
@@ -34,6 +44,18 @@ STATUS_POWER_MASK = 0x006F
 READY_TO_SWITCH_ON = 0x0021
 SWITCH_ON_DISABLED = 0x0040
 OPERATION_ENABLED = 0x0027
+CONSUMER_S = 0.4           # the host's 100 ms heartbeat, watched with 4x by the drive
+BOUND_S = CONSUMER_S + 0.1  # issue 21: the statusword shows the drive's reaction within this
+SMALL_RUN = dict(exc_kind=1, exc_inject=0, exc_amplitude=0.05, exc_period=256, exc_sine_cycles=3,
+                 exc_settle_periods=1, exc_record_periods=2)
+
+
+def wait_until(cond, timeout_s, what):
+    """Poll ``cond`` until true; fail naming ``what`` after a generous deadline."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, f"{what}: not within {timeout_s:g} s"
+        time.sleep(0.005)
 
 
 class Observer:
@@ -49,6 +71,12 @@ class Observer:
         self.node.sdo.RESPONSE_TIMEOUT = 1.0
         self.states = []
         self.net.subscribe(0x281, lambda cob, data, ts: self.states.append(data[0]))
+        # the statusword TPDO (0x180 + 1) and the host's heartbeat (0x700 + 0x7F), with the
+        # bus server's time stamps (not this process's: its threads may run late under load)
+        self.status = []
+        self.host_hb = []
+        self.net.subscribe(0x181, lambda cob, data, ts: self.status.append((ts, data[0] | data[1] << 8)))
+        self.net.subscribe(0x77F, lambda cob, data, ts: self.host_hb.append(ts))
 
     def wait_for_active_run(self, proc, timeout_s=60.0):
         deadline = time.monotonic() + timeout_s
@@ -59,6 +87,18 @@ class Observer:
 
     def u(self, index, sub):
         return int.from_bytes(self.node.sdo.upload(index, sub), "little")
+
+    def power_off_after_host_lost(self, timeout_s=10.0):
+        """Wait for the statusword TPDO to leave OPERATION ENABLED; return the delay from the
+        host's last heartbeat to the first TPDO that shows it (server time stamps)."""
+        def off():
+            return self.status and self.status[-1][1] & STATUS_POWER_MASK != OPERATION_ENABLED
+        wait_until(off, timeout_s, "the drive leaving OPERATION ENABLED after the host was lost")
+        log = list(self.status)
+        last_on = max(i for i, (_, sw) in enumerate(log) if sw & STATUS_POWER_MASK == OPERATION_ENABLED)
+        t_off = log[last_on + 1][0]
+        assert self.host_hb, "no heartbeat of the host seen"
+        return t_off - max(t for t in self.host_hb if t <= t_off)
 
     def close(self):
         self.net.disconnect()
@@ -89,13 +129,23 @@ def _tpdo_shows_stop(obs, within_s=0.15):
     return False
 
 
+def _assert_disabled_by_the_host(obs):
+    """The host's CiA 402 shutdown (READY TO SWITCH ON); the drive's own reaction to a lost
+    host (0x6007 = 2) would be SWITCH ON DISABLED."""
+    status = obs.u(0x6041, 0) & STATUS_POWER_MASK
+    assert status == READY_TO_SWITCH_ON, \
+        f"statusword 0x{status:04X}: not the host's disable (READY TO SWITCH ON 0x{READY_TO_SWITCH_ON:04X})"
+    consumer = obs.u(0x1016, 1)
+    assert consumer >> 16 == 0x7F and consumer & 0xFFFF == 400, \
+        f"heartbeat consumer 0x{consumer:08X}: no longer armed for the host"
+
+
 def _assert_stopped_and_disabled(obs):
     state = obs.u(0x2010, 2)
     assert state not in RUN_ACTIVE, f"the run goes on after the host left (state {state})"
     # stop reason 1 (abort command) or 3 (disabled): the host's doing, not the watchdog's
     assert obs.u(0x2010, 5) in (1, 3), f"stop reason {obs.u(0x2010, 5)}"
-    status = obs.u(0x6041, 0) & STATUS_POWER_MASK
-    assert status in (READY_TO_SWITCH_ON, SWITCH_ON_DISABLED), f"statusword 0x{status:04X}: not disabled"
+    _assert_disabled_by_the_host(obs)
     consumer = obs.u(0x1016, 1)
     assert consumer >> 16 == 0x7F and consumer & 0xFFFF == 400, \
         f"heartbeat consumer 0x{consumer:08X}: no longer armed for the host"
@@ -145,7 +195,13 @@ def test_killed_host_is_stopped_by_the_armed_consumer(tmp_path):
         assert obs.u(0x2010, 2) == 4  # aborted
         assert obs.u(0x2010, 5) == 2  # host heartbeat lost
         assert t_stop <= 0.4 + 0.15, f"stopped {t_stop * 1000:.0f} ms after the kill"
-        print(f"SIGKILL: run stopped {t_stop * 1000:.0f} ms after the kill (consumer 400 ms)")
+        # issue 21: and the drive left OPERATION ENABLED (0x6007 = 2: disable voltage), the
+        # statusword showing it within the consumer time + 100 ms of the last heartbeat
+        delay = obs.power_off_after_host_lost()
+        assert delay <= BOUND_S, f"statusword left OPERATION ENABLED {delay * 1000:.0f} ms after the host's last heartbeat"
+        assert obs.u(0x6041, 0) & STATUS_POWER_MASK == SWITCH_ON_DISABLED
+        print(f"SIGKILL: run stopped {t_stop * 1000:.0f} ms after the kill, power stage off "
+              f"{delay * 1000:.0f} ms after the last heartbeat (consumer 400 ms)")
     finally:
         if host.poll() is None:
             host.kill()
@@ -192,6 +248,101 @@ def test_close_without_enable_touches_nothing(tmp_path):
         with DriveClient(BusOptions(port=drive.port, eds=EDS), heartbeat_ms=0, progress=False) as c:
             c.get("fs")
         assert obs.u(0x6041, 0) & STATUS_POWER_MASK == OPERATION_ENABLED
+    finally:
+        obs.close()
+        drive.stop()
+
+
+def _client(drive):
+    quiet_can_loggers()
+    return DriveClient(BusOptions(port=drive.port, eds=EDS), heartbeat_ms=100, progress=False)
+
+
+def test_normal_end_close_after_a_completed_run_disables(tmp_path):
+    """The drive client's close() at the end of a session whose run completed: the host
+    disables the drive itself (a close() that skipped the shutdown left OPERATION ENABLED
+    until the watchdog's SWITCH ON DISABLED, and failed here)."""
+    drive = start_drive(tmp_path)
+    obs = Observer(drive.port)
+    client = _client(drive)
+    try:
+        with client:
+            client.enable()
+            rec = client.run(SMALL_RUN)
+            assert rec.period_samples == 256 and rec.signals["reference"].size == 512
+            assert obs.u(0x6041, 0) & STATUS_POWER_MASK == OPERATION_ENABLED  # idle, enabled
+        _assert_disabled_by_the_host(obs)
+        assert obs.u(0x2010, 2) == 3 and obs.u(0x2010, 5) == 0  # the run completed, untouched
+    finally:
+        client.close()
+        obs.close()
+        drive.stop()
+
+
+def test_ctrl_c_between_runs_disables(tmp_path):
+    """Ctrl-C (KeyboardInterrupt in the main thread) after one run, before the next."""
+    drive = start_drive(tmp_path)
+    obs = Observer(drive.port)
+    client = _client(drive)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with client:
+                client.enable()
+                client.run(SMALL_RUN)
+                raise KeyboardInterrupt
+        _assert_disabled_by_the_host(obs)
+        assert obs.u(0x2010, 2) == 3
+    finally:
+        client.close()
+        obs.close()
+        drive.stop()
+
+
+def test_lost_bus_the_drive_disables_itself(tmp_path):
+    """The host's bus goes away while the drive is enabled (no run): the host cannot
+    disable it; its next request fails with one error line, close() returns, and the drive
+    leaves OPERATION ENABLED by itself (0x6007) within the consumer time + 100 ms. On the old
+    drive it stayed enabled: the consumer only stopped runs."""
+    from fftune.analysis.errors import FftuneError
+
+    drive = start_drive(tmp_path)
+    obs = Observer(drive.port)
+    client = _client(drive)
+    try:
+        client.connect()
+        client.enable()
+        wait_until(lambda: obs.status and obs.status[-1][1] & STATUS_POWER_MASK == OPERATION_ENABLED,
+                   10.0, "the enabled statusword in the TPDO")
+        wait_until(lambda: len(obs.host_hb) >= 2, 10.0, "the host's heartbeat")
+        client.network.bus.shutdown()  # the host's connection to the bus is gone
+        with pytest.raises(FftuneError, match="0x2010"):
+            client.get("run_state")
+        client.close()
+        delay = obs.power_off_after_host_lost()
+        assert delay <= BOUND_S, f"statusword left OPERATION ENABLED {delay * 1000:.0f} ms after the host's last heartbeat"
+        assert obs.u(0x6041, 0) & STATUS_POWER_MASK == SWITCH_ON_DISABLED
+    finally:
+        client.close()
+        obs.close()
+        drive.stop()
+
+
+def test_host_never_leaves_abort_connection_at_no_action(tmp_path):
+    """0x6007: the drive's default is 2 (disable voltage); a drive set to 0 (no action) is
+    set to 2 by the host before it enables the power stage; 3 (quick stop, the integrator's
+    choice) is kept."""
+    drive = start_drive(tmp_path)
+    obs = Observer(drive.port)
+    try:
+        assert obs.u(0x6007, 0) == 2
+        obs.node.sdo.download(0x6007, 0, struct.pack("<h", 0))
+        with _client(drive) as client:
+            client.enable()
+            assert obs.u(0x6007, 0) == 2
+        obs.node.sdo.download(0x6007, 0, struct.pack("<h", 3))
+        with _client(drive) as client:
+            client.enable()
+            assert obs.u(0x6007, 0) == 3
     finally:
         obs.close()
         drive.stop()
