@@ -41,9 +41,13 @@
  * Structure-aware mutation (LLVMFuzzerCustomMutator): half of the mutations are libFuzzer's
  * own; the other half walk the records and overwrite 4 bytes at a random place of the data
  * bytes of one frame record (SDO, any frame, RPDO) with a float from a list of values where
- * float arithmetic breaks (near +-FLT_MAX, 1e30, denormals, NaN, inf, the od.yaml limits).
- * So table samples (in download segments) and amplitudes / gains (in expedited writes) reach
- * the overflow region, where byte-level mutations almost never land.
+ * float arithmetic breaks (near +-FLT_MAX, 1e30, denormals, NaN, inf, the od.yaml limits),
+ * or (an SDO record: its expedited value, bytes 4..7) with integers at the bounds the drive
+ * checks (powers of two and neighbours: periods, bins, counts; one u32 or two u16, i.e. a
+ * two-line list 0x2042). So table samples (in download segments) and amplitudes / gains (in
+ * expedited writes) reach the overflow region, and periods / bins the index bounds, where
+ * byte-level mutations almost never land (issue 21: libFuzzer's own mutations alone did not
+ * reach the stale-list crash from the line-statistics seed in 200 000 executions).
  *
  * FUZZ_TRACE=1 in the environment prints every frame in and out (to check the seeds).
  */
@@ -316,6 +320,14 @@ static const float FZ_EDGE_FLOATS[] = {
     -1.0e-40f, FLT_MIN, 1.0e-30f, INFINITY, -INFINITY, NAN,
 };
 
+/* Integers at and around the bounds the drive checks: powers of two (periods N, N/2, the
+ * table and line capacities) and their neighbours, the u16 / u32 extremes. */
+static const uint32_t FZ_EDGE_INTS[] = {
+    0u, 1u, 2u, 3u, 4u, 5u, 7u, 8u, 9u, 15u, 16u, 17u, 31u, 32u, 33u, 40u, 63u, 64u, 65u, 100u,
+    127u, 128u, 129u, 255u, 256u, 257u, 511u, 512u, 1023u, 1024u, 1025u, 2048u, 4095u, 4096u,
+    8191u, 8192u, 8193u, 0x7FFFu, 0xFFFFu, 0x10000u, 0x7FFFFFFFu, 0xFFFFFFFFu,
+};
+
 /* Offset of the first data byte and the data length of the record at p (0 if none). */
 static size_t fz_record_data(const uint8_t *data, size_t size, size_t p, size_t *len, size_t *next)
 {
@@ -352,6 +364,7 @@ size_t LLVMFuzzerCustomMutator(uint8_t *data, size_t size, size_t max_size, unsi
         return LLVMFuzzerMutate(data, size, max_size);
     }
     size_t pick = (r >> 1) % count;
+    uint32_t r2 = r * 2246822519u + 3266489917u; /* a second draw */
     p = 0;
     while (p < size) {
         size_t at = fz_record_data(data, size, p, &len, &next);
@@ -359,8 +372,22 @@ size_t LLVMFuzzerCustomMutator(uint8_t *data, size_t size, size_t max_size, unsi
             /* expedited SDO values sit at bytes 4..7, segment data at 1..7: any 4-byte
              * window of the 8 data bytes (also one straddling two samples) */
             size_t off = (r >> 8) % 5u;
-            float v = FZ_EDGE_FLOATS[(r >> 12) % (sizeof FZ_EDGE_FLOATS / sizeof FZ_EDGE_FLOATS[0])];
-            memcpy(&data[at + off], &v, 4u); /* little-endian host, as the CAN payload */
+            if ((r2 & 1u) == 0u) {
+                float v = FZ_EDGE_FLOATS[(r >> 12) % (sizeof FZ_EDGE_FLOATS / sizeof FZ_EDGE_FLOATS[0])];
+                memcpy(&data[at + off], &v, 4u); /* little-endian host, as the CAN payload */
+            } else {
+                /* integers where index checks break (periods, bins, counts, masks): one
+                 * u32, or two u16 (a two-line list of an expedited 0x2042 download) */
+                const size_t ni = sizeof FZ_EDGE_INTS / sizeof FZ_EDGE_INTS[0];
+                uint32_t a = FZ_EDGE_INTS[(r2 >> 1) % ni], b = FZ_EDGE_INTS[(r2 >> 9) % ni];
+                uint8_t w[4];
+                if ((r2 >> 17) & 1u) {
+                    w[0] = (uint8_t)a; w[1] = (uint8_t)(a >> 8); w[2] = (uint8_t)(a >> 16); w[3] = (uint8_t)(a >> 24);
+                } else {
+                    w[0] = (uint8_t)a; w[1] = (uint8_t)(a >> 8); w[2] = (uint8_t)b; w[3] = (uint8_t)(b >> 8);
+                }
+                memcpy(&data[at + (data[p] % 8u == 0u ? 4u : off)], w, 4u);
+            }
             break;
         }
         p = next;

@@ -269,7 +269,7 @@ def co_node_seeds(eds_path):
              + write_f32(0x2001, 3, 0.2) + write_u(0x2020, 1, 0x07, 4)
              + sdo(0x23, *mux(0x2042, 0), 3, 0, 5, 0) + write_u(0x2040, 7, 1, 1)
              + start_run() + steps(100) + upload(0x2010, 2)
-             + write_u(0x2001, 5, 64, 4) + sdo(0x23, *mux(0x2042, 0), 3, 0, 9, 0)
+             + write_u(0x2001, 5, 256, 4) + sdo(0x23, *mux(0x2042, 0), 3, 0, 9, 0)
              + write_u(0x2020, 1, 0x1F, 4) + write_f32(0x2000, 7, 2.0)
              + upload(0x2040, 10) + segmented_upload(0x2043, 0, 4) + upload(0x2040, 11))
     seeds["line_stats_background_behind"] = lines
