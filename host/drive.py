@@ -541,6 +541,14 @@ class DriveClient:
         node = self.node
         self._enabled = True  # from the first attempt on: close() disables again
         self._arm_abort_connection()
+        # python-canopen waits 0.2 .. 0.8 s for each statusword TPDO of the state machine; a
+        # loaded host machine or a slow bus misses that now and then (issue 21 item 7). A
+        # drive that answers in time costs nothing more; the longer bound only waits longer.
+        for name, at_least_s in (("TIMEOUT_SWITCH_STATE_FINAL", 8.0), ("TIMEOUT_SWITCH_STATE_SINGLE", 4.0),
+                                 ("TIMEOUT_CHECK_TPDO", 2.0), ("TIMEOUT_SWITCH_OP_MODE", 5.0),
+                                 ("TIMEOUT_RESET_FAULT", 4.0)):
+            if hasattr(node, name):
+                setattr(node, name, max(float(getattr(node, name)), at_least_s))
         try:
             node.nmt.state = "PRE-OPERATIONAL"
             node.setup_402_state_machine(read_pdos=True)

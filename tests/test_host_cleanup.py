@@ -70,13 +70,20 @@ class Observer:
         self.net.add_node(self.node)
         self.node.sdo.RESPONSE_TIMEOUT = 1.0
         self.states = []
-        self.net.subscribe(0x281, lambda cob, data, ts: self.states.append(data[0]))
+        self.run_log = []   # (server time stamp, run state)
+        self.progress = []
+        self.net.subscribe(0x281, self._on_run_tpdo)
         # the statusword TPDO (0x180 + 1) and the host's heartbeat (0x700 + 0x7F), with the
         # bus server's time stamps (not this process's: its threads may run late under load)
         self.status = []
         self.host_hb = []
         self.net.subscribe(0x181, lambda cob, data, ts: self.status.append((ts, data[0] | data[1] << 8)))
         self.net.subscribe(0x77F, lambda cob, data, ts: self.host_hb.append(ts))
+
+    def _on_run_tpdo(self, cob, data, ts):
+        self.run_log.append((ts, data[0]))
+        self.states.append(data[0])
+        self.progress.append(struct.unpack_from("<I", bytes(data), 1)[0] if len(data) >= 5 else 0)
 
     def wait_for_active_run(self, proc, timeout_s=60.0):
         deadline = time.monotonic() + timeout_s
@@ -86,7 +93,28 @@ class Observer:
             time.sleep(0.01)
 
     def u(self, index, sub):
-        return int.from_bytes(self.node.sdo.upload(index, sub), "little")
+        """SDO read. The observer shares node 1's one SDO channel with the host: the host's
+        last answer, still on its way here, can be taken for this request's (python-canopen:
+        "returned a value for ... instead", "Unexpected response 0x60"); then the read is
+        simply asked again: each attempt first empties the queue of what came late (after a
+        block upload of the host's, hundreds of segments), until one gets its own answer.
+        While the host may still talk, prefer the statusword TPDO (statusword())."""
+        from canopen.sdo.exceptions import SdoCommunicationError
+
+        deadline = time.monotonic() + 20.0
+        while True:
+            try:
+                return int.from_bytes(self.node.sdo.upload(index, sub), "little")
+            except SdoCommunicationError as exc:
+                stale = "instead" in str(exc) or "Unexpected response" in str(exc)
+                if not stale or time.monotonic() > deadline:
+                    raise
+
+    def statusword(self, timeout_s=10.0):
+        """The statusword of the drive's TPDO (sent on change and every 100 ms): no SDO,
+        so nothing to share with the host's requests."""
+        wait_until(lambda: self.status, timeout_s, "a statusword TPDO")
+        return self.status[-1][1]
 
     def power_off_after_host_lost(self, timeout_s=10.0):
         """Wait for the statusword TPDO to leave OPERATION ENABLED; return the delay from the
@@ -113,14 +141,31 @@ def _config(tmp_path):
 
 
 def _fftune_run(tmp_path, port):
+    # PYTHONFAULTHANDLER: a host that does not exit in time is sent SIGABRT by _communicate,
+    # and the failure shows where every thread of it was (not just "not out in 20 s")
     return subprocess.Popen(
         [sys.executable, "-m", "fftune.host.cli", "run", "--config", _config(tmp_path),
          "--out", str(tmp_path / "out"), "--port", str(port), "--no-progress", "--no-figures"],
-        cwd=REPO, env=dict(os.environ, PYTHONPATH=REPO), stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True)
+        cwd=REPO, env=dict(os.environ, PYTHONPATH=REPO, PYTHONFAULTHANDLER="1"),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _tpdo_shows_stop(obs, within_s=0.15):
+def _communicate(host, timeout_s=90.0):
+    """The host's (stdout, stderr) once it exited. A generous deadline (a loaded machine
+    makes every step slow; issue 21: 20 s failed 3 of 5 suites at load 10); if it passes,
+    the host's thread stacks (faulthandler on SIGABRT) are the failure message."""
+    try:
+        return host.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        host.send_signal(signal.SIGABRT)
+        _, err = host.communicate(timeout=30)
+        pytest.fail(f"fftune not out {timeout_s:g} s after the signal; its threads:\n{err[-6000:]}")
+
+
+def _tpdo_shows_stop(obs, within_s=10.0):
+    """The run-state TPDO shows the run no longer active (a generous deadline: this
+    process's receive thread may run late on a loaded machine; who stopped the run is
+    told by its stop reason and the statusword, _assert_stopped_and_disabled)."""
     deadline = time.monotonic() + within_s
     while time.monotonic() < deadline:
         if obs.states and obs.states[-1] not in RUN_ACTIVE:
@@ -159,16 +204,17 @@ def test_interrupted_run_leaves_the_drive_stopped_and_disabled(tmp_path, sig, co
     host = _fftune_run(tmp_path, drive.port)
     try:
         obs.wait_for_active_run(host)
-        time.sleep(0.3)
+        # well into the run (its TPDO progress past 0.2 s of samples), not at its first step
+        wait_until(lambda: obs.progress and obs.progress[-1] >= 512, 30.0, "the run's progress")
         host.send_signal(sig)
         t_sig = time.monotonic()
-        _, err = host.communicate(timeout=20)
+        _, err = _communicate(host)
         t_exit = time.monotonic() - t_sig
         assert host.returncode == code, err
         assert err.strip().splitlines()[-1] == line, err
         assert "Traceback" not in err, err
         # the host stopped it itself before it exited (not the 400 ms watchdog after it
-        # left): the stop shows in the TPDO within its 50 ms inhibit time
+        # left): stop reason 1 or 3 and READY TO SWITCH ON, below
         assert _tpdo_shows_stop(obs), f"TPDO run states {obs.states[-5:]}"
         _assert_stopped_and_disabled(obs)
         print(f"{signal.Signals(sig).name}: fftune exited {t_exit * 1000:.0f} ms after the signal")
@@ -186,21 +232,23 @@ def test_killed_host_is_stopped_by_the_armed_consumer(tmp_path):
     try:
         obs.wait_for_active_run(host)
         host.send_signal(signal.SIGKILL)
-        t_kill = time.monotonic()
         host.wait(5)
-        while obs.states[-1] in RUN_ACTIVE:
-            assert time.monotonic() - t_kill < 3.0, "the run went on without the host"
-            time.sleep(0.005)
-        t_stop = time.monotonic() - t_kill
+        wait_until(lambda: obs.states[-1] not in RUN_ACTIVE, 10.0, "the run stopping without the host")
         assert obs.u(0x2010, 2) == 4  # aborted
         assert obs.u(0x2010, 5) == 2  # host heartbeat lost
-        assert t_stop <= 0.4 + 0.15, f"stopped {t_stop * 1000:.0f} ms after the kill"
+        # within the consumer time (+ the TPDO's 50 ms inhibit time) of the host's last
+        # heartbeat, both time stamps the bus server's (this process may run late)
+        log = list(obs.run_log)
+        last_on = max(i for i, (_, st) in enumerate(log) if st in RUN_ACTIVE)
+        t_off = log[last_on + 1][0]
+        t_stop = t_off - max(t for t in obs.host_hb if t <= t_off)
+        assert t_stop <= CONSUMER_S + 0.15, f"stopped {t_stop * 1000:.0f} ms after the host's last heartbeat"
         # issue 21: and the drive left OPERATION ENABLED (0x6007 = 2: disable voltage), the
         # statusword showing it within the consumer time + 100 ms of the last heartbeat
         delay = obs.power_off_after_host_lost()
         assert delay <= BOUND_S, f"statusword left OPERATION ENABLED {delay * 1000:.0f} ms after the host's last heartbeat"
         assert obs.u(0x6041, 0) & STATUS_POWER_MASK == SWITCH_ON_DISABLED
-        print(f"SIGKILL: run stopped {t_stop * 1000:.0f} ms after the kill, power stage off "
+        print(f"SIGKILL: run stopped {t_stop * 1000:.0f} ms, power stage off "
               f"{delay * 1000:.0f} ms after the last heartbeat (consumer 400 ms)")
     finally:
         if host.poll() is None:
@@ -270,7 +318,7 @@ def test_normal_end_close_after_a_completed_run_disables(tmp_path):
             client.enable()
             rec = client.run(SMALL_RUN)
             assert rec.period_samples == 256 and rec.signals["reference"].size == 512
-            assert obs.u(0x6041, 0) & STATUS_POWER_MASK == OPERATION_ENABLED  # idle, enabled
+            assert obs.statusword() & STATUS_POWER_MASK == OPERATION_ENABLED  # idle, enabled
         _assert_disabled_by_the_host(obs)
         assert obs.u(0x2010, 2) == 3 and obs.u(0x2010, 5) == 0  # the run completed, untouched
     finally:
