@@ -64,7 +64,9 @@ typedef enum {
     CO_DOMAIN_RECORDER = 1,
     CO_DOMAIN_STATS = 2,
     CO_DOMAIN_STAT_LINES = 3, /* line list (rw) */
-    CO_DOMAIN_LINE_STATS = 4  /* line statistics data (ro) */
+    CO_DOMAIN_LINE_STATS = 4, /* line statistics data (ro) */
+    CO_DOMAIN_TASK_DATA = 5,  /* task statistics, data part (ro, core/task.h) */
+    CO_DOMAIN_TASK_DESIGN = 6 /* task statistics, design part (ro) */
 } co_domain_id_t;
 
 struct co_node;

@@ -193,4 +193,13 @@ drv_status_t drv_lines_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uin
 uint32_t drv_line_stats_size_bytes(drv_t *drv);
 drv_status_t drv_line_stats_read(drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
 
+/* ---- The repeated task (core/task.h, issue 26; objects 0x2060-0x2062) ----
+ * With TASK_MODE != 0 a run plays the task instead of the excitation (EXC_KIND must be 0):
+ * EXC_SETTLE_PERIODS + EXC_RECORD_PERIODS repetitions of TASK_PERIOD samples, the reference
+ * at the set-point plus the task's offset, K_a a_r added to the plant input; at the end (or
+ * an abort) the set-point moves to the last reference (no jump back). The statistics of the
+ * recorded repetitions: design (true) or data (false) part, valid after the run. */
+uint32_t drv_task_stats_size_bytes(const drv_t *drv, bool design);
+drv_status_t drv_task_stats_read(const drv_t *drv, bool design, uint32_t offset, uint8_t *dst, uint32_t len);
+
 #endif /* DRV_H */
