@@ -189,7 +189,7 @@ def _solve(A, c, cols):
     return np.linalg.solve(A[sub], c[cols])
 
 
-def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_UNIQUE_MIN):
+def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_UNIQUE_MIN, hold_k_v=False):
     """Estimate K_fc (and K_v, K_a) with sigmas from one task run's statistics.
 
     Parameters
@@ -202,6 +202,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         Largest condition number of the correlation-normalised design matrix accepted.
     kv_unique_min : float
         Least fraction of v_r's energy not explained by p, n, a_r for estimating K_v.
+    hold_k_v : bool
+        Fix b at ``k_v_hold`` whatever the task (K_v not tracked).
 
     Returns
     -------
@@ -216,7 +218,7 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     A_b, c_b = _blocks(stats)
     A, c = A_b.sum(axis=0), c_b.sum(axis=0)
     _check_identifiable(A)
-    kv_ok = _kv_unique_fraction(A) >= kv_unique_min
+    kv_ok = not hold_k_v and _kv_unique_fraction(A) >= kv_unique_min
     cols = [0, 1, 2, 3] if kv_ok else [0, 1, 3]
     if not kv_ok:  # u - b v_r on p, n, a_r
         c = c - k_v_hold * A[:, 2]
@@ -280,7 +282,9 @@ class TrackSettings:
         changed K_fc by more than rollback_min_step_rel of it (a smaller change cannot
         explain the growth: the friction itself moved).
     max_rollbacks : consecutive rollbacks before stopping.
-    max_sigma_rel : K_fc's sigma above this fraction of K_fc stops (too uncertain).
+    max_sigma_rel : K_fc's sigma above this fraction of K_fc holds K_fc (K_a is still
+        updated if its sigma is within ka_max_sigma_rel of it: the mass feed-forward is what a
+        first task without it lacks most); max_uncertain such tasks in a row stop.
     rms_limit_rad : tracking error rms above this stops (safety).
     update_kv : track K_v where the task identifies it.
     """
@@ -290,11 +294,13 @@ class TrackSettings:
     kv_max_step: float = 0.005
     ka_max_step_rel: float = 0.5
     gain: float = 1.0
-    rollback_ratio: float = 1.5
+    rollback_ratio: float = 2.0
     rollback_min_rms_rad: float = 1e-3
-    rollback_min_step_rel: float = 0.02
+    rollback_min_step_rel: float = 0.05
     max_rollbacks: int = 3
     max_sigma_rel: float = 0.2
+    ka_max_sigma_rel: float = 0.5
+    max_uncertain: int = 5
     rms_limit_rad: float = 0.5
     update_kv: bool = True
 
@@ -336,6 +342,7 @@ class Tracker:
     _prev_rms: float = None
     _last_action: str = "start"
     _rollbacks: int = 0
+    _uncertain: int = 0
 
     def _stop(self, cause, reason):
         self._last_action = "stop"
@@ -362,13 +369,27 @@ class Tracker:
             return Decision("rollback", self.k_fc, self.k_v, self.k_a, "error_grew",
                             f"tracking error rms {est.rms_error:.3g} rad > {s.rollback_ratio:g} x "
                             f"{self._prev_rms:.3g} rad before the last update: its gains restored")
-        if est.k_fc_sigma > s.max_sigma_rel * max(abs(est.k_fc), 1e-12):
-            return self._stop("uncertain", f"K_fc {est.k_fc:.4g} V with sigma {est.k_fc_sigma:.3g} V "
-                                           f"(> {s.max_sigma_rel:.0%} of it): the task's data cannot tell it")
+        fc_certain = est.k_fc_sigma <= s.max_sigma_rel * max(abs(est.k_fc), 1e-12)
+        ka_certain = est.k_a_sigma <= s.ka_max_sigma_rel * max(abs(est.k_a), 1e-12)
+        if not fc_certain:
+            self._uncertain += 1
+            if self._uncertain >= s.max_uncertain:
+                return self._stop("uncertain", f"K_fc {est.k_fc:.4g} V with sigma {est.k_fc_sigma:.3g} V "
+                                               f"(> {s.max_sigma_rel:.0%} of it) in {self._uncertain} tasks "
+                                               f"in a row: the task's data cannot tell it")
+        else:
+            self._uncertain = 0
         if self._last_action != "rollback":
             self._rollbacks = 0
         self._prev = (self.k_fc, self.k_v, self.k_a)
         self._prev_rms = est.rms_error
+        if not fc_certain:  # hold K_fc (and K_v); the inertia may still be learnt
+            if ka_certain:
+                lim_ka = s.ka_max_step_rel * self.k_a if self.k_a > 0 else None
+                self.k_a = max(0.0, _bounded(self.k_a, self.k_a + s.gain * (est.k_a - self.k_a), lim_ka))
+            self._last_action = "hold"
+            return Decision("hold", self.k_fc, self.k_v, self.k_a, "uncertain",
+                            f"K_fc sigma {est.k_fc_sigma:.3g} V > {s.max_sigma_rel:.0%} of {est.k_fc:.4g} V: held")
         lim_fc = max(s.max_step_rel * self.k_fc, s.max_step_abs)
         target = self.k_fc + s.gain * (est.k_fc - self.k_fc)
         self.k_fc = max(0.0, _bounded(self.k_fc, target, lim_fc))
