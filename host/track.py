@@ -37,6 +37,11 @@ TRACK_DEFAULTS = {
     "drive": copy.deepcopy(_CFG_DEFAULTS["drive"]),
     "track": {
         "tasks": 100,                 # repetitions to run (each one task run on the drive)
+        # repetitions played before the recorded one in each run: 1 makes the recorded one
+        # start from the task's periodic state whatever the host's pause between runs (a
+        # drive in real time); 0 records every repetition (a simulated drive in free-run
+        # pauses nothing between runs: its repetitions are back to back)
+        "settle_repetitions": 1,
         "task": {"mode": "back_and_forth", "distance_rad": 1.0, "v_max": 4.0, "a_max": 40.0,
                  "jerk": 800.0, "dwell_s": 0.2},
         # gains at the start; None: the drive's present K_fc / K_v
@@ -48,6 +53,7 @@ TRACK_DEFAULTS = {
                    if f != "update_kv"},
         "poll_s": 0.02,               # run state poll interval while waiting [s]
         "write_deadband_rel": 0.002,  # gains are written when they move by more than this
+        "progress_pdo_off": True,     # switch the run-progress TPDO (0x1801) off while tracking
         # one sine experiment at the end: the paper's odd-harmonic ratio at the tracked K_fc
         "check": {"enabled": False, "frequency_hz": 0.625, "amplitude_rad": 0.5,
                   "period_samples": 4096, "periods": 2, "settle_periods": 2, "harmonics": 7},
@@ -66,6 +72,7 @@ def validate_track_config(raw, path):
     cfg = _merge(TRACK_DEFAULTS, raw, path, "")
     t = "track"
     _number(cfg, path, f"{t}.tasks", low=1, high=100000, integer=True)
+    _number(cfg, path, f"{t}.settle_repetitions", low=0, high=100, integer=True)
     _choice(cfg, path, f"{t}.task.mode", tuple(TASK_MODES))
     for key, high in (("distance_rad", 1000.0), ("v_max", 1e4), ("a_max", 1e6), ("jerk", 1e9)):
         _number(cfg, path, f"{t}.task.{key}", low=0.0, low_inclusive=False, high=high)
@@ -87,6 +94,7 @@ def validate_track_config(raw, path):
     _number(cfg, path, f"{t}.poll_s", low=0.001, high=10.0)
     _number(cfg, path, f"{t}.write_deadband_rel", low=0.0, high=0.1)
     _bool(cfg, path, f"{t}.check.enabled")
+    _bool(cfg, path, f"{t}.progress_pdo_off")
     _number(cfg, path, f"{t}.check.frequency_hz", low=0.0, low_inclusive=False)
     _number(cfg, path, f"{t}.check.amplitude_rad", low=0.0, low_inclusive=False, high=1000.0)
     _number(cfg, path, f"{t}.check.period_samples", low=16, high=8192, integer=True)
@@ -175,14 +183,14 @@ class TaskDrive:
         self.c = client
         self.cfg = cfg
         self.design_raw = None
-        self.counter = None
         self.fs = float(client.get("fs"))
         self.sim = 0x2100 in client.node.object_dictionary
 
     def configure(self):
         task = self.cfg["track"]["task"]
+        self.settle = self.cfg["track"]["settle_repetitions"]
         self.c.set_parameters({
-            "exc_kind": 0, "exc_settle_periods": 0, "exc_record_periods": 1, "rec_signals": 0,
+            "exc_kind": 0, "exc_settle_periods": self.settle, "exc_record_periods": 1, "rec_signals": 0,
             "stat_harmonics": 0, "stat_power": 0, "stat_line_mode": 0,
             "task_distance": task["distance_rad"], "task_v_max": task["v_max"],
             "task_a_max": task["a_max"], "task_jerk": task["jerk"], "task_dwell": task["dwell_s"],
@@ -194,22 +202,23 @@ class TaskDrive:
         self.task_s = self.period / self.fs
 
     def run_task(self):
-        """One repetition; returns the TaskStats. Polls the run state every poll_s (the run
-        counter only once the state says done: it tells this run's end from the last one's)."""
-        if self.counter is None:
-            self.counter = int(self.c.get("run_counter"))
-        counter0 = self.counter
+        """One run (settle_repetitions + 1 repetitions); returns the TaskStats. Looks at the
+        run state after poll_s, then waits for the run's expected end, then polls every
+        poll_s. A start that the drive accepted has left DONE: state 3 is this run's end."""
         self.c._run_active = True
-        self.c.set("run_command", 1)
+        self.c.set("run_command", 1)  # (the drive is SETTLING / RECORDING once this returns)
         t0 = time.monotonic()
         deadline = t0 + self.c.run_timeout_s
         poll = self.cfg["track"]["poll_s"]
+        # a drive in real time takes the run's duration: after one look (a simulated drive
+        # in free-run is done at once) wait for it instead of polling the bus all along
+        t_expected = t0 + (self.settle + 1) * self.task_s
+        time.sleep(poll)
+        first = True
         while True:
             state = int(self.c.get("run_state"))
             if state == 3:
-                self.counter = int(self.c.get("run_counter"))
-                if self.counter != counter0:
-                    break
+                break
             if state in (0, 4, 5):
                 self.c._run_active = False
                 reason = int(self.c.get("run_last_error"))
@@ -219,7 +228,8 @@ class TaskDrive:
                 self.c.set("run_command", 2)
                 raise FftuneError(f"task run did not finish within {self.c.run_timeout_s:g} s; aborted it")
             self.c._check_heartbeat()
-            time.sleep(poll)
+            time.sleep(max(poll, t_expected - time.monotonic()) if first else poll)
+            first = False
         self.c._run_active = False
         if self.design_raw is None:  # the design part depends on the task only
             self.design_raw = self.c._block_upload(0x2062, 0)
@@ -273,16 +283,48 @@ def track_session(client, cfg, out, log=print, figures=True):
     on_drive = {"kfc": k_fc, "kv": k_v, "task_ka": k_a}
     client.set_parameters(on_drive)
     counter = BusCounter(client.network)
+    pdo_saved = _progress_pdo_off(client) if tc["progress_pdo_off"] else None
+    try:
+        return _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counter, k_fc, k_v, k_a)
+    finally:
+        if pdo_saved is not None:
+            try:
+                client.write(*PROGRESS_TPDO, pdo_saved)
+            except FftuneError:
+                pass  # the drive went away: nothing to restore
+
+
+# The drive's run state / progress TPDO (od.yaml's second TPDO: 0x2010:2, 0x2010:3, every 50 ms
+# while a run is active); the host polls the run state by SDO and does not use it.
+PROGRESS_TPDO = (0x1801, 1)
+
+
+def _progress_pdo_off(client):
+    """Switch the progress TPDO off for the session (COB-ID bit 31); returns the COB-ID to
+    restore, or None if there is no such PDO or it is off already."""
+    if 0x1801 not in client.node.object_dictionary:
+        return None
+    cob = int(client.read(*PROGRESS_TPDO))
+    if cob & 0x80000000:
+        return None
+    client.write(*PROGRESS_TPDO, cob | 0x80000000)
+    return cob
+
+
+def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counter, k_fc, k_v, k_a):
+    tc = cfg["track"]
     rows = []
     stop = None
     t_s = 0.0
+    wall = 0.0
     log(f"fftune track: task of {drive.period} samples ({drive.task_s:.3f} s) x {tc['tasks']}, "
         f"start K_fc {k_fc:.5g} V, K_v {k_v:.5g} V s/rad, K_a {k_a:.5g} V s^2/rad")
     for task in range(tc["tasks"]):
         f0, b0 = counter.snapshot()
+        w0 = time.monotonic()
         gains = (on_drive["kfc"], on_drive["kv"], on_drive["task_ka"])
         stats = drive.run_task()
-        t_s += drive.task_s
+        t_s += (drive.settle + 1) * drive.task_s
         try:
             est = estimate_task(stats, k_v_hold=tracker.k_v, hold_k_v=not tc["track_k_v"])
         except NotIdentifiable as exc:
@@ -299,6 +341,7 @@ def track_session(client, cfg, out, log=print, figures=True):
             client.set_parameters(changes)
             on_drive.update(changes)
         f1, b1 = counter.snapshot()
+        wall += time.monotonic() - w0
         fc_true, fv_true = drive.truth()  # (simulation only; not counted as task traffic)
         ok = not isinstance(est, NotIdentifiable)
         row = {"task": task, "t_s": _f(t_s), "k_fc": _f(gains[0]),
@@ -329,13 +372,21 @@ def track_session(client, cfg, out, log=print, figures=True):
     bits = [r["bus_bits"] for r in rows[1:]] or [rows[0]["bus_bits"]]
     bus = {"bitrate": tc["bus_bitrate"], "bits_per_task_max": max(bits), "task_s": _f(drive.task_s),
            "first_task_bits": rows[0]["bus_bits"],
-           "task_traffic_load": _f(max(bits) / (drive.task_s * tc["bus_bitrate"])),
+           "task_traffic_load": _f(max(bits) / ((drive.settle + 1) * drive.task_s * tc["bus_bitrate"])),
            "heartbeat_load": _f(2 * frame_bits(1) / (cfg["drive"]["heartbeat_ms"] / 1000.0)
                                 / tc["bus_bitrate"]) if cfg["drive"]["heartbeat_ms"] else 0.0,
+           # every frame on the bus during the tasks (the drive's PDOs and heartbeat included)
+           # over their wall time, plus the host's heartbeat: a measurement only when the drive
+           # runs in real time (drive_sim --realtime, a real drive)
+           "measured_load": (_f((sum(r["bus_bits"] for r in rows) / wall
+                                 + (frame_bits(1) / (cfg["drive"]["heartbeat_ms"] / 1000.0)
+                                    if cfg["drive"]["heartbeat_ms"] else 0.0)) / tc["bus_bitrate"])
+                             if wall >= 0.8 * len(rows) * drive.task_s else None),
            "note": "task_traffic_load: the largest task's frames after the first (SDO: start, polls, "
                    "statistics upload, gain writes; worst-case bit stuffing) over its duration at fs; "
                    "the first task also uploads the design part (first_task_bits); "
-                   "heartbeat_load: host and drive heartbeats"}
+                   "heartbeat_load: host and drive heartbeats; measured_load: all frames during the "
+                   "tasks over their wall time (null unless the drive ran in real time)"}
     check = None
     if tc["check"]["enabled"] and stop is None:
         log("fftune track: odd-ratio check (one sine experiment) at the tracked gains")
@@ -393,6 +444,9 @@ def summary_lines(results, out):
     lines.append(f"  bus: at most {s['bus']['bits_per_task_max']} bits per task = "
                  f"{100 * s['bus']['task_traffic_load']:.2f} % of {s['bus']['bitrate']} bit/s "
                  f"(+ heartbeats {100 * s['bus']['heartbeat_load']:.2f} %)")
+    if s["bus"]["measured_load"] is not None:
+        lines.append(f"  bus measured in real time (all frames, PDOs and heartbeats included): "
+                     f"{100 * s['bus']['measured_load']:.2f} %")
     rb = sum(1 for r in rows if r["action"] == "rollback")
     if rb:
         lines.append(f"  rollbacks: {rb}")

@@ -15,7 +15,8 @@ REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
 def _config(tmp_path, plant, tasks=14, **track):
     cfg = {"output": str(tmp_path / "out"), "sim": {"plant": plant},
            "drive": {"heartbeat_ms": 250},
-           "track": dict({"tasks": tasks, "initial": {"k_fc": 0.1157, "k_v": 0.002, "k_a": 0.0}}, **track)}
+           "track": dict({"tasks": tasks, "settle_repetitions": 0,
+                          "initial": {"k_fc": 0.1157, "k_v": 0.002, "k_a": 0.0}}, **track)}
     path = tmp_path / "track.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return str(path)
@@ -83,3 +84,4 @@ def test_frame_bits_and_defaults():
     cfg = load_track_config(os.path.join(REPO, "configs", "track_demo.yaml"))
     assert cfg["track"]["task"]["mode"] == "back_and_forth" and cfg["track"]["tasks"] == 140
     assert cfg["track"]["limits"]["max_step_rel"] == 0.25
+    assert cfg["track"]["settle_repetitions"] == 0 and cfg["track"]["progress_pdo_off"] is True
