@@ -307,3 +307,28 @@ def test_tracking_forward_only_task_stops_named():
     rows, decision = run_tracking(TWOMASS, 3, mode=2)
     assert decision.action == "stop" and decision.cause == "no_reversal"
     assert len(rows) == 1
+
+
+def test_task_abort_holds_where_the_reference_is_and_two_repetitions_accumulate():
+    with FwSim(TWOMASS) as sim:
+        sim.configure(task_mode=1, exc_kind=0, exc_settle_periods=0, exc_record_periods=2,
+                      rec_signals=0, kfc=0.1157, task_ka=0.0062, **DEMO_TASK)
+        sim.enable()
+        sim.start()
+        sim.run(700)                        # inside the first move
+        ref = sim.get("MEAS_REFERENCE")
+        assert 0.05 < ref < 0.95
+        sim.set("RUN_COMMAND", 2)
+        assert sim.get("RUN_STATE") == 4
+        sim.run(10)
+        assert sim.get("MEAS_REFERENCE") == pytest.approx(ref, abs=1e-7)   # no jump back to 0
+        sim.start()
+        sim.run_until_idle()
+        st = task_stats(sim)
+        assert st.repetitions == 2 and st.total_samples == 2 * sim.get("TASK_PERIOD")
+        # the design part is the same every repetition: twice one repetition's
+        sim.set("EXC_RECORD_PERIODS", 1)
+        sim.start()
+        sim.run_until_idle()
+        one = task_stats(sim)
+        assert np.allclose(st.design, 2 * one.design, rtol=1e-5, atol=1e-6)
