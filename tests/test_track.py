@@ -144,6 +144,20 @@ def test_plant_drift_step_and_ramp_truth(tmp_path):
         assert sim.truth("SIM_FV_VOLT") == pytest.approx(0.5 * fv0, rel=1e-6)
 
 
+def test_plant_drift_exponential_approach(tmp_path):
+    plant = plant_file(str(tmp_path), drift={"coulomb_exp": -0.2, "coulomb_exp_start_s": 0.5,
+                                             "coulomb_exp_tau_s": 2.0})
+    with FwSim(plant) as sim:
+        fc0 = sim.truth("SIM_FC_VOLT")
+        sim.enable()
+        sim.run(int(0.5 * FS) - 1)
+        assert sim.truth("SIM_FC_VOLT") == pytest.approx(fc0, rel=1e-9)
+        sim.run(int(2.0 * FS) + 1)          # one time constant after the start
+        assert sim.truth("SIM_FC_VOLT") == pytest.approx(fc0 * (1 - 0.2 * (1 - np.exp(-1.0))), rel=1e-3)
+        sim.run(int(20.0 * FS))
+        assert sim.truth("SIM_FC_VOLT") == pytest.approx(0.8 * fc0, rel=1e-3)
+
+
 def test_plant_drift_config_errors(tmp_path):
     bad = plant_file(str(tmp_path), drift={"coulomb_ramp": 0.2, "coulomb_ramp_start_s": 5.0,
                                            "coulomb_ramp_end_s": 1.0})
