@@ -55,7 +55,7 @@ TRACK_DEFAULTS = {
         "write_deadband_rel": 0.002,  # gains are written when they move by more than this
         "progress_pdo_off": True,     # switch the run-progress TPDO (0x1801) off while tracking
         # one sine experiment at the end: the paper's odd-harmonic ratio at the tracked K_fc
-        "check": {"enabled": False, "frequency_hz": 0.625, "amplitude_rad": 0.5,
+        "check": {"enabled": False, "every_tasks": 0, "frequency_hz": 0.625, "amplitude_rad": 0.5,
                   "period_samples": 4096, "periods": 2, "settle_periods": 2, "harmonics": 7},
         "bus_bitrate": 1000000,       # bit/s the bus load is stated against
     },
@@ -94,6 +94,7 @@ def validate_track_config(raw, path):
     _number(cfg, path, f"{t}.poll_s", low=0.001, high=10.0)
     _number(cfg, path, f"{t}.write_deadband_rel", low=0.0, high=0.1)
     _bool(cfg, path, f"{t}.check.enabled")
+    _number(cfg, path, f"{t}.check.every_tasks", low=0, high=100000, integer=True)
     _bool(cfg, path, f"{t}.progress_pdo_off")
     _number(cfg, path, f"{t}.check.frequency_hz", low=0.0, low_inclusive=False)
     _number(cfg, path, f"{t}.check.amplitude_rad", low=0.0, low_inclusive=False, high=1000.0)
@@ -263,7 +264,8 @@ def _odd_check(client, cfg, k_fc, k_v, fs):
     y = rec.signals["motor_angle"].reshape(1, c["periods"], n)
     hos = hosidf(r, y, fs=fs, n_harmonics=c["harmonics"], f0=cycles * fs / n)
     ratio = float(odd_ratio(hos.H, harmonic_orders(c["harmonics"])))
-    return {"k_fc": _f(k_fc), "k_v": _f(k_v), "frequency_hz": _f(cycles * fs / n),
+    return {"duration_s": (c["settle_periods"] + c["periods"]) * n / fs,
+            "k_fc": _f(k_fc), "k_v": _f(k_v), "frequency_hz": _f(cycles * fs / n),
             "amplitude_rad": _f(c["amplitude_rad"]), "odd_ratio": _f(ratio),
             "h1_abs": _f(float(np.abs(hos.H[0])))}
 
@@ -314,6 +316,7 @@ def _progress_pdo_off(client):
 def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counter, k_fc, k_v, k_a):
     tc = cfg["track"]
     rows = []
+    checks = []
     stop = None
     t_s = 0.0
     wall = 0.0
@@ -365,6 +368,15 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
             stop = {"task": task, "cause": decision.cause, "reason": decision.reason}
             log(f"  task {task}: stop ({decision.cause}): {decision.reason}")
             break
+        every = tc["check"]["every_tasks"]
+        if tc["check"]["enabled"] and every and (task + 1) % every == 0 and task != tc["tasks"] - 1:
+            # a periodic check where production allows one sine experiment; then the task again
+            log(f"  task {task}: odd-ratio check (one sine experiment)")
+            check = _odd_check(client, cfg, tracker.k_fc, tracker.k_v, drive.fs)
+            t_s += check.pop("duration_s")
+            checks.append(dict(check, task=task, t_s=_f(t_s)))
+            drive.configure()
+            client.set_parameters(on_drive)
         if task % 10 == 0 or task == tc["tasks"] - 1:
             truth = f", truth {fc_true:.5g} V" if fc_true is not None else ""
             log(f"  task {task}: t {t_s:.1f} s, K_fc {gains[0]:.5g} V, estimate {row['k_fc_estimate']} "
@@ -391,10 +403,12 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
     if tc["check"]["enabled"] and stop is None:
         log("fftune track: odd-ratio check (one sine experiment) at the tracked gains")
         check = _odd_check(client, cfg, tracker.k_fc, tracker.k_v, drive.fs)
+        t_s += check.pop("duration_s")
+        checks.append(dict(check, task=len(rows) - 1, t_s=_f(t_s)))
         log(f"  odd-harmonic ratio {check['odd_ratio']} at K_fc {check['k_fc']} V")
     summary = {"tasks": len(rows), "task_samples": drive.period, "task_s": _f(drive.task_s),
                "k_fc_final": _f(tracker.k_fc), "k_v_final": _f(tracker.k_v), "k_a_final": _f(tracker.k_a),
-               "stop": stop, "bus": bus, "check": check,
+               "stop": stop, "bus": bus, "check": check, "checks": checks,
                "excitation": "the task only (exc_kind 0 during tracking)"}
     if rows and "k_fc_true" in rows[-1]:
         summary["k_fc_true_final"] = rows[-1]["k_fc_true"]

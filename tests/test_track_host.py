@@ -23,8 +23,9 @@ def _config(tmp_path, plant, tasks=14, **track):
 
 
 def test_demo_track_step_rows_bus_and_check(tmp_path, capsys):
-    plant = plant_file(str(tmp_path), drift={"coulomb_step": 0.3, "coulomb_step_time_s": 8.5})
-    cfg = _config(tmp_path, plant, tasks=14, check={"enabled": True, "periods": 1, "settle_periods": 1})
+    plant = plant_file(str(tmp_path), drift={"coulomb_step": 0.3, "coulomb_step_time_s": 13.0})
+    cfg = _config(tmp_path, plant, tasks=14,
+                  check={"enabled": True, "every_tasks": 7, "periods": 1, "settle_periods": 1})
     assert main(["demo-track", "--config", cfg, "--no-progress"]) == 0
     out = tmp_path / "out"
     res = yaml.safe_load((out / "results.yaml").read_text())
@@ -34,7 +35,8 @@ def test_demo_track_step_rows_bus_and_check(tmp_path, capsys):
         assert key in rows[-1]
     assert [r["task"] for r in rows] == list(range(14))
     assert rows[1]["t_s"] == pytest.approx(2 * 3072 / 2560.0, rel=1e-5)
-    step = next(r["task"] for r in rows if r["t_s"] > 8.5)
+    step = next(r["task"] for r in rows if r["t_s"] > 13.0)
+    assert step == 8   # (tasks of 1.2 s, the check after task 6 takes 3.2 s)
     assert rows[step]["k_fc_true"] == pytest.approx(1.3 * 0.1157, rel=1e-4)
     for r in rows:
         err = (r["k_fc"] - r["k_fc_true"]) / r["k_fc_true"]
@@ -48,6 +50,11 @@ def test_demo_track_step_rows_bus_and_check(tmp_path, capsys):
     assert 0 < s["bus"]["task_traffic_load"] + s["bus"]["heartbeat_load"] < 0.01
     assert s["bus"]["first_task_bits"] > s["bus"]["bits_per_task_max"]
     assert s["check"]["odd_ratio"] < 0.015          # the paper's level after tuning: 1.5 %
+    # one periodic check after task 6 (its sine takes 2 x 4096 samples of the drive's time)
+    # and the one at the end
+    assert [c["task"] for c in s["checks"]] == [6, 13]
+    assert rows[7]["t_s"] - rows[6]["t_s"] == pytest.approx(1.2 + 2 * 4096 / 2560.0, rel=1e-4)
+    assert all(c["odd_ratio"] < 0.015 for c in s["checks"])
     assert (out / "track_kfc.png").stat().st_size > 10000
     text = capsys.readouterr().out
     assert "final K_fc" in text and "bus:" in text
