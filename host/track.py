@@ -206,6 +206,7 @@ class TaskDrive:
         """One run (settle_repetitions + 1 repetitions); returns the TaskStats. Looks at the
         run state after poll_s, then waits for the run's expected end, then polls every
         poll_s. A start that the drive accepted has left DONE: state 3 is this run's end."""
+        boots0 = self.c._bootups
         self.c._run_active = True
         self.c.set("run_command", 1)  # (the drive is SETTLING / RECORDING once this returns)
         t0 = time.monotonic()
@@ -218,6 +219,8 @@ class TaskDrive:
         first = True
         while True:
             state = int(self.c.get("run_state"))
+            if self.c._bootups != boots0:
+                raise FftuneError(f"node {self.c.opts.node_id} rebooted during a task run (boot-up seen)")
             if state == 3:
                 break
             if state in (0, 4, 5):
