@@ -42,6 +42,9 @@ TRACK_DEFAULTS = {
         # drive in real time); 0 records every repetition (a simulated drive in free-run
         # pauses nothing between runs: its repetitions are back to back)
         "settle_repetitions": 1,
+        # repetitions recorded per run: one estimate and update from their sums (more:
+        # less noise, fewer pauses between runs, slower tracking)
+        "record_repetitions": 1,
         "task": {"mode": "back_and_forth", "distance_rad": 1.0, "v_max": 4.0, "a_max": 40.0,
                  "jerk": 800.0, "dwell_s": 0.2},
         # gains at the start; None: the drive's present K_fc / K_v
@@ -73,6 +76,7 @@ def validate_track_config(raw, path):
     t = "track"
     _number(cfg, path, f"{t}.tasks", low=1, high=100000, integer=True)
     _number(cfg, path, f"{t}.settle_repetitions", low=0, high=100, integer=True)
+    _number(cfg, path, f"{t}.record_repetitions", low=1, high=100, integer=True)
     _choice(cfg, path, f"{t}.task.mode", tuple(TASK_MODES))
     for key, high in (("distance_rad", 1000.0), ("v_max", 1e4), ("a_max", 1e6), ("jerk", 1e9)):
         _number(cfg, path, f"{t}.task.{key}", low=0.0, low_inclusive=False, high=high)
@@ -190,8 +194,10 @@ class TaskDrive:
     def configure(self):
         task = self.cfg["track"]["task"]
         self.settle = self.cfg["track"]["settle_repetitions"]
+        self.record = self.cfg["track"]["record_repetitions"]
         self.c.set_parameters({
-            "exc_kind": 0, "exc_settle_periods": self.settle, "exc_record_periods": 1, "rec_signals": 0,
+            "exc_kind": 0, "exc_settle_periods": self.settle, "exc_record_periods": self.record,
+            "rec_signals": 0,
             "stat_harmonics": 0, "stat_power": 0, "stat_line_mode": 0,
             "task_distance": task["distance_rad"], "task_v_max": task["v_max"],
             "task_a_max": task["a_max"], "task_jerk": task["jerk"], "task_dwell": task["dwell_s"],
@@ -201,9 +207,10 @@ class TaskDrive:
             raise FftuneError(f"{self.cfg['_source']}: key 'track.task': the drive makes no task of it "
                               f"(a repetition must hold 64 .. 2^24 samples at {self.fs:g} Hz)")
         self.task_s = self.period / self.fs
+        self.run_s = (self.settle + self.record) * self.task_s  # one row: a run of the drive
 
     def run_task(self):
-        """One run (settle_repetitions + 1 repetitions); returns the TaskStats. Looks at the
+        """One run (settle_repetitions + record_repetitions); returns the TaskStats. Looks at the
         run state after poll_s, then waits for the run's expected end, then polls every
         poll_s. A start that the drive accepted has left DONE: state 3 is this run's end."""
         boots0 = self.c._bootups
@@ -214,7 +221,7 @@ class TaskDrive:
         poll = self.cfg["track"]["poll_s"]
         # a drive in real time takes the run's duration: after one look (a simulated drive
         # in free-run is done at once) wait for it instead of polling the bus all along
-        t_expected = t0 + (self.settle + 1) * self.task_s
+        t_expected = t0 + self.run_s
         time.sleep(poll)
         first = True
         while True:
@@ -238,7 +245,11 @@ class TaskDrive:
         if self.design_raw is None:  # the design part depends on the task only
             self.design_raw = self.c._block_upload(0x2062, 0)
         data_raw = self.c._block_upload(0x2061, 0)
-        return parse_task_stats(self.design_raw, data_raw)
+        stats = parse_task_stats(self.design_raw, data_raw)
+        if stats.repetitions != self.record or stats.samples != self.period:
+            raise FftuneError(f"task statistics from node {self.c.opts.node_id}: {stats.repetitions} repetitions "
+                              f"of {stats.samples} samples, the run recorded {self.record} of {self.period}")
+        return stats
 
     def truth(self):
         if not self.sim:
@@ -323,14 +334,15 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
     stop = None
     t_s = 0.0
     wall = 0.0
-    log(f"fftune track: task of {drive.period} samples ({drive.task_s:.3f} s) x {tc['tasks']}, "
+    log(f"fftune track: task of {drive.period} samples ({drive.task_s:.3f} s), {tc['tasks']} runs of "
+        f"{drive.settle} + {drive.record} repetitions (settle + recorded), "
         f"start K_fc {k_fc:.5g} V, K_v {k_v:.5g} V s/rad, K_a {k_a:.5g} V s^2/rad")
     for task in range(tc["tasks"]):
         f0, b0 = counter.snapshot()
         w0 = time.monotonic()
         gains = (on_drive["kfc"], on_drive["kv"], on_drive["task_ka"])
         stats = drive.run_task()
-        t_s += (drive.settle + 1) * drive.task_s
+        t_s += drive.run_s
         try:
             est = estimate_task(stats, k_v_hold=tracker.k_v, hold_k_v=not tc["track_k_v"])
         except NotIdentifiable as exc:
@@ -387,7 +399,7 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
     bits = [r["bus_bits"] for r in rows[1:]] or [rows[0]["bus_bits"]]
     bus = {"bitrate": tc["bus_bitrate"], "bits_per_task_max": max(bits), "task_s": _f(drive.task_s),
            "first_task_bits": rows[0]["bus_bits"],
-           "task_traffic_load": _f(max(bits) / ((drive.settle + 1) * drive.task_s * tc["bus_bitrate"])),
+           "task_traffic_load": _f(max(bits) / (drive.run_s * tc["bus_bitrate"])),
            "heartbeat_load": _f(2 * frame_bits(1) / (cfg["drive"]["heartbeat_ms"] / 1000.0)
                                 / tc["bus_bitrate"]) if cfg["drive"]["heartbeat_ms"] else 0.0,
            # every frame on the bus during the tasks (the drive's PDOs and heartbeat included)
@@ -396,7 +408,7 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
            "measured_load": (_f((sum(r["bus_bits"] for r in rows) / wall
                                  + (frame_bits(1) / (cfg["drive"]["heartbeat_ms"] / 1000.0)
                                     if cfg["drive"]["heartbeat_ms"] else 0.0)) / tc["bus_bitrate"])
-                             if wall >= 0.8 * len(rows) * drive.task_s else None),
+                             if wall >= 0.8 * len(rows) * drive.run_s else None),
            "note": "task_traffic_load: the largest task's frames after the first (SDO: start, polls, "
                    "statistics upload, gain writes; worst-case bit stuffing) over its duration at fs; "
                    "the first task also uploads the design part (first_task_bits); "

@@ -60,6 +60,20 @@ def test_demo_track_step_rows_bus_and_check(tmp_path, capsys):
     assert "final K_fc" in text and "bus:" in text
 
 
+def test_demo_track_settle_and_record_repetitions(tmp_path):
+    """Runs of 1 settle + 2 recorded repetitions: one row per run, its time and the
+    statistics of two repetitions."""
+    cfg = _config(tmp_path, os.path.join(REPO, "configs", "plant_twomass.yaml"), tasks=3,
+                  settle_repetitions=1, record_repetitions=2)
+    assert main(["demo-track", "--config", cfg, "--no-progress", "--no-figures"]) == 0
+    res = yaml.safe_load((tmp_path / "out" / "results.yaml").read_text())
+    rows = res["track"]
+    assert len(rows) == 3
+    assert rows[2]["t_s"] == pytest.approx(3 * 3 * 3072 / 2560.0, rel=1e-5)
+    assert rows[2]["k_fc_true"] == pytest.approx(0.1157, rel=1e-4)
+    assert abs(rows[2]["k_fc_estimate"] / 0.1157 - 1) < 0.02
+
+
 def test_demo_track_forward_task_stops_with_named_cause(tmp_path, capsys):
     cfg = _config(tmp_path, os.path.join(REPO, "configs", "plant_twomass.yaml"), tasks=5,
                   task={"mode": "forward", "distance_rad": 0.5})
