@@ -346,3 +346,27 @@ def test_task_abort_holds_where_the_reference_is_and_two_repetitions_accumulate(
         sim.run_until_idle()
         one = task_stats(sim)
         assert np.allclose(st.design, 2 * one.design, rtol=1e-5, atol=1e-6)
+
+
+def test_task_latches_each_repetition_while_running():
+    with FwSim(TWOMASS) as sim:
+        sim.configure(task_mode=1, exc_kind=0, exc_settle_periods=1, exc_record_periods=3,
+                      rec_signals=0, kfc=0.1157, task_ka=0.0062, **DEMO_TASK)
+        sim.enable()
+        n = sim.get("TASK_PERIOD")
+        sim.start()
+        sim.run(n + n // 2)                      # settle repetition + half of the first recorded
+        assert sim.get("TASK_LATCHED") == 0
+        sim.run(n)                               # the first recorded one is complete
+        assert sim.get("TASK_LATCHED") == 1
+        first = task_stats(sim, last=True)
+        assert first.repetitions == 1 and first.samples == n
+        sim.run_until_idle()
+        assert sim.get("TASK_LATCHED") == 3
+        last, run = task_stats(sim, last=True), task_stats(sim)
+        assert last.repetitions == 3 and run.repetitions == 3
+        # the same reference each repetition: the design parts agree, the run's is three of them
+        assert np.allclose(last.design, first.design, rtol=1e-6, atol=1e-6)
+        assert np.allclose(run.design, 3 * last.design, rtol=1e-5, atol=1e-5)
+        # the data of two repetitions: close (the same task, the periodic state)
+        assert np.allclose(last.data[:, :4], first.data[:, :4], rtol=0.05, atol=0.5)

@@ -16,24 +16,26 @@ TWOMASS = os.path.join(REPO, "configs", "plant_twomass.yaml")
 DEMO_TASK = dict(task_distance=1.0, task_v_max=4.0, task_a_max=40.0, task_jerk=800.0, task_dwell=0.2)
 
 
-def task_stats_bytes(sim, design):
-    """Object 0x2062 (design=True) or 0x2061 as bytes, straight from the drive core."""
+def task_stats_bytes(sim, design, last=False):
+    """Object 0x2062 (design=True) or 0x2061 as bytes, straight from the drive core;
+    last=True: 0x2064 / 0x2063 (the last latched repetition)."""
     lib = sim.lib
     lib.drv_task_stats_size_bytes.restype = ctypes.c_uint32
-    lib.drv_task_stats_size_bytes.argtypes = [ctypes.c_void_p, ctypes.c_bool]
+    lib.drv_task_stats_size_bytes.argtypes = [ctypes.c_void_p, ctypes.c_uint32]
     lib.drv_task_stats_read.restype = ctypes.c_int
-    lib.drv_task_stats_read.argtypes = [ctypes.c_void_p, ctypes.c_bool, ctypes.c_uint32, ctypes.c_char_p,
+    lib.drv_task_stats_read.argtypes = [ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_char_p,
                                         ctypes.c_uint32]
-    n = lib.drv_task_stats_size_bytes(sim.drv, design)
+    part = (1 if design else 0) + (2 if last else 0)
+    n = lib.drv_task_stats_size_bytes(sim.drv, part)
     buf = ctypes.create_string_buffer(n)
-    st = lib.drv_task_stats_read(sim.drv, design, 0, buf, n)
+    st = lib.drv_task_stats_read(sim.drv, part, 0, buf, n)
     if st != 0:
         raise RuntimeError(f"drv_task_stats_read: status {st}")
     return buf.raw[:n]
 
 
-def task_stats(sim):
-    return parse_task_stats(task_stats_bytes(sim, True), task_stats_bytes(sim, False))
+def task_stats(sim, last=False):
+    return parse_task_stats(task_stats_bytes(sim, True, last), task_stats_bytes(sim, False, last))
 
 
 def plant_file(tmp_dir, name="plant.yaml", base=TWOMASS, sensor=None, drift=None):

@@ -794,6 +794,7 @@ static drv_status_t drv_task_get_u32(const drv_t *drv, drv_param_id_t id, uint32
     case DRV_P_TASK_MODE: *value = drv->task.mode; return DRV_OK;
     case DRV_P_TASK_PERIOD: *value = task_period(&drv->task); return DRV_OK;
     case DRV_P_TASK_BLOCKS: *value = TASK_BLOCKS; return DRV_OK;
+    case DRV_P_TASK_LATCHED: *value = drv->task.latched; return DRV_OK;
     default: return DRV_E_NO_PARAM;
     }
 }
@@ -875,13 +876,21 @@ static void drv_task_end(drv_t *drv, float reference)
     }
 }
 
-uint32_t drv_task_stats_size_bytes(const drv_t *drv, bool design)
+uint32_t drv_task_stats_size_bytes(const drv_t *drv, uint32_t part)
 {
-    return design ? task_design_size_bytes(&drv->task) : task_data_size_bytes(&drv->task);
+    return (part == DRV_TASK_DESIGN || part == DRV_TASK_LAST_DESIGN) ? task_design_size_bytes(&drv->task)
+                                                                   : task_data_size_bytes(&drv->task);
 }
 
-drv_status_t drv_task_stats_read(const drv_t *drv, bool design, uint32_t offset, uint8_t *dst, uint32_t len)
+drv_status_t drv_task_stats_read(const drv_t *drv, uint32_t part, uint32_t offset, uint8_t *dst, uint32_t len)
 {
-    int r = design ? task_design_read(&drv->task, offset, dst, len) : task_data_read(&drv->task, offset, dst, len);
+    int r;
+    switch (part) {
+    case DRV_TASK_DATA: r = task_data_read(&drv->task, offset, dst, len); break;
+    case DRV_TASK_DESIGN: r = task_design_read(&drv->task, offset, dst, len); break;
+    case DRV_TASK_LAST_DATA: r = task_latch_data_read(&drv->task, offset, dst, len); break;
+    case DRV_TASK_LAST_DESIGN: r = task_latch_design_read(&drv->task, offset, dst, len); break;
+    default: return DRV_E_NO_PARAM;
+    }
     return r == 0 ? DRV_OK : DRV_E_LENGTH;
 }

@@ -183,15 +183,37 @@ task_status_t task_begin(task_t *t)
     t->rk = 0u;
     t->reps = 0u;
     t->blk_end = t->n_rep / TASK_BLOCKS;
+    t->latched = 0u;
     for (uint32_t b = 0u; b < TASK_BLOCKS; b++) {
         for (uint32_t i = 0u; i < TASK_DESIGN_SUMS; i++) {
             t->design[b][i] = 0.0f;
+            t->rep_design[b][i] = 0.0f;
+            t->latch_design[b][i] = 0.0f;
         }
         for (uint32_t i = 0u; i < TASK_DATA_SUMS; i++) {
             t->data[b][i] = 0.0f;
+            t->rep_data[b][i] = 0.0f;
+            t->latch_data[b][i] = 0.0f;
         }
     }
     return TASK_OK;
+}
+
+void task_latch(task_t *t)
+{
+    for (uint32_t b = 0u; b < TASK_BLOCKS; b++) {
+        for (uint32_t i = 0u; i < TASK_DESIGN_SUMS; i++) {
+            t->design[b][i] += t->rep_design[b][i];
+            t->latch_design[b][i] = t->rep_design[b][i];
+            t->rep_design[b][i] = 0.0f;
+        }
+        for (uint32_t i = 0u; i < TASK_DATA_SUMS; i++) {
+            t->data[b][i] += t->rep_data[b][i];
+            t->latch_data[b][i] = t->rep_data[b][i];
+            t->rep_data[b][i] = 0.0f;
+        }
+    }
+    t->latched++;
 }
 
 static void task_put_u32(uint8_t *dst, uint32_t v)
@@ -212,8 +234,9 @@ static void task_put_f32(uint8_t *dst, float f)
     task_put_u32(dst, c.u);
 }
 
-/* byte i of a stream of header + blocks x m sums of `sums` */
-static int task_read(const task_t *t, const float *sums, uint32_t m, uint32_t offset, uint8_t *dst, uint32_t len)
+/* byte i of a stream of header (count, samples) + blocks x m sums of `sums` */
+static int task_read(const task_t *t, uint32_t count, const float *sums, uint32_t m, uint32_t offset, uint8_t *dst,
+                     uint32_t len)
 {
     uint32_t size = TASK_HEADER_BYTES + 4u * TASK_BLOCKS * m;
     if (offset > size || len > size - offset || (dst == (uint8_t *)0 && len != 0u)) {
@@ -224,7 +247,7 @@ static int task_read(const task_t *t, const float *sums, uint32_t m, uint32_t of
         uint8_t w[4];
         uint32_t word = pos / 4u;
         if (word == 0u) {
-            task_put_u32(w, t->reps);
+            task_put_u32(w, count);
         } else if (word == 1u) {
             task_put_u32(w, t->n_rep);
         } else {
@@ -243,7 +266,17 @@ uint32_t task_design_size_bytes(const task_t *t)
 
 int task_design_read(const task_t *t, uint32_t offset, uint8_t *dst, uint32_t len)
 {
-    return task_read(t, &t->design[0][0], TASK_DESIGN_SUMS, offset, dst, len);
+    return task_read(t, t->reps, &t->design[0][0], TASK_DESIGN_SUMS, offset, dst, len);
+}
+
+int task_latch_design_read(const task_t *t, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    return task_read(t, t->latched, &t->latch_design[0][0], TASK_DESIGN_SUMS, offset, dst, len);
+}
+
+int task_latch_data_read(const task_t *t, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    return task_read(t, t->latched, &t->latch_data[0][0], TASK_DATA_SUMS, offset, dst, len);
 }
 
 uint32_t task_data_size_bytes(const task_t *t)
@@ -254,5 +287,5 @@ uint32_t task_data_size_bytes(const task_t *t)
 
 int task_data_read(const task_t *t, uint32_t offset, uint8_t *dst, uint32_t len)
 {
-    return task_read(t, &t->data[0][0], TASK_DATA_SUMS, offset, dst, len);
+    return task_read(t, t->reps, &t->data[0][0], TASK_DATA_SUMS, offset, dst, len);
 }

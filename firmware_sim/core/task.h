@@ -17,7 +17,8 @@
  * regressors phi = [p, n, v_r, a_r] (p = max(s, 0), n = min(s, 0), s the feed-forward's
  * sign of v_r) with themselves (the design part: 9 sums, p n = 0) and with the plant input
  * u, plus sum e^2 and sum u^2 (the data part: 6 sums). The host solves for the friction
- * (fftune.analysis.track). Byte streams: task_design_read / task_data_read.
+ * (fftune.analysis.track). Byte streams: task_design_read / task_data_read (the run's
+ * recorded repetitions), task_latch_*_read (the last one alone, while the run goes on).
  */
 #ifndef TASK_H
 #define TASK_H
@@ -57,6 +58,14 @@ typedef struct {
     uint32_t reps;           /* recorded repetitions accumulated */
     float design[TASK_BLOCKS][TASK_DESIGN_SUMS];
     float data[TASK_BLOCKS][TASK_DATA_SUMS];
+    /* the last completed recorded repetition alone (latched at its end, readable while the
+     * run goes on: continuous tracking); its sums are those accumulated since the previous
+     * latch, kept in rep_* */
+    uint32_t latched;        /* repetitions latched in this run */
+    float rep_design[TASK_BLOCKS][TASK_DESIGN_SUMS];
+    float rep_data[TASK_BLOCKS][TASK_DATA_SUMS];
+    float latch_design[TASK_BLOCKS][TASK_DESIGN_SUMS];
+    float latch_data[TASK_BLOCKS][TASK_DATA_SUMS];
 } task_t;
 
 void task_init(task_t *t, float fs_hz);
@@ -118,15 +127,19 @@ static inline void task_next(task_t *t, float *w, float *w_dot, float *u_acc)
     }
 }
 
+/* End of a recorded repetition: its own sums become the latched record (task.c). */
+void task_latch(task_t *t);
+
 /* One recorded sample: s the feed-forward's sign of the velocity of the sample task_next
- * returned last, u the plant input [V], e the tracking error [rad]. */
+ * returned last, u the plant input [V], e the tracking error [rad]. The run's sums are those
+ * of the latched repetitions plus the present one (task_latch adds them up). */
 static inline void task_push(task_t *t, float s, float u, float e)
 {
     const float v = t->v_last, a = t->a_last;
     const float p = s > 0.0f ? s : 0.0f;
     const float n = s < 0.0f ? s : 0.0f;
-    float *d = t->design[t->blk];
-    float *x = t->data[t->blk];
+    float *d = t->rep_design[t->blk];
+    float *x = t->rep_data[t->blk];
     d[0] += p * p;
     d[1] += n * n;
     d[2] += p * v;
@@ -147,6 +160,7 @@ static inline void task_push(task_t *t, float s, float u, float e)
             t->rk = 0u;
             t->blk = 0u;
             t->reps++;
+            task_latch(t);
         } else {
             t->blk++;
         }
@@ -161,5 +175,8 @@ uint32_t task_design_size_bytes(const task_t *t);
 int task_design_read(const task_t *t, uint32_t offset, uint8_t *dst, uint32_t len);
 uint32_t task_data_size_bytes(const task_t *t);
 int task_data_read(const task_t *t, uint32_t offset, uint8_t *dst, uint32_t len);
+/* The same layout for the last latched repetition (header: u32 latched count, u32 samples). */
+int task_latch_design_read(const task_t *t, uint32_t offset, uint8_t *dst, uint32_t len);
+int task_latch_data_read(const task_t *t, uint32_t offset, uint8_t *dst, uint32_t len);
 
 #endif /* TASK_H */
