@@ -45,6 +45,10 @@ TRACK_DEFAULTS = {
         # repetitions recorded per run: one estimate and update from their sums (more:
         # less noise, fewer pauses between runs, slower tracking)
         "record_repetitions": 1,
+        # true: one run of `tasks` repetitions, the drive latches each one's statistics and
+        # the host reads them while the task goes on (a drive in real time; no pause between
+        # repetitions, settle_repetitions only at the start); false: one run per row
+        "continuous": False,
         "task": {"mode": "back_and_forth", "distance_rad": 1.0, "v_max": 4.0, "a_max": 40.0,
                  "jerk": 800.0, "dwell_s": 0.2},
         # gains at the start; None: the drive's present K_fc / K_v
@@ -77,6 +81,11 @@ def validate_track_config(raw, path):
     _number(cfg, path, f"{t}.tasks", low=1, high=100000, integer=True)
     _number(cfg, path, f"{t}.settle_repetitions", low=0, high=100, integer=True)
     _number(cfg, path, f"{t}.record_repetitions", low=1, high=100, integer=True)
+    _bool(cfg, path, f"{t}.continuous")
+    if cfg[t]["continuous"] and cfg[t]["tasks"] > 1000:
+        raise _err(path, f"{t}.tasks", f"continuous: at most 1000 repetitions in one run, got {cfg[t]['tasks']}")
+    if cfg[t]["continuous"] and cfg[t]["record_repetitions"] != 1:
+        raise _err(path, f"{t}.record_repetitions", "continuous: each repetition is read on its own (1)")
     _choice(cfg, path, f"{t}.task.mode", tuple(TASK_MODES))
     for key, high in (("distance_rad", 1000.0), ("v_max", 1e4), ("a_max", 1e6), ("jerk", 1e9)):
         _number(cfg, path, f"{t}.task.{key}", low=0.0, low_inclusive=False, high=high)
@@ -208,6 +217,8 @@ class TaskDrive:
                               f"(a repetition must hold 64 .. 2^24 samples at {self.fs:g} Hz)")
         self.task_s = self.period / self.fs
         self.run_s = (self.settle + self.record) * self.task_s  # one row: a run of the drive
+        if self.cfg["track"]["continuous"]:
+            self.run_s = self.task_s  # one row: one repetition of the continuous run
 
     def run_task(self):
         """One run (settle_repetitions + record_repetitions); returns the TaskStats. Looks at the
@@ -250,6 +261,59 @@ class TaskDrive:
             raise FftuneError(f"task statistics from node {self.c.opts.node_id}: {stats.repetitions} repetitions "
                               f"of {stats.samples} samples, the run recorded {self.record} of {self.period}")
         return stats
+
+    # ---- continuous: one run of many repetitions, each latched record read while it runs ----
+    def start_continuous(self, repetitions):
+        """Start one run of settle_repetitions + ``repetitions`` recorded repetitions."""
+        self.c.set("exc_record_periods", repetitions)
+        self.c._run_active = True
+        self.c.set("run_command", 1)
+        self.t_run0 = time.monotonic()
+        self.seen = 0
+        self.skipped = 0
+
+    def next_repetition(self):
+        """Wait for the next latched repetition (polls 0x2060:10 from its expected end on);
+        returns its TaskStats (repetitions = the latched count, 1-based index of this one)."""
+        poll = self.cfg["track"]["poll_s"]
+        deadline = time.monotonic() + self.c.run_timeout_s
+        while True:
+            # the next latch one repetition after the last one was seen (the drive's clock,
+            # not the host's: a drive in real time may fall behind the wall clock)
+            t_expected = (self.t_run0 + (self.settle + 1) * self.task_s if self.seen == 0
+                          else self.t_seen + self.task_s - poll)
+            now = time.monotonic()
+            if now < t_expected:
+                time.sleep(max(poll, t_expected - now))
+            latched = int(self.c.get("task_latched"))
+            if latched > self.seen:
+                break
+            if time.monotonic() > t_expected + self.task_s:  # late: is the run still going?
+                state = int(self.c.get("run_state"))
+                if state != 1 and state != 2:
+                    self.c._run_active = False
+                    reason = int(self.c.get("run_last_error"))
+                    raise FftuneError(f"task run stopped by the drive: state {RUN_STATES.get(state, state)}, "
+                                      f"reason {reason} ({STOP_REASONS.get(reason, 'unknown')})")
+            if time.monotonic() > deadline:
+                raise FftuneError(f"no task repetition completed within {self.c.run_timeout_s:g} s")
+            self.c._check_heartbeat()
+            time.sleep(poll)
+        self.t_seen = time.monotonic()
+        if self.design_raw is None:  # one repetition's design part: the same every repetition
+            self.design_raw = self.c._block_upload(0x2064, 0)
+        data_raw = self.c._block_upload(0x2063, 0)  # (a latch under it aborts it: retried)
+        # the design part was read with an earlier count in its header
+        stats = parse_task_stats(data_raw[:8] + self.design_raw[8:], data_raw)
+        if stats.repetitions > self.seen + 1:
+            self.skipped += stats.repetitions - self.seen - 1
+        self.seen = stats.repetitions
+        return stats
+
+    def stop_continuous(self):
+        if self.c._run_active:
+            self.c.set("run_command", 2)  # (the task holds where its reference is)
+            self.c._run_active = False
 
     def truth(self):
         if not self.sim:
@@ -334,15 +398,29 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
     stop = None
     t_s = 0.0
     wall = 0.0
-    log(f"fftune track: task of {drive.period} samples ({drive.task_s:.3f} s), {tc['tasks']} runs of "
-        f"{drive.settle} + {drive.record} repetitions (settle + recorded), "
+    how = (f"one run of {drive.settle} + {tc['tasks']} repetitions (settle + recorded, each read while the "
+           f"next one runs)" if tc["continuous"] else
+           f"{tc['tasks']} runs of {drive.settle} + {drive.record} repetitions (settle + recorded)")
+    log(f"fftune track: task of {drive.period} samples ({drive.task_s:.3f} s), {how}, "
         f"start K_fc {k_fc:.5g} V, K_v {k_v:.5g} V s/rad, K_a {k_a:.5g} V s^2/rad")
-    for task in range(tc["tasks"]):
+    cont = tc["continuous"]
+    if cont:
+        drive.start_continuous(tc["tasks"])
+    task = -1
+    while task + 1 < tc["tasks"]:
         f0, b0 = counter.snapshot()
         w0 = time.monotonic()
         gains = (on_drive["kfc"], on_drive["kv"], on_drive["task_ka"])
-        stats = drive.run_task()
-        t_s += drive.run_s
+        if cont:
+            # the gains written after the last record take effect in the repetition that
+            # follows it (a write during its first move mixes them there)
+            stats = drive.next_repetition()
+            task = stats.repetitions - 1
+            t_s = (drive.settle + stats.repetitions) * drive.task_s
+        else:
+            task += 1
+            stats = drive.run_task()
+            t_s += drive.run_s
         try:
             est = estimate_task(stats, k_v_hold=tracker.k_v, hold_k_v=not tc["track_k_v"])
         except NotIdentifiable as exc:
@@ -380,11 +458,13 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
         if decision.action == "rollback":
             log(f"  task {task}: rollback: {decision.reason}")
         if decision.action == "stop":
+            if cont:
+                drive.stop_continuous()
             stop = {"task": task, "cause": decision.cause, "reason": decision.reason}
             log(f"  task {task}: stop ({decision.cause}): {decision.reason}")
             break
         every = tc["check"]["every_tasks"]
-        if tc["check"]["enabled"] and every and (task + 1) % every == 0 and task != tc["tasks"] - 1:
+        if tc["check"]["enabled"] and every and not cont and (task + 1) % every == 0 and task != tc["tasks"] - 1:
             # a periodic check where production allows one sine experiment; then the task again
             log(f"  task {task}: odd-ratio check (one sine experiment)")
             check = _odd_check(client, cfg, tracker.k_fc, tracker.k_v, drive.fs)
@@ -396,6 +476,11 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
             truth = f", truth {fc_true:.5g} V" if fc_true is not None else ""
             log(f"  task {task}: t {t_s:.1f} s, K_fc {gains[0]:.5g} V, estimate {row['k_fc_estimate']} "
                 f"+- {row['k_fc_sigma']} V{truth}, rms error {row['rms_error']} rad")
+    if cont:
+        drive.stop_continuous()
+        if drive.skipped:
+            log(f"fftune track: {drive.skipped} repetitions completed while the host was busy and were not "
+                f"used (a simulated drive in free-run outruns the host: --realtime)")
     bits = [r["bus_bits"] for r in rows[1:]] or [rows[0]["bus_bits"]]
     bus = {"bitrate": tc["bus_bitrate"], "bits_per_task_max": max(bits), "task_s": _f(drive.task_s),
            "first_task_bits": rows[0]["bus_bits"],
@@ -408,7 +493,8 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
            "measured_load": (_f((sum(r["bus_bits"] for r in rows) / wall
                                  + (frame_bits(1) / (cfg["drive"]["heartbeat_ms"] / 1000.0)
                                     if cfg["drive"]["heartbeat_ms"] else 0.0)) / tc["bus_bitrate"])
-                             if wall >= 0.8 * len(rows) * drive.run_s else None),
+                             if wall >= 0.8 * len(rows) * drive.run_s and not (cont and drive.skipped)
+                             else None),
            "note": "task_traffic_load: the largest task's frames after the first (SDO: start, polls, "
                    "statistics upload, gain writes; worst-case bit stuffing) over its duration at fs; "
                    "the first task also uploads the design part (first_task_bits); "
@@ -422,6 +508,7 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
         checks.append(dict(check, task=len(rows) - 1, t_s=_f(t_s)))
         log(f"  odd-harmonic ratio {check['odd_ratio']} at K_fc {check['k_fc']} V")
     summary = {"tasks": len(rows), "task_samples": drive.period, "task_s": _f(drive.task_s),
+               "continuous": cont, "repetitions_not_used": drive.skipped if cont else 0,
                "k_fc_final": _f(tracker.k_fc), "k_v_final": _f(tracker.k_v), "k_a_final": _f(tracker.k_a),
                "stop": stop, "bus": bus, "check": check, "checks": checks,
                "excitation": "the task only (exc_kind 0 during tracking)"}

@@ -74,6 +74,33 @@ def test_demo_track_settle_and_record_repetitions(tmp_path):
     assert abs(rows[2]["k_fc_estimate"] / 0.1157 - 1) < 0.02
 
 
+def test_demo_track_continuous_in_real_time(tmp_path):
+    """One run: each repetition's latched record read while the next one runs (drive_sim
+    --realtime behind a 1 Mbit/s bus model): every repetition used, bus under 1 %."""
+    cfg = _config(tmp_path, os.path.join(REPO, "configs", "plant_twomass.yaml"), tasks=3,
+                  continuous=True, settle_repetitions=1,
+                  initial={"k_fc": 0.1157, "k_v": 0.002, "k_a": 0.0062})
+    assert main(["demo-track", "--config", cfg, "--no-progress", "--no-figures", "--realtime",
+                 "--bitrate", "1000000"]) == 0
+    res = yaml.safe_load((tmp_path / "out" / "results.yaml").read_text())
+    rows, s = res["track"], res["track_summary"]
+    assert [r["task"] for r in rows] == [0, 1, 2] and s["repetitions_not_used"] == 0
+    assert rows[2]["t_s"] == pytest.approx(4 * 3072 / 2560.0, rel=1e-5)
+    assert abs(rows[2]["k_fc_estimate"] / rows[2]["k_fc_true"] - 1) < 0.02
+    assert 0 < s["bus"]["measured_load"] < 0.01
+
+
+def test_demo_track_continuous_free_run_says_repetitions_were_not_used(tmp_path, capsys):
+    cfg = _config(tmp_path, os.path.join(REPO, "configs", "plant_twomass.yaml"), tasks=3, continuous=True)
+    assert main(["demo-track", "--config", cfg, "--no-progress", "--no-figures"]) == 0
+    res = yaml.safe_load((tmp_path / "out" / "results.yaml").read_text())
+    # the simulated drive in free-run finished all three before the host's first look
+    assert [r["task"] for r in res["track"]] == [2]
+    assert res["track_summary"]["repetitions_not_used"] == 2
+    assert res["track_summary"]["bus"]["measured_load"] is None
+    assert "were not used" in capsys.readouterr().out
+
+
 def test_demo_track_forward_task_stops_with_named_cause(tmp_path, capsys):
     cfg = _config(tmp_path, os.path.join(REPO, "configs", "plant_twomass.yaml"), tasks=5,
                   task={"mode": "forward", "distance_rad": 0.5})
@@ -90,6 +117,8 @@ def test_demo_track_forward_task_stops_with_named_cause(tmp_path, capsys):
     ({"task": {"v_max": 0}}, "key 'track.task.v_max': expected a number > 0.0"),
     ({"limits": {"max_step": 0.1}}, "key 'track.limits.max_step': unknown key"),
     ({"limits": {"rollback_ratio": 1.0}}, "key 'track.limits.rollback_ratio': expected a number > 1.0"),
+    ({"continuous": True, "tasks": 1001}, "key 'track.tasks': continuous: at most 1000 repetitions"),
+    ({"continuous": True, "record_repetitions": 2}, "key 'track.record_repetitions': continuous"),
 ])
 def test_track_config_errors_one_line(tmp_path, capsys, track, msg):
     cfg = _config(tmp_path, "none.yaml", **track)
