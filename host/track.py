@@ -13,6 +13,7 @@ result with the paper's odd-harmonic ratio.
 Estimates and decisions live in fftune.analysis.track; this module drives and records.
 """
 import copy
+import dataclasses
 import math
 import os
 import struct
@@ -274,7 +275,7 @@ class TaskDrive:
 
     def next_repetition(self):
         """Wait for the next latched repetition (polls 0x2060:10 from its expected end on);
-        returns its TaskStats (repetitions = the latched count, 1-based index of this one)."""
+        returns its TaskStats (one repetition) and its 1-based index in the run."""
         poll = self.cfg["track"]["poll_s"]
         deadline = time.monotonic() + self.c.run_timeout_s
         while True:
@@ -305,10 +306,11 @@ class TaskDrive:
         data_raw = self.c._block_upload(0x2063, 0)  # (a latch under it aborts it: retried)
         # the design part was read with an earlier count in its header
         stats = parse_task_stats(data_raw[:8] + self.design_raw[8:], data_raw)
-        if stats.repetitions > self.seen + 1:
-            self.skipped += stats.repetitions - self.seen - 1
-        self.seen = stats.repetitions
-        return stats
+        index = stats.repetitions  # the header counts the repetitions latched; the record is one
+        if index > self.seen + 1:
+            self.skipped += index - self.seen - 1
+        self.seen = index
+        return dataclasses.replace(stats, repetitions=1), index
 
     def stop_continuous(self):
         if self.c._run_active:
@@ -414,9 +416,9 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
         if cont:
             # the gains written after the last record take effect in the repetition that
             # follows it (a write during its first move mixes them there)
-            stats = drive.next_repetition()
-            task = stats.repetitions - 1
-            t_s = (drive.settle + stats.repetitions) * drive.task_s
+            stats, index = drive.next_repetition()
+            task = index - 1
+            t_s = (drive.settle + index) * drive.task_s
         else:
             task += 1
             stats = drive.run_task()

@@ -88,6 +88,9 @@ def test_demo_track_continuous_in_real_time(tmp_path):
     assert rows[2]["t_s"] == pytest.approx(4 * 3072 / 2560.0, rel=1e-5)
     assert abs(rows[2]["k_fc_estimate"] / rows[2]["k_fc_true"] - 1) < 0.02
     assert 0 < s["bus"]["measured_load"] < 0.01
+    # each record is one repetition: the same tracking error as a run of one (5.8 mrad)
+    assert rows[1]["rms_error"] == pytest.approx(rows[2]["rms_error"], rel=0.1)
+    assert 0.004 < rows[2]["rms_error"] < 0.008
 
 
 def test_demo_track_continuous_free_run_says_repetitions_were_not_used(tmp_path, capsys):
