@@ -173,15 +173,19 @@ def _run(args):
 def derived_plant(base_path, overrides, out_path, where="sim.overrides"):
     """Write ``base_path`` with ``overrides`` ({section: {key: number}}) to ``out_path``
     in drive_sim's two-level YAML subset; returns ``out_path``."""
-    import yaml
-
     from fftune.host.atomic import write_atomic
+
+    from fftune.host.config import MAX_CONFIG_BYTES, safe_yaml_load
 
     try:
         with open(base_path, "r", encoding="utf-8") as fh:
-            plant = yaml.safe_load(fh)
+            plant = safe_yaml_load(fh.read(MAX_CONFIG_BYTES + 1), f"plant configuration {base_path}")
     except OSError as exc:
         raise FftuneError(f"plant configuration {base_path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise FftuneError(f"plant configuration {base_path}: not UTF-8 text") from None
+    if not isinstance(plant, dict) or not all(isinstance(v, dict) for v in plant.values()):
+        raise FftuneError(f"plant configuration {base_path}: expected sections of key: value")
     for section, values in overrides.items():
         if section not in plant:
             raise FftuneError(f"{where}.{section}: no section '{section}' in {base_path}")
