@@ -3,6 +3,13 @@ import os
 import tempfile
 
 
+def _umask():
+    """The process's umask (read by setting it and setting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_atomic(path, data, *, overwrite=True):
     """Write ``data`` (bytes or str) to ``path`` via a temporary file and :func:`os.replace`.
 
@@ -12,6 +19,8 @@ def write_atomic(path, data, *, overwrite=True):
     d = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix="-" + os.path.basename(path), dir=d)
     try:
+        # mkstemp makes 0600: the file gets the mode open() would give it (0666 less the umask)
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as fh:
             fh.write(data.encode("utf-8") if isinstance(data, str) else data)
             fh.flush()

@@ -479,8 +479,30 @@ def load_config(path):
     return cfg
 
 
-def check_output_dir(path):
-    """Create ``path`` if needed and prove it writable, before any experiment runs."""
+def check_output_dir(path, create=True):
+    """Prove ``path`` usable as the output directory before any experiment runs.
+
+    With ``create`` (default) the directory is made and a probe file written and removed.
+    With ``create=False`` nothing is made or written: an existing ``path`` must be a
+    writable directory, else its nearest existing parent must be one (the directory is
+    then made with the first file written into it, so a run that fails before its first
+    experiment leaves none behind). Returns the absolute path."""
+    apath = os.path.abspath(path)
+    if not create:
+        if os.path.exists(apath):
+            if not os.path.isdir(apath):
+                raise FftuneError(f"output directory {path}: exists and is not a directory")
+            if not os.access(apath, os.W_OK | os.X_OK):
+                raise FftuneError(f"output directory {path}: not writable")
+            return apath
+        parent = os.path.dirname(apath)
+        while not os.path.exists(parent):
+            parent = os.path.dirname(parent)
+        if not os.path.isdir(parent):
+            raise FftuneError(f"output directory {path}: cannot create it: {parent} is not a directory")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise FftuneError(f"output directory {path}: cannot create it: {parent} is not writable")
+        return apath
     try:
         os.makedirs(path, exist_ok=True)
     except OSError as exc:
@@ -494,4 +516,4 @@ def check_output_dir(path):
         os.remove(probe)
     except OSError as exc:
         raise FftuneError(f"output directory {path}: not writable: {exc.strerror}") from None
-    return os.path.abspath(path)
+    return apath
