@@ -68,7 +68,10 @@ def atomic_write(path, write, *, overwrite=False, suffix=".tmp"):
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise FftuneError(f"{path}: directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=directory)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=directory)
+    except OSError as exc:
+        raise FftuneError(f"{path}: cannot write in {directory} ({exc.strerror or exc})") from None
     os.close(fd)
     try:
         write(tmp)

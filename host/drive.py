@@ -85,6 +85,9 @@ def python_can_config():
     import can
 
     try:
+        sources = (can.rc, can.util.load_environment_config(), can.util.load_file_config())
+        if not any(src.get("interface") or src.get("bustype") for src in sources):
+            return {}           # nothing configured: load_config would refuse interface None
         conf = can.util.load_config()
     except (can.CanError, ValueError, TypeError, KeyError, OSError) as exc:
         raise FftuneError(f"python-can configuration (CAN_INTERFACE / CAN_CHANNEL / CAN_BITRATE "
