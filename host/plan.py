@@ -384,8 +384,8 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
             check(step, key, "peak", peak, a_limit, "rad", a_name)
             if vel is not None:
                 check(step, key, "peak velocity", vel, vel_limit, "rad/s", vel_name)
-        check(step, key, "amplitude object", rms if step == "detect" else peak,
-              lim.amplitude_high, "", "object 0x2001:3 range")
+        check(step, key, "excitation amplitude", rms if step == "detect" else peak,
+              lim.amplitude_high, "", "the range of the drive's object 0x2001:3")
 
     def run_checks(step, c, n_signals):
         n = c["period_samples"]
@@ -491,10 +491,13 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
                   t["viscous"]["k_v_max"] * 2 * math.pi * t["frequency_hz"] * amp, u_max, "V",
                   "u_max: the feed-forward saturates", hard=False)
         run_checks("tune", t, 0 if mode("tune") == "stats" else 4)
-        plan = [p for p in experiment_plan(cfg, fs, lim.lines_capacity or LSTAT_LINES_MAX)
-                if p.step == "tune"] if fs else []
+        runs = t["sweep"]["points"] + t["search"]["max_experiments"] + \
+            (4 if t["amplitude_rad"] == "auto" else 0) + \
+            (t["viscous"]["max_experiments"] + 2 if t["viscous"]["enabled"] else 0)
+        plan = [StepPlan("tune", runs, runs * (t["settle_periods"] + t["periods"]) * n / fs, 0, None)] \
+            if fs else []
         step_rows.append({"step": "tune", "text": (
-            f"at most {plan[0].runs} runs at {t['frequency_hz']:g} Hz, amplitude "
+            f"at most {runs} runs at {t['frequency_hz']:g} Hz, amplitude "
             f"{t['amplitude_rad'] if t['amplitude_rad'] == 'auto' else f'{amp:g} rad'}"
             + (f" (probes up to {amp:g} rad)" if t["amplitude_rad"] == "auto" else "")
             + f", K_fc 0 .. {k_hi:g} V"
