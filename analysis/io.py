@@ -84,8 +84,9 @@ def _meta_from_comment(path, lineno, text):
         if key not in meta:
             continue
         v = meta[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) \
-                or not float(v).is_integer() or not low <= v <= _LAYOUT_MAX:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or \
+                (isinstance(v, float) and not (np.isfinite(v) and v.is_integer())) \
+                or not low <= v <= _LAYOUT_MAX:
             raise InputError(f"{where}: {key} must be an integer {low} .. {_LAYOUT_MAX}, "
                              f"got {_shown(v)}")
     return meta

@@ -132,8 +132,8 @@ def _plan(args):
         checked.notes.append("--offline: checked against the configuration only; run "
                              "`fftune plan` with the drive reachable to check its limits")
     else:
+        client = _client(args, cfg)         # (options and the EDS: errors, not "no drive")
         try:
-            client = _client(args, cfg)
             client.connect()
         except FftuneError as exc:
             checked.notes.append(f"no drive reached ({exc}): checked against the configuration "
