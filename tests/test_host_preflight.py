@@ -13,15 +13,31 @@ from fftune.analysis.errors import FftuneError
 from fftune.host.cli import main
 from fftune.host.config import load_config
 from fftune.host.drive import BusOptions, DriveClient
-from fftune.host.plan import DriveLimits, config_limits, preflight
 from host_fixtures import free_port
 from test_reliability_support import EDS, REPO, needs_drive, start_drive
 
 DEMO = os.path.join(REPO, "configs", "demo.yaml")
+
+
+def preflight(*args, **kwargs):
+    from fftune.host.plan import preflight as check
+    return check(*args, **kwargs)
+
+
+def DriveLimits(**kwargs):
+    from fftune.host.plan import DriveLimits as Limits
+    return Limits(**kwargs)
+
+
+def config_limits(cfg):
+    from fftune.host.plan import config_limits as limits
+    return limits(cfg)
+
+
 # drive_sim's own limits (firmware_sim defaults: u_max 10 V, recorder 4194304 floats, 1024
 # lines, period N <= 8192)
-SIM_LIMITS = DriveLimits(fs_hz=2560.0, u_max_v=10.0, rec_capacity=4194304, lines_capacity=1024,
-                         table_capacity=8192, amplitude_high=1000.0, source="test")
+SIM_LIMITS = dict(fs_hz=2560.0, u_max_v=10.0, rec_capacity=4194304, lines_capacity=1024,
+                  table_capacity=8192, amplitude_high=1000.0, source="test")
 
 
 def _config(tmp_path, changes, drop=(), name="cfg.yaml"):
@@ -55,7 +71,8 @@ def _one_line(capsys, *needles):
 
 
 # ---- the plan against given limits (no drive) ------------------------------------------
-def _refused(tmp_path, changes, limits=SIM_LIMITS, steps=("detect", "quantify", "tune")):
+def _refused(tmp_path, changes, limits=None, steps=("detect", "quantify", "tune")):
+    limits = limits or DriveLimits(**SIM_LIMITS)
     cfg = load_config(_config(tmp_path, changes))
     with pytest.raises(FftuneError) as exc:
         preflight(cfg, limits, steps=steps)
@@ -63,13 +80,14 @@ def _refused(tmp_path, changes, limits=SIM_LIMITS, steps=("detect", "quantify", 
 
 
 def test_demo_and_paper_tune_plans_pass_against_the_simulated_drive():
-    plan = preflight(load_config(DEMO), SIM_LIMITS)
+    plan = preflight(load_config(DEMO), DriveLimits(**SIM_LIMITS))
     assert [s["step"] for s in plan.steps] == ["detect", "quantify", "tune"]
     assert all(c.ok is not False or not c.hard for c in plan.checks)
     # the demo's 3 V rms multisine peaks above u_max: a note (detect reports saturation)
     notes = [c for c in plan.checks if not c.hard and c.ok is False]
     assert [c.key for c in notes] == ["detect.rms_levels[2]"]
-    preflight(load_config(os.path.join(REPO, "configs", "paper.yaml")), SIM_LIMITS, steps=("tune",))
+    preflight(load_config(os.path.join(REPO, "configs", "paper.yaml")), DriveLimits(**SIM_LIMITS),
+              steps=("tune",))
 
 
 def test_the_first_level_above_u_max_is_named(tmp_path):
@@ -98,7 +116,7 @@ def test_explicit_tune_amplitude_and_auto_maximum_against_limits(tmp_path):
     assert "key 'tune.amplitude_rad': 30 rad peak is above 8 rad (limits.max_amplitude_rad)" in msg
     msg = _refused(tmp_path, {"limits.max_amplitude_rad": 2.0})      # demo: auto, max 8 rad
     assert "key 'tune.amplitude_max_rad': 8 rad peak is above 2 rad (limits.max_amplitude_rad)" in msg
-    assert preflight(load_config(_config(tmp_path, {"tune.amplitude_rad": 7.5})), SIM_LIMITS)
+    assert preflight(load_config(_config(tmp_path, {"tune.amplitude_rad": 7.5})), DriveLimits(**SIM_LIMITS))
 
 
 def test_peak_velocity_of_sines_and_multisines(tmp_path):
@@ -108,7 +126,7 @@ def test_peak_velocity_of_sines_and_multisines(tmp_path):
            "(limits.max_velocity_rad_s)" in msg
     # detect on the reference: the multisine's own peak velocity (from its design)
     cfg = load_config(_config(tmp_path, {"detect.inject": "reference", "detect.rms_levels": [0.01, 0.02]}))
-    plan = preflight(cfg, SIM_LIMITS, steps=("detect",))
+    plan = preflight(cfg, DriveLimits(**SIM_LIMITS), steps=("detect",))
     vel = [c.value for c in plan.checks if c.what == "peak velocity"]
     assert len(vel) == 2 and vel[1] == pytest.approx(2 * vel[0]) and vel[0] > 0.01 * 2 * 3.14 * 2.5
     limit = 0.5 * (vel[0] + vel[1])
@@ -123,7 +141,7 @@ def test_band_above_fs_half_is_an_error_not_a_clip(tmp_path):
 
 
 def test_capacities_of_the_drive(tmp_path):
-    small = DriveLimits(**dict(SIM_LIMITS.__dict__, rec_capacity=20000, lines_capacity=64))
+    small = DriveLimits(**dict(SIM_LIMITS, rec_capacity=20000, lines_capacity=64))
     # detect raw: 2 periods x 4096 x 2 signals = 16384 fit; 3 periods = 24576 do not
     preflight(load_config(_config(tmp_path, {"detect.capture": "raw"})), small, steps=("detect",))
     msg = _refused(tmp_path, {"detect.capture": "raw", "detect.periods": 3}, small, steps=("detect",))
@@ -135,7 +153,7 @@ def test_capacities_of_the_drive(tmp_path):
     plan = preflight(load_config(DEMO), small, steps=("detect",), capture_mode=lambda s: "stats")
     assert any("155 lines exceed the drive's line statistics (64)" in n for n in plan.notes)
     msg = _refused(tmp_path, {"detect.period_samples": 8192},
-                   DriveLimits(**dict(SIM_LIMITS.__dict__, table_capacity=4096)), steps=("detect",))
+                   DriveLimits(**dict(SIM_LIMITS, table_capacity=4096)), steps=("detect",))
     assert "key 'detect.period_samples': period N 8192 samples is above 4096 samples" in msg
 
 
