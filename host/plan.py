@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from fftune.analysis.stats import LSTAT_LINE_FLOATS, LSTAT_LINES_MAX, STAT_K_MAX
 
 __all__ = ["StepPlan", "experiment_plan", "bus_rates", "project", "STATS_HEADER_BYTES",
-           "line_stats_bytes"]
+           "line_stats_bytes", "DriveLimits", "read_drive_limits", "config_limits", "Check",
+           "CheckedPlan", "preflight"]
 
 STATS_HEADER_BYTES = 8
 FLOAT_BYTES = 4
@@ -182,6 +183,9 @@ class DriveLimits:
         EDS (the drive has no object of its own for its table capacity).
     amplitude_high : float or None
         High limit of the excitation amplitude object 0x2001:3.
+    drive_u_max_v : float or None
+        The output limit the drive has (0x2000:7) before the session writes any: the
+        configuration's ``drive.controller.u_max`` may lower it, not raise it.
     source : str
         Where the numbers come from (printed with the plan).
     """
@@ -192,6 +196,7 @@ class DriveLimits:
     lines_capacity: object = None
     table_capacity: object = None
     amplitude_high: object = None
+    drive_u_max_v: object = None
     source: str = "the configuration only (no drive)"
 
 
@@ -227,11 +232,13 @@ def read_drive_limits(drive, cfg):
         return value if value > 0 else None
 
     u_max = cfg["drive"]["controller"].get("u_max")
+    drive_u_max = get("u_max")
     cap = get("rec_capacity")
     lines = get("stat_lines_cap")
     describe = getattr(getattr(drive, "opts", None), "describe", None)
     where = f"node {cfg['drive']['node_id']} on {describe()}" if describe else "the drive"
-    return DriveLimits(fs_hz=get("fs"), u_max_v=float(u_max) if u_max is not None else get("u_max"),
+    return DriveLimits(fs_hz=get("fs"), u_max_v=float(u_max) if u_max is not None else drive_u_max,
+                       drive_u_max_v=drive_u_max,
                        rec_capacity=None if cap is None else int(cap),
                        lines_capacity=None if lines is None else int(lines),
                        table_capacity=int(_od_high(drive, "EXC_PERIOD")),
@@ -290,7 +297,9 @@ class CheckedPlan:
         out.append(f"  line statistics capacity = {val(lim.lines_capacity, 'lines')}")
         out.append(f"  period N <= {val(lim.table_capacity, 'samples')} (EDS), "
                    f"excitation amplitude <= {val(lim.amplitude_high, '')}".rstrip())
-        for st in self.steps:
+        for st in [{"step": "drive", "text": "controller parameters written with every run"}] + self.steps:
+            if st["step"] == "drive" and not any(c.step == "drive" for c in self.checks):
+                continue
             out.append(f"{st['step']}: {st['text']}")
             for c in self.checks:
                 if c.step != st["step"]:
@@ -364,6 +373,11 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
     v_name = ("limits.max_rms_v" if user["max_rms_v"] is not None and
               (u_max is None or user["max_rms_v"] <= u_max) else "the drive's u_max")
     a_limit, a_name = user["max_amplitude_rad"], "limits.max_amplitude_rad"
+    if cfg["drive"]["controller"].get("u_max") is not None:
+        # written before every run: it may lower the drive's output limit, never raise it
+        checks.append(Check("drive", "drive.controller.u_max", "output limit",
+                            float(cfg["drive"]["controller"]["u_max"]), lim.drive_u_max_v, "V",
+                            "the drive's own u_max 0x2000:7; fftune lowers it, never raises it"))
     vel_limit, vel_name = user["max_velocity_rad_s"], "limits.max_velocity_rad_s"
 
     def mode(step):

@@ -157,6 +157,16 @@ def test_capacities_of_the_drive(tmp_path):
     assert "key 'detect.period_samples': period N 8192 samples is above 4096 samples" in msg
 
 
+def test_config_may_lower_the_drive_output_limit_not_raise_it(tmp_path):
+    msg = _refused(tmp_path, {"drive.controller.u_max": 100.0},
+                   DriveLimits(**dict(SIM_LIMITS, u_max_v=100.0, drive_u_max_v=10.0)))
+    assert "key 'drive.controller.u_max': output limit 100 V is above 10 V (the drive's own u_max" in msg
+    # lowered to 2 V: the 3 V rms level is then refused against it
+    msg = _refused(tmp_path, {"drive.controller.u_max": 2.0},
+                   DriveLimits(**dict(SIM_LIMITS, u_max_v=2.0, drive_u_max_v=10.0)))
+    assert "key 'detect.rms_levels[2]': 3 V rms is above 2 V" in msg
+
+
 def test_feed_forward_and_run_length(tmp_path):
     msg = _refused(tmp_path, {"tune.sweep.k_fc_max": 12.0})
     assert "key 'tune.sweep.k_fc_max': feed-forward 12 V is above 10 V" in msg
