@@ -269,6 +269,7 @@ class Check:
     unit: str
     limit_name: str
     hard: bool = True       # a violation refuses the plan (False: a note, e.g. saturation)
+    text: str = None        # the error's wording after the key (default: value, limit, name)
 
     @property
     def ok(self):
@@ -385,8 +386,8 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
             return capture_mode(step)
         return cfg[step].get("capture") or "raw"
 
-    def check(step, key, what, value, limit, unit, limit_name, hard=True):
-        checks.append(Check(step, key, what, float(value), limit, unit, limit_name, hard))
+    def check(step, key, what, value, limit, unit, limit_name, hard=True, text=None):
+        checks.append(Check(step, key, what, float(value), limit, unit, limit_name, hard, text))
 
     def amplitude_checks(step, key, inject, rms, peak, vel):
         """One level: voltage (plant input) or position (reference) excitation."""
@@ -413,8 +414,10 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
                   cfg["drive"]["run_timeout_s"], "s", "drive.run_timeout_s")
 
     def kfc_check(step, key, value):
-        check(step, key, "feed-forward", value, None if u_max is None else min(u_max, 100.0), "V",
-              "the drive's u_max")
+        limit = None if u_max is None else min(u_max, 100.0)
+        check(step, key, "feed-forward", value, limit, "V", "the drive's u_max",
+              text=None if limit is None else
+              f"{value:g} V is above what the drive allows (its output limit u_max = {limit:g} V)")
 
     d = cfg["detect"]
     if "detect" in steps and d["enabled"]:
@@ -492,7 +495,7 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
             cyc = _cycles(fs, n, t["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
             if cyc * t["harmonics"] * 2 >= n:
                 raise FftuneError(f"{src}: key 'tune.harmonics': harmonic {t['harmonics']} of "
-                                  f"{t['frequency_hz']:g} Hz is at or above fs/2 = {fs / 2:g} Hz")
+                                  f"{t['frequency_hz']:g} Hz is above fs/2 = {fs / 2:g} Hz")
         if t["amplitude_rad"] == "auto":
             key, amp = "tune.amplitude_max_rad", t["amplitude_max_rad"]
         else:
@@ -518,6 +521,8 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
             + (f", {plan[0].excitation_s:.1f} s of excitation at most" if plan else ""))})
 
     for c in checks:
+        if c.hard and c.ok is False and c.text:
+            raise FftuneError(f"{src}: key '{c.key}': {c.text}; nothing was run")
         if c.hard and c.ok is False:
             what = f"{c.what} " if c.what not in ("rms", "peak") else ""
             raise FftuneError(f"{src}: key '{c.key}': {what}{c.value:.4g} {c.unit}"

@@ -169,7 +169,8 @@ def test_config_may_lower_the_drive_output_limit_not_raise_it(tmp_path):
 
 def test_feed_forward_and_run_length(tmp_path):
     msg = _refused(tmp_path, {"tune.sweep.k_fc_max": 12.0})
-    assert "key 'tune.sweep.k_fc_max': feed-forward 12 V is above 10 V" in msg
+    assert "key 'tune.sweep.k_fc_max': 12 V is above what the drive allows (its output limit " \
+           "u_max = 10 V)" in msg
     msg = _refused(tmp_path, {"quantify.k_fc": 11.0}, steps=("quantify",))
     assert "key 'quantify.k_fc'" in msg
     # (2 + 2) x 4096 / 2560 = 6.4 s per detect run
