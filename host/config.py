@@ -294,7 +294,9 @@ def validate(raw, path="<config>"):
     _number(cfg, path, "drive.host_node_id", low=1, high=127, integer=True)
     if cfg["drive"]["host_node_id"] == cfg["drive"]["node_id"]:
         raise _err(path, "drive.host_node_id", "must differ from drive.node_id")
-    _number(cfg, path, "drive.heartbeat_ms", low=0, high=65535, integer=True)
+    # the drive's consumer watches the host with 4x this time, an UNSIGNED16 of ms (0x1016):
+    # above 16383 it would have to be clipped
+    _number(cfg, path, "drive.heartbeat_ms", low=0, high=16383, integer=True)
     _number(cfg, path, "drive.fs_hz", low=0, low_inclusive=False, allow_none=True)
     _number(cfg, path, "drive.sdo_timeout_s", low=0.05, high=60)
     _number(cfg, path, "drive.sdo_retries", low=0, high=10, integer=True)
