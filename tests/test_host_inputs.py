@@ -245,25 +245,23 @@ def _read_truth(port):
 
 
 @needs_drive
-def test_fftune_sim_simulates_the_demo_plant_of_the_configuration(tmp_path):
+def test_fftune_sim_simulates_the_demo_plant(tmp_path):
+    """`fftune sim` + `fftune run` measure the plant `fftune demo` does: by default both take
+    configs/demo.yaml, whose sim.overrides raise the viscous friction of the base plant."""
+    from fftune.host.config import load_config
     from fftune.host.sim import derived_plant, start_drive_sim
 
-    viscous = 3.5e-3             # N m s/rad, not the base plant's
-    cfg = tmp_path / "c.yaml"
-    cfg.write_text(f"sim:\n  plant: {PLANT}\n  overrides:\n    plant: {{viscous: {viscous}}}\n")
-    # what fftune demo simulates for it (the base plant has another viscous friction)
-    demo_plant = derived_plant(PLANT, {"plant": {"viscous": viscous}}, str(tmp_path / "plant.yaml"))
-    assert yaml.safe_load(open(demo_plant))["plant"]["viscous"] == viscous != \
-        yaml.safe_load(open(PLANT))["plant"]["viscous"]
+    sim_cfg = load_config(DEMO)["sim"]
+    assert sim_cfg["overrides"]["plant"]["viscous"] != yaml.safe_load(open(PLANT))["plant"]["viscous"]
+    demo_plant = derived_plant(PLANT, sim_cfg["overrides"], str(tmp_path / "plant.yaml"))
     sim = start_drive_sim(demo_plant, log_path=str(tmp_path / "d.log"))
     try:
         expected = _read_truth(sim.port)
     finally:
         sim.stop()
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "fftune.host.cli", "sim", "--port", str(port),
-                             "--config", str(cfg)], cwd=str(tmp_path),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "fftune.host.cli", "sim", "--port", str(port)],
+                            cwd=str(tmp_path), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()
         assert "listening on socketcand" in line, proc.stderr.read() if proc.poll() is not None else line
@@ -271,7 +269,34 @@ def test_fftune_sim_simulates_the_demo_plant_of_the_configuration(tmp_path):
     finally:
         proc.kill()
         proc.communicate()
-    assert not [f for f in os.listdir(tmp_path) if f.startswith("fftune-plant")]
+    assert os.listdir(tmp_path) == ["plant.yaml", "d.log"] or sorted(os.listdir(tmp_path)) == ["d.log", "plant.yaml"]
+
+
+def test_fftune_sim_config_plant_overrides_and_bus(tmp_path, monkeypatch):
+    """`fftune sim --config FILE`: its sim.plant with sim.overrides (handed to drive_sim as a
+    memory file, nothing written), its sim.bitrate and drive.node_id; --plant and -b win."""
+    import fftune.host.sim as sim_mod
+
+    seen = []
+    monkeypatch.setattr(sim_mod.os, "execv", lambda exe, cmd: seen.append(cmd))
+    stage = os.path.join(REPO, "configs", "plant_stage.yaml")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"sim:\n  plant: {stage}\n  overrides:\n    plant: {{viscous: 3.5e-3}}\n"
+                   f"  bitrate: 250000\ndrive:\n  node_id: 4\n")
+    assert main(["sim", "--config", str(cfg), "--port", "0"]) == 0
+    assert main(["sim", "--config", str(cfg), "--port", "0", "--plant", PLANT, "-b", "500000"]) == 0
+    from fftune.host.config import safe_yaml_load   # (drive_sim reads 2e-05 as a number too)
+    for cmd, base, bitrate in zip(seen, (stage, PLANT), ("250000", "500000")):
+        plant = cmd[cmd.index("--config") + 1]
+        with open(plant) as fh:
+            doc = safe_yaml_load(fh.read(), plant)
+        assert doc["plant"]["viscous"] == 3.5e-3
+        with open(base) as fh:
+            base_doc = safe_yaml_load(fh.read(), base)
+        assert {k: v for k, v in doc["plant"].items() if k != "viscous"} == \
+            {k: v for k, v in base_doc["plant"].items() if k != "viscous"}
+        assert cmd[cmd.index("--bitrate") + 1] == bitrate and cmd[cmd.index("--node-id") + 1] == "4"
+    assert not [f for f in os.listdir(tmp_path) if f != "c.yaml"]
 
 
 def _bus_args(argv=()):
