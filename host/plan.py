@@ -291,7 +291,9 @@ class CheckedPlan:
         out = [f"fftune plan: {src}", f"drive limits: {lim.source}"]
 
         def val(v, unit):
-            return "not known" if v is None else f"{v:g} {unit}"
+            if v is None:
+                return "not known"
+            return f"{v} {unit}" if isinstance(v, int) else f"{v:g} {unit}"
         out.append(f"  fs = {val(lim.fs_hz, 'Hz')}" + (f" (fs/2 = {lim.fs_hz / 2:g} Hz)" if lim.fs_hz else ""))
         out.append(f"  u_max = {val(lim.u_max_v, 'V')}")
         out.append(f"  recorder capacity = {val(lim.rec_capacity, 'float values')}")
@@ -374,12 +376,12 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
     v_name = ("limits.max_rms_v" if user["max_rms_v"] is not None and
               (u_max is None or user["max_rms_v"] <= u_max) else "the drive's u_max")
     a_limit, a_name = user["max_amplitude_rad"], "limits.max_amplitude_rad"
+    vel_limit, vel_name = user["max_velocity_rad_s"], "limits.max_velocity_rad_s"
     if cfg["drive"]["controller"].get("u_max") is not None:
         # written before every run: it may lower the drive's output limit, never raise it
         checks.append(Check("drive", "drive.controller.u_max", "output limit",
                             float(cfg["drive"]["controller"]["u_max"]), lim.drive_u_max_v, "V",
                             "the drive's own u_max 0x2000:7; fftune lowers it, never raises it"))
-    vel_limit, vel_name = user["max_velocity_rad_s"], "limits.max_velocity_rad_s"
 
     def mode(step):
         if capture_mode is not None:
