@@ -389,3 +389,14 @@ def test_statistics_captures_compare_the_key_set_too(tmp_path):
     assert store.load("tune-A", {"kfc": 0.1}) is not None
     with pytest.raises(FftuneError, match="captured with other parameters"):
         store.load("tune-A", {"kfc": 0.1, "u_max": 5.0})
+
+
+@pytest.mark.parametrize("key", ["parameters", "metadata"])
+def test_capture_json_metadata_must_be_a_mapping(tmp_path, key):
+    from fftune.analysis import capture
+    from fftune.analysis.errors import InputError
+    meta = {"fs_hz": 2560.0, "n_period": 8, "settle_periods": 0, "record_periods": 1,
+            "experiment": "detect", key: [1, 2]}
+    with pytest.raises(InputError, match=f"{key} must be a mapping"):
+        capture.write_run(tmp_path / "r.h5", {"u": np.zeros(8)}, meta)
+    assert not (tmp_path / "r.h5").exists()
