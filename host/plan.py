@@ -421,6 +421,9 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
               text=None if limit is None else
               f"{value:g} V is above what the drive allows (its output limit u_max = {limit:g} V)")
 
+    if not fs and any(cfg[s]["enabled"] for s in steps if s in ("quantify", "tune")):
+        notes.append("fs not known (no drive, no drive.fs_hz): quantify's and tune's "
+                     "frequencies (DFT grid, harmonics below fs/2) and run lengths not checked")
     d = cfg["detect"]
     if "detect" in steps and d["enabled"]:
         n = d["period_samples"]
@@ -446,9 +449,6 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
             sig = 3
             notes.append("detect: fs not known (no drive, no drive.fs_hz): the band against "
                          "fs/2, the multisine's peak and peak velocity not checked")
-    if not fs and any(cfg[s]["enabled"] for s in steps if s in ("quantify", "tune")):
-        notes.append("fs not known (no drive, no drive.fs_hz): quantify's and tune's "
-                     "frequencies (DFT grid, harmonics below fs/2) and run lengths not checked")
         for i, rms in enumerate(d["rms_levels"]):
             peak = None if peak1 is None else rms * peak1
             vel = None if vel1 is None else rms * vel1

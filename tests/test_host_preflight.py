@@ -183,7 +183,12 @@ def test_config_only_checks_say_what_they_could_not_check(tmp_path):
     plan = preflight(cfg)
     text = "\n".join(plan.lines("cfg"))
     assert "u_max = not known" in text and "not checked (limit not known)" in text
-    assert any("fs not known" in n for n in plan.notes)
+    assert any(n.startswith("detect: fs not known") for n in plan.notes)
+    assert any("quantify's and tune's frequencies" in n for n in plan.notes)
+    # the levels are still checked against what is known: the configuration's limits
+    assert [c.key for c in plan.checks if c.what == "peak" and c.ok] == \
+        ["quantify.rms_levels[0]", "quantify.rms_levels[1]", "quantify.rms_levels[2]",
+         "tune.amplitude_max_rad"]
     assert config_limits(cfg).table_capacity == 8192
 
 
