@@ -400,3 +400,24 @@ def test_capture_json_metadata_must_be_a_mapping(tmp_path, key):
     with pytest.raises(InputError, match=f"{key} must be a mapping"):
         capture.write_run(tmp_path / "r.h5", {"u": np.zeros(8)}, meta)
     assert not (tmp_path / "r.h5").exists()
+
+
+def test_output_dir_is_checked_without_being_made(tmp_path):
+    from fftune.host.config import check_output_dir
+    target = tmp_path / "a" / "b"
+    assert check_output_dir(str(target), create=False) == str(target) and not (tmp_path / "a").exists()
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(FftuneError, match="is not a directory"):
+        check_output_dir(str(tmp_path / "file" / "out"), create=False)
+    with pytest.raises(FftuneError, match="exists and is not a directory"):
+        check_output_dir(str(tmp_path / "file"), create=False)
+    assert check_output_dir(str(target)) == str(target) and target.is_dir()
+
+
+def test_import_canlog_that_fails_leaves_no_output_directory(tmp_path, capsys):
+    log = tmp_path / "session.log"
+    log.write_text("(0.0) can0 123#00\n")            # no SDO transfer of node 1
+    out = tmp_path / "out"
+    assert main(["import-canlog", str(log), "--config", DEMO, "--out", str(out), "--no-figures"]) == 2
+    _one_line(capsys.readouterr().err, str(log))
+    assert not out.exists()
