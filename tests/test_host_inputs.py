@@ -418,6 +418,8 @@ def test_import_canlog_that_fails_leaves_no_output_directory(tmp_path, capsys):
     log = tmp_path / "session.log"
     log.write_text("(0.0) can0 123#00\n")            # no SDO transfer of node 1
     out = tmp_path / "out"
-    assert main(["import-canlog", str(log), "--config", DEMO, "--out", str(out), "--no-figures"]) == 2
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("output: out/x\n")
+    assert main(["import-canlog", str(log), "--config", str(cfg), "--out", str(out), "--no-figures"]) == 2
     _one_line(capsys.readouterr().err, str(log))
     assert not out.exists()
