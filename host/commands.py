@@ -112,7 +112,7 @@ def _experiment(args):
         checked = check_plan(client, cfg, args.steps)   # the drive's limits: before enabling
         if args.dry_run:
             print("\n".join(checked.lines(args.config)))
-            print("fftune: dry run: nothing was moved or written")
+            print("fftune: dry run: the drive was not enabled, no run started, no file written")
             return 0
         client.enable()
         results = run_pipeline(client, cfg, out, steps=args.steps, figures=not args.no_figures,

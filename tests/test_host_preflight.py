@@ -279,7 +279,7 @@ def test_dry_run_and_plan_read_the_drive(drive, tmp_path, capsys):
     assert "drive limits: read from node 1" in text and "u_max = 10 V" in text
     assert "recorder capacity = 4194304 float values" in text
     assert "line statistics capacity = 1024 lines" in text
-    assert "nothing was moved or written" in text
+    assert "dry run: the drive was not enabled, no run started, no file written" in text
     assert not out.exists() and _drive_state(drive.port)[:2] == before[:2]
     assert main(["plan", "--config", DEMO, "-i", "socketcand", "--port", str(drive.port)]) == 0
     assert "u_max = 10 V" in capsys.readouterr().out
