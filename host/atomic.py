@@ -11,7 +11,8 @@ def _umask():
 
 
 def write_atomic(path, data, *, overwrite=True):
-    """Write ``data`` (bytes or str) to ``path`` via a temporary file and :func:`os.replace`.
+    """Write ``data`` (bytes or str) to ``path`` via a temporary file and :func:`os.replace`;
+    the file's mode is what :func:`open` would give it (0666 less the umask).
 
     With ``overwrite=False`` an existing ``path`` is never replaced (:func:`os.link` of the
     finished temporary file fails instead), and :class:`FileExistsError` is raised.
@@ -19,9 +20,9 @@ def write_atomic(path, data, *, overwrite=True):
     d = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix="-" + os.path.basename(path), dir=d)
     try:
-        # mkstemp makes 0600: the file gets the mode open() would give it (0666 less the umask)
-        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as fh:
+            # mkstemp makes 0600: the file gets the mode open() gives (0666 less the umask)
+            os.fchmod(fh.fileno(), 0o666 & ~_umask())
             fh.write(data.encode("utf-8") if isinstance(data, str) else data)
             fh.flush()
             os.fsync(fh.fileno())
