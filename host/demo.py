@@ -72,6 +72,8 @@ def run(args):
     from fftune.host.plan import preflight
 
     t0 = time.monotonic()
+    # the demo starts its own drive on a free port: python-can's configuration plays no part
+    args.interface = args.interface or "socketcand"
     cfg = load_config(args.config)
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     cfg["sim"]["bitrate"] = bitrate  # the steps' default capture follows it (Session.capture_mode)

@@ -55,8 +55,9 @@ def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_
     bus's bit rate, ``--host``/``--port`` the server's address, no ``--eds``.
     """
     g = parser.add_argument_group("CAN bus (python-can options)")
-    g.add_argument("-i", "--interface", default="socketcand" if drive_side else None,
-                   help="socketcand (default) or socketcan" if drive_side else
+    g.add_argument("-i", "--interface", default=None,
+                   help="socketcand or socketcan (default: socketcand; `fftune sim`: python-can's "
+                        "configuration when it names one of these)" if drive_side else
                    "python-can interface: socketcand, socketcan, pcan, kvaser, virtual, ... "
                    "(default: python-can's configuration, as its own tools read it: "
                    "CAN_INTERFACE / CAN_CHANNEL / CAN_BITRATE, ~/.canrc, can.ini ...; "

@@ -166,6 +166,33 @@ def add_parser(sub):
     p.set_defaults(func=_run)
 
 
+def _bus_from_python_can(args):
+    """Without ``-i``: the bus python-can's configuration names (as ``fftune run`` reads it,
+    so that both meet) when the simulated drive can serve it, else socketcand (said so)."""
+    from fftune.host.drive import (DEFAULT_SOCKETCAND_HOST, DEFAULT_SOCKETCAND_PORT,
+                                   python_can_config)
+
+    if args.interface is not None:
+        return
+    conf = python_can_config()
+    name = conf.get("interface")
+    if name in SIM_INTERFACES:
+        args.interface = name
+        if args.channel is None:
+            args.channel = conf.get("channel")
+        if name == "socketcand":
+            if args.host == DEFAULT_SOCKETCAND_HOST:
+                args.host = conf.get("host", args.host)
+            if args.port == DEFAULT_SOCKETCAND_PORT:
+                args.port = conf.get("port", args.port)
+        return
+    if name:
+        print(f"fftune sim: python-can's configuration names interface {name}, which the "
+              f"simulated drive cannot serve: socketcand (-i socketcand | -i socketcan -c IFNAME "
+              f"to choose)", file=sys.stderr)
+    args.interface = "socketcand"
+
+
 def _plant_path(text):
     """A path drive_sim can open holding ``text`` and surviving exec: an anonymous memory
     file (Linux memfd, inherited by drive_sim; nothing left on disk), else a temporary file."""
@@ -194,6 +221,7 @@ def _run(args):
         raise FftuneError(f"plant configuration not found: {plant}")
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     node_id = args.node_id if args.node_id is not None else cfg["drive"]["node_id"]
+    _bus_from_python_can(args)
     check_bus(args.interface, args.channel, bitrate)
     if cfg["sim"]["overrides"]:
         plant = _plant_path(derived_plant_text(plant, cfg["sim"]["overrides"],

@@ -423,3 +423,24 @@ def test_import_canlog_that_fails_leaves_no_output_directory(tmp_path, capsys):
     assert main(["import-canlog", str(log), "--config", str(cfg), "--out", str(out), "--no-figures"]) == 2
     _one_line(capsys.readouterr().err, str(log))
     assert not out.exists()
+
+
+def test_fftune_sim_serves_the_bus_python_can_names(can_env, monkeypatch, capsys):
+    """`fftune sim` and `fftune run` without -i meet on the bus python-can's configuration
+    names; one the simulated drive cannot serve falls back to socketcand, said so."""
+    import fftune.host.sim as sim_mod
+
+    seen = []
+    monkeypatch.setattr(sim_mod.os, "execv", lambda exe, cmd: seen.append(cmd))
+    can_env.setenv("CAN_INTERFACE", "socketcan")
+    can_env.setenv("CAN_CHANNEL", "vcan7")
+    assert main(["sim"]) == 0
+    assert seen[-1][1:3] == ["--can", "socketcan:vcan7"]
+    assert BusOptions.from_args(_bus_args()).bus_kwargs() == {"interface": "socketcan", "channel": "vcan7"}
+    assert main(["sim", "-i", "socketcand", "--port", "4001"]) == 0          # -i wins
+    assert seen[-1][1:3] == ["--can", "socketcand:127.0.0.1:4001"]
+    can_env.setenv("CAN_INTERFACE", "virtual")
+    capsys.readouterr()
+    assert main(["sim", "--port", "4002"]) == 0
+    assert seen[-1][1:3] == ["--can", "socketcand:127.0.0.1:4002"]
+    assert "names interface virtual, which the simulated drive cannot serve" in capsys.readouterr().err
