@@ -81,15 +81,19 @@ def _meta_from_comment(path, lineno, text):
         if isinstance(fs, bool) or not isinstance(fs, (int, float)) or not np.isfinite(fs) or fs <= 0:
             raise InputError(f"{where}: fs_hz must be a positive number (Hz), got {_shown(fs)}")
     for key, low in _LAYOUT_MIN.items():
-        if key not in meta:
-            continue
-        v = meta[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or \
-                (isinstance(v, float) and not (np.isfinite(v) and v.is_integer())) \
-                or not low <= v <= _LAYOUT_MAX:
+        if key in meta and not _layout_ok(key, meta[key]):
             raise InputError(f"{where}: {key} must be an integer {low} .. {_LAYOUT_MAX}, "
-                             f"got {_shown(v)}")
+                             f"got {_shown(meta[key])}")
     return meta
+
+
+def _layout_ok(key, v):
+    """A layout count (``_LAYOUT_MIN``): an integer (or integral float) within range."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    if isinstance(v, float) and not (np.isfinite(v) and v.is_integer()):
+        return False
+    return _LAYOUT_MIN[key] <= v <= _LAYOUT_MAX
 
 
 def _layout_from_meta(meta):
@@ -199,8 +203,12 @@ def _from_mapping(path, items):
             scalar = float(arr.reshape(-1)[0])
             if name in ("fs", "fs_hz"):
                 fs = scalar
-            elif name in ("n_period", "settle_periods", "record_periods", "realizations"):
-                layout[name] = int(scalar)
+            elif name in _LAYOUT_MIN:
+                v = arr.reshape(-1)[0].item()
+                if not _layout_ok(name, v):
+                    raise InputError(f"{path}: variable {name!r} must be an integer "
+                                     f"{_LAYOUT_MIN[name]} .. {_LAYOUT_MAX}, got {_shown(v)}")
+                layout[name] = int(v)
             continue
         signals[name] = _numeric(path, name, arr)
         _finite_or_raise(path, name, signals[name])

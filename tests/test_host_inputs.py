@@ -444,3 +444,14 @@ def test_fftune_sim_serves_the_bus_python_can_names(can_env, monkeypatch, capsys
     assert main(["sim", "--port", "4002"]) == 0
     assert seen[-1][1:3] == ["--can", "socketcand:127.0.0.1:4002"]
     assert "names interface virtual, which the simulated drive cannot serve" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value, shown", [(0, "0"), (np.inf, "inf"), (np.nan, "nan"), (2.5, "2.5"),
+                                          (1e300, "1e+300")])
+def test_npz_layout_scalars_are_bounded(tmp_path, capsys, value, shown):
+    t = np.arange(256)
+    path = tmp_path / "d.npz"
+    np.savez(path, u=np.sin(2 * np.pi * 3 * t / 64), y=np.cos(2 * np.pi * 3 * t / 64), fs=100.0,
+             n_period=value)
+    assert main(["analyze", "hosidf", str(path)]) == 2
+    _one_line(capsys.readouterr().err, str(path), "'n_period'", shown)
