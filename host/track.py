@@ -602,6 +602,8 @@ def _demo_track(args):
     from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
 
     t0 = time.monotonic()
+    # demo-track starts its own drive on a free port: python-can's configuration plays no part
+    args.interface = args.interface or "socketcand"
     cfg = load_track_config(args.config)
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     check_bus(args.interface, args.channel, bitrate)
