@@ -16,7 +16,6 @@ import copy
 import dataclasses
 import math
 import os
-import struct
 import time
 
 import yaml
