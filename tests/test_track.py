@@ -231,6 +231,19 @@ def test_estimate_named_stops():
     assert exc.value.cause == "no_forward"
 
 
+def test_estimate_collinear_regressors_stop_named():
+    st = _synthetic([0.12, 0.12, 0.003, 0.006])
+    d = st.design
+    c = 2.0                                   # a_r = c p: the inertia cannot be told from F_+
+    d[:, 3] = c * d[:, 0]                     # pa
+    d[:, 5] = 0.0                             # na
+    d[:, 7] = c * d[:, 2]                     # va
+    d[:, 8] = c * c * d[:, 0]                 # aa
+    with pytest.raises(NotIdentifiable) as exc:
+        estimate_task(st, k_v_hold=0.003, hold_k_v=True)
+    assert exc.value.cause == "collinear" and "condition number" in str(exc.value)
+
+
 def test_parse_task_stats_checks():
     st = _synthetic([0.12, 0.12, 0.003, 0.006])
     d = struct.pack("<II", 1, 3000) + st.design.astype("<f4").tobytes()
