@@ -14,6 +14,7 @@
 #include "rec.h"
 #include "run.h"
 #include "stat.h"
+#include "task.h"
 
 typedef struct {
     ctl_t ctl;
@@ -52,6 +53,7 @@ typedef struct {
     uint32_t sat_scanned;    /* recorded samples looked at */
     uint32_t sat_samples;    /* of them with |u| >= sat_u_max */
     float sat_u_max;         /* u_max latched at run start (the count's threshold) */
+    task_t task;             /* the repeated task and its statistics (task.h, issue 26) */
 } drv_t;
 
 #endif /* DRV_STATE_H */
