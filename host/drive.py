@@ -617,6 +617,21 @@ class DriveClient:
                         ABORT_CONNECTION_DEFAULT)
             self.write(ABORT_CONNECTION_INDEX, 0, ABORT_CONNECTION_DEFAULT)
 
+    def _ensure_enabled(self):
+        """Before a run: the drive may have left OPERATION ENABLED since :meth:`enable`
+        by its own reaction to a lost host (0x6007): its heartbeat consumer missed the host
+        for longer than the consumer time (this process stalled, e.g. on a loaded machine).
+        The host is alive and in charge: enable again, saying so, instead of a run start
+        refused for the device state."""
+        if not self._enabled or 0x6041 not in self.node.object_dictionary:
+            return
+        status = int(self.read(0x6041, 0))
+        if status & 0x006F == 0x0027:  # OPERATION ENABLED
+            return
+        logger.warning("node %d left OPERATION ENABLED (statusword 0x%04X: its reaction to a missed "
+                       "host heartbeat, 0x6007); enabling it again", self.opts.node_id, status)
+        self.enable()
+
     # ---- runs -------------------------------------------------------------------------
     def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"),
             desc="run", capture="raw", stats=None, lines=None):
@@ -670,6 +685,7 @@ class DriveClient:
         counter0 = int(self.get("run_counter"))
         boots0 = self._bootups
         t_start = time.time()
+        self._ensure_enabled()
         self._run_active = True  # (also if the start's answer is lost): close() stops it
         self._start_run(stats if capture != "raw" and not want_lines else None,
                         lines if want_lines else None, parameters)

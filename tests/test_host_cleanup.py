@@ -394,3 +394,30 @@ def test_host_never_leaves_abort_connection_at_no_action(tmp_path):
     finally:
         obs.close()
         drive.stop()
+
+
+def test_host_stall_longer_than_the_consumer_time_is_survived(tmp_path):
+    """The host alive but silent for longer than the consumer time (a stall on a loaded
+    machine, here its heartbeat task stopped): the drive disables itself (0x6007 = 2) as it
+    must; the host, still in charge, enables it again before its next run instead of having
+    the start refused for the device state (seen in a full `make test`: the installed demo
+    stopped with SDO abort 0x08000022)."""
+    drive = start_drive(tmp_path)
+    obs = Observer(drive.port)
+    client = _client(drive)
+    try:
+        with client:
+            client.enable()
+            wait_until(lambda: len(obs.host_hb) >= 2, 10.0, "the host's heartbeat")
+            client._hb_task.stop()  # the stall: no heartbeat from the host
+            obs.power_off_after_host_lost()
+            assert obs.statusword() & STATUS_POWER_MASK == SWITCH_ON_DISABLED
+            client._start_heartbeats()  # the host runs again
+            rec = client.run(SMALL_RUN)
+            assert rec.signals["reference"].size == 512
+            assert obs.statusword() & STATUS_POWER_MASK == OPERATION_ENABLED
+        _assert_disabled_by_the_host(obs)
+    finally:
+        client.close()
+        obs.close()
+        drive.stop()
