@@ -1091,3 +1091,4 @@ def encoder_step_estimate(y, noise_rad=0.0):
     if np.std(cluster) > 0.25 * q or q < 6 * float(noise_rad):
         return None
     return q
+
