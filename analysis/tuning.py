@@ -1092,3 +1092,44 @@ def encoder_step_estimate(y, noise_rad=0.0):
         return None
     return q
 
+
+
+def amplitude_combination(k1, sigma1, a1, k2, sigma2, a2, rule="trend"):
+    """K_fc* from its values at two sine amplitudes, and the amplitude part of the budget.
+
+    Parameters
+    ----------
+    k1, sigma1, a1 : float
+        K_fc* at the first amplitude a1 (rad), its noise part.
+    k2, sigma2, a2 : float
+        The same at the second amplitude.
+    rule : str
+        ``"trend"`` (default): when the two differ by more than twice their combined noise
+        (a real amplitude dependence), extrapolate linearly in 1/A to 1/A -> 0 (the
+        offsets of stick-slip, asymmetry, quantisation and noise dither fall about as 1/A)
+        and take the size of that step as the amplitude part; else the inverse-variance
+        mean, half their difference the part. ``"extrapolate"``: always extrapolate.
+        ``"first"``: k1, the whole difference the part.
+
+    Returns
+    -------
+    (k, sigma_noise, amplitude_part, how) : (float, float, float, str)
+    """
+    d = k2 - k1
+    noise_d = float(np.hypot(sigma1, sigma2))
+    g = (1 / a1) / (1 / a1 - 1 / a2)          # k(1/A -> 0) = k1 + g (k2 - k1)
+    if rule == "first":
+        return float(k1), float(sigma1), float(abs(d)), "the first amplitude's K_fc*"
+    if rule == "extrapolate" or abs(d) > 2 * noise_d:
+        k = k1 + g * d
+        noise = float(np.hypot((1 - g) * sigma1, g * sigma2))
+        near = k1 if a1 > a2 else k2
+        return float(k), noise, float(abs(k - near)), (
+            f"K_fc* changes with the amplitude ({k1:.5g} at {a1:.3g} rad, {k2:.5g} at {a2:.3g} rad, "
+            f"beyond twice the noise {noise_d:.2g}): extrapolated to 1/A -> 0, the step is the "
+            "amplitude part")
+    w1, w2 = 1 / max(sigma1, 1e-300) ** 2, 1 / max(sigma2, 1e-300) ** 2
+    k = (w1 * k1 + w2 * k2) / (w1 + w2)
+    return float(k), float(1 / np.sqrt(w1 + w2)), float(abs(d) / 2), (
+        f"K_fc* at {a1:.3g} and {a2:.3g} rad agree within twice their noise {noise_d:.2g}: their "
+        "inverse-variance mean, half the difference the amplitude part")

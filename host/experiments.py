@@ -737,9 +737,8 @@ def check_tune_plan(session):
 # estimate in the loop before K_fc* is read (the lag moves the criterion's optimum).
 LAG_MIN_DEG = 1.5
 # The amplitude part: K_fc* at a second amplitude A2 (the auto choice's alternative, else 2 A,
-# else A / 2). The estimate reported: "extrapolate" to 1 / A -> 0 (the offsets of stick-slip,
-# asymmetry, quantisation and noise dither fall about as 1 / A), its size the amplitude part.
-AMPLITUDE_RULE = "extrapolate"
+# else A / 2), combined by fftune.analysis.tuning.amplitude_combination with this rule.
+AMPLITUDE_RULE = "trend"
 # The search's relative stopping tolerance: the experiments of the budget (the second
 # amplitude, the lag correction) read K_fc* again along the measured slope, so the search
 # only needs to land within this of it (fewer experiments than KfcSearch's default 0.5 %).
@@ -875,13 +874,9 @@ def _budget(session, probe, outcome, by_k, amp_block):
     slope2 = slope * a1 * abs(h1) / (a2 * h1_2)
     s2, se2, _ = r2
     k2 = _tuning.root_at_slope(float(np.float32(k)), s2, slope2)
-    if AMPLITUDE_RULE == "extrapolate":
-        k_est = k + (k2 - k) * (1 / a1) / (1 / a1 - 1 / a2)
-        amp_part = abs(k_est - (k if a1 > a2 else k2))
-        noise_est = math.hypot(sig_noise * (1 / a2) / abs(1 / a1 - 1 / a2),
-                               se2 / abs(slope2) * (1 / a1) / abs(1 / a1 - 1 / a2))
-    else:
-        k_est, amp_part, noise_est = k, abs(k2 - k), sig_noise
+    sigma2 = se2 / abs(slope2) * _tuning._t_factor(max(1, p2["n_periods"] - 1))
+    k_est, noise_est, amp_part, how = _tuning.amplitude_combination(
+        k, sig_noise, a1, k2, sigma2, a2, rule=AMPLITUDE_RULE)
     q, q_source = _encoder_step(session, p_star)
     enc = _tuning.encoder_floor_v(q, min(a1, a2), p_star["angle_noise_rad"], slope * (a1 / min(a1, a2)))
     total, parts = _tuning.uncertainty_budget({
@@ -890,11 +885,9 @@ def _budget(session, probe, outcome, by_k, amp_block):
     out.update({
         "k_fc": float(k_est), "sigma_total": total, "parts": parts,
         "k_fc_at_amplitude": {"amplitude_rad": [_f(a1), _f(a2)], "k_fc": [_f(k), _f(k2)],
+                              "sigma_noise": [_f(sig_noise), _f(sigma2)],
                               "s_at_second": _f(s2), "s_std_at_second": _f(se2)},
-        "rule": ("extrapolated to 1/A -> 0 from the two amplitudes (the offsets of stick-slip, "
-                 "asymmetry, quantisation and noise dither fall about as 1/A); the step is the "
-                 "amplitude part" if AMPLITUDE_RULE == "extrapolate" else
-                 "the first amplitude's K_fc*; the difference to the second is the amplitude part"),
+        "rule": how,
         "k_fc_search": _f(k1), "viscous": visc,
         "encoder_step_rad": _f(q), "encoder_step_source": q_source,
         "experiments": session.tune_experiments - n0,

@@ -50,6 +50,59 @@ def test_matrix_fast_subset_uses_few_experiments(fast_rows):
     assert statistics.median(counts) <= 6 and max(counts) <= 10
 
 
+import bench_tune_matrix  # noqa: E402
+
+MATRIX = {name: (plant, tune, cause) for rows in bench_tune_matrix.families().values()
+          for name, plant, tune, cause in rows}
+
+
+@pytest.fixture(scope="module")
+def family_rows():
+    return {name: bench_tune_matrix.run_row(*MATRIX[name][:2]) for name in bench_tune_matrix.FAST}
+
+
+@pytest.mark.parametrize("name", bench_tune_matrix.FAST)
+def test_family_row_is_covered_or_names_its_cause(family_rows, name):
+    """The fast subset of tests/bench/bench_tune_matrix.py: a converged row's truth lies
+    within max(2 %, 2 sigma_total); the u_max rows end unconverged with the cause named."""
+    t = family_rows[name]
+    ok, err, _ = bench_tune_matrix.judge(t, MATRIX[name][2])
+    assert ok, (name, t["search"]["stop_reason"], t["search"].get("sigma_parts_v"))
+    s = t["search"]
+    if s["converged"]:
+        parts = s["sigma_parts_v"]
+        assert s["sigma_v"] == pytest.approx(np.sqrt(sum(v ** 2 for v in parts.values())), rel=1e-9)
+        assert {"noise", "amplitude", "encoder", "flatness", "viscous"} <= set(parts)
+        assert all(e["cause"] is None for e in s["evaluations"])
+
+
+def test_family_rows_use_few_experiments(family_rows):
+    assert statistics.median(t["search"]["experiments"] for t in family_rows.values()) <= 6
+
+
+def test_saturation_and_no_motion_are_named_never_nan(family_rows):
+    sat = family_rows["Fc 0.46 V, u_max 0.6 V"]["search"]
+    assert not sat["converged"] and sat["cause"] == "saturation"
+    assert "u_max = 0.6 V" in sat["stop_reason"] and "raise the sine amplitude" not in sat["stop_reason"]
+    stuck = family_rows["Fc 0.46 V, u_max 0.4 V"]
+    s = stuck["search"]
+    assert not s["converged"] and s["cause"] == "no motion" and stuck["k_fc_star"] is None
+    assert "the friction exceeds what the drive can give" in s["stop_reason"]
+    assert s["evaluations"][0]["saturated_fraction"] > 0.5 and s["evaluations"][0]["motion_h1"] < 0.2
+
+
+def test_demo_plant_budget_is_small_and_corrects_the_lag(tmp_path):
+    """The demo plant (viscous 2e-3): the motor lags 4.8 deg, the viscous feed-forward
+    estimate goes into the loop; K_fc* within 1.5 %, sigma_total <= 3 %."""
+    t = bench_tune.run_row({"plant": {"viscous": 2e-3}}, {}, str(tmp_path))
+    s = t["search"]
+    assert s["converged"] and abs(t["k_fc_star_error_re_truth"]) <= 0.015
+    assert s["sigma_v"] <= 0.03 * t["k_fc_star"]
+    v = s["budget"]["viscous"]
+    assert v["applied"] and v["lag_deg"] > 3 and abs(v["lag_after_deg"]) < 1.5
+    assert s["k_v_in_search"] == pytest.approx(0.04, rel=0.15)     # 2e-3 N m s/rad / 0.05 N m/V
+
+
 def test_too_small_bracket_is_extended_and_says_so(fast_rows):
     t = fast_rows["Coulomb x3, k_fc_max 0.3 x Fc"]
     ext = t["search"]["bracket_extended"]
