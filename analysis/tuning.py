@@ -1133,3 +1133,48 @@ def amplitude_combination(k1, sigma1, a1, k2, sigma2, a2, rule="trend"):
     return float(k), float(1 / np.sqrt(w1 + w2)), float(abs(d) / 2), (
         f"K_fc* at {a1:.3g} and {a2:.3g} rad agree within twice their noise {noise_d:.2g}: their "
         "inverse-variance mean, half the difference the amplitude part")
+
+
+def viscous_from_harmonics(U, Y, omega_rad_s, n_period, cycles, orders=(1, 3)):
+    """The viscous friction per volt, K_v (V s/rad), and the Coulomb level (V) of a rigid
+    plant fitted to one experiment's plant-input and angle harmonics.
+
+    k_m u = J y'' + b y' + F_c sgn(y') at the odd harmonics k (default 1 and 3):
+    U_k = -J' (k w)^2 Y_k + b' j k w Y_k + F_c' S_k, with S_k the DFT lines of the sign of
+    the velocity's fundamental (the relay the friction is while the motor slides) and the
+    primes "per volt". Least squares over the real and imaginary parts; the relay's 1/k
+    pattern at k = 3 separates F_c' from b'. The measured u contains the feed-forward, so
+    any K_fc, K_v of the experiment may be used.
+
+    Parameters
+    ----------
+    U, Y : array_like of complex, shape (K,)
+        Unnormalised DFT lines (numpy.fft.fft of one period) at k * cycles, k = 1 .. K, of
+        the plant input (V) and of the motor angle (rad).
+    omega_rad_s : float
+        The sine's angular frequency.
+    n_period, cycles : int
+        Samples per period and sine cycles in it.
+
+    Returns
+    -------
+    (k_v, f_c) : (float, float)
+        NaN, NaN when the lines do not determine them.
+    """
+    U, Y = np.asarray(U, dtype=complex), np.asarray(Y, dtype=complex)
+    n, c = int(n_period), int(cycles)
+    if not (len(U) >= max(orders) and len(Y) >= max(orders) and abs(Y[0]) > 0 and omega_rad_s > 0):
+        return np.nan, np.nan
+    t = np.arange(n)
+    v1 = np.real(1j * Y[0] * np.exp(2j * np.pi * c * t / n))      # the velocity's fundamental
+    S = np.fft.fft(np.sign(v1))
+    rows, rhs = [], []
+    for k in orders:
+        w = k * omega_rad_s
+        a = np.array([-(w ** 2) * Y[k - 1], 1j * w * Y[k - 1], S[k * c]])
+        rows += [a.real, a.imag]
+        rhs += [U[k - 1].real, U[k - 1].imag]
+    x, *_ = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)
+    if not np.all(np.isfinite(x)):
+        return np.nan, np.nan
+    return float(x[1]), float(x[2])

@@ -526,7 +526,7 @@ class _TuneProbe:
                            kfc=kfc, kv=kv)
         rec = self.s.run("tune", key, req, stats=self.stats_request)
         u_max = _run_u_max(self.s, rec)
-        sat = u_rms_re_max = u_over_y = None
+        sat = u_rms_re_max = u_over_y = lines = None
         if rec.stats is not None:
             # the drive's line statistics: the mean HOSIDFs and their period-to-period
             # variance (the search propagates it; fftune.analysis.tuning.KfcSearch.tell_moments)
@@ -534,6 +534,8 @@ class _TuneProbe:
                 rec.stats, u_name="reference", y_name="motor_angle", n_harmonics=c["harmonics"])
             H_periods = None
             rms_error = rec.stats.rms("error")
+            if "plant_input" in rec.stats.mean:
+                lines = (np.asarray(rec.stats.mean["plant_input"]), np.asarray(rec.stats.mean["motor_angle"]))
             if "plant_input" in rec.stats.mean and "plant_input" in rec.stats.power_msq:
                 y1 = rec.stats.mean["motor_angle"][0]
                 u_over_y = complex(rec.stats.mean["plant_input"][0] / y1) if abs(y1) > 0 else None
@@ -549,8 +551,10 @@ class _TuneProbe:
             rms_error = float(np.sqrt(np.mean(rec.signals["error"] ** 2)))
             if "plant_input" in rec.signals:
                 sat = _saturation_fraction(rec.signals["plant_input"], u_max)
-                u1 = np.fft.rfft(_blocks(rec.signals["plant_input"], self.n).mean(axis=0))[self.cycles]
-                y1 = np.fft.rfft(_blocks(rec.signals["motor_angle"], self.n).mean(axis=0))[self.cycles]
+                bins = self.cycles * np.arange(1, c["harmonics"] + 1)
+                lines = (np.fft.fft(_blocks(rec.signals["plant_input"], self.n).mean(axis=0))[bins],
+                         np.fft.fft(_blocks(rec.signals["motor_angle"], self.n).mean(axis=0))[bins])
+                u1, y1 = lines[0][0], lines[1][0]
                 u_over_y = complex(u1 / y1) if abs(y1) > 0 else None
         if "motor_angle" in rec.signals:
             # measurement noise of the angle: its spread over the recorded periods
@@ -570,6 +574,7 @@ class _TuneProbe:
             "rms_error": rms_error,
             "angle_noise_rad": noise_rad,
             "u_over_y": u_over_y,
+            "lines": lines,          # DFT lines k = 1 .. K of the plant input and the angle
             "check": check,
             "record": rec,
         }
@@ -583,6 +588,19 @@ class _TuneProbe:
             return _tuning.make_point(p["kfc"], H_periods=p["H_periods"], harmonics=self.harmonics)
         return _tuning.make_point(p["kfc"], H=p["H"], H_var=p["H_var"], n_periods=p["n_periods"],
                                   harmonics=self.harmonics)
+
+
+def _viscous_estimate(probe, p):
+    """K_v (V s/rad) of the plant from one experiment's harmonics, and the share of the
+    viscous term in the plant input's fundamental; (0, 0) when it cannot be read."""
+    if p["lines"] is None or p["check"]["cause"] is not None or not math.isfinite(p["ratio"]):
+        return 0.0, 0.0
+    U, Y = p["lines"]
+    omega = 2 * math.pi * probe.c["frequency_hz"]
+    kv, _ = _tuning.viscous_from_harmonics(U, Y, omega, probe.n, probe.cycles)
+    if not (math.isfinite(kv) and kv > 0):
+        return 0.0, 0.0
+    return float(kv), float(kv * omega * abs(Y[0]) / max(abs(U[0]), 1e-300))
 
 
 def _check_block(p):
@@ -739,6 +757,13 @@ LAG_MIN_DEG = 1.5
 # The amplitude part: K_fc* at a second amplitude A2 (the auto choice's alternative, else 2 A,
 # else A / 2), combined by fftune.analysis.tuning.amplitude_combination with this rule.
 AMPLITUDE_RULE = "trend"
+# The viscous feed-forward goes into the search when its share of the plant input's
+# fundamental (K_v w |Y_1| / |U_1|) at K_fc = 0 is at least this. At K_fc = 0 the motor
+# sticks briefly at each reversal, which the sliding-relay fit reads as viscous friction:
+# on the matrix's plants without much viscous friction the share came out 0.07-0.17, with
+# it (demo, load-side damping) 0.4-0.7 (tests/bench/bench_tune_matrix.py). A smaller
+# viscous share is corrected after the search, from the lag at K_fc* (LAG_MIN_DEG).
+KV_MIN_SHARE = 0.25
 # The search's relative stopping tolerance: the experiments of the budget (the second
 # amplitude, the lag correction) read K_fc* again along the measured slope, so the search
 # only needs to land within this of it (fewer experiments than KfcSearch's default 0.5 %).
@@ -809,14 +834,16 @@ def _budget(session, probe, outcome, by_k, amp_block):
     p_star = min(by_k.items(), key=lambda kp: abs(kp[0] - k1))[1]
     h1 = complex(p_star["H"][0])
     lag_deg = float(-np.degrees(np.angle(h1)))
-    kv = 0.0
-    if p_star["u_over_y"] is not None:
+    kv_search = float(getattr(probe, "kv_search", 0.0))
+    kv, _ = _viscous_estimate(probe, p_star)
+    if kv == 0.0 and p_star["u_over_y"] is not None:
         y1 = h1 * a1
         kv = _tuning.viscous_feedforward_estimate(p_star["u_over_y"] * y1, y1, omega, k1)
-    visc = {"lag_deg": _f(lag_deg), "k_v_estimate": _f(kv), "applied": False, "steps": []}
+    visc = {"lag_deg": _f(lag_deg), "k_v_in_search": _f(kv_search), "k_v_estimate": _f(kv),
+            "applied": False, "steps": []}
     visc_part = 0.0
     k = k1
-    if lag_deg > LAG_MIN_DEG and kv > 0:
+    if lag_deg > LAG_MIN_DEG and kv > 0 and abs(kv - kv_search) > 0.1 * kv:
         last = None
         for i in range(2):
             p, r = _at(probe, "lag", k, kv, a1, phases, slope)
@@ -842,15 +869,18 @@ def _budget(session, probe, outcome, by_k, amp_block):
                 sig_noise = math.hypot(sig_noise, last[1] / abs(slope))
             else:
                 visc_part = abs(k - k1)
-                k, kv = k1, 0.0
+                k = k1
     if not visc["applied"]:
-        kv = 0.0
-    visc["note"] = (f"the motor lagged the reference by {lag_deg:.3g} deg: K_fc* read with the viscous "
-                    f"feed-forward K_v = {kv:.4g} V s/rad in the loop (corrected)" if visc["applied"] else
-                    f"lag {lag_deg:.3g} deg (<= {LAG_MIN_DEG:g} deg or no positive K_v estimate): no "
-                    "correction" if visc_part == 0 else
-                    "the viscous feed-forward estimate did not reduce the lag: not applied; the shift "
-                    "it gave is a part of the budget")
+        kv = kv_search
+    visc["note"] = (
+        (f"the viscous feed-forward K_v = {kv_search:.4g} V s/rad (read from the K_fc = 0 experiment) "
+         "was in the loop during the search; " if kv_search else "")
+        + (f"the motor lagged the reference by {lag_deg:.3g} deg at K_fc*: K_fc* read again with "
+           f"K_v = {kv:.4g} V s/rad in the loop (corrected)" if visc["applied"] else
+           f"lag {lag_deg:.3g} deg at K_fc* (<= {LAG_MIN_DEG:g} deg, or no better K_v estimate): no "
+           "further correction" if visc_part == 0 else
+           "the new K_v estimate did not reduce the lag: not applied; the shift it gave is a part "
+           "of the budget"))
     out["k_v_in_search"] = kv
     # (2) a second amplitude
     amax = c["amplitude_max_rad"]
@@ -922,9 +952,24 @@ def tune(session):
                                max_experiments=c["search"]["max_experiments"],
                                xtol=c["search"]["xtol_v"] or 0.0, rtol=SEARCH_RTOL)
     by_k = {}
+    # the viscous feed-forward in the loop from the start when the plant's viscous friction
+    # is a noticeable share of the input (it makes the motor lag the reference, which moves
+    # the criterion's optimum off the Coulomb level); read from the K_fc = 0 experiment,
+    # which stays at K_v = 0 (the reference point of the search)
+    kv_pre, kv_share = 0.0, 0.0
+    if stop is None:
+        p_zero = probe.measure("search", 0.0)
+        if p_zero["check"]["cause"] is not None:
+            stop = p_zero["check"]
+            by_k[0.0] = p_zero
+        else:
+            kv_pre, kv_share = _viscous_estimate(probe, p_zero)
+            if kv_share < KV_MIN_SHARE:
+                kv_pre = 0.0
+    probe.kv_search = kv_pre
     while not search.done and stop is None:
         k = search.ask()
-        p = probe.measure("search", float(k))
+        p = probe.measure("search", float(k), kv_pre if k != 0.0 else 0.0)
         by_k[float(k)] = p
         if p["check"]["cause"] is not None:
             stop = p["check"]
