@@ -781,7 +781,7 @@ def _encoder_step(session, p):
             return float(q), "estimated from the recorded motor angle"
         return 0.0, ("not found in the recorded motor angle (no steps, or noise above a sixth of a "
                      "step dithers the quantiser): no encoder part")
-    return 0.0, "unknown (no samples, detect.encoder_step_rad unset): no encoder part"
+    return None, "unknown: no samples (tune.capture stats) and detect.encoder_step_rad unset"
 
 
 def _phases_and_slope(probe, outcome, by_k):
@@ -908,6 +908,11 @@ def _budget(session, probe, outcome, by_k, amp_block):
     k_est, noise_est, amp_part, how = _tuning.amplitude_combination(
         k, sig_noise, a1, k2, sigma2, a2, rule=AMPLITUDE_RULE)
     q, q_source = _encoder_step(session, p_star)
+    if q is None:
+        out["cause"] = ("cannot tell the encoder part of the uncertainty: the encoder step is "
+                        f"{q_source}; set detect.encoder_step_rad (2 pi / counts per revolution, from "
+                        "the encoder's data sheet) or use tune.capture: both")
+        return out
     enc = _tuning.encoder_floor_v(q, min(a1, a2), p_star["angle_noise_rad"], slope * (a1 / min(a1, a2)))
     total, parts = _tuning.uncertainty_budget({
         "noise": noise_est, "amplitude": amp_part, "encoder": enc,
