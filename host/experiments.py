@@ -633,15 +633,20 @@ def _next_amplitude(a, h1, ratio, noise, max_rad):
 
 
 def amplitude_verdict(h1, ratio, ratio_std, noise_re_amplitude, margin=AUTO_AMPLITUDE_MARGIN):
-    """``"pass"``, ``"fail"`` or ``"near"`` (a noise seed could flip it) for one auto probe."""
-    band = [(AUTO_AMPLITUDE_MIN_H1 - h1) / AUTO_AMPLITUDE_MIN_H1,
-            (ratio - AUTO_AMPLITUDE_MAX_RATIO) / AUTO_AMPLITUDE_MAX_RATIO if math.isfinite(ratio) else math.inf,
-            (noise_re_amplitude - MAX_NOISE_RE_AMPLITUDE) / MAX_NOISE_RE_AMPLITUDE]
-    se = [0.0, (2 * ratio_std / AUTO_AMPLITUDE_MAX_RATIO) if math.isfinite(ratio_std) else 0.0, 0.0]
-    # the noise limit is also checked after the search: a probe near it is not taken
-    if band[2] > -margin or any(b > max(margin, e) for b, e in zip(band, se)):
+    """``"pass"``, ``"fail"`` or ``"near"`` (a noise seed could flip it) for one auto probe.
+
+    The ratio criterion r(0) <= 0.05 is near when r(0) lies within ``margin`` (relative) or
+    two standard errors of the limit; |H_1| >= 0.9 within a fifth of ``margin``; the noise
+    criterion (also checked after the search) is passed only with the full margin below it.
+    """
+    rel = [(AUTO_AMPLITUDE_MIN_H1 - h1) / AUTO_AMPLITUDE_MIN_H1,
+           (ratio - AUTO_AMPLITUDE_MAX_RATIO) / AUTO_AMPLITUDE_MAX_RATIO if math.isfinite(ratio) else math.inf]
+    band = [margin / 5, max(margin, (2 * ratio_std / AUTO_AMPLITUDE_MAX_RATIO)
+                            if math.isfinite(ratio_std) else 0.0)]
+    noise = (noise_re_amplitude - MAX_NOISE_RE_AMPLITUDE) / MAX_NOISE_RE_AMPLITUDE
+    if noise > -margin or any(r > b for r, b in zip(rel, band)):
         return "fail"
-    if all(b < -max(margin, e) for b, e in zip(band, se)):
+    if all(r < -b for r, b in zip(rel, band)):
         return "pass"
     return "near"
 
