@@ -72,7 +72,8 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
             tr = results["tune"]
             srch = tr["search"]
             if srch["converged"]:
-                log(f"tune: K_fc* = {tr['k_fc_star']:.4g} V +- {srch['sigma_v']:.2g} V (1 sigma) "
+                log(f"tune: K_fc* = {tr['k_fc_star']:.4g} V +- {srch['sigma_v']:.2g} V (sigma_total: "
+                    "noise and the measured systematic parts, results.yaml tune.search.sigma_parts_v) "
                     f"after {srch['experiments']} experiments at {tr['amplitude_rad']:.3g} rad; "
                     f"ratio {tr['ratio_at_zero'] or math.inf:.3g} -> {tr['ratio_at_k_fc_star']:.3g}")
             else:

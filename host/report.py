@@ -157,7 +157,9 @@ def key_numbers(results):
         rows += [
             ("K_fc* (automated search)", _fmt(t["k_fc_star"], " V") if t["search"]["converged"]
              else f"not converged: {t['search']['stop_reason']}"),
-            ("sigma(K_fc*) from the measured noise", _fmt(t["search"].get("sigma_v"), " V")),
+            ("sigma_total(K_fc*): noise and the measured systematic parts", _fmt(t["search"].get("sigma_v"), " V")),
+            ("sigma parts", ", ".join(f"{k} {_fmt(v, ' V')}" for k, v in
+                                      (t["search"].get("sigma_parts_v") or {}).items()) or "-"),
             ("K_fc optimum of the sweep", _fmt((t["sweep"] or {}).get("optimum_k_fc"), " V")),
             ("search vs sweep optimum", _fmt(t["search"]["relative_to_sweep_optimum"], pct=True)),
             ("closed-loop experiments of the search", t["search"]["experiments"]),
