@@ -1108,7 +1108,8 @@ def amplitude_combination(k1, sigma1, a1, k2, sigma2, a2, rule="trend"):
         (a real amplitude dependence), extrapolate linearly in 1/A to 1/A -> 0 (the
         offsets of stick-slip, asymmetry, quantisation and noise dither fall about as 1/A)
         and take the size of that step as the amplitude part; else the inverse-variance
-        mean, half their difference the part. ``"extrapolate"``: always extrapolate.
+        mean, their difference the part (the mean leans on the quieter one, which need not
+        be the less biased). ``"extrapolate"``: always extrapolate.
         ``"first"``: k1, the whole difference the part.
 
     Returns
@@ -1130,9 +1131,9 @@ def amplitude_combination(k1, sigma1, a1, k2, sigma2, a2, rule="trend"):
             "amplitude part")
     w1, w2 = 1 / max(sigma1, 1e-300) ** 2, 1 / max(sigma2, 1e-300) ** 2
     k = (w1 * k1 + w2 * k2) / (w1 + w2)
-    return float(k), float(1 / np.sqrt(w1 + w2)), float(abs(d) / 2), (
+    return float(k), float(1 / np.sqrt(w1 + w2)), float(abs(d)), (
         f"K_fc* at {a1:.3g} and {a2:.3g} rad agree within twice their noise {noise_d:.2g}: their "
-        "inverse-variance mean, half the difference the amplitude part")
+        "inverse-variance mean, the difference the amplitude part")
 
 
 def viscous_from_harmonics(U, Y, omega_rad_s, n_period, cycles, orders=(1, 3)):

@@ -287,8 +287,9 @@ def test_statistics_only_noise_check_is_an_upper_bound_that_says_so(tmp_path):
     (1.0, 0.055, 1e-4, 0.004, "near"),       # within 25 % above it: taken, the alternative named
     (1.0, 0.070, 1e-4, 0.004, "fail"),
     (1.0, 0.030, 0.012, 0.004, "near"),      # two standard errors reach the limit
-    (0.87, 0.030, 1e-4, 0.004, "near"),      # |H_1| within 5 % of 0.9
-    (0.80, 0.030, 1e-4, 0.004, "fail"),
+    (0.49, 0.030, 1e-4, 0.004, "near"),      # |H_1| within 5 % of 0.5
+    (0.45, 0.030, 1e-4, 0.004, "fail"),
+    (0.70, 0.030, 1e-4, 0.004, "pass"),      # a damped loop follows with |H_1| 0.7
     (1.0, 0.030, 1e-4, 0.0170, "fail"),      # noise near its 2 % limit is not taken
     (1.0, math.inf, math.inf, 0.004, "fail"),
 ])

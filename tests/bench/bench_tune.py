@@ -138,7 +138,7 @@ def run(fast=False):
             if not ok:
                 bad.append(name)
         print(f"capture {capture}: median closed-loop experiments {statistics.median(counts):g} "
-              f"(goal <= 5), max {max(counts)}; rows failing acceptance: {len(bad)} {bad if bad else ''}")
+              f"(goal <= 6: search + the budget's experiments, issue 22), max {max(counts)}; rows failing acceptance: {len(bad)} {bad if bad else ''}")
         if not fast:
             hits, n = coverage(capture=capture)
             print(f"capture {capture}: sigma coverage: truth within +-2 sigma in {hits}/{n} noise "
