@@ -1129,7 +1129,8 @@ def amplitude_combination(k1, sigma1, a1, k2, sigma2, a2, rule="trend"):
             f"K_fc* changes with the amplitude ({k1:.5g} at {a1:.3g} rad, {k2:.5g} at {a2:.3g} rad, "
             f"beyond twice the noise {noise_d:.2g}): extrapolated to 1/A -> 0, the step is the "
             "amplitude part")
-    w1, w2 = 1 / max(sigma1, 1e-300) ** 2, 1 / max(sigma2, 1e-300) ** 2
+    floor = 1e-9 * max(abs(k1), abs(k2), 1e-12)     # noise-free values: equal weights
+    w1, w2 = 1 / max(sigma1, floor) ** 2, 1 / max(sigma2, floor) ** 2
     k = (w1 * k1 + w2 * k2) / (w1 + w2)
     return float(k), float(1 / np.sqrt(w1 + w2)), float(abs(d)), (
         f"K_fc* at {a1:.3g} and {a2:.3g} rad agree within twice their noise {noise_d:.2g}: their "

@@ -1041,3 +1041,19 @@ def test_root_at_slope_and_encoder_floor():
     y = q * np.round(0.5 * np.sin(2 * np.pi * 0.625 * t) / q) + 1e-4 * rng.standard_normal(t.size)
     assert encoder_step_estimate(y, 1e-4) == pytest.approx(q, rel=0.02)
     assert encoder_step_estimate(y, q / 3) is None       # noise hides (dithers) the steps
+
+
+def test_amplitude_combination_rules():
+    from fftune.analysis.tuning import amplitude_combination
+    # a real trend (difference 0.02 >> noise): extrapolated in 1/A, A2 = 2 A1: 2 k2 - k1
+    k, noise, part, how = amplitude_combination(1.00, 0.001, 0.5, 0.98, 0.002, 1.0)
+    assert k == pytest.approx(0.96) and part == pytest.approx(0.02) and "extrapolated" in how
+    assert noise == pytest.approx(np.hypot(0.001, 2 * 0.002))
+    # agreement within the noise: inverse-variance mean, the whole difference the part
+    k, noise, part, how = amplitude_combination(1.000, 0.004, 0.5, 0.996, 0.002, 1.0)
+    assert k == pytest.approx((1.000 / 16 + 0.996 / 4) / (1 / 16 + 1 / 4))
+    assert part == pytest.approx(0.004) and noise == pytest.approx(1 / np.sqrt(1 / 16e-6 + 1 / 4e-6))
+    # noise-free values (a simulation without noise) do not divide by zero
+    k, noise, part, _ = amplitude_combination(1.0, 0.0, 0.5, 1.0, 0.0, 1.0)
+    assert k == pytest.approx(1.0) and part == 0.0
+    assert amplitude_combination(1.0, 0.001, 0.5, 0.98, 0.002, 1.0, rule="first")[:3] == (1.0, 0.001, pytest.approx(0.02))
