@@ -687,6 +687,19 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
                                            > _tuning.SATURATION_MAX_FRACTION):
             return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
                        "reason": f"stopped: {ck['text']}"}, p, ck
+        if len(probes) >= 2 and noise > MAX_NOISE_RE_AMPLITUDE and probes[-2]["angle_noise_re_amplitude"] \
+                and noise * a > 2 * probes[-2]["angle_noise_re_amplitude"] * probes[-2]["amplitude_rad"]:
+            # the spread over the recorded periods grew with the amplitude: not measurement
+            # noise but motion that differs between periods (a slow transient, a loop near its
+            # resonance, a limit cycle); a larger amplitude does not help
+            ck = {"cause": "unsettled", "saturated_fraction": ck["saturated_fraction"], "text": (
+                f"the motor angle differs between the recorded periods by {100 * noise:.2g} % of the "
+                f"amplitude at {a:g} rad and {100 * probes[-2]['angle_noise_re_amplitude']:.2g} % at "
+                f"{probes[-2]['amplitude_rad']:g} rad: not measurement noise (it grows with the "
+                "amplitude) but a loop that has not settled or does not repeat (near its resonance?); "
+                "raise tune.settle_periods or lower tune.frequency_hz")}
+            return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
+                       "reason": f"stopped: {ck['text']}"}, p, ck
         nxt = _next_amplitude(a, h1, p["ratio"], noise, max_rad)
         if verdict != "fail":
             near = verdict == "near"

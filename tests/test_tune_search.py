@@ -310,3 +310,17 @@ def test_amplitude_choice_near_its_threshold_tells_both_answers(tmp_path):
         assert a["probes"][-1]["verdict"] == "near" and "another noise seed may choose" in a["reason"]
         assert t["search"]["budget"]["k_fc_at_amplitude"]["amplitude_rad"] == [0.5, pytest.approx(1.0)]
         assert t["search"]["converged"] and abs(t["k_fc_star_error_re_truth"]) <= 0.01
+
+
+def test_period_spread_growing_with_the_amplitude_is_named_not_climbed_into_saturation(tmp_path):
+    """Heavy motor inertia (x30): the loop near its resonance at 0.625 Hz does not repeat
+    from period to period; the spread grows with the amplitude, so it is not measurement
+    noise and auto stops ('unsettled', with the fix) instead of climbing to saturation."""
+    t = bench_tune_matrix.run_row(*MATRIX["j1 x30, seed 1"][:2])
+    s = t["search"]
+    assert not s["converged"] and s["cause"] == "unsettled" and t["k_fc_star"] is None
+    assert "tune.settle_periods" in s["stop_reason"] and "tune.frequency_hz" in s["stop_reason"]
+    probes = t["amplitude"]["probes"]
+    assert len(probes) == 2 and all(p["saturated_fraction"] == 0 for p in probes)
+    assert probes[1]["angle_noise_re_amplitude"] * probes[1]["amplitude_rad"] > \
+        2 * probes[0]["angle_noise_re_amplitude"] * probes[0]["amplitude_rad"]
