@@ -625,6 +625,12 @@ MAX_NOISE_RE_AMPLITUDE = 0.02
 # It is taken, and the amplitude the other answer gives is named as the alternative (and
 # measured by the second-amplitude experiment of the budget).
 AUTO_AMPLITUDE_MARGIN = 0.25
+# The encoder's quantisation offsets the criterion's optimum through the loop (steps of
+# kp q next to the friction) by an amount that falls with the amplitude (256 counts: +2.9 %
+# at 0.5 rad, +0.9 % at 2 rad, +0.1 % at 4 rad on configs/plant_twomass.yaml): auto raises the
+# amplitude until the step is at most this share of it (the demo's 2000 counts: 0.6 % at
+# 0.5 rad).
+MAX_STEP_RE_AMPLITUDE = 0.01
 
 
 def _next_amplitude(a, h1, ratio, noise, max_rad):
@@ -674,6 +680,7 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
     """
     a = float(start_rad)
     probes = []
+    q_step, q_source = None, None
     for _ in range(max_probes):
         p = probe.measure("amplitude", 0.0, amplitude=a)
         h1 = float(np.abs(p["H"][0]))
@@ -701,6 +708,16 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
             return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
                        "reason": f"stopped: {ck['text']}"}, p, ck
         nxt = _next_amplitude(a, h1, p["ratio"], noise, max_rad)
+        if q_step is None and p["record"] is not None:
+            q_step, q_source = _encoder_step(probe.s, p)
+        probes[-1]["encoder_step_re_amplitude"] = _f(q_step / a) if q_step else None
+        if verdict != "fail" and q_step and q_step / a > MAX_STEP_RE_AMPLITUDE and a < max_rad:
+            # the quantisation offset falls with the amplitude: go where the step is small
+            verdict = probes[-1]["verdict"] = "fail"
+            probes[-1]["encoder_note"] = (f"encoder step {q_step:.3g} rad ({q_source}) is "
+                                          f"{100 * q_step / a:.2g} % of the amplitude (> "
+                                          f"{100 * MAX_STEP_RE_AMPLITUDE:g} %)")
+            nxt = min(max_rad, max(nxt, 1.05 * q_step / MAX_STEP_RE_AMPLITUDE))
         if verdict != "fail":
             near = verdict == "near"
             alt = nxt if near and nxt > a else None
@@ -709,6 +726,11 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
                 f"{AUTO_AMPLITUDE_MIN_H1:g}), the odd-harmonic ratio {p['ratio']:.3g} is <= "
                 f"{AUTO_AMPLITUDE_MAX_RATIO:g} (out of stick-slip) and the angle noise is "
                 f"{100 * noise:.2g} % of the amplitude (<= {100 * MAX_NOISE_RE_AMPLITUDE:g} %)"
+                + (f"; the encoder step is {100 * q_step / a:.2g} % of it (<= "
+                   f"{100 * MAX_STEP_RE_AMPLITUDE:g} %, else the amplitude is raised: the "
+                   "quantisation offset falls with it)" if q_step and q_step / a <= MAX_STEP_RE_AMPLITUDE
+                   else f"; the encoder step is {100 * q_step / a:.2g} % of it, above "
+                   f"{100 * MAX_STEP_RE_AMPLITUDE:g} %, at tune.amplitude_max_rad" if q_step else "")
                 + (f"; near a limit (within {100 * AUTO_AMPLITUDE_MARGIN:g} % or 2 standard errors): "
                    f"another noise seed may choose {alt:.3g} rad, measured as the second amplitude"
                    if alt else ""))}, p, None
