@@ -695,6 +695,7 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
             return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
                        "reason": f"stopped: {ck['text']}"}, p, ck
         if len(probes) >= 2 and noise > MAX_NOISE_RE_AMPLITUDE and probes[-2]["angle_noise_re_amplitude"] \
+                and (probes[-2]["h1"] or 0) >= AUTO_AMPLITUDE_MIN_H1 and h1 >= AUTO_AMPLITUDE_MIN_H1 \
                 and noise * a > 2 * probes[-2]["angle_noise_re_amplitude"] * probes[-2]["amplitude_rad"]:
             # the spread over the recorded periods grew with the amplitude: not measurement
             # noise but motion that differs between periods (a slow transient, a loop near its
@@ -810,6 +811,18 @@ KV_MIN_SHARE = 0.25
 # amplitude, the lag correction) read K_fc* again along the measured slope, so the search
 # only needs to land within this of it (fewer experiments than KfcSearch's default 0.5 %).
 SEARCH_RTOL = 0.02
+# A budget above this share of K_fc* is no tuning result: converged false, with the largest
+# part and what would shrink it.
+MAX_SIGMA_RE_K_FC = 0.1
+_BUDGET_ADVICE = {
+    "amplitude": "K_fc* depends on the sine amplitude (stick-slip, Stribeck, a loop that does not "
+                 "repeat): raise tune.amplitude_rad / tune.amplitude_max_rad, or lower tune.frequency_hz",
+    "encoder": "the encoder is coarse for this friction: a larger amplitude (tune.amplitude_max_rad) or a "
+               "finer encoder",
+    "noise": "raise tune.periods or the amplitude",
+    "flatness": "the objective is flat near its zero: raise the amplitude",
+    "viscous": "the viscous feed-forward estimate did not settle: check the plant's damping",
+}
 
 
 def _encoder_step(session, p):
@@ -1059,6 +1072,16 @@ def tune(session):
             outcome.converged = False
             outcome.reason = budget["cause"]
             outcome.sigma = math.nan
+        elif not budget["sigma_total"] <= MAX_SIGMA_RE_K_FC * abs(budget["k_fc"]):
+            part, value = max(budget["parts"].items(), key=lambda kv: kv[1])
+            outcome.converged = False
+            outcome.sigma = math.nan
+            outcome.k_fc = budget["k_fc"]
+            outcome.reason = (
+                f"cannot tell K_fc* better than +-{100 * budget['sigma_total'] / abs(budget['k_fc']):.3g} % "
+                f"(sigma_total {budget['sigma_total']:.3g} V at K_fc = {budget['k_fc']:.4g} V, more than "
+                f"{100 * MAX_SIGMA_RE_K_FC:g} %); the largest part is '{part}' ({value:.3g} V): "
+                + _BUDGET_ADVICE.get(part, "see tune.search.budget"))
         else:
             outcome.k_fc, outcome.sigma = budget["k_fc"], budget["sigma_total"]
             kv_search = budget["k_v_in_search"]
@@ -1127,8 +1150,9 @@ def tune(session):
             "method": "bracketed root of the signed objective, ratio minimiser where the odd "
                       "phases rotate (fftune.analysis.tuning.KfcSearch)",
             "k_fc_star": _f(k_star), "sigma_v": sigma, "uncertainty": sigma,
-            "sigma_parts_v": None if not (budget and outcome.converged) else
+            "sigma_parts_v": None if not (budget and "parts" in budget) else
             {k: _f(v) for k, v in budget["parts"].items()},
+            "sigma_total_v": None if not (budget and "parts" in budget) else _f(budget["sigma_total"]),
             "budget": None if not (budget and "parts" in budget) else {
                 k: budget[k] for k in ("k_fc_search", "k_fc_at_amplitude", "rule", "viscous",
                                        "encoder_step_rad", "encoder_step_source", "experiments")},

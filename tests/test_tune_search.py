@@ -324,3 +324,18 @@ def test_period_spread_growing_with_the_amplitude_is_named_not_climbed_into_satu
     assert len(probes) == 2 and all(p["saturated_fraction"] == 0 for p in probes)
     assert probes[1]["angle_noise_re_amplitude"] * probes[1]["amplitude_rad"] > \
         2 * probes[0]["angle_noise_re_amplitude"] * probes[0]["amplitude_rad"]
+
+
+def test_a_budget_above_ten_percent_is_no_result_and_names_its_largest_part(tmp_path):
+    """Strong stiction (Coulomb x8, static x3, Stribeck 0.1 rad/s): K_fc* changes with the
+    amplitude by as much as itself; the result says it cannot tell, with the part and the fix,
+    instead of a converged value with +-50 %."""
+    P, FC0 = bench_tune_matrix._plant, bench_tune_matrix.FC0
+    plant = P(coulomb=8 * FC0, static=24 * FC0, stribeck_velocity=0.1, noise_std=2e-3, seed=5)
+    t = bench_tune_matrix.run_row(plant, {"search": {"k_fc_max": 2.0}})
+    s = t["search"]
+    assert not s["converged"] and t["k_fc_star"] is None and s["sigma_v"] is None
+    assert s["stop_reason"].startswith("cannot tell K_fc* better than")
+    assert "the largest part is 'amplitude'" in s["stop_reason"] and "tune.amplitude_max_rad" in s["stop_reason"]
+    assert s["sigma_total_v"] > ex.MAX_SIGMA_RE_K_FC * t["k_fc_best_measured"]
+    assert max(s["sigma_parts_v"], key=s["sigma_parts_v"].get) == "amplitude"
