@@ -880,8 +880,7 @@ class KfcSearch(_GeneratorSearch):
     def _pooled_signed_se(self, phases):
         pts = [p for p in self._sorted() if np.isfinite(p.ratio)]
         _, se = self._signed(pts, phases)
-        se = se[np.isfinite(se)]
-        return float(np.sqrt(np.mean(se ** 2))) if len(se) else np.nan
+        return pooled_standard_error(se)
 
     def _dof(self):
         return sum(p.n_periods - 1 for p in self.points.values() if np.isfinite(p.ratio))
@@ -1014,6 +1013,14 @@ def viscous_feedforward_estimate(U1, Y1, omega_rad_s, k_fc):
     reversal of the motor's velocity away from the reversal of sgn(reference velocity) that
     switches the Coulomb feed-forward; the odd-ratio criterion's optimum then moves off the
     Coulomb level (by several % at a 5 deg lag, tens of % at 20 deg). K_v removes the lag.
+
+    Parameters
+    ----------
+    U1, Y1 : complex
+        Amplitude phasors of the fundamental: plant input (V) and motor angle (rad).
+    omega_rad_s : float
+    k_fc : float
+        The Coulomb level per volt taken for the friction's describing function.
 
     Returns
     -------

@@ -1057,3 +1057,27 @@ def test_amplitude_combination_rules():
     k, noise, part, _ = amplitude_combination(1.0, 0.0, 0.5, 1.0, 0.0, 1.0)
     assert k == pytest.approx(1.0) and part == 0.0
     assert amplitude_combination(1.0, 0.001, 0.5, 0.98, 0.002, 1.0, rule="first")[:3] == (1.0, 0.001, pytest.approx(0.02))
+
+
+def test_viscous_from_harmonics_recovers_a_rigid_plant():
+    """u = J y'' + b y' + F_c sgn(y') (per volt) for a sliding sine y with a small third
+    harmonic: the fit returns b and F_c; J, b, F_c unequal so a swapped column fails."""
+    from fftune.analysis.tuning import viscous_feedforward_estimate, viscous_from_harmonics
+    n, c, fs = 4096, 1, 2560.0
+    w = 2 * np.pi * c * fs / n
+    t = np.arange(n) / fs
+    y = 0.5 * np.sin(w * t + 0.3) + 0.004 * np.sin(3 * w * t + 1.1)
+    yd = 0.5 * w * np.cos(w * t + 0.3) + 0.012 * w * np.cos(3 * w * t + 1.1)
+    ydd = -0.5 * w ** 2 * np.sin(w * t + 0.3) - 0.036 * w ** 2 * np.sin(3 * w * t + 1.1)
+    J, b, fc = 2e-3, 0.04, 0.1157
+    v1 = 0.5 * w * np.cos(w * t + 0.3)                 # the friction switches with the fundamental
+    u = J * ydd + b * yd + fc * np.sign(v1)
+    U = np.fft.fft(u)[c * np.arange(1, 8)]
+    Y = np.fft.fft(y)[c * np.arange(1, 8)]
+    kv, fc_fit = viscous_from_harmonics(U, Y, w, n, c)
+    assert kv == pytest.approx(b, rel=1e-3) and fc_fit == pytest.approx(fc, rel=1e-3)
+    # from the fundamentals (phasors of amplitude: V, rad) with the Coulomb level known
+    U1, Y1 = 2 * U[0] / n, 2 * Y[0] / n
+    assert viscous_feedforward_estimate(U1, Y1, w, fc) == pytest.approx(b, rel=2e-3)
+    assert viscous_feedforward_estimate(U1, Y1, w, 10 * fc) == 0.0    # negative: none
+    assert np.isnan(viscous_from_harmonics(U, np.zeros(7), w, n, c)[0])
