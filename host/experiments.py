@@ -811,6 +811,9 @@ KV_MIN_SHARE = 0.25
 # amplitude, the lag correction) read K_fc* again along the measured slope, so the search
 # only needs to land within this of it (fewer experiments than KfcSearch's default 0.5 %).
 SEARCH_RTOL = 0.02
+# At the second amplitude a root step along the scaled slope longer than this share of K_fc*
+# gets a second experiment there and the secant through both.
+SECOND_POINT_STEP = 0.05
 # A budget above this share of K_fc* is no tuning result: converged false, with the largest
 # part and what would shrink it.
 MAX_SIGMA_RE_K_FC = 0.1
@@ -823,6 +826,11 @@ _BUDGET_ADVICE = {
     "flatness": "the objective is flat near its zero: raise the amplitude",
     "viscous": "the viscous feed-forward estimate did not settle: check the plant's damping",
 }
+
+
+def probe_limit(session):
+    """The largest K_fc an experiment after the search may ask for (the drive's limit)."""
+    return k_fc_limit(session)
 
 
 def _encoder_step(session, p):
@@ -958,8 +966,22 @@ def _budget(session, probe, outcome, by_k, amp_block):
     h1_2 = abs(complex(p2["H"][0]))
     slope2 = slope * a1 * abs(h1) / (a2 * h1_2)
     s2, se2, _ = r2
-    k2 = _tuning.root_at_slope(float(np.float32(k)), s2, slope2)
+    k_a = float(np.float32(k))
+    k2 = _tuning.root_at_slope(k_a, s2, slope2)
     sigma2 = se2 / abs(slope2) * _tuning._t_factor(max(1, p2["n_periods"] - 1))
+    second = None
+    if math.isfinite(k2) and abs(k2 - k_a) > SECOND_POINT_STEP * abs(k_a) and 0 < k2 <= probe_limit(session):
+        # a long step along a scaled slope (the slope at A2 need not be the scaled one, e.g. in
+        # stick-slip): one more experiment at the root, then the secant through both
+        p3, r3 = _at(probe, "amplitude2", k2, kv, a2, phases, slope2)
+        if r3 is not None and r3[0] != s2:
+            s3, se3 = r3[0], r3[1]
+            k_b = float(np.float32(k2))
+            slope_m = (s3 - s2) / (k_b - k_a)
+            if slope_m < 0:
+                second = {"k_fc": _f(k_b), "s": _f(s3), "s_std": _f(se3), "slope_measured": _f(slope_m)}
+                k2 = _tuning.root_at_slope(k_b, s3, slope_m)
+                sigma2 = math.hypot(se3, se2) / abs(slope_m) * _tuning._t_factor(max(1, p3["n_periods"] - 1))
     k_est, noise_est, amp_part, how = _tuning.amplitude_combination(
         k, sig_noise, a1, k2, sigma2, a2, rule=AMPLITUDE_RULE)
     q, q_source = _encoder_step(session, p_star)
@@ -976,7 +998,8 @@ def _budget(session, probe, outcome, by_k, amp_block):
         "k_fc": float(k_est), "sigma_total": total, "parts": parts,
         "k_fc_at_amplitude": {"amplitude_rad": [_f(a1), _f(a2)], "k_fc": [_f(k), _f(k2)],
                               "sigma_noise": [_f(sig_noise), _f(sigma2)],
-                              "s_at_second": _f(s2), "s_std_at_second": _f(se2)},
+                              "s_at_second": _f(s2), "s_std_at_second": _f(se2),
+                              "secant_at_second": second},
         "rule": how,
         "k_fc_search": _f(k1), "viscous": visc,
         "encoder_step_rad": _f(q), "encoder_step_source": q_source,
