@@ -829,6 +829,20 @@ _BUDGET_ADVICE = {
 }
 
 
+def _amplitude_allowed(session, a):
+    """A sine amplitude above the chosen one only within what the configuration allows
+    (tune.amplitude_max_rad, limits.max_amplitude_rad, limits.max_velocity_rad_s) and the
+    drive's amplitude range (1000 rad): the preflight checked those, not the larger sine."""
+    c = session.cfg["tune"]
+    lim = session.cfg.get("limits") or {}
+    if a > c["amplitude_max_rad"] or a > 1000.0:
+        return False
+    if lim.get("max_amplitude_rad") is not None and a > lim["max_amplitude_rad"]:
+        return False
+    v_max = lim.get("max_velocity_rad_s")
+    return v_max is None or 2 * math.pi * c["frequency_hz"] * a <= v_max
+
+
 def probe_limit(session):
     """The largest K_fc an experiment after the search may ask for (the drive's limit)."""
     return k_fc_limit(session)
@@ -951,6 +965,7 @@ def _budget(session, probe, outcome, by_k, amp_block):
     alt = (amp_block or {}).get("alternative_rad")
     candidates = [alt] if alt else []
     candidates += [x for x in (2 * a1, a1 / 2) if x <= max(amax, a1) and x not in candidates]
+    candidates = [x for x in candidates if x <= a1 or _amplitude_allowed(session, x)]
     p2 = r2 = None
     tried = []
     for a2 in candidates:

@@ -516,7 +516,8 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
         run_checks("tune", t, 0 if mode("tune") == "stats" else 4)
         runs = t["sweep"]["points"] + t["search"]["max_experiments"] + \
             (4 if t["amplitude_rad"] == "auto" else 0) + \
-            (t["viscous"]["max_experiments"] + 2 if t["viscous"]["enabled"] else 0)
+            (t["viscous"]["max_experiments"] + 2 if t["viscous"]["enabled"] else 0) + \
+            4       # the uncertainty budget: lag correction (<= 2), second amplitude (<= 2)
         plan = [StepPlan("tune", runs, runs * (t["settle_periods"] + t["periods"]) * n / fs, 0, None)] \
             if fs else []
         step_rows.append({"step": "tune", "text": (

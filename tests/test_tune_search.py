@@ -339,3 +339,17 @@ def test_a_budget_above_ten_percent_is_no_result_and_names_its_largest_part(tmp_
     assert "the largest part is 'amplitude'" in s["stop_reason"] and "tune.amplitude_max_rad" in s["stop_reason"]
     assert s["sigma_total_v"] > ex.MAX_SIGMA_RE_K_FC * t["k_fc_best_measured"]
     assert max(s["sigma_parts_v"], key=s["sigma_parts_v"].get) == "amplitude"
+
+
+def test_second_amplitude_stays_within_the_configured_limits(tmp_path):
+    """A fixed amplitude of 0.5 rad with limits.max_amplitude_rad 0.6: the budget's second
+    amplitude is not 1 rad (beyond what the preflight checked) but 0.25 rad."""
+    from fwsim_drive import FwSimDrive, plant_file
+    cfg = bench_tune.tune_config({"amplitude_rad": 0.5, "search": {"k_fc_max": 0.3}})
+    cfg["limits"]["max_amplitude_rad"] = 0.6
+    with FwSimDrive(plant_file({"plant": {"viscous": 2e-3}}, directory=str(tmp_path))) as drive:
+        drive.enable()
+        results, _ = ex.tune(ex.Session(drive, cfg, str(tmp_path / "out"), log=lambda s: None))
+    amps = results["search"]["budget"]["k_fc_at_amplitude"]["amplitude_rad"]
+    assert amps == [0.5, 0.25]
+    assert results["search"]["converged"] and abs(results["k_fc_star_error_re_truth"]) <= 0.02
