@@ -287,6 +287,7 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False
     found = None
     if threshold is not None and gap >= min_gap_db:
         found = np.flatnonzero(level > threshold) + 1
+        found = _refine_in_band(level, found, min_gap_db)
     elif level.size >= 64:
         rel = level - _local_floor(level)
         thr, sep = _otsu(rel)
@@ -302,8 +303,94 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False
         raise InputError(
             f"excitation: cannot tell excited from non-excited lines (largest gap in the "
             f"spectrum {gap:.1f} dB < {min_gap_db:g} dB, no clear cluster re the local "
-            f"floor either); give the excited lines explicitly (--lines FILE)")
+            f"floor either); give the excited lines explicitly (excited_bins, CLI --lines)")
+    found, strays = _stray_lines(level, found)
+    info["stray_bins"] = strays
+    # how sure: the margin between the weakest excited line and the strongest other line
+    # of the band, both re the excited lines' local level
+    inband = np.arange(found[0], found[-1] + 1)
+    other = np.setdiff1d(inband, np.concatenate((found, strays)))
+    margin = None
+    if other.size:
+        ref = np.interp(inband, found, level[found - 1])
+        rel = level[inband - 1] - ref
+        margin = float(np.min(rel[np.isin(inband, found)]) - np.max(rel[np.isin(inband, other)]))
+    info["margin_db"] = margin
+    info["confidence"] = ("clear" if margin is None or margin >= 20.0 else
+                          "fair" if margin >= min_gap_db else "weak")
+    if strays.size:
+        lv = level[strays - 1] - np.median(level[found - 1])
+        strays_note = (f"{strays.size} input line(s) off the excitation grid left out of the "
+                       f"excited and the detection lines (stray tones: "
+                       + ", ".join(f"bin {b} at {v:+.0f} dB" for b, v in zip(strays[:5], lv[:5]))
+                       + (" ..." if strays.size > 5 else "") + " re the median excited line)")
+        info["note"] = strays_note if info["note"] is None else info["note"] + "; " + strays_note
+    if info["confidence"] == "weak" and info["note"] is None:
+        info["note"] = (f"excited lines found with a weak margin ({margin:.1f} dB between the "
+                        f"weakest excited and the strongest other line of the band): give the "
+                        f"design's lines (--lines FILE) to be sure")
     return (found, info) if return_info else found
+
+
+def _refine_in_band(level, found, min_gap_db):
+    """The largest gap of the whole spectrum can be a filter's stop band (a band-limited
+    record whose out-of-band floor lies far under the in-band distortion): split again
+    within the band of the lines found while the band's own levels show a gap of
+    ``min_gap_db`` and the lines split off lie among the kept ones (the level of the
+    non-excited lines), not beside them (a designed amplitude step)."""
+    for _ in range(6):
+        lo, hi = found[0] - 1, found[-1] - 1
+        inband = level[lo:hi + 1]
+        if inband.size < 8:
+            break
+        thr, gap = _split_by_gap(inband, max(2, int(np.ceil(0.01 * inband.size))))
+        if thr is None or gap < min_gap_db:
+            break
+        new = np.flatnonzero(inband > thr) + lo + 1
+        dropped = np.setdiff1d(found, new)
+        if new.size < 2 or dropped.size == 0:
+            break
+        among = np.mean((dropped > new[0]) & (dropped < new[-1]))
+        if among < 0.2:
+            break
+        found = new
+    return found
+
+
+def _stray_lines(level, found):
+    """Lines of ``found`` that do not belong to the excitation: a handful (at most
+    max(2, 2 %)) off the grid's parity pattern (even lines among odd ones, 4k+3 among
+    4k+1), or 6 dB or more under the median of their 10 nearest excited neighbours while
+    the rest follow it. Returns (excited, strays)."""
+    empty = np.array([], dtype=np.int64)
+    if found.size < 20:
+        return found, empty
+    allow = max(2, int(0.02 * found.size))
+    stray = np.zeros(found.size, dtype=bool)
+    odd = found % 2 == 1
+    if 0 < np.sum(~odd) <= allow:
+        stray |= ~odd
+    elif 0 < np.sum(odd) <= allow:
+        stray |= odd
+    keep = ~stray
+    r1 = (found % 4 == 1) & keep & odd
+    r3 = (found % 4 == 3) & keep & odd
+    if np.all(odd[keep]):
+        if 0 < r3.sum() <= allow < r1.sum():
+            stray |= r3
+        elif 0 < r1.sum() <= allow < r3.sum():
+            stray |= r1
+    idx = np.flatnonzero(~stray)
+    lv = level[found[idx] - 1]
+    from numpy.lib.stride_tricks import sliding_window_view
+    if idx.size >= 21:
+        padded = np.pad(lv, 5, mode="reflect")
+        win = sliding_window_view(padded, 11)
+        local = np.median(np.delete(win, 5, axis=1), axis=1)
+        low = lv < local - 6.0
+        if 0 < low.sum() <= allow:
+            stray[idx[low]] = True
+    return found[~stray], found[stray]
 
 
 def _validate_lines(bins, n):
@@ -459,15 +546,52 @@ def _interp_frf(freq, G, f_at):
     return g_at, np.abs(loo - G) / np.abs(G)
 
 
+def _binom_sf_counts(n_lines, p_line):
+    """P(Binomial(n_lines, p_line) >= k) for k = 0 .. n_lines (numpy only: no scipy.stats
+    import on the first call)."""
+    k = np.arange(n_lines + 1)
+    logs = np.log(np.arange(1, n_lines + 1, dtype=float))
+    log_fact = np.concatenate(([0.0], np.cumsum(logs)))
+    p = min(max(float(p_line), 1e-300), 1.0 - 1e-16)
+    log_pmf = (log_fact[-1] - log_fact - log_fact[::-1] + k * np.log(p)
+               + (n_lines - k) * np.log1p(-p))
+    pmf = np.exp(log_pmf - log_pmf.max())
+    pmf /= pmf.sum()
+    return np.minimum(np.cumsum(pmf[::-1])[::-1], 1.0)
+
+
 def _false_alarm_count(n_lines, p_line, alpha=1e-3):
     """Smallest count k >= 1 with P(Binomial(n_lines, p_line) >= k) <= alpha."""
-    from scipy.stats import binom
     if n_lines == 0:
         return None
-    return max(1, int(binom.isf(alpha, n_lines, p_line)) + 1)
+    sf = _binom_sf_counts(n_lines, p_line)
+    ok = np.flatnonzero(sf <= alpha)
+    return max(1, int(ok[0]) if ok.size else n_lines + 1)
 
 
-def _class_stats(level, reference, nu, prefix, alpha=1e-3):
+def f_sf_even(x, d1, d2):
+    """Tail P(F > x) of Fisher's F(d1, d2) for an even numerator d1 (d2 > 0 real): the
+    finite sum of the regularized incomplete beta function, numpy only.
+
+    With w = d1 x / (d2 + d1 x), a = d1 / 2, b = d2 / 2:
+    P(F > x) = (1 - w)^b sum_{j < a} Gamma(b + j) / (Gamma(b) j!) w^j.
+    """
+    import math
+    a, b = int(d1) // 2, float(d2) / 2.0
+    x = np.maximum(np.asarray(x, dtype=float), 0.0)
+    w = d1 * x / (d2 + d1 * x)
+    with np.errstate(divide="ignore"):
+        log1mw = np.log1p(-np.minimum(w, 1.0))
+        logw = np.log(w)
+    total = np.zeros_like(w)
+    for j in range(a):
+        coef = math.lgamma(b + j) - math.lgamma(b) - math.lgamma(j + 1)
+        term = coef + b * log1mw + (j * logw if j else 0.0)
+        total += np.exp(np.where(np.isfinite(term), term, -np.inf))
+    return np.minimum(total, 1.0)
+
+
+def _class_stats(level, reference, nu, prefix, alpha=1e-3, tail=None):
     """Per-line figures of one class of non-excited lines (level vs what is expected
     there without nonlinear distortion, ``reference``).
 
@@ -478,7 +602,8 @@ def _class_stats(level, reference, nu, prefix, alpha=1e-3):
     is (Bonferroni: n min p <= alpha): a few lines far above the noise count as much as
     many lines a little above it. Returns the median excess (dB), the count 6 dB over,
     the count needed, the count noise gives on average, and the flag (None without a
-    line or a reference).
+    line or a reference). ``tail(ratio)``: the probability that a noise-only line exceeds
+    ``ratio`` times its reference (default the F(2, 2 nu) tail above).
     """
     out = {f"{prefix}lines": int(np.size(level))}
     if level is None or np.size(level) == 0 or reference is None or nu < 1:
@@ -486,11 +611,14 @@ def _class_stats(level, reference, nu, prefix, alpha=1e-3):
                     f"{prefix}lines_needed": None, f"{prefix}lines_by_noise": None,
                     f"{prefix}detected": None})
         return out
+    if tail is None:
+        def tail(x):
+            return (1.0 + np.maximum(x, 0) / nu) ** (-nu)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = level / reference
         excess = 10 * np.log10(ratio)
-        p_lines = np.where(ratio > 0, (1.0 + np.maximum(ratio, 0) / nu) ** (-nu), 1.0)
-    p_line = (1.0 + 4.0 / nu) ** (-nu)
+        p_lines = np.where(ratio > 0, tail(np.where(ratio > 0, ratio, 0.0)), 1.0)
+    p_line = float(tail(np.array(4.0)))
     over = int(np.sum(level > 4.0 * reference))
     need = _false_alarm_count(level.size, p_line, alpha)
     med = float(np.median(excess))
@@ -500,6 +628,135 @@ def _class_stats(level, reference, nu, prefix, alpha=1e-3):
                 f"{prefix}lines_by_noise": float(level.size * p_line),
                 f"{prefix}detected": bool(over >= need or strongest)})
     return out
+
+
+def _running_mean(x, half_width):
+    """Mean of x over a window of +-half_width values (shrunk at the ends)."""
+    c = np.concatenate(([0.0], np.cumsum(x)))
+    i = np.arange(x.size)
+    lo, hi = np.maximum(i - half_width, 0), np.minimum(i + half_width + 1, x.size)
+    return (c[hi] - c[lo]) / (hi - lo)
+
+
+def quantisation_error_lines(s, q, sigma, bins):
+    """Deterministic quantisation error of a periodic signal at DFT lines.
+
+    Quantising a periodic signal s (one period, no noise) gives an error e = q round(s/q) - s
+    that is periodic too, so it sits on the harmonic lines of the period, and odd-symmetric
+    in s (an odd nonlinearity of the signal): not white noise. Gaussian noise of standard
+    deviation ``sigma`` before the quantiser dithers it: the mean error over periods is the
+    sawtooth's Fourier series with each harmonic k damped by exp(-2 (pi k sigma / q)^2).
+
+    Parameters
+    ----------
+    s : ndarray, shape (..., N)
+        One period of the noise-free signal (unit of y).
+    q : float
+        Quantisation step.
+    sigma : float
+        Standard deviation of the noise before the quantiser (unit of y).
+    bins : array_like of int
+        DFT bins to return.
+
+    Returns
+    -------
+    ndarray of complex, shape (..., len(bins))
+        rfft of the mean error (numpy scaling, no 1/N) at ``bins``.
+    """
+    if sigma < 0.05 * q:
+        e = q * np.round(s / q) - s
+    else:
+        k_max = max(1, int(np.ceil(0.7 * q / sigma)))
+        e = np.zeros_like(s)
+        phase = 2 * np.pi * s / q
+        for k in range(1, k_max + 1):
+            e += (q / (np.pi * k)) * (-1) ** k * np.exp(-2 * (np.pi * k * sigma / q) ** 2) \
+                * np.sin(k * phase)
+    return np.take(scipy.fft.rfft(e, axis=-1), np.asarray(bins), axis=-1)
+
+
+def _quantisation_lines(q, y_mean_time, mom, *, is_exc, det_i, g_det, n, n_per, scale2):
+    """Expected quantisation power at the detection lines (level scale, per line).
+
+    Without the samples (``y_mean_time`` None): the white floor 4 (q^2/12) / N. With
+    them: the deterministic error of quantising the noise-free periodic output, simulated
+    (:func:`quantisation_error_lines`) on the output predicted from the measurement: the
+    period-averaged output at DC and the excited lines plus the BLA times the input at the
+    detection lines (the linear part, without the distortion and the quantisation error
+    that the measurement holds there), dithered by the measured noise. The simulated error
+    matches the measured one in level, not line by line (the prediction is not the exact
+    signal), so its running mean over +-8 detection lines, doubled, is taken, but not less
+    than the simulated line itself. The random part of a dithered quantisation is in the
+    noise estimate already."""
+    white = q ** 2 / (3.0 * n)
+    if y_mean_time is None:
+        return np.full(det_i.size, white)
+    band = mom.bins
+    Yf = scipy.fft.rfft(np.asarray(y_mean_time, dtype=np.float64), axis=-1)
+    S = np.zeros_like(Yf)
+    S[:, 0] = Yf[:, 0]
+    S[:, band[is_exc]] = Yf[:, band[is_exc]]
+    if g_det is not None:
+        S[:, band[det_i]] = g_det * mom.U[:, det_i]
+    smooth = scipy.fft.irfft(S, n=n, axis=-1)
+    sigma2 = 0.0
+    if n_per >= 2:
+        # white noise: a line's period-to-period variance is N sigma^2
+        sigma2 = float(np.median(mom.ss_y[:, det_i]) / (n_per - 1) / n)
+    sigma = float(np.sqrt(max(sigma2 - q ** 2 / 12.0, 0.0)))
+    D = quantisation_error_lines(smooth, q, sigma, band[det_i])
+    power = scale2 * np.mean(np.abs(D) ** 2, axis=0)
+    return np.maximum(power, 2.0 * _running_mean(power, 8))
+
+
+def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_noise,
+                  det_bins, det_power, det_noise, fs, n, parity):
+    """Per-octave figures of the non-excited lines: a band median hides a strong
+    narrow-band nonlinearity, so each octave gets its median and its maximum excess over
+    the noise, the count 6 dB over, and (parity grids) odd re even as a power ratio.
+    Octaves start at the lowest detection line; one with fewer than 4 lines joins the
+    previous one."""
+    if not det_bins.size:
+        return []
+    lo = float(det_bins[0])
+    edges = [lo]
+    while edges[-1] * 2 <= det_bins[-1]:
+        edges.append(edges[-1] * 2)
+    edges.append(float(det_bins[-1]) + 1)
+    idx = np.searchsorted(edges, det_bins, side="right") - 1
+    counts = np.bincount(idx, minlength=len(edges) - 1)
+    keep = [0] + [i for i in range(1, len(edges) - 1) if counts[i] >= 4]
+    bounds = [edges[i] for i in keep] + [edges[-1]]
+
+    def cls(bins, power, noise, a, b):
+        sel = (bins >= a) & (bins < b)
+        out = {"lines": int(sel.sum()), "median_re_noise_db": None, "max_re_noise_db": None,
+               "lines_over_noise_6db": None, "power_db": None}
+        if not sel.any():
+            return out
+        out["power_db"] = float(to_db(np.mean(power[sel])))
+        if noise is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ex = 10 * np.log10(power[sel] / noise[sel])
+            ex = np.where(np.isfinite(ex), ex, -np.inf)
+            med, top = float(np.median(ex)), float(np.max(ex))
+            out.update({"median_re_noise_db": med if np.isfinite(med) else None,
+                        "max_re_noise_db": top if np.isfinite(top) else None,
+                        "lines_over_noise_6db": int(np.sum(power[sel] > 4 * noise[sel]))})
+        return out
+
+    bands = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        entry = {"f_lo_hz": a * fs / n, "f_hi_hz": (b - 1) * fs / n}
+        if parity:
+            entry["odd"] = cls(odd_bins, odd_power, odd_noise, a, b)
+            entry["even"] = cls(even_bins, even_power, even_noise, a, b)
+            po, pe = entry["odd"]["power_db"], entry["even"]["power_db"]
+            entry["odd_re_even_db"] = None if po is None or pe is None else po - pe
+        else:
+            entry["nonexcited"] = cls(det_bins, det_power, det_noise, a, b)
+        bands.append(entry)
+    return bands
 
 
 def _median_db(values_db):
@@ -559,9 +816,11 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     excitation = r if r is not None else u
     detected_here = excited_bins is None
     line_note = None
+    strays = None
     if detected_here:
         excited, info = detect_excited_lines(excitation, settle, return_info=True)
         line_note = info["note"]
+        strays = info.get("stray_bins")
     else:
         excited = _validate_lines(excited_bins, n)
     band = np.arange(excited[0], excited[-1] + 1)
@@ -575,20 +834,30 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                      np.take(scipy.fft.rfft(x[m], axis=-1), band, axis=-1).astype(np.complex128, copy=False)
                      for x in (u, y, r))
 
+    y_mean_time = None
+    if y_quantisation_step:
+        y_mean_time = np.add.reduce(y[:, settle:, :], axis=1, dtype=np.float64) / (n_total - settle)
     try:
         res = robust_bla_spectra(None, None, bins=band, n_period=n, fs=fs, settle_periods=settle,
                                  excited_bins=excited, warn_transient=False,
                                  y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
                                  _get=one_realization, _shape=(n_real, n_total),
-                                 _known_ref=r is not None)
+                                 _known_ref=r is not None, _y_mean_time=y_mean_time,
+                                 _ignore_bins=strays)
     except InputError as exc:
         if "non-finite" in str(exc) or "zero power" in str(exc):
             _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
         raise
     if detected_here:
+        margin = info.get("margin_db")
         res.notes.insert(0, f"excited lines found from the spectrum of "
                             f"{'r' if r is not None else 'u'}: {excited.size} lines "
-                            f"{excited[0] * fs / n:g} .. {excited[-1] * fs / n:g} Hz")
+                            f"{excited[0] * fs / n:g} .. {excited[-1] * fs / n:g} Hz"
+                            + ("" if margin is None else
+                               f", {info['confidence']} ({margin:.0f} dB between the weakest "
+                               f"excited and the strongest other line of the band)"))
+        res.summary["excited_lines_margin_db"] = margin
+        res.summary["excited_lines_confidence"] = info["confidence"]
     if line_note:
         res.notes.insert(1, line_note)
     if res.transient.suspect and warn_transient:
@@ -634,7 +903,8 @@ class LineMoments:
 
 def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0,
                        excited_bins, warn_transient=True, y_quantisation_step=None,
-                       y_rounding=0.0, _get=None, _shape=None, _known_ref=False):
+                       y_rounding=0.0, _get=None, _shape=None, _known_ref=False,
+                       _y_mean_time=None, _ignore_bins=None):
     """The robust BLA of :func:`robust_bla` from per-period spectra.
 
     Parameters
@@ -717,7 +987,8 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
                       R=mR if known_ref else None, ss_r=ss_r if known_ref else None)
     return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=Y_exc,
                              G_per=G_per, warn_transient=warn_transient,
-                             y_quantisation_step=y_quantisation_step, y_rounding=y_rounding)
+                             y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
+                             y_mean_time=_y_mean_time, ignore_bins=_ignore_bins)
 
 
 def _band_positions(bins, band):
@@ -785,16 +1056,22 @@ def robust_bla_moments(moments, *, n_period, fs=1.0, excited_bins, y_quantisatio
 
 
 def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transient,
-                      y_quantisation_step, y_rounding):
+                      y_quantisation_step, y_rounding, y_mean_time=None, ignore_bins=None):
     """The estimate and the detection from the line moments over the band (bins from the
     lowest to the highest excited line). ``Y_exc`` (M, T + P, E): every period's output
     at the excited lines for the transient check (None: not checked). ``G_per``: per
     realization the mean and sum of squared deviations over periods of Y / U at the
-    excited lines (the estimate without a reference; None with one)."""
+    excited lines (the estimate without a reference; None with one). ``y_mean_time``
+    (M, N): the period-averaged output in time (for the quantisation model; None: the
+    white floor q^2/12 only). ``ignore_bins``: lines that are neither excited nor usable
+    for detection (stray input tones found by the line finder)."""
     band = mom.bins
     n_real, n_per = mom.U.shape[0], mom.n_periods
     is_exc = np.isin(band, excited)
-    det_bins = band[~is_exc]
+    is_det = ~is_exc
+    if ignore_bins is not None and np.size(ignore_bins):
+        is_det &= ~np.isin(band, ignore_bins)
+    det_bins = band[is_det]
     gridinfo = classify_grid(excited, n)
     if gridinfo["parity"]:
         odd_sel, even_sel = det_bins % 2 == 1, det_bins % 2 == 0
@@ -819,7 +1096,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
                 f"{' ...' if low.size > 5 else ''} (wrong excited lines?)")
 
     known_ref = G_per is None
-    exc_i, det_i = np.flatnonzero(is_exc), np.flatnonzero(~is_exc)
+    exc_i, det_i = np.flatnonzero(is_exc), np.flatnonzero(is_det)
     U_mean_e, Y_mean_e = mom.U[:, exc_i], mom.Y[:, exc_i]
     # sum over realizations and periods of |U_p|^2 = P |mean|^2 + sum |deviation|^2
     u_power = np.sum(n_per * np.abs(U_mean_e) ** 2 + mom.ss_u[:, exc_i], axis=0)
@@ -871,17 +1148,45 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
             var_noise = propagate(sy2.sum(0) / k, su2.sum(0) / k, syu.sum(0) / k)
 
     var_nl = var_nl_negative = None
+    # the excited lines' own test: without nonlinear distortion var_total / var_noise is
+    # F(2 (M - 1), 2 M (P - 1)) distributed (both estimate the noise variance of G)
+    d1, d2 = 2 * (n_real - 1), 2 * n_real * (n_per - 1)
+    excited_stats = _class_stats(np.zeros(excited.size), None, 0, "excited_")
+    neg_fraction_expected = None
     if var_total is not None and var_noise is not None:
         var_nl = n_real * (var_total - var_noise)
         var_nl_negative = var_nl < 0
-        if var_nl_negative.any():
-            notes.append(f"var_nl < 0 at {int(var_nl_negative.sum())} of {excited.size} lines "
+        with np.errstate(divide="ignore", invalid="ignore"):
+            excited_stats = _class_stats(var_total, np.where(var_noise > 0, var_noise, np.nan),
+                                         d2 / 2, "excited_",
+                                         tail=lambda x: f_sf_even(x, d1, d2))
+        neg_fraction_expected = float(1.0 - f_sf_even(np.array(1.0), d1, d2))
+        n_neg = int(var_nl_negative.sum())
+        if n_neg:
+            notes.append(f"var_nl < 0 at {n_neg} of {excited.size} lines "
                          f"(noise estimate above the total: no detectable nonlinear "
                          f"variance there)")
+            # noise alone puts var_total under var_noise at a fraction P(F < 1) of the
+            # lines; many more mean the period-to-period spread exceeds the spread over
+            # realizations: not noise, not distortion
+            sf = _binom_sf_counts(excited.size, neg_fraction_expected)
+            if sf[n_neg] <= 1e-3:
+                notes.append(
+                    f"{100 * n_neg / excited.size:.0f} % of the lines have var_nl < 0 where "
+                    f"noise alone gives {100 * neg_fraction_expected:.0f} %: the periods differ "
+                    f"more than the realizations do, so the noise variance is overestimated: "
+                    f"a disturbance periodic in 2N or longer (not synchronous with the period), "
+                    f"drift or non-stationary noise; the nonlinear variance is then "
+                    f"underestimated (check the record for a slow disturbance, use fewer periods "
+                    f"or more realizations)")
     if n_real < 2:
         notes.append("M = 1 realization: no total or nonlinear variance (needs M >= 2)")
     if n_per < 2:
         notes.append("P = 1 period: no noise variance (needs P >= 2)")
+    if not det_bins.size and excited_stats["excited_detected"] is not None:
+        notes.append("no non-excited line: nonlinear distortion judged at the excited lines "
+                     "(var_total vs var_noise per line, F test, Bonferroni over the lines); no "
+                     "odd/even and no plant-referred claim possible")
     if not gridinfo["parity"]:
         notes.append(gridinfo["note"])
 
@@ -911,7 +1216,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     # (drive output saturation, the loop) leaves nothing; a plant nonlinearity, sensor
     # quantisation or noise remain. The interpolation error (leave-one-out) is added to
     # what is expected there without plant distortion.
-    plant_power = plant_expected = plant_bound = None
+    plant_power = plant_expected = plant_bound = g_det = None
+    n_output_at_noise = 0
     if det_bins.size and excited.size >= 5:
         g_det, loo = _interp_frf(freq, G, det_bins * fs / n)
         e_mean = yd - g_det * ud
@@ -919,12 +1225,26 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         plant_power, plant_noise = line_levels(e_mean, np.maximum(e_ss, 0.0), rounding_floor)
         nb = np.clip(np.searchsorted(excited, det_bins), 1, excited.size - 1)
         rel = np.maximum(loo[nb - 1], loo[nb])
-        plant_bound = scale2 * rel ** 2 * np.mean(np.abs(g_det * ud) ** 2, axis=0)
+        g_u = scale2 * np.mean(np.abs(g_det * ud) ** 2, axis=0)
+        plant_bound = rel ** 2 * g_u
         if plant_noise is not None:
             plant_expected = plant_noise + plant_bound
-    quant_floor = None
+            # A plant distortion is output the plant gives: where the output itself is at
+            # its noise (not 6 dB over), what the residual holds is -G U, the linear
+            # response to what the input sensor measured there and the plant did not
+            # receive (the input's own measurement noise or error): expected, not
+            # distortion
+            at_noise = det_power <= 4.0 * det_noise
+            n_output_at_noise = int(np.sum(at_noise & (plant_power > 4.0 * plant_expected)))
+            plant_expected = np.where(at_noise, plant_expected + g_u, plant_expected)
+    quant_floor = quant_lines = None
     if y_quantisation_step:
-        quant_floor = float(y_quantisation_step) ** 2 / (3.0 * n)   # 4 (q^2/12) / N
+        q = float(y_quantisation_step)
+        quant_floor = q ** 2 / (3.0 * n)   # 4 (q^2/12) / N: white, the old model
+        if det_bins.size:
+            quant_lines = _quantisation_lines(
+                q, y_mean_time, mom, is_exc=is_exc, det_i=det_i, g_det=g_det, n=n,
+                n_per=n_per, scale2=scale2)
 
     nu = n_real * (n_per - 1)        # complex degrees of freedom of the noise estimates
 
@@ -956,9 +1276,10 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         _median_db(noise_db - output_db),
         "line_fraction_nl_over_noise_6db": None if nl_power is None or noise_power is None
         else float(np.mean(nl_power > 4.0 * noise_power)),
-        "line_median_odd_re_even_db": None if not odd_bins.size or not even_bins.size else
-        float(np.median(to_db(odd_power)) - np.median(to_db(even_power))),
+        "realizations": int(n_real), "periods": int(n_per), "known_reference": bool(known_ref),
     }
+    summary.update(excited_stats)
+    summary["excited_lines"] = int(excited.size)
     summary.update(_class_stats(odd_power, odd_noise, nu, "odd_"))
     summary.update(_class_stats(even_power, even_noise, nu, "even_"))
     summary.update(_class_stats(det_power, det_noise, nu, "nonexcited_"))
@@ -966,7 +1287,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     summary["even_detected"] = summary["even_detected"] if gridinfo["parity"] else None
     summary["nl_detected"] = summary.pop("nonexcited_detected")
     if plant_power is not None:
-        floor = 0.0 if quant_floor is None else quant_floor
+        floor = 0.0 if quant_lines is None else quant_lines
         exp_q = None if plant_expected is None else plant_expected + floor
         sel_exp = lambda s: None if exp_q is None else exp_q[s]     # noqa: E731
         plant = {}
@@ -977,13 +1298,23 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         plant["above_noise_lines"] = (None if plant_expected is None else
                                       int(np.sum(plant_power > 4.0 * plant_expected)))
         plant["line_median_re_quantisation_floor_db"] = (
-            None if quant_floor is None else float(np.median(to_db(plant_power / quant_floor))))
+            None if quant_lines is None else float(np.median(to_db(plant_power / quant_lines))))
+        plant["output_at_noise_lines_not_counted"] = n_output_at_noise
         for key, value in plant.items():
             key = key.replace("nonexcited_detected", "nl_detected")
             summary["plant_" + key] = value
         if not gridinfo["parity"]:
             summary["plant_odd_detected"] = summary["plant_even_detected"] = None
-    summary["quantisation_floor_db"] = None if quant_floor is None else float(to_db(quant_floor))
+    summary["quantisation_floor_db"] = (
+        None if quant_floor is None else
+        float(to_db(quant_floor if quant_lines is None else np.median(quant_lines))))
+    summary["quantisation_model"] = (
+        None if quant_floor is None else
+        "periodic (simulated from the predicted output)" if y_mean_time is not None
+        else "white (no samples)")
+    summary["bands"] = _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power,
+                                     even_noise, det_bins, det_power, det_noise, fs, n,
+                                     gridinfo["parity"])
 
     # the excitation itself at the non-excited lines (a distorted actuator force, ...)
     xname = "reference r" if known_ref else "input u"
@@ -1113,10 +1444,38 @@ def level_verdict(summary, saturation_fraction=None, level=None):
     sat = saturation_fraction if saturation_fraction is not None else 0.0
     sat_text = f"drive output saturation{at} ({100 * sat:.2g} % of the samples at u_max)"
     flags = [summary.get(k) for k in ("odd_detected", "even_detected", "nl_detected")]
+    exc = summary.get("excited_detected")
+    exc_text = ""
+    if exc is not None:
+        med = summary.get("line_median_nl_re_output_db")
+        exc_text = (f"{summary.get('excited_lines_over_noise_6db')} of "
+                    f"{summary.get('excited_lines')} excited lines with var_total 6 dB over "
+                    f"var_noise ({summary.get('excited_lines_needed')} needed, or one line "
+                    f"alone at n p <= 1e-3)"
+                    + (f", nonlinear level median {med:+.1f} dB re output" if med is not None
+                       else ""))
     if all(f is None for f in flags):
-        return {"causes": ["cannot tell"],
-                "text": "cannot tell: no noise estimate (P = 1) or no non-excited line"}
+        if exc is True:
+            return {"causes": ["nonlinear distortion (excited lines)"],
+                    "text": f"nonlinear distortion{at} at the excited lines: {exc_text}; no "
+                            f"non-excited line, so no odd/even or plant-referred claim"}
+        if exc is False:
+            return {"causes": ["linear"],
+                    "text": f"linear{at}: no nonlinear variance above the noise at the excited "
+                            f"lines ({exc_text}); no non-excited line"}
+        why = []
+        if summary.get("periods") == 1:
+            why.append("no noise estimate (P = 1 period)")
+        if summary.get("realizations") == 1:
+            why.append("no nonlinear variance (M = 1 realization)")
+        if not summary.get("nonexcited_lines"):
+            why.append("no non-excited line in the band")
+        if not why:
+            why.append("no noise estimate or no non-excited line")
+        return {"causes": ["cannot tell"], "text": "cannot tell: " + " and ".join(why)}
     loop = any(bool(f) for f in flags)
+    open_loop = summary.get("known_reference") is False
+    where = "at the output" if open_loop else "in the loop"
     classes = ("odd", "even") if summary.get("parity_classifiable") else ("nonexcited",)
     states = {cls: _plant_state(summary, cls) for cls in classes}
     parts, causes = [], []
@@ -1139,6 +1498,15 @@ def level_verdict(summary, saturation_fraction=None, level=None):
                          f"{summary[f'plant_{cls}_lines_needed']} needed (more detection lines: "
                          f"a longer period or a wider band)")
     plant_yes = any(s == "yes" for s in states.values())
+    if not loop and not plant_yes and exc is True \
+            and (summary.get("excited_line_median_re_noise_db") or 0.0) >= 3.0:
+        return {"causes": ["unmeasured inputs"],
+                "text": f"no distortion{at} at the non-excited lines, yet the realizations "
+                        f"spread more than the noise at the excited lines ({exc_text}): a "
+                        f"nonlinearity puts distortion on both, so this is the signature of "
+                        f"inputs that differ between realizations and are not measured "
+                        f"(cross-coupling from other excited inputs of a MIMO system, a "
+                        f"realization-dependent disturbance), not of a nonlinearity"}
     if not loop and not plant_yes:
         text = f"linear{at}: no nonlinear distortion above the noise"
         if sat > 0:
@@ -1149,8 +1517,8 @@ def level_verdict(summary, saturation_fraction=None, level=None):
                  summary.get("nl_detected" if cls == "nonexcited" else f"{cls}_detected")]
     if loop and all(s is None for s in states.values()):
         return {"causes": ["cannot tell"],
-                "text": "nonlinear distortion in the loop; no plant-referred figures (they need "
-                        ">= 5 excited lines and P >= 2) to say whether it comes from the plant"}
+                "text": f"nonlinear distortion {where}; no plant-referred figures (they need "
+                        f">= 5 excited lines and P >= 2) to say whether it comes from the plant"}
     if not plant_yes and "cannot tell" not in causes and not loop_only:
         loop_only = ["nonexcited"]
     if loop_only:
@@ -1163,6 +1531,11 @@ def level_verdict(summary, saturation_fraction=None, level=None):
             causes.append("quantisation floor")
             parts.append(f"{which} lines: distortion at the encoder quantisation floor "
                          f"({summary['quantisation_floor_db']:.1f} dB per line), not above it")
+        elif open_loop:
+            causes.append("input distortion (before the measured input)")
+            parts.append(f"{which} lines: distortion at the output that the plant-referred "
+                         f"lines do not show (it comes with the measured input u: the "
+                         f"actuator or the generator, not the plant)")
         else:
             causes.append("loop nonlinearity outside the plant")
             parts.append(f"{which} lines: distortion in the loop that the plant-referred "

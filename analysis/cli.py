@@ -254,6 +254,24 @@ def _fmt_db(value):
     return "n/a" if value is None else f"{value:+.1f} dB"
 
 
+def _print_bands(bands, parity):
+    """Per-octave table: median and maximum over the noise (a band median hides a strong
+    narrow-band nonlinearity)."""
+    def cell(c):
+        if c["median_re_noise_db"] is None:
+            return f"{c['lines']:3d} lines        n/a       "
+        return (f"{c['lines']:3d} lines {c['median_re_noise_db']:+6.1f} / "
+                f"{c['max_re_noise_db']:+6.1f} dB")
+    print("  per octave, non-excited lines re noise (lines, median / max):")
+    for b in bands:
+        head = f"    {b['f_lo_hz']:g} .. {b['f_hi_hz']:g} Hz".ljust(22)
+        if parity:
+            print(f"{head}  odd {cell(b['odd'])}  even {cell(b['even'])}  odd re even "
+                  f"{_fmt_db(b['odd_re_even_db'])}")
+        else:
+            print(f"{head}  {cell(b['nonexcited'])}")
+
+
 def run_bla(args):
     """``fftune analyze bla``."""
     from fftune.analysis.bla import robust_bla
@@ -290,19 +308,26 @@ def run_bla(args):
     frac = s["line_fraction_nl_over_noise_6db"]
     print(f"    lines with nonlinear > noise + 6 dB: "
           f"{'n/a' if frac is None else f'{100 * frac:.0f} %'}")
+    if s["excited_detected"] is not None:
+        print(f"    excited lines var_total re var_noise: "
+              f"{_fmt_db(s['excited_line_median_re_noise_db'])} "
+              f"({s['excited_lines_over_noise_6db']} of {s['excited_lines']} lines 6 dB over, "
+              f"{s['excited_lines_needed']} needed)")
     if s["parity_classifiable"]:
         for kind in ("odd", "even"):
             over = s[f"{kind}_lines_over_noise_6db"]
             print(f"    {(kind + ' non-excited re noise').ljust(30)}: "
                   f"{_fmt_db(s[f'{kind}_line_median_re_noise_db'])} "
                   f"({'n/a' if over is None else over} of {s[f'{kind}_lines']} lines 6 dB over)")
-        print(f"    odd re even                   : {_fmt_db(s['line_median_odd_re_even_db'])}")
+        print(f"    odd re even (power ratio)     : {_fmt_db(s['odd_re_even_db'])}")
     else:
         over = s["nonexcited_lines_over_noise_6db"]
         print(f"    non-excited re noise          : "
               f"{_fmt_db(s['nonexcited_line_median_re_noise_db'])} "
               f"({'n/a' if over is None else over} of {s['nonexcited_lines']} lines 6 dB over; "
               f"no odd/even split with this grid)")
+    if s.get("bands"):
+        _print_bands(s["bands"], s["parity_classifiable"])
     print(f"  verdict: {document['verdict']['text']}")
     for note in res.notes:
         print(f"  note: {note}")
