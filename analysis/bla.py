@@ -131,7 +131,12 @@ class BLAResult:
         What ``plant_db`` holds without plant distortion: its noise plus the BLA
         interpolation error (leave-one-out) times the input there.
     quantisation_floor_db : float or None
-        Output quantisation floor per line, 4 (q^2/12) / N (given ``y_quantisation_step``).
+        Output quantisation level per line (median over the non-excited lines of
+        ``quantisation_db``), given ``y_quantisation_step``.
+    quantisation_db : ndarray or None
+        Expected quantisation error at each non-excited line (same scale): the
+        deterministic error of quantising the predicted periodic output (docs/analysis.md),
+        or the white floor 4 (q^2/12) / N without the samples.
     summary : dict
         Per-line medians, power ratios, detection flags, plant-referred figures (keys
         documented in docs/analysis.md); None where not defined.
@@ -174,6 +179,7 @@ class BLAResult:
     plant_db: np.ndarray = None
     plant_expected_db: np.ndarray = None
     quantisation_floor_db: float = None
+    quantisation_db: np.ndarray = None
 
     @property
     def odd_freq(self):
@@ -591,7 +597,8 @@ def f_sf_even(x, d1, d2):
     return np.minimum(total, 1.0)
 
 
-def _class_stats(level, reference, nu, prefix, alpha=1e-3, tail=None):
+def _class_stats(level, reference, nu, prefix, alpha=1e-3, tail=None, known=None,
+                 known_margin=8.0):
     """Per-line figures of one class of non-excited lines (level vs what is expected
     there without nonlinear distortion, ``reference``).
 
@@ -603,7 +610,10 @@ def _class_stats(level, reference, nu, prefix, alpha=1e-3, tail=None):
     many lines a little above it. Returns the median excess (dB), the count 6 dB over,
     the count needed, the count noise gives on average, and the flag (None without a
     line or a reference). ``tail(ratio)``: the probability that a noise-only line exceeds
-    ``ratio`` times its reference (default the F(2, 2 nu) tail above).
+    ``ratio`` times its reference (default the F(2, 2 nu) tail above). ``known``: a
+    part of ``reference`` that is a model, not a noise estimate (the quantisation error):
+    the strongest line's probability is then that of its excess over ``known_margin``
+    times it, relative to the noise part: (level - margin known) / (reference - known).
     """
     out = {f"{prefix}lines": int(np.size(level))}
     if level is None or np.size(level) == 0 or reference is None or nu < 1:
@@ -617,7 +627,12 @@ def _class_stats(level, reference, nu, prefix, alpha=1e-3, tail=None):
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = level / reference
         excess = 10 * np.log10(ratio)
-        p_lines = np.where(ratio > 0, tail(np.where(ratio > 0, ratio, 0.0)), 1.0)
+        if known is not None:
+            thr = known_margin * known
+            ex = np.maximum(level - thr, 0.0) / np.maximum(reference - known, 1e-300)
+            p_lines = np.where(level > thr, tail(ex), 1.0)
+        else:
+            p_lines = np.where(ratio > 0, tail(np.where(ratio > 0, ratio, 0.0)), 1.0)
     p_line = float(tail(np.array(4.0)))
     over = int(np.sum(level > 4.0 * reference))
     need = _false_alarm_count(level.size, p_line, alpha)
@@ -663,39 +678,43 @@ def quantisation_error_lines(s, q, sigma, bins):
     ndarray of complex, shape (..., len(bins))
         rfft of the mean error (numpy scaling, no 1/N) at ``bins``.
     """
-    if sigma < 0.05 * q:
-        e = q * np.round(s / q) - s
-    else:
-        k_max = max(1, int(np.ceil(0.7 * q / sigma)))
-        e = np.zeros_like(s)
-        phase = 2 * np.pi * s / q
-        for k in range(1, k_max + 1):
-            e += (q / (np.pi * k)) * (-1) ** k * np.exp(-2 * (np.pi * k * sigma / q) ** 2) \
-                * np.sin(k * phase)
+    e = _mean_quantisation_error(s, q, sigma)
     return np.take(scipy.fft.rfft(e, axis=-1), np.asarray(bins), axis=-1)
+
+
+def _mean_quantisation_error(s, q, sigma):
+    """E[q round((s + n) / q)] - s for Gaussian n of standard deviation sigma."""
+    if sigma < 0.05 * q:
+        return q * np.round(s / q) - s
+    k_max = max(1, int(np.ceil(0.7 * q / sigma)))
+    e = np.zeros_like(s)
+    phase = 2 * np.pi * s / q
+    for k in range(1, k_max + 1):
+        e += (q / (np.pi * k)) * (-1) ** k * np.exp(-2 * (np.pi * k * sigma / q) ** 2) \
+            * np.sin(k * phase)
+    return e
 
 
 def _quantisation_lines(q, y_mean_time, mom, *, is_exc, det_i, g_det, n, n_per, scale2):
     """Expected quantisation power at the detection lines (level scale, per line).
 
-    Without the samples (``y_mean_time`` None): the white floor 4 (q^2/12) / N. With
-    them: the deterministic error of quantising the noise-free periodic output, simulated
-    (:func:`quantisation_error_lines`) on the output predicted from the measurement: the
-    period-averaged output at DC and the excited lines plus the BLA times the input at the
-    detection lines (the linear part, without the distortion and the quantisation error
-    that the measurement holds there), dithered by the measured noise. The simulated error
-    matches the measured one in level, not line by line (the prediction is not the exact
-    signal), so its running mean over +-8 detection lines, doubled, is taken, but not less
-    than the simulated line itself. The random part of a dithered quantisation is in the
-    noise estimate already."""
-    white = q ** 2 / (3.0 * n)
-    if y_mean_time is None:
-        return np.full(det_i.size, white)
+    The deterministic error of quantising the noise-free periodic output
+    (:func:`quantisation_error_lines`), simulated on the output predicted from the
+    measurement: the period-averaged output at the excited lines plus the BLA times the
+    input at the detection lines (the linear part, without the distortion and the
+    quantisation error that the measurement holds there), dithered by the measured noise.
+    With the samples (``y_mean_time``) the offset within a step is fitted to them; without
+    (line moments) the power is averaged over offsets. The simulated error matches the
+    measured one in level, not line by line (the prediction is not the exact signal), so
+    its running mean over +-8 detection lines of the same parity, doubled, is taken, but
+    not less than the simulated line itself. The random part of a dithered quantisation
+    is in the noise estimate already."""
     band = mom.bins
-    Yf = scipy.fft.rfft(np.asarray(y_mean_time, dtype=np.float64), axis=-1)
-    S = np.zeros_like(Yf)
-    S[:, 0] = Yf[:, 0]
-    S[:, band[is_exc]] = Yf[:, band[is_exc]]
+    S = np.zeros((mom.Y.shape[0], n // 2 + 1), np.complex128)
+    if y_mean_time is not None:
+        Yf = scipy.fft.rfft(np.asarray(y_mean_time, dtype=np.float64), axis=-1)
+        S[:, 0] = Yf[:, 0]
+    S[:, band[is_exc]] = mom.Y[:, np.flatnonzero(is_exc)]
     if g_det is not None:
         S[:, band[det_i]] = g_det * mom.U[:, det_i]
     smooth = scipy.fft.irfft(S, n=n, axis=-1)
@@ -704,9 +723,35 @@ def _quantisation_lines(q, y_mean_time, mom, *, is_exc, det_i, g_det, n, n_per, 
         # white noise: a line's period-to-period variance is N sigma^2
         sigma2 = float(np.median(mom.ss_y[:, det_i]) / (n_per - 1) / n)
     sigma = float(np.sqrt(max(sigma2 - q ** 2 / 12.0, 0.0)))
-    D = quantisation_error_lines(smooth, q, sigma, band[det_i])
-    power = scale2 * np.mean(np.abs(D) ** 2, axis=0)
-    return np.maximum(power, 2.0 * _running_mean(power, 8))
+    # The predicted output's offset within a step decides the error's symmetry (odd vs
+    # even lines) and is not known to better than q: per realization, the offset whose
+    # quantised prediction reproduces the measured period mean best is taken; without the
+    # samples (line moments: no DC, no time signal) the power is averaged over offsets
+    if y_mean_time is not None:
+        y_mean = np.asarray(y_mean_time, dtype=np.float64)
+        best = np.full(smooth.shape[0], np.inf)
+        shift = np.zeros(smooth.shape[0])
+        for c in np.linspace(-0.5 * q, 0.5 * q, 21):
+            sc = smooth + c
+            err = np.sum((sc + _mean_quantisation_error(sc, q, sigma) - y_mean) ** 2, axis=-1)
+            better = err < best
+            best[better], shift[better] = err[better], c
+        D = quantisation_error_lines(smooth + shift[:, None], q, sigma, band[det_i])
+        power = scale2 * np.mean(np.abs(D) ** 2, axis=0)
+    else:
+        power = np.zeros(det_i.size)
+        offsets = np.linspace(-0.5 * q, 0.5 * q, 8, endpoint=False)
+        for c in offsets:
+            D = quantisation_error_lines(smooth + c, q, sigma, band[det_i])
+            power += scale2 * np.mean(np.abs(D) ** 2, axis=0) / offsets.size
+    # the error's odd and even lines differ by tens of dB (odd-symmetric error of a
+    # half-wave symmetric signal): smooth each parity on its own
+    local = np.empty_like(power)
+    for parity in (0, 1):
+        sel = band[det_i] % 2 == parity
+        if sel.any():
+            local[sel] = _running_mean(power[sel], 8)
+    return np.maximum(power, 2.0 * local)
 
 
 def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_noise,
@@ -828,6 +873,9 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     sample = y.reshape(-1)[::97]          # a sample of the values is enough to tell
     f32 = y.dtype == np.float32 or np.array_equal(sample, sample.astype(np.float32))
     y_rounding = float(np.max(np.abs(y))) * (2.0 ** -24 if f32 else 2.0 ** -53)
+    sample_u = u.reshape(-1)[::97]
+    u32 = u.dtype == np.float32 or np.array_equal(sample_u, sample_u.astype(np.float32))
+    u_rounding = float(np.max(np.abs(u))) * (2.0 ** -24 if u32 else 2.0 ** -53)
 
     def one_realization(m):
         return tuple(None if x is None else
@@ -843,7 +891,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                                  y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
                                  _get=one_realization, _shape=(n_real, n_total),
                                  _known_ref=r is not None, _y_mean_time=y_mean_time,
-                                 _ignore_bins=strays)
+                                 _ignore_bins=strays, _u_rounding=u_rounding)
     except InputError as exc:
         if "non-finite" in str(exc) or "zero power" in str(exc):
             _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
@@ -904,7 +952,7 @@ class LineMoments:
 def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0,
                        excited_bins, warn_transient=True, y_quantisation_step=None,
                        y_rounding=0.0, _get=None, _shape=None, _known_ref=False,
-                       _y_mean_time=None, _ignore_bins=None):
+                       _y_mean_time=None, _ignore_bins=None, _u_rounding=0.0):
     """The robust BLA of :func:`robust_bla` from per-period spectra.
 
     Parameters
@@ -988,7 +1036,8 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=Y_exc,
                              G_per=G_per, warn_transient=warn_transient,
                              y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
-                             y_mean_time=_y_mean_time, ignore_bins=_ignore_bins)
+                             y_mean_time=_y_mean_time, ignore_bins=_ignore_bins,
+                             u_rounding=_u_rounding)
 
 
 def _band_positions(bins, band):
@@ -1056,7 +1105,8 @@ def robust_bla_moments(moments, *, n_period, fs=1.0, excited_bins, y_quantisatio
 
 
 def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transient,
-                      y_quantisation_step, y_rounding, y_mean_time=None, ignore_bins=None):
+                      y_quantisation_step, y_rounding, y_mean_time=None, ignore_bins=None,
+                      u_rounding=0.0):
     """The estimate and the detection from the line moments over the band (bins from the
     lowest to the highest excited line). ``Y_exc`` (M, T + P, E): every period's output
     at the excited lines for the transient check (None: not checked). ``G_per``: per
@@ -1156,8 +1206,15 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     if var_total is not None and var_noise is not None:
         var_nl = n_real * (var_total - var_noise)
         var_nl_negative = var_nl < 0
+        # the rounding of the recorded numbers is the same in every period (not in
+        # var_noise) but differs between realizations (in var_total): its variance of G
+        # (uniform error of +-rounding per sample: N rounding^2 / 3 per line) is added
+        u_abs2 = u_level if known_ref else np.mean(np.abs(U_mean_e) ** 2, axis=0)
+        round_var = (n * (float(y_rounding) ** 2 + np.abs(G) ** 2 * float(u_rounding) ** 2)
+                     / 3.0 / np.maximum(u_abs2, 1e-300) / n_real)
+        ref_var = var_noise + round_var
         with np.errstate(divide="ignore", invalid="ignore"):
-            excited_stats = _class_stats(var_total, np.where(var_noise > 0, var_noise, np.nan),
+            excited_stats = _class_stats(var_total, np.where(ref_var > 0, ref_var, np.nan),
                                          d2 / 2, "excited_",
                                          tail=lambda x: f_sf_even(x, d1, d2))
         neg_fraction_expected = float(1.0 - f_sf_even(np.array(1.0), d1, d2))
@@ -1290,10 +1347,17 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         floor = 0.0 if quant_lines is None else quant_lines
         exp_q = None if plant_expected is None else plant_expected + floor
         sel_exp = lambda s: None if exp_q is None else exp_q[s]     # noqa: E731
+        # the simulated error matches the measured one within about +-6 dB per line (128 ..
+        # 4096 counts, tests/bench/bench_detect_matrix.py): a line's excess counts in the
+        # single-line test only above 8 times (9 dB) the model
+        q_known = quant_lines
+        sel_q = lambda s: None if q_known is None else q_known[s]     # noqa: E731
         plant = {}
-        plant.update(_class_stats(plant_power[odd_sel], sel_exp(odd_sel), nu, "odd_"))
-        plant.update(_class_stats(plant_power[even_sel], sel_exp(even_sel), nu, "even_"))
-        plant.update(_class_stats(plant_power, exp_q, nu, "nonexcited_"))
+        plant.update(_class_stats(plant_power[odd_sel], sel_exp(odd_sel), nu, "odd_",
+                                  known=sel_q(odd_sel)))
+        plant.update(_class_stats(plant_power[even_sel], sel_exp(even_sel), nu, "even_",
+                                  known=sel_q(even_sel)))
+        plant.update(_class_stats(plant_power, exp_q, nu, "nonexcited_", known=q_known))
         # above the noise and the interpolation error, but not above the quantisation floor
         plant["above_noise_lines"] = (None if plant_expected is None else
                                       int(np.sum(plant_power > 4.0 * plant_expected)))
@@ -1305,13 +1369,15 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
             summary["plant_" + key] = value
         if not gridinfo["parity"]:
             summary["plant_odd_detected"] = summary["plant_even_detected"] = None
-    summary["quantisation_floor_db"] = (
-        None if quant_floor is None else
-        float(to_db(quant_floor if quant_lines is None else np.median(quant_lines))))
+    q_level = None if quant_floor is None else \
+        quant_floor if quant_lines is None else float(np.median(quant_lines))
+    summary["quantisation_floor_db"] = None if not q_level or q_level <= 0 else \
+        float(to_db(q_level))
     summary["quantisation_model"] = (
         None if quant_floor is None else
-        "periodic (simulated from the predicted output)" if y_mean_time is not None
-        else "white (no samples)")
+        "periodic: the error of quantising the predicted output" +
+        (" (offset fitted to the samples)" if y_mean_time is not None
+         else " (averaged over offsets: no samples)"))
     summary["bands"] = _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power,
                                      even_noise, det_bins, det_power, det_noise, fs, n,
                                      gridinfo["parity"])
@@ -1365,7 +1431,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         settle_periods=settle, known_reference=known_ref, notes=notes,
         grid=gridinfo["grid"], nonexcited_bins=det_bins, nonexcited_db=to_db(det_power),
         nonexcited_noise_db=to_db(det_noise), plant_db=to_db(plant_power),
-        plant_expected_db=to_db(plant_expected), quantisation_floor_db=summary["quantisation_floor_db"])
+        plant_expected_db=to_db(plant_expected), quantisation_floor_db=summary["quantisation_floor_db"],
+        quantisation_db=to_db(quant_lines))
 
 
 def estimate_quantisation_step(y, max_levels=200000):
