@@ -181,6 +181,28 @@ class BLAResult:
     quantisation_floor_db: float = None
     quantisation_db: np.ndarray = None
 
+    def to_frd(self):
+        """The BLA as a python-control frequency response data model.
+
+        Returns
+        -------
+        control.FrequencyResponseData
+            ``control.frd(G, 2 pi freq)``: G_BLA at the excited lines, frequencies in
+            rad/s (python-control's unit). python-control is optional (``pip install
+            control``), imported here only.
+
+        Raises
+        ------
+        ImportError
+            python-control is not installed (the message says how to install it).
+        """
+        try:
+            import control
+        except ImportError:
+            raise ImportError("BLAResult.to_frd needs python-control, which is not installed "
+                              "(pip install control)") from None
+        return control.frd(np.asarray(self.G, dtype=complex), 2 * np.pi * np.asarray(self.freq))
+
     @property
     def odd_freq(self):
         """Frequencies (Hz) of the non-excited odd lines."""

@@ -5,6 +5,7 @@ realization (repeat after repeat for ``hosidf``), each with T + P periods of N s
 Bad input raises :class:`fftune.analysis.errors.InputError` (one line, exit code 2); outputs are
 written atomically and only after the analysis succeeded.
 """
+import argparse
 import json
 import sys
 import warnings
@@ -22,7 +23,6 @@ _CAPTURE_DEFAULTS = {"bla": {"u": "plant_input", "y": "motor_angle", "r": "refer
 
 
 def _positive_float(text):
-    import argparse
     try:
         value = float(text)
     except ValueError:
@@ -46,8 +46,18 @@ def _int_at_least(minimum):
     return parse
 
 
+class _DeprecatedAlias(argparse.Action):
+    """Store the value and say on stderr that the option was renamed."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"fftune: warning: {option_string} is deprecated, use --settle-periods "
+              f"(the library's settle_periods)", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
 def add_parser(subparsers):
     """Add ``analyze`` with its ``bla`` and ``hosidf`` subcommands."""
+    import argparse
     p = subparsers.add_parser(
         "analyze", help="offline analysis of measured data (robust BLA, HOSIDF)",
         description="Analyse measured data from a CSV (with header), NPZ, MAT or fftune "
@@ -68,9 +78,13 @@ def add_parser(subparsers):
                             " (default: what the record holds after T)")
         q.add_argument("--realizations", type=_int_at_least(1), metavar="M",
                        help=what + "s M in the record (default: from the file, else 1)")
-        q.add_argument("--skip-periods", type=_int_at_least(0), metavar="T",
+        q.add_argument("--settle-periods", type=_int_at_least(0), metavar="T",
+                       dest="settle_periods",
                        help="settle periods T dropped at the start of each " + what +
-                            " (default: from the file, else 0)")
+                            " (the library's settle_periods; default: from the file, else 0)")
+        # the old name, kept working (deprecated: the library calls them settle_periods)
+        q.add_argument("--skip-periods", type=_int_at_least(0), dest="settle_periods",
+                       action=_DeprecatedAlias, help=argparse.SUPPRESS)
         q.add_argument("--experiment", metavar="KIND",
                        help="directory of captures: use only runs of this experiment "
                             "(detect, quantify, tune)")
@@ -145,15 +159,23 @@ def _select(loaded, args, kind):
 
 def _layout(loaded, args, n_samples, kind):
     fs = args.fs if args.fs is not None else loaded.fs_hz
+    if loaded.time_fs_hz is not None:
+        if fs is None:
+            fs = loaded.time_fs_hz
+        elif abs(fs - loaded.time_fs_hz) > 1e-3 * loaded.time_fs_hz:
+            given = "--fs" if args.fs is not None else "the file's fs_hz"
+            raise InputError(f"{loaded.path}: {given} {fs:g} Hz disagrees with the time column "
+                             f"{loaded.time_column!r} ({loaded.time_fs_hz:g} Hz from its "
+                             f"spacing)")
     if fs is None:
         raise InputError(f"{loaded.path}: sample rate unknown: give --fs HZ")
     lay = loaded.layout
     m = args.realizations or lay.get("realizations") or 1
-    t = args.skip_periods if args.skip_periods is not None else lay.get("settle_periods", 0)
+    t = args.settle_periods if args.settle_periods is not None else lay.get("settle_periods", 0)
     n = args.period or lay.get("n_period")
     p = args.periods
     if p is None and n is not None and "record_periods" in lay and lay.get("n_period") == n \
-            and args.skip_periods is None:
+            and args.settle_periods is None:
         p = lay["record_periods"]
     if n is None:
         if kind == "bla":
@@ -177,6 +199,28 @@ def _layout(loaded, args, n_samples, kind):
         raise InputError(f"{loaded.path}: wrong length: {n_samples} samples per signal, expected "
                          f"M x (T+P) x N = {m} x ({t}+{p}) x {n} = {m * (t + p) * n}")
     return float(fs), m, t, p, n
+
+
+def _matrix_order(loaded, columns, sig, n):
+    """MAT files: a matrix signal must hold whole periods along its first dimension
+    (MATLAB's N x P layout, read column after column as x(:)) or along its last (P x N,
+    read row after row); any other layout is refused, naming it."""
+    out = dict(sig)
+    for role, name in columns.items():
+        arr = loaded.matrices.get(name)
+        if arr is None:
+            continue
+        shape = " x ".join(str(d) for d in arr.shape)
+        if arr.shape[0] % n == 0:
+            continue                                   # columns: whole periods (x(:))
+        if arr.shape[-1] % n == 0:
+            out[role] = np.asarray(arr, dtype=np.float64).reshape(-1)      # rows: periods
+            continue
+        raise InputError(
+            f"{loaded.path}: {role} = {name!r} is a {shape} matrix and N = {n} samples per "
+            f"period fit neither its columns (MATLAB's N x P layout) nor its rows (P x N): "
+            f"store it as one vector, or as N x P")
+    return out
 
 
 def _clean(values):
@@ -280,6 +324,7 @@ def run_bla(args):
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "bla")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "bla")
+    sig = _matrix_order(loaded, columns, sig, n)
     lines = load_lines(args.lines) if args.lines else None
     shaped = {k: v.reshape(m, t + p, n) for k, v in sig.items()}
     with warnings.catch_warnings(record=True) as caught:
@@ -342,6 +387,7 @@ def run_hosidf(args):
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "hosidf")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "hosidf")
+    sig = _matrix_order(loaded, columns, sig, n)
     u = sig["u"].reshape(m, t + p, n)[:, t:, :]
     y = sig["y"].reshape(m, t + p, n)[:, t:, :]
     res = hosidf(u, y, fs=fs, n_harmonics=args.harmonics)
