@@ -131,7 +131,7 @@ class BLAResult:
         What ``plant_db`` holds without plant distortion: its noise plus the BLA
         interpolation error (leave-one-out) times the input there.
     quantisation_floor_db : float or None
-        Output quantisation level per line (median over the non-excited lines of
+        Output quantisation level per line (power mean over the non-excited lines of
         ``quantisation_db``), given ``y_quantisation_step``.
     quantisation_db : ndarray or None
         Expected quantisation error at each non-excited line (same scale): the
@@ -362,24 +362,24 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False
 
 def _refine_in_band(level, found, min_gap_db):
     """The largest gap of the whole spectrum can be a filter's stop band (a band-limited
-    record whose out-of-band floor lies far under the in-band distortion): split again
-    within the band of the lines found while the band's own levels show a gap of
-    ``min_gap_db`` and the lines split off lie among the kept ones (the level of the
-    non-excited lines), not beside them (a designed amplitude step)."""
+    record whose out-of-band floor lies far under the in-band distortion) or the zeros
+    of an odd grid's even lines under the distortion of a distorted input: split the
+    lines found again while their own levels show a gap of ``min_gap_db`` and the lines
+    split off lie among the kept ones (max(2, 5 %) of them inside the kept band: the
+    level of the non-excited lines), not only beside them (a designed amplitude step)."""
     for _ in range(6):
-        lo, hi = found[0] - 1, found[-1] - 1
-        inband = level[lo:hi + 1]
-        if inband.size < 8:
+        if found.size < 8:
             break
-        thr, gap = _split_by_gap(inband, max(2, int(np.ceil(0.01 * inband.size))))
+        lv = level[found - 1]
+        thr, gap = _split_by_gap(lv, max(2, int(np.ceil(0.01 * found.size))))
         if thr is None or gap < min_gap_db:
             break
-        new = np.flatnonzero(inband > thr) + lo + 1
-        dropped = np.setdiff1d(found, new)
-        if new.size < 2 or dropped.size == 0:
+        new = found[lv > thr]
+        dropped = found[lv <= thr]
+        if new.size < 2:
             break
-        among = np.mean((dropped > new[0]) & (dropped < new[-1]))
-        if among < 0.2:
+        inside = int(np.sum((dropped > new[0]) & (dropped < new[-1])))
+        if inside < max(2, 0.05 * new.size):
             break
         found = new
     return found
@@ -1383,8 +1383,10 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         # above the noise and the interpolation error, but not above the quantisation floor
         plant["above_noise_lines"] = (None if plant_expected is None else
                                       int(np.sum(plant_power > 4.0 * plant_expected)))
-        plant["line_median_re_quantisation_floor_db"] = (
-            None if quant_lines is None else float(np.median(to_db(plant_power / quant_lines))))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            plant["line_median_re_quantisation_floor_db"] = (
+                None if quant_lines is None else
+                _median_db(10 * np.log10(plant_power / quant_lines)))
         plant["output_at_noise_lines_not_counted"] = n_output_at_noise
         for key, value in plant.items():
             key = key.replace("nonexcited_detected", "nl_detected")
@@ -1392,7 +1394,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         if not gridinfo["parity"]:
             summary["plant_odd_detected"] = summary["plant_even_detected"] = None
     q_level = None if quant_floor is None else \
-        quant_floor if quant_lines is None else float(np.median(quant_lines))
+        quant_floor if quant_lines is None else float(np.mean(quant_lines))
     summary["quantisation_floor_db"] = None if not q_level or q_level <= 0 else \
         float(to_db(q_level))
     summary["quantisation_model"] = (
@@ -1407,20 +1409,26 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     # the excitation itself at the non-excited lines (a distorted actuator force, ...)
     xname = "reference r" if known_ref else "input u"
     summary["excitation_nonexcited_re_excited_db"] = None
+    summary["excitation_nonexcited_top_re_excited_db"] = None
     summary["excitation_distorted"] = None
     if det_bins.size:
         x_det, x_noise = line_levels(xd, xd_ss)
         x_exc = scale2 * np.mean(np.abs(xe) ** 2, axis=0)
         rel_db = float(np.median(to_db(np.maximum(x_det, 1e-300))) - np.median(to_db(x_exc)))
         summary["excitation_nonexcited_re_excited_db"] = rel_db
+        # the strongest tenth: an odd distortion of an odd grid leaves the even lines
+        # (half of the detection lines) empty, so the median alone can miss it
+        top_db = float(np.quantile(to_db(np.maximum(x_det, 1e-300)), 0.9)
+                       - np.median(to_db(x_exc)))
+        summary["excitation_nonexcited_top_re_excited_db"] = top_db
         if x_noise is not None:
             xs = _class_stats(x_det, x_noise, nu, "x_")
             # rounding of a float32 record is not distortion: 100 dB under the lines
-            summary["excitation_distorted"] = bool(xs["x_detected"] and rel_db > -100.0)
+            summary["excitation_distorted"] = bool(xs["x_detected"] and top_db > -100.0)
             if summary["excitation_distorted"]:
                 notes.append(
-                    f"{xname} is distorted: its non-excited lines lie {rel_db:.1f} dB (median) "
-                    f"under its excited lines ({xs['x_lines_over_noise_6db']} of "
+                    f"{xname} is distorted: its non-excited lines lie {rel_db:.1f} dB (median; "
+                    f"the strongest tenth {top_db:.1f} dB) under its excited lines ({xs['x_lines_over_noise_6db']} of "
                     f"{det_bins.size} lines 6 dB over their noise): the actuator or an "
                     f"interaction with the structure. The output's non-excited lines then "
                     f"carry the linear response to it too (the plant_* figures remove it)"
@@ -1529,6 +1537,19 @@ def level_verdict(summary, saturation_fraction=None, level=None):
         'drive output saturation', 'quantisation floor', 'loop nonlinearity outside
         the plant', 'cannot tell'; ``text``: one sentence saying why.
     """
+    if summary.get("nl_level_independent"):
+        inner = level_verdict(dict(summary, nl_level_independent=False), saturation_fraction,
+                              level)
+        return {"causes": ["unmeasured inputs or a scale-free nonlinearity"],
+                "text": "unmeasured inputs or a scale-free nonlinearity" +
+                        (f" at {level}" if level else "") +
+                        ": the nonlinear variance keeps the same level re the output at every "
+                        "excitation level; a nonlinearity with a scale (friction, saturation, "
+                        "a cubic term) changes it, so these figures come from inputs that are "
+                        "not measured (MIMO cross-coupling, a realization-dependent "
+                        "disturbance) unless the plant's characteristic is piecewise linear "
+                        "through zero (e.g. a different gain per direction); the figures alone "
+                        "would say: " + inner["text"]}
     at = f" at {level}" if level else ""
     sat = saturation_fraction if saturation_fraction is not None else 0.0
     sat_text = f"drive output saturation{at} ({100 * sat:.2g} % of the samples at u_max)"
@@ -1649,12 +1670,16 @@ class BLALevels:
     freq : ndarray, shape (E,)
         Excited frequencies (Hz), common to all levels.
     G : ndarray of complex, shape (L, E)
+    notes : list of str
+        What the levels say together (a level-independent "nonlinear" variance: the
+        signature of unmeasured inputs, not of a nonlinearity).
     """
 
     rms: np.ndarray
     results: list
     freq: np.ndarray
     G: np.ndarray
+    notes: list = field(default_factory=list)
 
 
 def bla_levels(u_levels, y_levels, r_levels=None, **kwargs):
@@ -1683,5 +1708,44 @@ def bla_levels(u_levels, y_levels, r_levels=None, **kwargs):
         results.append(res)
     if any(not np.array_equal(res.bins, results[0].bins) for res in results):
         raise InputError("bla_levels: the excited lines differ between levels")
+    notes = []
+    note = level_independence_note(np.array(rms), [res.summary for res in results])
+    if note:
+        notes.append(note)
+        for res in results:
+            res.notes.append(note)
+            res.summary["nl_level_independent"] = True
     return BLALevels(rms=np.array(rms), results=results, freq=results[0].freq,
-                     G=np.stack([res.G for res in results]))
+                     G=np.stack([res.G for res in results]), notes=notes)
+
+
+def level_independence_note(rms, summaries, tolerance_db=3.0):
+    """A note when the nonlinear variance is detected at every level yet keeps the same
+    level re the output (within ``tolerance_db``) over levels spanning 6 dB or more.
+
+    A nonlinearity with a scale changes its distortion re the output with the amplitude
+    (a cubic term: +2 dB per dB, Coulomb friction: -1 dB per dB, a saturation from zero
+    to large); a variance in fixed proportion to the output at every level is what
+    unmeasured inputs give (other excited inputs of a MIMO system coupling into this
+    output, a disturbance that changes between realizations) and, among
+    nonlinearities, only a scale-free one (piecewise linear through zero). Returns the
+    note or None.
+    """
+    rms = np.asarray(rms, dtype=float)
+    if rms.size < 2 or not np.all(rms > 0) or 20 * np.log10(rms.max() / rms.min()) < 6.0:
+        return None
+    rel = [s.get("nl_re_output_db") for s in summaries]
+    det = [s.get("excited_detected") for s in summaries]
+    if any(r is None for r in rel) or not all(d is True for d in det):
+        return None
+    spread = max(rel) - min(rel)
+    if spread > tolerance_db:
+        return None
+    return (f"the nonlinear variance is the same re the output at every level "
+            f"({min(rel):+.1f} .. {max(rel):+.1f} dB over {20 * np.log10(rms.max() / rms.min()):.0f} "
+            f"dB of excitation): a nonlinearity with a scale (friction, saturation, a cubic term) "
+            f"changes its distortion with the level, so this is the signature of inputs that are "
+            f"not measured (cross-coupling from other excited inputs of a MIMO system, a "
+            f"realization-dependent disturbance), or of a scale-free (piecewise linear through "
+            f"zero) characteristic; measure those inputs (a MIMO BLA with M >= n_u "
+            f"realizations) to tell")
