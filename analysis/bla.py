@@ -781,8 +781,8 @@ def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_no
     """Per-octave figures of the non-excited lines: a band median hides a strong
     narrow-band nonlinearity, so each octave gets its median and its maximum excess over
     the noise, the count 6 dB over, and (parity grids) odd re even as a power ratio.
-    Octaves start at the lowest detection line; one with fewer than 4 lines joins the
-    previous one."""
+    Octaves start at the lowest detection line; the lowest ones are merged until a band
+    holds 8 detection lines, a short last one joins the previous band."""
     if not det_bins.size:
         return []
     lo = float(det_bins[0])
@@ -792,8 +792,18 @@ def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_no
     edges.append(float(det_bins[-1]) + 1)
     idx = np.searchsorted(edges, det_bins, side="right") - 1
     counts = np.bincount(idx, minlength=len(edges) - 1)
-    keep = [0] + [i for i in range(1, len(edges) - 1) if counts[i] >= 4]
-    bounds = [edges[i] for i in keep] + [edges[-1]]
+    # merge forward until a band holds 8 detection lines; a short last one joins the
+    # previous band
+    bounds, acc = [edges[0]], 0
+    for i in range(len(edges) - 1):
+        acc += counts[i]
+        if acc >= 8:
+            bounds.append(edges[i + 1])
+            acc = 0
+    if acc and len(bounds) > 1:
+        bounds[-1] = edges[-1]
+    elif acc or len(bounds) == 1:
+        bounds.append(edges[-1])
 
     def cls(bins, power, noise, a, b):
         sel = (bins >= a) & (bins < b)
