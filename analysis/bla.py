@@ -337,12 +337,15 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False
     # how sure: the margin between the weakest excited line and the strongest other line
     # of the band, both re the excited lines' local level
     inband = np.arange(found[0], found[-1] + 1)
-    other = np.setdiff1d(inband, np.concatenate((found, strays)))
+    is_found = np.zeros(inband.size, bool)
+    is_found[found - found[0]] = True
+    is_other = ~is_found
+    is_other[strays[(strays >= found[0]) & (strays <= found[-1])] - found[0]] = False
     margin = None
-    if other.size:
+    if is_other.any():
         ref = np.interp(inband, found, level[found - 1])
         rel = level[inband - 1] - ref
-        margin = float(np.min(rel[np.isin(inband, found)]) - np.max(rel[np.isin(inband, other)]))
+        margin = float(np.min(rel[is_found]) - np.max(rel[is_other]))
     info["margin_db"] = margin
     info["confidence"] = ("clear" if margin is None or margin >= 20.0 else
                           "fair" if margin >= min_gap_db else "weak")
@@ -410,13 +413,15 @@ def _stray_lines(level, found):
             stray |= r1
     idx = np.flatnonzero(~stray)
     lv = level[found[idx] - 1]
-    from numpy.lib.stride_tricks import sliding_window_view
     if idx.size >= 21:
+        # a line 6 dB under the median of its 10 nearest neighbours in the set: only lines
+        # 6 dB under the set's largest level can be (the few others are not computed)
+        cand = np.flatnonzero(lv < lv.max() - 6.0)
         padded = np.pad(lv, 5, mode="reflect")
-        win = sliding_window_view(padded, 11)
-        local = np.median(np.delete(win, 5, axis=1), axis=1)
-        low = lv < local - 6.0
-        if 0 < low.sum() <= allow:
+        nb = cand[:, None] + np.array([0, 1, 2, 3, 4, 6, 7, 8, 9, 10])
+        local = np.median(padded[nb], axis=1)
+        low = cand[lv[cand] < local - 6.0]
+        if 0 < low.size <= allow:
             stray[idx[low]] = True
     return found[~stray], found[stray]
 
@@ -805,21 +810,28 @@ def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_no
     elif acc or len(bounds) == 1:
         bounds.append(edges[-1])
 
-    def cls(bins, power, noise, a, b):
-        sel = (bins >= a) & (bins < b)
-        out = {"lines": int(sel.sum()), "median_re_noise_db": None, "max_re_noise_db": None,
-               "lines_over_noise_6db": None, "power_db": None}
-        if not sel.any():
-            return out
-        out["power_db"] = float(to_db(np.mean(power[sel])))
+    excess = {}
+    for key, power, noise in ((id(odd_bins), odd_power, odd_noise),
+                              (id(even_bins), even_power, even_noise),
+                              (id(det_bins), det_power, det_noise)):
         if noise is not None:
             with np.errstate(divide="ignore", invalid="ignore"):
-                ex = 10 * np.log10(power[sel] / noise[sel])
-            ex = np.where(np.isfinite(ex), ex, -np.inf)
+                ex = 10 * np.log10(power / noise)
+            excess[key] = np.where(np.isfinite(ex), ex, -np.inf)
+
+    def cls(bins, power, noise, a, b):
+        i, j = np.searchsorted(bins, [a, b])
+        out = {"lines": int(j - i), "median_re_noise_db": None, "max_re_noise_db": None,
+               "lines_over_noise_6db": None, "power_db": None}
+        if j <= i:
+            return out
+        out["power_db"] = float(10 * np.log10(max(float(np.mean(power[i:j])), 1e-300)))
+        if noise is not None:
+            ex = excess[id(bins)][i:j]
             med, top = float(np.median(ex)), float(np.max(ex))
             out.update({"median_re_noise_db": med if np.isfinite(med) else None,
                         "max_re_noise_db": top if np.isfinite(top) else None,
-                        "lines_over_noise_6db": int(np.sum(power[sel] > 4 * noise[sel]))})
+                        "lines_over_noise_6db": int(np.sum(ex > 10 * np.log10(4.0)))})
         return out
 
     bands = []
@@ -909,9 +921,11 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     u32 = u.dtype == np.float32 or np.array_equal(sample_u, sample_u.astype(np.float32))
     u_rounding = float(np.max(np.abs(u))) * (2.0 ** -24 if u32 else 2.0 ** -53)
 
+    lo, hi = int(band[0]), int(band[-1]) + 1      # the band is contiguous: a view, no copy
+
     def one_realization(m):
         return tuple(None if x is None else
-                     np.take(scipy.fft.rfft(x[m], axis=-1), band, axis=-1).astype(np.complex128, copy=False)
+                     scipy.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128, copy=False)
                      for x in (u, y, r))
 
     y_mean_time = None
@@ -1046,14 +1060,17 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     exc_i = np.flatnonzero(is_exc)
     c = np.complex128
     L = band.size
-    Y_exc = np.empty((n_real, n_total, exc_i.size), c)
+    # the transient check reads at most 256 lines spread over the band: keep only those
+    trans_i = exc_i if exc_i.size <= 256 else \
+        exc_i[np.linspace(0, exc_i.size - 1, 256).astype(np.int64)]
+    Y_exc = np.empty((n_real, n_total, trans_i.size), c)
     mU, mY, mR = np.empty((n_real, L), c), np.empty((n_real, L), c), np.empty((n_real, L), c)
     ss_u, ss_y, ss_r = np.empty((n_real, L)), np.empty((n_real, L)), np.empty((n_real, L))
     s_yu = np.empty((n_real, L), c)
     G_per = None if known_ref else (np.empty((n_real, exc_i.size), c), np.empty((n_real, exc_i.size)))
     for m in range(n_real):
         Um, Ym, Rm = _get(m)
-        Y_exc[m] = Ym[:, exc_i]
+        Y_exc[m] = Ym[:, trans_i]
         mU[m], dU, ss_u[m] = _spread2(Um[settle:])
         mY[m], dY, ss_y[m] = _spread2(Ym[settle:])
         s_yu[m] = np.einsum("pk,pk->k", dY, np.conj(dU))
