@@ -597,6 +597,16 @@ def _false_alarm_count(n_lines, p_line, alpha=1e-3):
     """Smallest count k >= 1 with P(Binomial(n_lines, p_line) >= k) <= alpha."""
     if n_lines == 0:
         return None
+    p = float(p_line)
+    if 0.0 < p < 1.0 and n_lines * p < 300:
+        # the cdf term by term up to 1 - alpha (no array of n_lines + 1 terms)
+        pmf = (1.0 - p) ** n_lines
+        cdf, k, r = pmf, 0, p / (1.0 - p)
+        while cdf < 1.0 - alpha and k < n_lines:
+            pmf *= (n_lines - k) / (k + 1) * r
+            cdf += pmf
+            k += 1
+        return max(1, k + 1)
     sf = _binom_sf_counts(n_lines, p_line)
     ok = np.flatnonzero(sf <= alpha)
     return max(1, int(ok[0]) if ok.size else n_lines + 1)
@@ -914,12 +924,15 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         excited = _validate_lines(excited_bins, n)
     band = np.arange(excited[0], excited[-1] + 1)
     # resolution of the recorded numbers: float32 records round to 2^-24 of the value
-    sample = y.reshape(-1)[::97]          # a sample of the values is enough to tell
-    f32 = y.dtype == np.float32 or np.array_equal(sample, sample.astype(np.float32))
-    y_rounding = float(np.max(np.abs(y))) * (2.0 ** -24 if f32 else 2.0 ** -53)
-    sample_u = u.reshape(-1)[::97]
-    u32 = u.dtype == np.float32 or np.array_equal(sample_u, sample_u.astype(np.float32))
-    u_rounding = float(np.max(np.abs(u))) * (2.0 ** -24 if u32 else 2.0 ** -53)
+    # (a sample of every 97th value is enough to tell float32 records; the input's largest
+    # magnitude is bounded by twice the sample's, the output's is taken exactly)
+    def rounding(x, exact):
+        sample = x.reshape(-1)[::97]
+        f32 = x.dtype == np.float32 or np.array_equal(sample, sample.astype(np.float32))
+        top = max(float(x.max()), -float(x.min())) if exact else \
+            2.0 * float(np.max(np.abs(sample)))
+        return top * (2.0 ** -24 if f32 else 2.0 ** -53)
+    y_rounding, u_rounding = rounding(y, True), rounding(u, False)
 
     lo, hi = int(band[0]), int(band[-1]) + 1      # the band is contiguous: a view, no copy
 
