@@ -535,8 +535,10 @@ def classify_grid(excited_bins, n_period):
                         "even bins; only 'nonlinear' can be said, no odd/even claim"}
     if removed.size == 0:
         return {"grid": "full", "parity": False,
-                "note": "full grid: every line of the band is excited, no non-excited line "
-                        "to detect nonlinear distortion on (design a random odd multisine)"}
+                "note": "full grid: every line of the band is excited, no non-excited line: "
+                        "nonlinear distortion is judged at the excited lines only (var_total "
+                        "vs var_noise, needs M >= 2 and P >= 2), without an odd/even split "
+                        "(design a random odd multisine for that)"}
     return {"grid": "full with removed lines", "parity": False,
             "note": "full grid with removed lines: odd and even distortions both fall on "
                     "every line (odd + even bins mix), so the removed lines say only "
@@ -1475,8 +1477,11 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
                     + ("; give the reference (--columns ...,r=NAME) for a known-reference "
                        "estimate" if not known_ref else ""))
     else:
-        notes.append("no non-excited line between the lowest and the highest excited line: "
-                     "no nonlinear detection possible with this excitation")
+        if excited_stats["excited_detected"] is None:
+            notes.append("no non-excited line between the lowest and the highest excited "
+                         "line, and no var_total vs var_noise at the excited lines (needs "
+                         "M >= 2 and P >= 2): no nonlinear detection possible with this "
+                         "experiment")
 
     if Y_exc is not None:
         transient = _transient(Y_exc, settle, n_per)
