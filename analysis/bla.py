@@ -1579,8 +1579,14 @@ def level_verdict(summary, saturation_fraction=None, level=None):
     dict
         ``causes``: list of 'linear', 'plant odd nonlinearity', 'plant even
         nonlinearity', 'plant nonlinearity (parity not classifiable with this grid)',
-        'drive output saturation', 'quantisation floor', 'loop nonlinearity outside
-        the plant', 'cannot tell'; ``text``: one sentence saying why.
+        'nonlinear distortion (excited lines)' (no detection line: the excited lines'
+        var_total vs var_noise test), 'unmeasured inputs' (the excited lines spread over
+        realizations, the detection lines are clean), 'unmeasured inputs or a scale-free
+        nonlinearity' (:func:`bla_levels`: the same nonlinear level re the output at
+        every level), 'drive output saturation', 'quantisation floor', 'loop
+        nonlinearity outside the plant' (closed loop), 'input distortion (before the
+        measured input)' (open loop), 'cannot tell' (with what is missing);
+        ``text``: one sentence saying why.
     """
     if summary.get("nl_level_independent"):
         inner = level_verdict(dict(summary, nl_level_independent=False), saturation_fraction,
