@@ -369,7 +369,9 @@ def _refine_in_band(level, found, min_gap_db):
     of an odd grid's even lines under the distortion of a distorted input: split the
     lines found again while their own levels show a gap of ``min_gap_db`` and the lines
     split off lie among the kept ones (max(2, 5 %) of them inside the kept band: the
-    level of the non-excited lines), not only beside them (a designed amplitude step)."""
+    level of the non-excited lines), or beside them at a level 40 dB or more down or
+    scattering line to line by more than 2 dB (median), like distortion; a smooth step
+    beside the band is a designed amplitude step and stays."""
     for _ in range(6):
         if found.size < 8:
             break
@@ -382,7 +384,12 @@ def _refine_in_band(level, found, min_gap_db):
         if new.size < 2:
             break
         inside = int(np.sum((dropped > new[0]) & (dropped < new[-1])))
-        if inside < max(2, 0.05 * new.size):
+        # lines only beside the kept band: a designed amplitude step (smooth, within
+        # 40 dB) stays excited; a level that scatters line to line like noise or lies
+        # 40 dB or more down is distortion (a full grid's band-limited force)
+        lv_d = level[dropped - 1]
+        scatter = float(np.median(np.abs(np.diff(lv_d)))) if dropped.size >= 8 else 0.0
+        if inside < max(2, 0.05 * new.size) and gap < 40.0 and scatter < 2.0:
             break
         found = new
     return found
@@ -391,8 +398,9 @@ def _refine_in_band(level, found, min_gap_db):
 def _stray_lines(level, found):
     """Lines of ``found`` that do not belong to the excitation: a handful (at most
     max(2, 2 %)) off the grid's parity pattern (even lines among odd ones, 4k+3 among
-    4k+1), or 6 dB or more under the median of their 10 nearest excited neighbours while
-    the rest follow it. Returns (excited, strays)."""
+    4k+1), or 6 dB or more under the median of their 5 nearest excited neighbours on
+    each side (both sides: a line at a designed amplitude step follows one of them).
+    Returns (excited, strays)."""
     empty = np.array([], dtype=np.int64)
     if found.size < 20:
         return found, empty
@@ -418,9 +426,10 @@ def _stray_lines(level, found):
         # 6 dB under the set's largest level can be (the few others are not computed)
         cand = np.flatnonzero(lv < lv.max() - 6.0)
         padded = np.pad(lv, 5, mode="reflect")
-        nb = cand[:, None] + np.array([0, 1, 2, 3, 4, 6, 7, 8, 9, 10])
-        local = np.median(padded[nb], axis=1)
-        low = cand[lv[cand] < local - 6.0]
+        left = np.median(padded[cand[:, None] + np.arange(5)], axis=1)
+        right = np.median(padded[cand[:, None] + np.arange(6, 11)], axis=1)
+        # under BOTH sides: a line at a designed amplitude step is level with one side
+        low = cand[lv[cand] < np.minimum(left, right) - 6.0]
         if 0 < low.size <= allow:
             stray[idx[low]] = True
     return found[~stray], found[stray]

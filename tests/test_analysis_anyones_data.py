@@ -352,3 +352,27 @@ def test_class_test_false_alarm_rate_on_pure_noise_with_200_lines():
         alarms_nl += bool(s["nl_detected"])
         alarms_exc += bool(s["excited_detected"])
     assert alarms_nl <= 2 and alarms_exc <= 2
+
+
+def test_line_finder_full_grid_band_limited_force_and_a_designed_step():
+    """A full grid whose force carries distortion 50 dB down up to N/4 (nothing between
+    the excited lines to show the level): the lines beside the band scatter like noise and
+    are not excited. A designed 20 dB amplitude step on an odd grid stays excited."""
+    n, m = 8192, 3
+    rng = np.random.default_rng(0)
+    k = np.arange(n // 2 + 1)
+    exc = np.arange(20, 151)
+    spec = np.zeros((m, k.size), complex)
+    spec[:, exc] = (n / 2) * np.exp(2j * np.pi * rng.random((m, exc.size)))
+    dist = (n / 2) * 10 ** (-50 / 20) * (rng.standard_normal(spec.shape)
+                                         + 1j * rng.standard_normal(spec.shape)) / np.sqrt(2)
+    dist[:, k > n // 4] *= 1e-8
+    dist[:, [0, -1]] = 0
+    spec = np.where(np.isin(k, exc), spec, dist)
+    u = np.repeat(np.fft.irfft(spec, n=n)[:, None], 3, 1) + 1e-9 * rng.standard_normal((m, 3, n))
+    np.testing.assert_array_equal(detect_excited_lines(u), exc)
+    step = np.arange(11, 601, 2)
+    spec = np.zeros((m, k.size), complex)
+    spec[:, step] = (n / 2) * np.where(step < 300, 1.0, 0.1) * np.exp(2j * np.pi * rng.random((m, step.size)))
+    u = np.repeat(np.fft.irfft(spec, n=n)[:, None], 2, 1) + 1e-7 * rng.standard_normal((m, 2, n))
+    np.testing.assert_array_equal(detect_excited_lines(u), step)
