@@ -102,6 +102,10 @@ def add_parser(subparsers):
     b.add_argument("--lines", metavar="FILE",
                    help="excited lines (integer DFT bins of one period) instead of detecting "
                         "them from the u (or r) spectrum")
+    b.add_argument("--y-step", type=_positive_float, metavar="Q", dest="y_step",
+                   help="quantisation step of y (e.g. an encoder's 2 pi / counts in rad): its "
+                        "periodic error is not taken for plant distortion. Default: found "
+                        "from y when its values lie on a grid")
     b.set_defaults(func=run_bla)
 
     h = sub.add_parser("hosidf", help="HOSIDF H_1..H_K of a sine experiment, mean/std over repeats")
@@ -327,10 +331,18 @@ def run_bla(args):
     sig = _matrix_order(loaded, columns, sig, n)
     lines = load_lines(args.lines) if args.lines else None
     shaped = {k: v.reshape(m, t + p, n) for k, v in sig.items()}
+    q, q_note = args.y_step, None
+    if q is None:
+        from fftune.analysis.bla import estimate_quantisation_step
+        q = estimate_quantisation_step(shaped["y"])
+        if q is not None:
+            q_note = f"quantisation step of y found from its values: {q:.6g} (--y-step Q to set it)"
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = robust_bla(shaped["u"], shaped["y"], shaped.get("r"), fs=fs, settle_periods=t,
-                         excited_bins=lines)
+                         excited_bins=lines, y_quantisation_step=q)
+    if q_note:
+        res.notes.append(q_note)
     document = bla_to_json(res)
     plot_dir = _plot_dir(args.plot) if args.plot else None
     if args.json:

@@ -376,3 +376,18 @@ def test_line_finder_full_grid_band_limited_force_and_a_designed_step():
     spec[:, step] = (n / 2) * np.where(step < 300, 1.0, 0.1) * np.exp(2j * np.pi * rng.random((m, step.size)))
     u = np.repeat(np.fft.irfft(spec, n=n)[:, None], 2, 1) + 1e-7 * rng.standard_normal((m, 2, n))
     np.testing.assert_array_equal(detect_excited_lines(u), step)
+
+
+def test_cli_finds_the_encoder_step_and_does_not_blame_the_plant(tmp_path, capsys):
+    u, y, kw, _ = gt.system("quantisation", seed=1)
+    np.savez(tmp_path / "q.npz", u=u.ravel(), y=y.ravel(), fs=gt.FS, n_period=gt.N,
+             realizations=u.shape[0])
+    code, out, err = cli(capsys, "bla", tmp_path / "q.npz", "--json", tmp_path / "q.json")
+    assert code == 0, err
+    assert "quantisation step of y found from its values" in out
+    doc = json.loads((tmp_path / "q.json").read_text())
+    assert not any(c.startswith("plant ") for c in doc["verdict"]["causes"]), doc["verdict"]
+    assert doc["summary"]["quantisation_model"].startswith("periodic")
+    # the step given explicitly gives the same verdict
+    code, out2, err = cli(capsys, "bla", tmp_path / "q.npz", "--y-step", kw["y_quantisation_step"])
+    assert code == 0 and "verdict: " + doc["verdict"]["text"] in out2
