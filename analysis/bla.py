@@ -27,7 +27,6 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.fft
 
 from fftune.analysis.errors import InputError
 
@@ -299,7 +298,7 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False
     """
     x = _as_layout("excitation", x)
     n = x.shape[2]
-    spectrum = scipy.fft.rfft(x[:, settle_periods:, :].sum(axis=1), axis=-1)
+    spectrum = np.fft.rfft(x[:, settle_periods:, :].sum(axis=1), axis=-1)
     power = np.mean(spectrum.real ** 2 + spectrum.imag ** 2, axis=0)[1:(n + 1) // 2]
     if not np.all(np.isfinite(power)):
         raise InputError("excitation: contains NaN or inf")
@@ -727,7 +726,7 @@ def quantisation_error_lines(s, q, sigma, bins):
         rfft of the mean error (numpy scaling, no 1/N) at ``bins``.
     """
     e = _mean_quantisation_error(s, q, sigma)
-    return np.take(scipy.fft.rfft(e, axis=-1), np.asarray(bins), axis=-1)
+    return np.take(np.fft.rfft(e, axis=-1), np.asarray(bins), axis=-1)
 
 
 def _mean_quantisation_error(s, q, sigma):
@@ -760,12 +759,12 @@ def _quantisation_lines(q, y_mean_time, mom, *, is_exc, det_i, g_det, n, n_per, 
     band = mom.bins
     S = np.zeros((mom.Y.shape[0], n // 2 + 1), np.complex128)
     if y_mean_time is not None:
-        Yf = scipy.fft.rfft(np.asarray(y_mean_time, dtype=np.float64), axis=-1)
+        Yf = np.fft.rfft(np.asarray(y_mean_time, dtype=np.float64), axis=-1)
         S[:, 0] = Yf[:, 0]
     S[:, band[is_exc]] = mom.Y[:, np.flatnonzero(is_exc)]
     if g_det is not None:
         S[:, band[det_i]] = g_det * mom.U[:, det_i]
-    smooth = scipy.fft.irfft(S, n=n, axis=-1)
+    smooth = np.fft.irfft(S, n=n, axis=-1)
     sigma2 = 0.0
     if n_per >= 2:
         # white noise: a line's period-to-period variance is N sigma^2
@@ -949,7 +948,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
 
     def one_realization(m):
         return tuple(None if x is None else
-                     scipy.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128, copy=False)
+                     np.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128, copy=False)
                      for x in (u, y, r))
 
     y_mean_time = None
