@@ -57,7 +57,6 @@ class _DeprecatedAlias(argparse.Action):
 
 def add_parser(subparsers):
     """Add ``analyze`` with its ``bla`` and ``hosidf`` subcommands."""
-    import argparse
     p = subparsers.add_parser(
         "analyze", help="offline analysis of measured data (robust BLA, HOSIDF)",
         description="Analyse measured data from a CSV (with header), NPZ, MAT or fftune "

@@ -145,18 +145,14 @@ _TIME_NAMES = ("t", "time", "time_s", "t_s")
 
 
 def _time_column(path, signals):
-    """(name, sample rate) of a CSV time column, or (None, None); InputError when the
-    column is not evenly spaced increasing time (it cannot give a sample rate then)."""
+    """(name, sample rate) of a CSV time column (1 / its median step, robust to a logger's
+    jitter), or (None, None) when there is none or it does not increase."""
     name = next((n for n in signals if n.strip().lower() in _TIME_NAMES), None)
     if name is None or signals[name].size < 2:
         return None, None
-    d = np.diff(signals[name])
-    step = float(np.median(d))
-    if not step > 0 or np.max(np.abs(d - step)) > 0.01 * step + 1e-9 * np.max(np.abs(signals[name])):
-        raise InputError(f"{path}: time column {name!r} is not evenly spaced increasing time "
-                         f"(median step {step:g}, largest deviation "
-                         f"{float(np.max(np.abs(d - step))):g}): the analysis needs samples at "
-                         f"a constant rate")
+    step = float(np.median(np.diff(signals[name])))
+    if not step > 0:
+        return None, None
     return name, 1.0 / step
 
 
