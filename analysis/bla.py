@@ -1627,7 +1627,11 @@ def level_verdict(summary, saturation_fraction=None, level=None):
         if exc is True:
             return {"causes": ["nonlinear distortion (excited lines)"],
                     "text": f"nonlinear distortion{at} at the excited lines: {exc_text}; no "
-                            f"non-excited line, so no odd/even or plant-referred claim"}
+                            f"non-excited line, so no odd/even or plant-referred claim, and "
+                            f"inputs that differ between realizations and are not measured "
+                            f"(MIMO cross-coupling) look the same on the excited lines: a "
+                            f"level dependence (several levels) or a MIMO BLA tells them "
+                            f"apart"}
         if exc is False:
             return {"causes": ["linear"],
                     "text": f"linear{at}: no nonlinear variance above the noise at the excited "
