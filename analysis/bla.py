@@ -526,9 +526,11 @@ def classify_grid(excited_bins, n_period):
         grids: an odd number of odd bins sums to an odd bin, an even number to an even
         bin); ``note``: why there is no parity claim (None when there is).
     """
-    exc = np.asarray(excited_bins, dtype=np.int64)
+    exc = np.unique(np.asarray(excited_bins, dtype=np.int64))
     band = np.arange(exc[0], exc[-1] + 1)
-    removed = np.setdiff1d(band, exc)
+    keep = np.ones(band.size, bool)
+    keep[exc - exc[0]] = False
+    removed = band[keep]
     if np.all(exc % 2 == 1):
         if exc.size > 1 and np.all(exc % 4 == exc[0] % 4):
             grid = "odd-odd"
