@@ -230,7 +230,9 @@ def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
         parts.append((f"plant nonlinearity at {', '.join(at)}" if at else
                       "no plant nonlinearity") + " (odd/even not classifiable with this grid)")
     for cause in ("drive output saturation", "quantisation floor",
-                  "loop nonlinearity outside the plant", "cannot tell"):
+                  "loop nonlinearity outside the plant", "nonlinear distortion (excited lines)",
+                  "unmeasured inputs", "unmeasured inputs or a scale-free nonlinearity",
+                  "cannot tell"):
         at = where(cause)
         if at:
             parts.append(f"{cause} at {', '.join(at)}")

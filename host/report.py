@@ -188,8 +188,8 @@ def key_numbers(results):
                          f"{_fmt(s.get('line_median_noise_re_nl_db'), ' dB')}"))
         top = d["levels"][-1]["summary_db"]
         if top.get("parity_classifiable"):
-            rows.append(("per line, highest level: odd re even (median)",
-                         _fmt(top.get("line_median_odd_re_even_db"), " dB")))
+            rows.append(("highest level: odd re even (power ratio)",
+                         _fmt(top.get("odd_re_even_db"), " dB")))
     q = results.get("quantify")
     if q:
         rows.append(("largest odd HOSIDF level re H_1", _fmt(q["max_odd_relative_level"])))
