@@ -37,8 +37,11 @@ def time_budget(account_before, account_after, wall_s):
     return {k: round(v, 3) for k, v in out.items()}
 
 
-def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
-    """Run ``steps`` in order; returns the results dict (also written to ``out_dir``)."""
+def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, data=None):
+    """Run ``steps`` in order; returns the results dict (also written to ``out_dir``).
+    ``data``: a dict that receives the analysis objects behind the figures
+    (``detect_levels``, ``hos``, ``tune_data``; None for a step not run) and the figures
+    made (``figures``: name -> (file name, caption))."""
     t0 = time.monotonic()
     session = ex.Session(drive, cfg, out_dir, log=log)
     results = {
@@ -90,9 +93,13 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
     results["finished"] = datetime.datetime.now().isoformat(timespec="seconds")
     results["wall_time_s"] = round(time.monotonic() - t0, 2)
     write_results(out_dir, results)
+    if data is not None:
+        data.update(detect_levels=detect_levels, hos=hos, tune_data=tune_data)
     figs = {}
     if figures:
         figs = make_figures(out_dir, detect_levels, hos, tune_data, results)
+    if data is not None:
+        data["figures"] = figs
     write_html(out_dir, results, figs)
     return results
 
