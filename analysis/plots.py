@@ -226,11 +226,17 @@ def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=None, title=None, un
         order = np.argsort(a)
         for r, ks in enumerate([harmonics] + ([even] if even else [])):
             ax = axes[r, c]
-            for k in ks:
-                line, = ax.plot(a[order], _db20(H[order, fi, k - 1]), "-o", ms=3,
-                                color=colours.get(k), label=f"H_{k}")
+            means = np.array([_db20(H[order, fi, k - 1]) for k in ks])
+            finite = means[np.isfinite(means)]
+            # a standard deviation far under every mean (a deterministic simulation repeats
+            # itself to the last bit) is drawn at the panel's floor, not at -400 dB
+            floor = (finite.min() - 40.0) if finite.size else -200.0
+            for k, m in zip(ks, means):
+                line, = ax.plot(a[order], m, "-o", ms=3, color=colours.get(k), label=f"H_{k}")
                 colours[k] = line.get_color()
-                ax.plot(a[order], _db20(std[order, fi, k - 1]), "--", color=line.get_color(), lw=0.8)
+                sd = _db20(std[order, fi, k - 1])
+                ax.plot(a[order], np.maximum(np.where(np.isfinite(sd), sd, floor), floor), "--",
+                        color=line.get_color(), lw=0.8)
             _plain_log_axis(ax)
             ax.grid(True, which="both", alpha=0.3)
             if c == 0:
