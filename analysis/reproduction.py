@@ -19,7 +19,7 @@ from fftune.analysis.errors import InputError
 from fftune.analysis.tuning import harmonic_orders, odd_ratio
 
 __all__ = ["phase_turn_deg", "min_rms_kfc", "relative_levels", "reproduction_numbers",
-           "PAPER_CLAIMS", "compare", "markdown_table"]
+           "PAPER_CLAIMS", "DETECT_CLAIMS", "detect_numbers", "compare", "markdown_table"]
 
 
 def _sorted_sweep(k_fc, *arrays):
@@ -193,6 +193,29 @@ PAPER_CLAIMS = [
      "format": "pct"},
     {"key": "odd_ratio_improvement", "claim": "odd NL reduced about tenfold (Figure 8: 15 % to "
      "< 1.5 %)", "paper": ">= 10x", "range": [10.0, None], "format": "x"},
+]
+
+
+def detect_numbers(detect, level_v_rms=3.72):
+    """The Figure 3 numbers (dB): per-line medians of the detection (results.yaml's
+    ``detect`` block) at the level nearest ``level_v_rms`` (the paper's 3.72 V rms); {} without."""
+    if not detect or not detect.get("levels"):
+        return {}
+    lv = min(detect["levels"], key=lambda x: abs(x["rms_requested"] - level_v_rms))
+    s = lv["summary_db"]
+    return {"detect_level_v_rms": lv["rms_requested"],
+            "detect_nl_re_output_db": s.get("line_median_nl_re_output_db"),
+            "detect_odd_re_even_db": s.get("line_median_odd_re_even_db"),
+            "detect_noise_re_nl_db": s.get("line_median_noise_re_nl_db")}
+
+
+DETECT_CLAIMS = [
+    {"key": "detect_nl_re_output_db", "claim": "nonlinear distortion re BLA output (Figure 3, "
+     "TEM stage)", "paper": "-10 dB", "range": [-15.0, -5.0], "format": "db"},
+    {"key": "detect_odd_re_even_db", "claim": "odd NL over even NL (Figure 3, TEM stage)",
+     "paper": "+20 dB", "range": [15.0, 25.0], "format": "db"},
+    {"key": "detect_noise_re_nl_db", "claim": "noise re nonlinear distortion (Figure 3, TEM stage)",
+     "paper": "-30 dB", "range": [-35.0, -25.0], "format": "db"},
 ]
 
 
