@@ -44,6 +44,7 @@ demo: setup
 # and docs/paper-reproduction.md rewritten from its template (docs/paper-reproduction.md).
 paper: setup
 	@$(VENV)/bin/fftune paper --no-progress --doc docs/paper-reproduction.md
+
 # friction tracking from the repeated task on a drifting simulated plant (docs/track.md)
 demo-track: setup
 	@$(VENV)/bin/fftune demo-track
