@@ -368,7 +368,7 @@ def run_bla(args):
     if plot_dir:
         from fftune.analysis import plots
         plots.plot_output_spectrum(res, plot_dir / "bla_output_spectrum.png")
-        plots.plot_bla(res, plot_dir / "bla_frf.png")
+        plots.plot_bla(res, plot_dir / "bla_frf.png", g_unit=f"{columns['y']}/{columns['u']}")
     for w in caught:
         print(f"fftune: warning: {w.message}", file=sys.stderr)
     s = res.summary

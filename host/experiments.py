@@ -479,6 +479,21 @@ def quantify(session):
         "max_odd_relative_level": _f(np.max(odd_rel)),
         "max_even_relative_level": _f(np.max(even_rel)),
     }
+    q = session.cfg["detect"].get("encoder_step_rad")
+    if q and c["harmonics"] >= 2:
+        # one encoder count in one sample of one block, relative to the output's fundamental
+        # (|H_1| x amplitude), averaged over the repeats' blocks: what "0" means
+        y1 = np.abs(hos.H[..., 0]) * np.asarray(hos.amplitude)
+        with np.errstate(divide="ignore"):
+            floor = 2.0 * q / (n * c["periods"] * c["repeats"] * y1)
+        results["even_relative_level_floor"] = [[_f(v) for v in row] for row in floor]
+    if np.any(even_rel == 0.0):
+        results["even_relative_level_note"] = (
+            "an exact 0.0 is no measurement of zero distortion but exact half-wave symmetry: the "
+            "recorded angle satisfies y(t + T/2) = -y(t) to the last bit (a symmetric, "
+            "deterministic plant in steady state, quantised by the encoder), so every even DFT "
+            "line is exactly zero: the even level is below the resolution of the record "
+            "(even_relative_level_floor: one encoder count in one sample)")
     return results, hos
 
 
@@ -746,6 +761,21 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
         f"(|H_1| = {probes[-1]['h1']:.3g}, ratio at K_fc = 0 {probes[-1]['ratio_at_zero']}); "
         "the search runs there and may rely on the ratio minimiser: raise "
         "tune.amplitude_max_rad if the set-up allows")}, p, None
+
+
+def _std_over_periods(points):
+    """Per point the standard deviation of the HOSIDFs over the recorded periods, (n, K)
+    (from the per-period HOSIDFs, or the drive's period-to-period variance); None when a
+    point has neither."""
+    out = []
+    for p in points:
+        if p.get("H_periods") is not None:
+            out.append(np.std(np.asarray(p["H_periods"]), axis=0, ddof=1).reshape(-1)[:len(p["H"])])
+        elif p.get("H_var") is not None:
+            out.append(np.sqrt(np.asarray(p["H_var"], dtype=float)))
+        else:
+            return None
+    return np.stack(out)
 
 
 def sweep_optimum(k, ratio, signed):
@@ -1231,6 +1261,7 @@ def tune(session):
     if kv_block:
         results["rms_error_rad"]["k_fc_star_k_v_star"] = kv_block["rms_error_rad"]
     data = {"k_sweep": kfc_fig, "H_sweep": H_fig, "ratio_sweep": ratio_fig,
+            "H_std_sweep": _std_over_periods(fig_pts),
             "signed_sweep": signed_fig, "k_star": k_star, "p0": p0, "p_star": p_star, "p_rms": p_rms,
             "p_kv": p_kv, "n": probe.n, "fs": session.fs_hz}
     return results, data

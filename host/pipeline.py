@@ -47,8 +47,12 @@ def check_plan(drive, cfg, steps=STEPS, session=None):
                      capture_mode=session.capture_mode)
 
 
-def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, preflight=True):
+def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, preflight=True,
+                 data=None):
     """Run ``steps`` in order; returns the results dict (also written to ``out_dir``).
+    ``data``: a dict that receives the analysis objects behind the figures
+    (``detect_levels``, ``hos``, ``tune_data``; None for a step not run) and the figures
+    made (``figures``: name -> (file name, caption)).
 
     With ``preflight`` (default; not for a CAN-log replay: its runs happened) every
     excitation of the plan is first checked against the drive's limits and the
@@ -110,9 +114,13 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, pref
     results["wall_time_s"] = round(time.monotonic() - t0, 2)
     os.makedirs(out_dir, exist_ok=True)
     write_results(out_dir, results)
+    if data is not None:
+        data.update(detect_levels=detect_levels, hos=hos, tune_data=tune_data)
     figs = {}
     if figures:
         figs = make_figures(out_dir, detect_levels, hos, tune_data, results)
+    if data is not None:
+        data["figures"] = figs
     write_html(out_dir, results, figs)
     return results
 
