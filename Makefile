@@ -9,11 +9,12 @@ PY     := $(CURDIR)/$(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 FW     := $(MAKE) --no-print-directory -C firmware_sim PYTHON=$(PY)
 
-.PHONY: help setup firmware demo demo-track test bench cross pil pil-run fuzz system-deps clean mutation
+.PHONY: help setup firmware demo demo-track paper test bench cross pil pil-run fuzz system-deps clean mutation
 
 help:
 	@echo "make setup        venv (.venv) with pinned deps + firmware_sim build (other targets do it)"
 	@echo "make demo         the main job on the simulated drive (writes out/demo/)"
+	@echo "make paper        the paper's results reproduced side by side (out/paper/, docs/paper-reproduction.md)"
 	@echo "make demo-track   K_fc tracked from the repeated task on a drifting simulated plant (writes out/demo-track/)"
 	@echo "make test         every test, C and Python (parallel: TEST_WORKERS=auto; prints its wall time)"
 	@echo "make bench        benchmarks, printing their figures"
@@ -38,6 +39,11 @@ firmware: $(STAMP)
 
 demo: setup
 	@$(VENV)/bin/fftune demo
+
+# The paper's results beside the measured ones: out/paper/reproduction.json, figures, report,
+# and docs/paper-reproduction.md rewritten from its template (docs/paper-reproduction.md).
+paper: setup
+	@$(VENV)/bin/fftune paper --no-progress --doc docs/paper-reproduction.md
 
 # friction tracking from the repeated task on a drifting simulated plant (docs/track.md)
 demo-track: setup
