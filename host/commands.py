@@ -29,6 +29,9 @@ def add_parser(sub):
     for name in ("detect", "quantify", "tune", "run"):
         p = sub.add_parser(name, help=_HELP[name], description=_HELP[name] + ".")
         _common(p)
+        p.add_argument("--machine", default=None, metavar="FILE",
+                       help="a machine file (configs/machine_demo.yaml): every axis on the bus "
+                            "at once, one thread each (docs/machine.md)")
         add_bus_arguments(p)
         p.set_defaults(func=_experiment, steps=("detect", "quantify", "tune") if name == "run" else (name,))
 
@@ -63,6 +66,9 @@ def _prepare(args):
 def _experiment(args):
     from fftune.host.pipeline import run_pipeline, summary_lines
 
+    if getattr(args, "machine", None):
+        from fftune.host.machine import run_cli
+        return run_cli(args)
     cfg = load_config(args.config)
     opts = BusOptions.from_args(args, cfg["drive"])
     d = cfg["drive"]
