@@ -9,11 +9,12 @@ PY     := $(CURDIR)/$(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 FW     := $(MAKE) --no-print-directory -C firmware_sim PYTHON=$(PY)
 
-.PHONY: help setup firmware demo test bench cross pil pil-run fuzz system-deps clean mutation
+.PHONY: help setup firmware demo demo-machine test bench cross pil pil-run fuzz system-deps clean mutation
 
 help:
 	@echo "make setup        venv (.venv) with pinned deps + firmware_sim build (other targets do it)"
 	@echo "make demo         the main job on the simulated drive (writes out/demo/)"
+	@echo "make demo-machine a simulated 4-axis machine on one 1 Mbit/s bus, every axis tuned at once (out/machine_demo/)"
 	@echo "make test         every test, C and Python (parallel: TEST_WORKERS=auto; prints its wall time)"
 	@echo "make bench        benchmarks, printing their figures"
 	@echo "make cross        deployable C for Cortex-M4F (arm-none-eabi-gcc), with sizes"
@@ -37,6 +38,9 @@ firmware: $(STAMP)
 
 demo: setup
 	@$(VENV)/bin/fftune demo
+
+demo-machine: setup
+	@$(VENV)/bin/fftune demo --machine configs/machine_demo.yaml
 
 # pytest-xdist workers (auto = one per core); --dist loadgroup keeps the tests that share
 # one qemu guest boot or firmware_sim build outputs on one worker (tests/conftest.py).

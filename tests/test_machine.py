@@ -1,0 +1,136 @@
+"""A machine: several axes on one bus, tuned concurrently (host/machine.py, drive_sim --axis).
+
+One drive_sim serves two nodes with unequal plants (Coulomb 0.1157 V and 0.16 V, different
+motor inertias) behind a 1 Mbit/s bus model; the machine file names a third axis whose node
+is not on the bus. The tune step (a small configuration: one sine at 0.625 Hz, N 4096, on
+the drive's statistics) runs on the axes at once.
+"""
+import _thread
+import os
+import struct
+
+import pytest
+import yaml
+
+from fftune.analysis import capture as _capture
+from fftune.host import drive as _drive
+from fftune.host.cli import main
+from fftune.host.drive import BusOptions, DriveClient
+from fftune.host.sim import derived_plant, start_drive_sim
+from host_fixtures import EDS, REPO, drive_sim_missing_reason
+
+pytestmark = pytest.mark.skipif(drive_sim_missing_reason() is not None,
+                                reason=drive_sim_missing_reason() or "")
+
+TWOMASS = os.path.join(REPO, "configs", "plant_twomass.yaml")
+SMALL = {
+    "output": "out/unused",
+    "drive": {"heartbeat_ms": 100, "fs_hz": 2560.0},
+    "tune": {"frequency_hz": 0.625, "amplitude_rad": 0.5, "period_samples": 4096, "periods": 2,
+             "settle_periods": 2, "harmonics": 7, "capture": "stats",
+             "sweep": {"k_fc_max": 0.3, "points": 0}, "search": {"method": "root", "max_experiments": 8},
+             "viscous": {"enabled": False}},
+}
+PLANTS = {"a": (5, {"plant": {"viscous": 2.0e-3}}, 0.1157),
+          "b": (7, {"plant": {"viscous": 2.0e-3, "coulomb": 8.0e-3, "static": 8.0e-3, "j1": 1.5e-4}}, 0.16)}
+
+
+@pytest.fixture(scope="module")
+def machine_sim(tmp_path_factory):
+    d = tmp_path_factory.mktemp("machine")
+    extra = []
+    for name, (nid, over, _) in PLANTS.items():
+        plant = derived_plant(TWOMASS, over, str(d / f"plant_{name}.yaml"))
+        extra += ["--axis", f"{nid}:{plant}"]
+    (d / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    sim = start_drive_sim(TWOMASS, log_path=str(d / "drive_sim.log"), bitrate=1_000_000, extra=extra)
+    yield sim, d
+    sim.stop()
+
+
+def _machine_file(d, axes, name="m.yaml", config="small.yaml"):
+    path = d / name
+    path.write_text(yaml.safe_dump({"machine": "t", "config": config, "axes": axes}))
+    return str(path)
+
+
+def test_axes_tuned_concurrently_and_an_absent_node_is_one_line(machine_sim, tmp_path, capsys):
+    sim, d = machine_sim
+    f = _machine_file(d, [{"name": "a", "node_id": 5}, {"name": "ghost", "node_id": 9},
+                          {"name": "b", "node_id": 7}])
+    out = tmp_path / "out"
+    code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(out),
+                 "--no-progress", "--no-figures"])
+    text = capsys.readouterr()
+    assert code == 2, text.out + text.err           # an axis failed: reported, the others ran
+    ghost = [ln for ln in text.out.splitlines() if ln.startswith("fftune: error: axis 'ghost'")]
+    assert len(ghost) == 1 and "(node 9): no SDO answer from node 9" in ghost[0]
+    assert "nodes answering on this bus: 5, 7" in ghost[0]
+    summary = yaml.safe_load((out / "results.yaml").read_text())
+    by = {a["name"]: a for a in summary["axes"]}
+    assert [a["name"] for a in summary["axes"]] == ["a", "ghost", "b"]
+    assert by["ghost"]["status"] == "failed" and by["ghost"]["k_fc_star"] is None
+    for name in ("a", "b"):
+        nid, _, truth = PLANTS[name]
+        a = by[name]
+        assert (a["status"], a["node_id"]) == ("ok", nid)
+        assert a["k_fc_true"] == pytest.approx(truth, rel=1e-3)       # each node's own plant
+        assert abs(a["k_fc_star"] / truth - 1) < 0.02, a
+        assert a["sigma"] > 0
+        own = yaml.safe_load((out / name / "results.yaml").read_text())
+        assert own["axis"] == {"machine": "t", "name": name, "node_id": nid}
+        assert own["tune"]["k_fc_star"] == a["k_fc_star"]
+    total = summary["time_budget_s"]["total"]
+    assert total["excitation"] == max(by[n]["time_budget_s"]["excitation"] for n in ("a", "b"))
+    assert total["excitation_sum"] > total["excitation"]
+    # the excitations overlapped: some run of axis a was on while one of axis b was
+    spans = {}
+    for name in ("a", "b"):
+        spans[name] = []
+        for p in sorted((out / name / "captures").glob("*.stats.json")):
+            meta = yaml.safe_load(p.read_text())["meta"]
+            spans[name].append((meta["started_at"], meta["finished_at"]))
+    assert spans["a"] and spans["b"]
+    assert any(s1 < e2 and s2 < e1 for s1, e1 in spans["a"] for s2, e2 in spans["b"])
+    assert "<td>ghost</td><td>9</td><td>failed</td>" in (out / "report.html").read_text()
+
+
+def test_duplicate_node_ids_are_one_line_and_nothing_written(tmp_path, capsys):
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    f = _machine_file(tmp_path, [{"name": "x", "node_id": 3}, {"name": "y", "node_id": 4},
+                                 {"name": "z", "node_id": 3}])
+    out = tmp_path / "out"
+    assert main(["run", "--machine", f, "--out", str(out), "--port", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"fftune: error: {f}: axes[2].node_id: 3 is also the node id of axis 'x' "
+                   f"(node ids must be unique on one bus)"]
+    assert not out.exists()
+
+
+def test_ctrl_c_stops_and_disables_every_axis(machine_sim, tmp_path, monkeypatch, capsys):
+    sim, d = machine_sim
+    # no heartbeats: the drives' consumer would stop them too; here only fftune's cleanup can
+    no_hb = dict(SMALL, drive={"heartbeat_ms": 0, "fs_hz": 2560.0})
+    (d / "small_no_hb.yaml").write_text(yaml.safe_dump(no_hb))
+    f = _machine_file(d, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}], "m2.yaml",
+                      config="small_no_hb.yaml")
+    original = DriveClient.run
+    started = []
+
+    def run(self, *a, **kw):
+        started.append(self.opts.node_id)
+        if len(started) == 2:               # both axes are measuring: Ctrl-C
+            _thread.interrupt_main()
+        return original(self, *a, **kw)
+    monkeypatch.setattr(_drive.DriveClient, "run", run)
+    code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "o"),
+                 "--no-progress", "--no-figures"])
+    assert code == 130
+    assert sorted(set(started)) == [5, 7]
+    monkeypatch.setattr(_drive.DriveClient, "run", original)
+    for nid in (5, 7):
+        with DriveClient(BusOptions(port=sim.port, node_id=nid, eds=EDS), heartbeat_ms=0) as c:
+            assert int(c.get("run_state")) not in (1, 2)            # not settling / recording
+            status = struct.unpack("<H", c.node.sdo.upload(0x6041, 0))[0]
+            assert status & 0x6F != 0x27, hex(status)               # not OPERATION ENABLED
+            assert int(c.get("run_last_error")) in (0, 1)               # none, or our abort command
