@@ -134,3 +134,34 @@ def test_ctrl_c_stops_and_disables_every_axis(machine_sim, tmp_path, monkeypatch
             status = struct.unpack("<H", c.node.sdo.upload(0x6041, 0))[0]
             assert status & 0x6F != 0x27, hex(status)               # not OPERATION ENABLED
             assert int(c.get("run_last_error")) in (0, 1)               # none, or our abort command
+
+
+def test_lost_bus_fails_every_axis_with_its_reason(tmp_path, monkeypatch, capsys):
+    extra = []
+    for name, (nid, over, _) in PLANTS.items():
+        extra += ["--axis", f"{nid}:{derived_plant(TWOMASS, over, str(tmp_path / f'plant_{name}.yaml'))}"]
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    f = _machine_file(tmp_path, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}])
+    sim = start_drive_sim(TWOMASS, log_path=str(tmp_path / "drive_sim.log"), extra=extra)
+    original = DriveClient.run
+    started = []
+
+    def run(self, *a, **kw):
+        started.append(self.opts.node_id)
+        if len(started) == 2:               # both axes are measuring: the bus goes away
+            sim.proc.kill()
+            sim.proc.wait()
+        return original(self, *a, **kw)
+    monkeypatch.setattr(_drive.DriveClient, "run", run)
+    try:
+        code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "o"),
+                     "--no-progress", "--no-figures"])
+    finally:
+        sim.stop()
+    assert code == 2
+    summary = yaml.safe_load((tmp_path / "o" / "results.yaml").read_text())
+    assert [(a["name"], a["status"]) for a in summary["axes"]] == [("a", "failed"), ("b", "failed")]
+    for a in summary["axes"]:
+        assert f"on node {a['node_id']}: connection lost" in a["error"] and a["k_fc_star"] is None
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fftune: error: axis")]
+    assert len(lines) == 2
