@@ -311,6 +311,30 @@ def _log_node_ids(path):
     return sorted(ids)
 
 
+def _logged_steps(sess, cfg):
+    """Which steps a logged session ran, from its runs: multisines are detect; sines at the
+    period and cycles of quantify's frequencies are quantify, at tune's frequency tune (the
+    configuration tells which is which)."""
+    from fftune.host.odmap import EXC_KINDS
+
+    fs = None
+    sines, multisine = set(), False
+    for _, rec in sess.runs:
+        kind = int(rec.parameters.get("exc_kind", -1))
+        fs = fs or float(rec.parameters.get("fs") or rec.fs_hz or 0) or None
+        if kind == EXC_KINDS["multisine"]:
+            multisine = True
+        elif kind == EXC_KINDS["sine"]:
+            sines.add((int(rec.parameters.get("exc_period", 0)), int(rec.parameters.get("exc_sine_cycles", 0))))
+
+    def cycles(f, n):
+        return int(round(f * n / fs)) if fs else None
+    q, t = cfg["quantify"], cfg["tune"]
+    q_lines = {(q["period_samples"], cycles(f, q["period_samples"])) for f in q["frequencies_hz"]}
+    t_line = (t["period_samples"], cycles(t["frequency_hz"], t["period_samples"]))
+    return {"detect": multisine, "quantify": bool(sines & q_lines), "tune": t_line in sines}
+
+
 def analyse_canlog(path, config_path=None, eds=None):
     """Rows (one per node answering in the log) for the CAN log ``path``; never raises."""
     from fftune.host.canlog import ReplayDrive, read_transfers, session_from_transfers
@@ -345,10 +369,7 @@ def analyse_canlog(path, config_path=None, eds=None):
                 sess.runs[0][1].t_start, datetime.timezone.utc).isoformat(timespec="milliseconds")
             for step in STEPS:
                 cfg[step]["capture"] = "raw"
-            from fftune.host.odmap import EXC_KINDS
-            kinds = {int(rec.parameters.get("exc_kind", -1)) for _, rec in sess.runs}
-            logged = {"detect": EXC_KINDS["multisine"] in kinds, "quantify": EXC_KINDS["sine"] in kinds,
-                      "tune": EXC_KINDS["sine"] in kinds}
+            logged = _logged_steps(sess, cfg)
             steps = [s for s in STEPS if cfg[s]["enabled"] and logged[s]]
             with tempfile.TemporaryDirectory(prefix="fftune-fleet-") as tmp:
                 from fftune.host import experiments as ex

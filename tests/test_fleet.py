@@ -95,7 +95,8 @@ def test_cli_writes_table_and_drift_plots_and_names_a_path_that_is_no_capture(fl
     notes = tmp_path / "notes.txt"
     notes.write_text("not a capture")
     out = tmp_path / "out"
-    assert main(["fleet", str(fleet_dir), str(notes), "--out", str(out), "--workers", "2",
+    # (in this process: the default multiprocessing scheduler is local_rows')
+    assert main(["fleet", str(fleet_dir), str(notes), "--out", str(out), "--scheduler", "sync",
                  "--format", "csv"]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"fftune fleet: {notes}: not a capture directory nor a CAN log "

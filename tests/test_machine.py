@@ -165,3 +165,64 @@ def test_lost_bus_fails_every_axis_with_its_reason(tmp_path, monkeypatch, capsys
         assert f"on node {a['node_id']}: connection lost" in a["error"] and a["k_fc_star"] is None
     lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fftune: error: axis")]
     assert len(lines) == 2
+
+
+def test_a_logged_machine_session_and_its_folders_analysed_by_the_fleet(machine_sim, tmp_path):
+    """The CAN log of a machine session holds both nodes' runs: `fftune fleet` finds each
+    node in it and replays its runs to the live K_fc* (unequal plants: a mix-up of nodes
+    fails); the machine's output folders give the same, named by axis."""
+    import threading
+
+    import can
+
+    from fftune.host import fleet
+
+    sim, d = machine_sim
+    # short raw runs (the log must hold recordings); K_fc* itself does not matter here
+    raw = dict(SMALL, tune=dict(SMALL["tune"], capture="raw", period_samples=1024, periods=2,
+                                frequency_hz=2.5, settle_periods=2,
+                                search={"method": "root", "max_experiments": 3}))
+    cfg_path = d / "small_raw.yaml"
+    cfg_path.write_text(yaml.safe_dump(raw))
+    f = _machine_file(d, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}], "m3.yaml",
+                      config="small_raw.yaml")
+    log_path = tmp_path / "m" / "session.log"
+    log_path.parent.mkdir()
+    spy = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    logger = can.Logger(str(log_path))
+    marker = threading.Event()
+
+    class Marker(can.Listener):
+        def on_message_received(self, msg):
+            if msg.arbitration_id == 0x7FE:
+                marker.set()
+    notifier = can.Notifier(spy, [logger, Marker()])
+    try:
+        code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "out"),
+                     "--no-progress", "--no-figures"])
+        with can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port) as tx:
+            tx.send(can.Message(arbitration_id=0x7FE, data=[1], is_extended_id=False))
+            assert marker.wait(10), "the marker frame never reached the logger"
+    finally:
+        notifier.stop()
+        logger.stop()
+        spy.shutdown()
+    assert code in (0, 1)
+    live = {nid: yaml.safe_load((tmp_path / "out" / n / "results.yaml").read_text())["tune"]
+            for n, (nid, _, _) in PLANTS.items()}
+    assert live[5]["k_fc_best_measured"] != live[7]["k_fc_best_measured"]
+    items, bad = fleet.discover([str(log_path), str(tmp_path / "out")])
+    assert bad == []
+    rows = fleet.run_graph(items, scheduler="sync", config_path=str(cfg_path))
+    logged = {r["node_id"]: r for r in rows if r["kind"] == "canlog"}
+    folders = {r["node_id"]: r for r in rows if r["kind"] == "captures"}
+    assert sorted(logged) == sorted(folders) == [5, 7]
+    for nid in (5, 7):
+        assert logged[nid]["status"] == "ok", (logged[nid]["reason"], logged[nid]["status"])
+        assert logged[nid]["machine"] == "m" and logged[nid]["axis"] == f"node{nid}"
+        assert folders[nid]["axis"] == {5: "a", 7: "b"}[nid] and folders[nid]["machine"] == "t"
+        for row in (logged[nid], folders[nid]):
+            assert row["k_fc_star"] == live[nid]["k_fc_star"]
+            assert row["ratio_at_k_fc_star"] == live[nid]["ratio_at_k_fc_star"]
+            assert row["tune_experiments"] == live[nid]["search"]["experiments"]
+    assert logged[5]["ratio_at_k_fc_star"] != logged[7]["ratio_at_k_fc_star"]
