@@ -39,7 +39,8 @@ COLUMNS = (
     ("bla_even_re_output_db", "list<double>"), ("bla_max_change_db", "double"),
     ("hosidf_max_odd_rel", "double"), ("hosidf_max_even_rel", "double"),
     ("k_fc_star", "double"), ("k_fc_sigma", "double"), ("k_fc_converged", "bool"),
-    ("tune_stop_reason", "string"), ("ratio_at_zero", "double"), ("ratio_at_k_fc_star", "double"),
+    ("tune_stop_reason", "string"), ("ratio_at_zero", "double"), ("ratio_at_zero_std", "double"),
+    ("ratio_at_k_fc_star", "double"), ("ratio_at_k_fc_star_std", "double"),
     ("tune_experiments", "int64"), ("k_fc_true", "double"),
 )
 
@@ -202,6 +203,17 @@ def _fill_results(row, results):
         row["tune_stop_reason"] = s.get("stop_reason")
         row["ratio_at_zero"] = _num(t.get("ratio_at_zero"))
         row["ratio_at_k_fc_star"] = _num(t.get("ratio_at_k_fc_star"))
+        # the ratios' standard deviations: the search's evaluations at K_fc = 0 and at the
+        # verification experiment (the measured point nearest K_fc*)
+        evals = [e for e in s.get("evaluations") or [] if e.get("k_fc") is not None]
+
+        def std_at(k):
+            if k is None or not evals:
+                return None
+            e = min(evals, key=lambda e: abs(e["k_fc"] - k))   # (the K_fc sent: float32)
+            return _num(e.get("ratio_std")) if abs(e["k_fc"] - k) <= 1e-6 * max(1.0, abs(k)) else None
+        row["ratio_at_zero_std"] = std_at(0.0)
+        row["ratio_at_k_fc_star_std"] = std_at(s.get("verification_k_fc"))
         row["tune_experiments"] = int(s.get("experiments") or 0)
         row["k_fc_true"] = _num(t.get("true_coulomb_v"))
 
@@ -489,9 +501,7 @@ def _safe(name):
 def drift_plots(rows, out_dir):
     """One PNG per axis (machine, axis) with analysed K_fc*: K_fc* with its 1-sigma bar and
     the odd ratio at 0 and at K_fc* over the date. Returns the files written."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure      # no pyplot: no global figure state
 
     groups = {}
     for r in rows:
@@ -501,7 +511,8 @@ def drift_plots(rows, out_dir):
     for (machine, axis), rs in sorted(groups.items()):
         rs.sort(key=lambda r: r["date"])
         t = [datetime.datetime.fromisoformat(r["date"]) for r in rs]
-        fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(7, 5))
+        fig = Figure(figsize=(7, 5))
+        a1, a2 = fig.subplots(2, 1, sharex=True)
         a1.errorbar(t, [r["k_fc_star"] for r in rs], yerr=[r["k_fc_sigma"] or 0.0 for r in rs],
                     fmt="o-", capsize=4, label="K_fc* (1 sigma)")
         truths = [r["k_fc_true"] for r in rs]
@@ -510,15 +521,18 @@ def drift_plots(rows, out_dir):
         a1.set_ylabel("K_fc* [V]")
         a1.legend(loc="best", fontsize=8)
         a1.set_title(f"{machine} / {axis}: drift over {len(rs)} analyses")
-        a2.semilogy(t, [r["ratio_at_zero"] or math.nan for r in rs], "s-", label="odd ratio at K_fc = 0")
-        a2.semilogy(t, [r["ratio_at_k_fc_star"] or math.nan for r in rs], "o-", label="odd ratio at K_fc*")
+        for key, fmt, label in (("ratio_at_zero", "s-", "odd ratio at K_fc = 0"),
+                                ("ratio_at_k_fc_star", "o-", "odd ratio at K_fc* (verification run)")):
+            a2.errorbar(t, [r[key] if r[key] is not None else math.nan for r in rs],
+                        yerr=[r[key + "_std"] or 0.0 for r in rs], fmt=fmt, capsize=4,
+                        label=label + " (1 sigma)")
+        a2.set_yscale("log")
         a2.set_ylabel("odd-harmonic ratio")
         a2.set_xlabel("date (first run)")
         a2.legend(loc="best", fontsize=8)
         fig.autofmt_xdate()
         path = os.path.join(out_dir, f"drift_{_safe(machine)}_{_safe(axis)}.png")
         fig.savefig(path + ".tmp.png", dpi=90)
-        plt.close(fig)
         os.replace(path + ".tmp.png", path)
         written.append(path)
     return written

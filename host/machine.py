@@ -392,6 +392,9 @@ def run_cli(args):
     from fftune.host.drive import BusOptions
     from fftune.host.odmap import DEFAULT_EDS
 
+    if args.node_id is not None:
+        raise FftuneError(f"--node-id {args.node_id}: not with --machine (each axis' node id is in "
+                          f"{args.machine})")
     machine = load_machine(args.machine)
     opts = BusOptions(interface=args.interface, channel=args.channel, bitrate=args.bitrate,
                       host=args.host, port=args.port, node_id=machine["axes"][0]["node_id"],
@@ -430,6 +433,9 @@ def demo_cli(args):
     from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
 
     t0 = time.monotonic()
+    if args.node_id is not None:
+        raise FftuneError(f"--node-id {args.node_id}: not with --machine (each axis' node id is in "
+                          f"{args.machine})")
     machine = load_machine(args.machine)
     bitrate = args.bitrate if args.bitrate is not None else machine["bitrate"]
     if args.interface != "socketcand":

@@ -65,6 +65,10 @@ def test_local_scheduler_table_matches_the_live_sessions(fleet_dir, local_rows):
         assert row["k_fc_star"] == live["tune"]["k_fc_star"]
         assert row["k_fc_sigma"] == live["tune"]["search"]["sigma_v"]
         assert row["ratio_at_k_fc_star"] == live["tune"]["ratio_at_k_fc_star"]
+        ev = {e["k_fc"]: e["ratio_std"] for e in live["tune"]["search"]["evaluations"]}
+        assert row["ratio_at_zero_std"] == ev[0.0] and row["ratio_at_zero_std"] > 0
+        k_ver = live["tune"]["search"]["verification_k_fc"]
+        assert row["ratio_at_k_fc_star_std"] == ev[min(ev, key=lambda k: abs(k - k_ver))] > 0
         assert row["hosidf_max_odd_rel"] == live["quantify"]["max_odd_relative_level"]
         assert row["bla_nl_re_output_db"] == [lv["summary_db"]["nl_re_output_db"]
                                               for lv in live["detect"]["levels"]]
