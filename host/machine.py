@@ -150,9 +150,12 @@ def load_machine(path):
         po = a.get("plant_overrides") or {}
         if not isinstance(po, dict):
             raise FftuneError(f"{where}.plant_overrides: expected {{section: {{key: number}}}}")
-        axes.append({"name": name, "node_id": nid, "cfg": cfg,
-                     "plant": _resolve(a["plant"], path) if a.get("plant") else None,
-                     "plant_overrides": po})
+        plant = None
+        if a.get("plant"):
+            plant = _resolve(a["plant"], path)
+            if not os.path.isfile(plant):
+                raise FftuneError(f"{where}.plant: {a['plant']}: no such plant file")
+        axes.append({"name": name, "node_id": nid, "cfg": cfg, "plant": plant, "plant_overrides": po})
     name = raw.get("machine") or os.path.splitext(os.path.basename(path))[0]
     return {"name": str(name), "output": raw.get("output") or f"out/{name}", "bitrate": bitrate,
             "axes": axes, "file": os.path.abspath(path)}
@@ -447,8 +450,6 @@ def demo_cli(args):
     for ax in machine["axes"]:
         ax["cfg"]["sim"]["bitrate"] = bitrate   # the steps' default capture follows it
         plant = ax["plant"] or DEFAULT_PLANT
-        if not os.path.exists(plant):
-            raise FftuneError(f"{machine['file']}: axis '{ax['name']}': plant not found: {plant}")
         if ax["plant_overrides"]:
             plant = derived_plant(plant, ax["plant_overrides"], os.path.join(out, f"plant_{ax['name']}.yaml"),
                                   where=f"{machine['file']}: axis '{ax['name']}' plant_overrides")

@@ -226,3 +226,21 @@ def test_a_logged_machine_session_and_its_folders_analysed_by_the_fleet(machine_
             assert row["ratio_at_k_fc_star"] == live[nid]["ratio_at_k_fc_star"]
             assert row["tune_experiments"] == live[nid]["search"]["experiments"]
     assert logged[5]["ratio_at_k_fc_star"] != logged[7]["ratio_at_k_fc_star"]
+
+
+@pytest.mark.parametrize("axes, expected", [
+    ([{"name": "x", "node_id": 3, "plant": "no_such_plant.yaml"}],
+     "axes[0].plant: no_such_plant.yaml: no such plant file"),
+    ([{"name": "x", "node_id": 3}, {"name": "x", "node_id": 4}], "axes[1].name: 'x' names axes[0] too"),
+    ([{"name": "x", "node_id": 128}], "axes[0].node_id: expected 1 .. 127, got 128"),
+    ([{"name": "x", "node_id": 3, "overrides": {"tune": {"periods": 1}}}],
+     "axes[0] (configuration with overrides): key 'tune.periods': expected an integer >= 2, got 1"),
+])
+def test_bad_machine_file_for_the_demo_is_one_line(tmp_path, capsys, axes, expected):
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    f = _machine_file(tmp_path, axes)
+    out = tmp_path / "out"
+    assert main(["demo", "--machine", f, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"fftune: error: {f}: {expected}"]
+    assert not out.exists()
