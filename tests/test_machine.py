@@ -211,6 +211,10 @@ def test_a_logged_machine_session_and_its_folders_analysed_by_the_fleet(machine_
     live = {nid: yaml.safe_load((tmp_path / "out" / n / "results.yaml").read_text())["tune"]
             for n, (nid, _, _) in PLANTS.items()}
     assert live[5]["k_fc_best_measured"] != live[7]["k_fc_best_measured"]
+    # SDO requests to the two nodes interleave on the bus (not one axis' session after the other)
+    ids = [m.arbitration_id for m in can.LogReader(str(log_path)) if m.arbitration_id in (0x605, 0x607)]
+    switches = sum(a != b for a, b in zip(ids, ids[1:]))
+    assert ids.count(0x605) > 20 and ids.count(0x607) > 20 and switches >= 10, switches
     items, bad = fleet.discover([str(log_path), str(tmp_path / "out")])
     assert bad == []
     rows = fleet.run_graph(items, scheduler="sync", config_path=str(cfg_path))
