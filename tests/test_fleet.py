@@ -6,6 +6,7 @@ levels (0.3 V, 0.5 V), one of them on two dates with a drifted level (0.35 V), p
 damaged and a partial copy. The table must carry what the live sessions found, row by
 row (unequal truths: a mix-up of rows fails), whatever the scheduler.
 """
+import json
 import os
 import shutil
 import subprocess
@@ -100,16 +101,17 @@ def test_cli_writes_table_and_drift_plots_and_names_a_path_that_is_no_capture(fl
     notes.write_text("not a capture")
     out = tmp_path / "out"
     # (in this process: the default multiprocessing scheduler is local_rows')
-    assert main(["fleet", str(fleet_dir), str(notes), "--out", str(out), "--scheduler", "sync",
+    assert main(["fleet", str(fleet_dir / "m1"), str(notes), "--out", str(out), "--scheduler", "sync",
                  "--format", "csv"]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"fftune fleet: {notes}: not a capture directory nor a CAN log "
                    f"(.log, .asc, .blf, .trc, .csv, .db) (skipped)"]
     rows = fleet.read_table(str(out / "fleet.csv"))
-    assert [r["k_fc_star"] for r in rows] == [r["k_fc_star"] for r in local_rows]
-    # one per axis with a K_fc* (the damaged copy's tune step was analysed; the partial's not)
-    assert sorted(p.name for p in out.glob("*.png")) == ["drift_m1_x.png", "drift_m1_y.png",
-                                                         "drift_m2_damaged.png"]
+    m1 = [r for r in local_rows if r["machine"] == "m1"]
+    assert [r["k_fc_star"] for r in rows] == [r["k_fc_star"] for r in m1]
+    assert [r["bla_nl_re_output_db"] for r in rows] == [json.dumps(r["bla_nl_re_output_db"]) for r in m1]
+    # one per axis with a K_fc* (x: two dates in one plot)
+    assert sorted(p.name for p in out.glob("*.png")) == ["drift_m1_x.png", "drift_m1_y.png"]
     assert (out / "drift_m1_x.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not [p for p in out.iterdir() if p.name.startswith(".tmp")]
 
@@ -161,9 +163,11 @@ def test_dask_scheduler_and_worker_from_the_venv_give_the_same_table(fleet_dir, 
         with Client(addr, timeout=30) as c:
             c.wait_for_workers(1, timeout=60)
         out = tmp_path / "out"
-        assert main(["fleet", str(fleet_dir), "--out", str(out), "--scheduler", addr, "--no-figures"]) == 0
+        assert main(["fleet", str(fleet_dir / "m2"), str(fleet_dir / "m1" / "y"), "--out", str(out),
+                     "--scheduler", addr, "--no-figures"]) == 0
         rows = fleet.read_table(str(out / "fleet.parquet"))
-        assert fleet.arrow_table(rows).equals(fleet.arrow_table(local_rows))
+        expected = [r for r in local_rows if r["machine"] == "m2" or r["axis"] == "y"]
+        assert len(rows) == 3 and fleet.arrow_table(rows).equals(fleet.arrow_table(expected))
     finally:
         for p in reversed(procs):
             p.terminate()
