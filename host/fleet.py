@@ -565,6 +565,9 @@ def _run(args):
 
     if args.workers is not None and args.workers < 1:
         raise FftuneError(f"--workers {args.workers}: at least 1")
+    if args.scheduler and not args.scheduler.startswith("tcp://") and \
+            args.scheduler not in ("processes", "threads", "sync", "synchronous"):
+        raise FftuneError(f"--scheduler {args.scheduler}: expected tcp://HOST:PORT, processes, threads or sync")
     items, bad = discover(args.paths)
     for path, reason in bad:
         print(f"fftune fleet: {path}: {reason} (skipped)", file=sys.stderr)

@@ -119,7 +119,15 @@ def test_cli_writes_table_and_drift_plots_and_names_a_path_that_is_no_capture(fl
 def test_nothing_to_analyse_is_one_error_line(tmp_path, capsys):
     assert main(["fleet", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("fftune: error: fleet: nothing to analyse")
+    assert err == [f"fftune fleet: {tmp_path / 'missing'}: no such file or directory (skipped)",
+                   "fftune: error: fleet: nothing to analyse (no capture directory or CAN log among the paths)"]
+    assert not (tmp_path / "o").exists()
+
+
+def test_unknown_scheduler_is_one_line_before_anything_is_written(fleet_dir, tmp_path, capsys):
+    assert main(["fleet", str(fleet_dir), "--out", str(tmp_path / "o"), "--scheduler", "tpc://x:1"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "fftune: error: --scheduler tpc://x:1: expected tcp://HOST:PORT, processes, threads or sync"]
     assert not (tmp_path / "o").exists()
 
 
