@@ -427,13 +427,33 @@ def _bus_model_figures(log_path, bitrate):
             "source": "drive_sim's bus model (every node's and the host's frames, whole session)"}
 
 
+def sim_axis_args(machine, plant_dir):
+    """drive_sim's ``--axis ID:PLANT`` options for a machine (a dict of :func:`load_machine`
+    or its file); plants with ``plant_overrides`` are written to ``plant_dir`` (default
+    ``<machine output>/sim``)."""
+    from fftune.host.config import check_output_dir
+    from fftune.host.sim import DEFAULT_PLANT, derived_plant
+
+    if isinstance(machine, str):
+        machine = load_machine(machine)
+    extra = []
+    for ax in machine["axes"]:
+        plant = ax["plant"] or DEFAULT_PLANT
+        if ax["plant_overrides"]:
+            plant_dir = plant_dir or check_output_dir(os.path.join(machine["output"], "sim"))
+            plant = derived_plant(plant, ax["plant_overrides"], os.path.join(plant_dir, f"plant_{ax['name']}.yaml"),
+                                  where=f"{machine['file']}: axis '{ax['name']}' plant_overrides")
+        extra += ["--axis", f"{ax['node_id']}:{plant}"]
+    return extra
+
+
 def demo_cli(args):
     """``fftune demo --machine FILE``: one drive_sim serving every axis' node on one bus."""
     from fftune.host.config import check_output_dir
     from fftune.host.demo import _set_aside_previous
     from fftune.host.drive import BusOptions
     from fftune.host.odmap import DEFAULT_EDS
-    from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
+    from fftune.host.sim import DEFAULT_PLANT, check_bus, start_drive_sim
 
     t0 = time.monotonic()
     if args.node_id is not None:
@@ -446,14 +466,9 @@ def demo_cli(args):
                           "socketcand (-i socketcand)")
     check_bus(args.interface, args.channel, bitrate)
     out = check_output_dir(_set_aside_previous(args.out or machine["output"]))
-    extra = []
     for ax in machine["axes"]:
         ax["cfg"]["sim"]["bitrate"] = bitrate   # the steps' default capture follows it
-        plant = ax["plant"] or DEFAULT_PLANT
-        if ax["plant_overrides"]:
-            plant = derived_plant(plant, ax["plant_overrides"], os.path.join(out, f"plant_{ax['name']}.yaml"),
-                                  where=f"{machine['file']}: axis '{ax['name']}' plant_overrides")
-        extra += ["--axis", f"{ax['node_id']}:{plant}"]
+    extra = sim_axis_args(machine, out)
     log_path = os.path.join(out, "drive_sim.log")
     sim = start_drive_sim(machine["axes"][0]["plant"] or DEFAULT_PLANT, host=args.host, port=args.port,
                           node_id=machine["axes"][0]["node_id"], extra=extra, log_path=log_path,

@@ -153,12 +153,23 @@ def add_parser(sub):
                                    "host then connects with the same bus options.")
     p.add_argument("--plant", default=DEFAULT_PLANT, help="plant configuration (default %(default)s)")
     p.add_argument("--realtime", action="store_true", help="step at the controller rate")
+    p.add_argument("--machine", default=None, metavar="FILE",
+                   help="serve every axis of a machine file, one node each on the one bus "
+                        "(plants with overrides written to <machine output>/sim/)")
     add_bus_arguments(p, drive_side=True)
     p.set_defaults(func=_run)
 
 
 def _run(args):
     exe = drive_sim_path()
+    if args.machine:
+        from fftune.host.machine import sim_axis_args
+        extra = sim_axis_args(args.machine, None)
+        cmd = drive_sim_command(DEFAULT_PLANT, args.host, args.port, 1, extra=extra,
+                                interface=args.interface, channel=args.channel, bitrate=args.bitrate,
+                                realtime=args.realtime)
+        sys.stdout.flush()
+        os.execv(exe, cmd)
     if not os.path.exists(args.plant):
         raise FftuneError(f"plant configuration not found: {args.plant}")
     cmd = drive_sim_command(args.plant, args.host, args.port, args.node_id if args.node_id is not None else 1,

@@ -55,3 +55,29 @@ def test_two_nodes_answer_in_bus_order_on_one_bus_model(tmp_path):
     with open(tmp_path / "drive_sim.log") as fh:
         log = fh.read()
     assert f"at {BITRATE} bit/s" in log and "0 dropped at full queues" in log
+
+
+def test_fftune_sim_serves_a_machine_file(tmp_path):
+    """`fftune sim --machine FILE`: drive_sim with one node per axis, plants with overrides
+    written to <output>/sim/; the readiness line names the nodes."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    f = tmp_path / "m.yaml"
+    f.write_text(yaml.safe_dump({"machine": "s", "output": str(tmp_path / "out"), "axes": [
+        {"name": "a", "node_id": 12, "plant": TWOMASS},
+        {"name": "b", "node_id": 3, "plant": TWOMASS, "plant_overrides": {"plant": {"j1": 2.0e-4}}}]}))
+    fftune = os.path.join(os.path.dirname(sys.executable), "fftune")
+    proc = subprocess.Popen([fftune, "sim", "--machine", str(f), "--port", "0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert "listening on socketcand 127.0.0.1:" in line and line.rstrip().endswith(", nodes 12,3"), line
+    written = yaml.safe_load((tmp_path / "out" / "sim" / "plant_b.yaml").read_text())
+    assert written["plant"]["j1"] == 2.0e-4
+    assert not (tmp_path / "out" / "sim" / "plant_a.yaml").exists()     # unchanged: used as it is

@@ -90,6 +90,7 @@ typedef struct {
     float *rec_buf;
     float *table_buf;
     co_node_t node;
+    bool ready;            /* node initialised: frames are delivered to it */
     uint64_t steps;
 } axis_t;
 
@@ -306,7 +307,7 @@ static void node_rx(app_t *app, const scd_frame_t *f, int except_axis)
     co_frame_t cf = {(uint16_t)f->id, f->len, {0}};
     memcpy(cf.data, f->data, f->len);
     for (int i = 0; i < app->n_axes; i++) {
-        if (i != except_axis) {
+        if (i != except_axis && app->ax[i].ready) {
             co_node_rx(&app->ax[i].node, &cf);
         }
     }
@@ -586,6 +587,7 @@ int main(int argc, char **argv)
         cc.app_ctx = ax;
         cc.table_capacity_bytes = ax->cfg.table_capacity * 4u;
         co_node_init(&ax->node, &cc, sim_drv(&ax->sim), (uint32_t)app.now_us);
+        ax->ready = true;
         used += (size_t)snprintf(nodes + used, sizeof nodes - used, "%s%d", i ? "," : "", ax->node_id);
     }
     const char *noun = app.n_axes > 1 ? "nodes" : "node";
