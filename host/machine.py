@@ -304,16 +304,20 @@ def machine_summary(machine, axes, wall_s, started, bus_model=None):
     would need at least), ``bus`` = the time the one bus carried frames when a bus model
     counted them (``bus_model``), else the longest axis' SDO transfer time, ``bus_sdo_wall``
     = the axes' SDO transfer times outside the runs summed (with waiting for the shared bus),
-    ``host`` = wall - longest excitation (>= 0), ``wall``, ``wall_re_longest_excitation``.
+    ``host`` = wall - bus - the longest axis' wait for its runs (at most its excitation),
+    at least 0; ``wall``, ``wall_re_longest_excitation``.
     """
     budgets = {a["name"]: a["time_budget_s"] for a in axes if a.get("time_budget_s")}
     exc = [b["excitation"] for b in budgets.values()]
     longest = max(exc) if exc else 0.0
     sdo = [b["bus"] for b in budgets.values()]
     bus = bus_model["busy_s"] if bus_model else (max(sdo) if sdo else 0.0)
+    # the drive's share of the wall time: the longest axis' waiting for its runs (shorter
+    # than its excitation when the simulation free-runs)
+    drive = max((min(b["excitation"], b["drive_wait"]) for b in budgets.values()), default=0.0)
     total = {"excitation": round(longest, 3), "excitation_sum": round(sum(exc), 3),
              "bus": round(bus, 3), "bus_sdo_wall": round(sum(sdo), 3),
-             "host": round(max(0.0, wall_s - longest), 3), "wall": round(wall_s, 3),
+             "host": round(max(0.0, wall_s - bus - drive), 3), "wall": round(wall_s, 3),
              "wall_re_longest_excitation": round(wall_s / longest, 3) if longest else None,
              "bus_re_longest_excitation": round(bus / longest, 4) if longest else None}
     return {"machine": machine["name"], "machine_file": machine.get("file"), "started": started,

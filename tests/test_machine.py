@@ -254,3 +254,20 @@ def test_bad_machine_file_for_the_demo_is_one_line(tmp_path, capsys, axes, expec
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"fftune: error: {f}: {expected}"]
     assert not out.exists()
+
+
+def test_machine_time_budget_from_the_axes():
+    from fftune.host.machine import machine_summary
+    axes = [{"name": "a", "time_budget_s": {"excitation": 40.0, "bus": 2.0, "drive_wait": 10.0}},
+            {"name": "b", "time_budget_s": {"excitation": 30.0, "bus": 3.0, "drive_wait": 35.0}},
+            {"name": "c", "time_budget_s": None}]
+    s = machine_summary({"name": "m"}, axes, 50.0, "t0")
+    t = s["time_budget_s"]["total"]
+    assert (t["excitation"], t["excitation_sum"]) == (40.0, 70.0)
+    assert (t["bus"], t["bus_sdo_wall"]) == (3.0, 5.0)             # no bus model: the longest SDO time
+    assert t["host"] == 50.0 - 3.0 - 30.0                           # b waited 30 s (its excitation) of 35
+    assert (t["wall_re_longest_excitation"], t["bus_re_longest_excitation"]) == (1.25, 0.075)
+    model = {"busy_s": 1.5, "frames": 10, "bits": 1500000, "bitrate": 1000000}
+    t = machine_summary({"name": "m"}, axes, 50.0, "t0", bus_model=model)["time_budget_s"]["total"]
+    assert (t["bus"], t["host"]) == (1.5, 50.0 - 1.5 - 30.0)
+    assert sorted(machine_summary({"name": "m"}, axes, 50.0, "t0")["time_budget_s"]) == ["axis_a", "axis_b", "total"]

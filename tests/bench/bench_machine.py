@@ -1,6 +1,7 @@
 """Benchmark: a machine of 4 axes tuned concurrently on one simulated 1 Mbit/s CAN bus.
 
-`fftune demo --machine` with a machine of 4 axes (configs/machine_demo.yaml's plants: Coulomb
+First `make demo-machine` itself (configs/machine_demo.yaml, the demo configuration per
+axis, free-running). Then `fftune demo --machine` with the same 4 axes (plants: Coulomb
 0.1157, 0.16, 0.08, 0.14 V; different inertias and encoders) on a short configuration
 (configs/demo.yaml with detect at one level, 2 realizations; quantify 1 frequency; tune
 without the sweep and K_v), once free-running and once with --realtime (drive_sim steps
@@ -43,10 +44,13 @@ def main():
         mfile = os.path.join(d, "machine.yaml")
         with open(mfile, "w") as fh:
             yaml.safe_dump(machine, fh)
-        for mode, extra in (("free-running", []), ("--realtime", ["--realtime"])):
-            out = os.path.join(d, mode.strip("-"))
-            r = subprocess.run([FFTUNE, "demo", "--machine", mfile, "--out", out] + extra,
-                               capture_output=True, text=True)
+        demo_file = os.path.join(REPO, "configs", "machine_demo.yaml")
+        for mode, mf, extra in (("make demo-machine (configs/machine_demo.yaml, free-running)", demo_file, []),
+                                ("short, free-running", mfile, []),
+                                ("short, --realtime", mfile, ["--realtime"])):
+            out = os.path.join(d, "".join(c if c.isalnum() else "_" for c in mode))
+            r = subprocess.run([FFTUNE, "demo", "--machine", mf, "--out", out] + extra,
+                               capture_output=True, text=True, cwd=REPO)
             if r.returncode not in (0, 1):
                 print(f"{mode}: FAILED ({r.returncode}): {r.stdout[-2000:]} {r.stderr[-2000:]}")
                 continue
