@@ -5,6 +5,7 @@ A machine file (YAML, e.g. ``configs/machine_demo.yaml``) lists the axes::
     machine: demo4                   # name (default: the file's)
     output: out/machine_demo         # default output directory
     config: configs/demo.yaml        # every axis' experiment configuration (default demo.yaml)
+    overrides: {drive: {heartbeat_ms: 250}}   # merged into every axis' configuration
     sim: {bitrate: 1000000}          # fftune demo --machine: the one simulated bus
     axes:
       - name: x
@@ -40,7 +41,7 @@ from fftune.analysis.errors import FftuneError
 from fftune.host.atomic import write_atomic
 
 _AXIS_KEYS = {"name", "node_id", "config", "overrides", "plant", "plant_overrides"}
-_TOP_KEYS = {"machine", "output", "config", "sim", "axes"}
+_TOP_KEYS = {"machine", "output", "config", "overrides", "sim", "axes"}
 
 
 def _deep_merge(base, over, where):
@@ -111,6 +112,9 @@ def load_machine(path):
             base_raw = yaml.safe_load(fh) or {}
     except OSError as exc:
         raise FftuneError(f"{path}: key 'config': {base_file}: {exc.strerror}") from None
+    common = raw.get("overrides") or {}
+    if not isinstance(common, dict):
+        raise FftuneError(f"{path}: key 'overrides': expected a mapping of configuration keys")
     axes, by_id, by_name = [], {}, {}
     for i, a in enumerate(axes_raw):
         where = f"{path}: axes[{i}]"
@@ -143,7 +147,7 @@ def load_machine(path):
         over = a.get("overrides") or {}
         if not isinstance(over, dict):
             raise FftuneError(f"{where}.overrides: expected a mapping of configuration keys")
-        merged = _deep_merge(craw, over, f"{where}.overrides")
+        merged = _deep_merge(_deep_merge(craw, common, "overrides"), over, f"{where}.overrides")
         merged.setdefault("drive", {})["node_id"] = nid
         cfg = validate(merged, f"{where} (configuration with overrides)")
         cfg["_source"] = f"{os.path.abspath(path)}#axes[{i}]"

@@ -271,3 +271,17 @@ def test_machine_time_budget_from_the_axes():
     t = machine_summary({"name": "m"}, axes, 50.0, "t0", bus_model=model)["time_budget_s"]["total"]
     assert (t["bus"], t["host"]) == (1.5, 50.0 - 1.5 - 30.0)
     assert sorted(machine_summary({"name": "m"}, axes, 50.0, "t0")["time_budget_s"]) == ["axis_a", "axis_b", "total"]
+
+
+def test_machine_file_overrides_common_then_per_axis(tmp_path):
+    from fftune.host.machine import load_machine
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    f = tmp_path / "m.yaml"
+    f.write_text(yaml.safe_dump({"config": "small.yaml", "overrides": {"tune": {"periods": 3}},
+                                 "axes": [{"name": "p", "node_id": 2},
+                                          {"name": "q", "node_id": 9, "overrides": {"tune": {"periods": 5}}}]}))
+    m = load_machine(str(f))
+    assert m["name"] == "m" and m["output"] == "out/m"
+    assert [(a["name"], a["node_id"], a["cfg"]["drive"]["node_id"], a["cfg"]["tune"]["periods"])
+            for a in m["axes"]] == [("p", 2, 2, 3), ("q", 9, 9, 5)]
+    assert m["axes"][0]["cfg"]["tune"]["frequency_hz"] == SMALL["tune"]["frequency_hz"]

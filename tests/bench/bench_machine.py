@@ -45,9 +45,12 @@ def main():
         with open(mfile, "w") as fh:
             yaml.safe_dump(machine, fh)
         demo_file = os.path.join(REPO, "configs", "machine_demo.yaml")
+        only = sys.argv[1:]     # e.g. "realtime": only the runs whose name has it
         for mode, mf, extra in (("make demo-machine (configs/machine_demo.yaml, free-running)", demo_file, []),
                                 ("short, free-running", mfile, []),
                                 ("short, --realtime", mfile, ["--realtime"])):
+            if only and not any(o in mode for o in only):
+                continue
             out = os.path.join(d, "".join(c if c.isalnum() else "_" for c in mode))
             r = subprocess.run([FFTUNE, "demo", "--machine", mf, "--out", out] + extra,
                                capture_output=True, text=True, cwd=REPO)
