@@ -213,6 +213,23 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
     hb_task = None
     cancel = threading.Event()
     clients, entries, threads = {}, {}, []
+    # the figures are drawn once every axis has measured (or ended): drawing holds the GIL
+    # for seconds and would starve the bus threads of the axes still measuring
+    measuring = {"left": 0}
+    measured = threading.Condition()
+
+    def done_measuring():
+        with measured:
+            measuring["left"] -= 1
+            if measuring["left"] == 0:
+                measuring["wall_s"] = time.monotonic() - t0
+            measured.notify_all()
+
+    def wait_for_all_measured():
+        done_measuring()
+        with measured:
+            while measuring["left"] > 0 and not cancel.is_set():
+                measured.wait(0.5)
     try:
         if hb_ms:
             hb_task = network.send_periodic(0x700 + d0["host_node_id"], [0x05], hb_ms / 1000.0)
@@ -240,11 +257,17 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
         def work(ax, client):
             name = ax["name"]
             axis_out = os.path.join(out, name)
+            waited = []
+
+            def before_figures():
+                waited.append(True)
+                client.close()              # measured: this drive stopped and disabled now
+                wait_for_all_measured()
             try:
                 os.makedirs(axis_out, exist_ok=True)
                 client.enable()
                 res = run_pipeline(client, ax["cfg"], axis_out, steps=steps, figures=figures,
-                                   log=lambda s: log(f"[{name}] {s}"))
+                                   log=lambda s: log(f"[{name}] {s}"), before_figures=before_figures)
                 res["axis"] = {"machine": machine["name"], "name": name, "node_id": ax["node_id"]}
                 from fftune.host.report import write_results
                 write_results(axis_out, res)
@@ -261,11 +284,14 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
                 log(f"fftune: error: axis '{name}' (node {ax['node_id']}): {type(exc).__name__}: {exc}")
                 entries[name] = _axis_entry(ax, error=f"{type(exc).__name__}: {exc}")
             finally:
+                if not waited:
+                    done_measuring()        # (failed before its figures: no longer measuring)
                 try:
                     client.close()          # stop a run, disable the drive (its own SDO, this thread)
                 except BaseException:
                     pass
 
+        measuring["left"] = len(clients)
         for ax in machine["axes"]:
             if ax["name"] in clients:
                 th = threading.Thread(target=work, args=(ax, clients[ax["name"]]),
@@ -297,10 +323,10 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
             pass
     wall = time.monotonic() - t0
     axes = [entries.get(ax["name"]) or _axis_entry(ax, error="no result") for ax in machine["axes"]]
-    return machine_summary(machine, axes, wall, started)
+    return machine_summary(machine, axes, wall, started, measure_wall_s=measuring.get("wall_s"))
 
 
-def machine_summary(machine, axes, wall_s, started, bus_model=None):
+def machine_summary(machine, axes, wall_s, started, bus_model=None, measure_wall_s=None):
     """The machine's results dict: ``axes`` and its ``time_budget_s``.
 
     ``time_budget_s.total``: ``excitation`` = the longest axis' excitation (the machine's
@@ -309,7 +335,9 @@ def machine_summary(machine, axes, wall_s, started, bus_model=None):
     counted them (``bus_model``), else the longest axis' SDO transfer time, ``bus_sdo_wall``
     = the axes' SDO transfer times outside the runs summed (with waiting for the shared bus),
     ``host`` = wall - bus - the longest axis' wait for its runs (at most its excitation),
-    at least 0; ``wall``, ``wall_re_longest_excitation``.
+    at least 0; ``wall``, ``wall_re_longest_excitation``; ``measure_wall`` = from the start
+    until the last axis has measured (the time the machine is busy; the figures are drawn
+    after it) and ``measure_re_longest_excitation``.
     """
     budgets = {a["name"]: a["time_budget_s"] for a in axes if a.get("time_budget_s")}
     exc = [b["excitation"] for b in budgets.values()]
@@ -323,6 +351,9 @@ def machine_summary(machine, axes, wall_s, started, bus_model=None):
              "bus": round(bus, 3), "bus_sdo_wall": round(sum(sdo), 3),
              "host": round(max(0.0, wall_s - bus - drive), 3), "wall": round(wall_s, 3),
              "wall_re_longest_excitation": round(wall_s / longest, 3) if longest else None,
+             "measure_wall": None if measure_wall_s is None else round(measure_wall_s, 3),
+             "measure_re_longest_excitation": round(measure_wall_s / longest, 3)
+             if (longest and measure_wall_s is not None) else None,
              "bus_re_longest_excitation": round(bus / longest, 4) if longest else None}
     return {"machine": machine["name"], "machine_file": machine.get("file"), "started": started,
             "finished": datetime.datetime.now().isoformat(timespec="seconds"),
@@ -379,7 +410,9 @@ def summary_lines(summary, out):
             est = a.get("error") or "no K_fc*"
         lines.append(f"  {a['name']:<8} node {a['node_id']:<3} {a['status']:<11} {est}")
     t = summary["time_budget_s"]["total"]
-    lines.append(f"  time: wall {t['wall']:.1f} s, longest axis' excitation {t['excitation']:.1f} s "
+    lines.append(f"  time: wall {t['wall']:.1f} s"
+                 + (f" (measuring {t['measure_wall']:.1f} s)" if t.get("measure_wall") is not None else "")
+                 + f", longest axis' excitation {t['excitation']:.1f} s "
                  f"(sum {t['excitation_sum']:.1f} s), bus {t['bus']:.2f} s"
                  + (f" ({100 * t['bus_re_longest_excitation']:.1f} % of the longest excitation)"
                     if t["bus_re_longest_excitation"] is not None else ""))
@@ -494,8 +527,9 @@ def demo_cli(args):
     if bitrate:
         model = _bus_model_figures(log_path, bitrate)
         if model:
-            summary = machine_summary(machine, summary["axes"], summary["time_budget_s"]["total"]["wall"],
-                                      summary["started"], bus_model=model)
+            tot = summary["time_budget_s"]["total"]
+            summary = machine_summary(machine, summary["axes"], tot["wall"], summary["started"],
+                                      bus_model=model, measure_wall_s=tot["measure_wall"])
     write_machine(out, summary)
     print("\n".join(summary_lines(summary, out)))
     print(f"fftune demo --machine: done in {time.monotonic() - t0:.1f} s; open {os.path.relpath(out)}/report.html")

@@ -37,8 +37,13 @@ def time_budget(account_before, account_after, wall_s):
     return {k: round(v, 3) for k, v in out.items()}
 
 
-def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
-    """Run ``steps`` in order; returns the results dict (also written to ``out_dir``)."""
+def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, before_figures=None):
+    """Run ``steps`` in order; returns the results dict (also written to ``out_dir``).
+
+    ``before_figures``: called (no arguments) after the experiments, before the figures are
+    drawn: a machine's axis waits there until every axis has measured, so that drawing
+    (CPU-bound, holding the GIL) does not starve the other axes' bus threads.
+    """
     t0 = time.monotonic()
     session = ex.Session(drive, cfg, out_dir, log=log)
     results = {
@@ -91,6 +96,8 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True):
     results["wall_time_s"] = round(time.monotonic() - t0, 2)
     write_results(out_dir, results)
     figs = {}
+    if before_figures is not None:
+        before_figures()
     if figures:
         figs = make_figures(out_dir, detect_levels, hos, tune_data, results)
     write_html(out_dir, results, figs)

@@ -82,6 +82,7 @@ def test_axes_tuned_concurrently_and_an_absent_node_is_one_line(machine_sim, tmp
         assert own["tune"]["k_fc_star"] == a["k_fc_star"]
     total = summary["time_budget_s"]["total"]
     assert total["excitation"] == max(by[n]["time_budget_s"]["excitation"] for n in ("a", "b"))
+    assert 0 < total["measure_wall"] <= total["wall"]
     assert total["excitation_sum"] > total["excitation"]
     # the excitations overlapped: some run of axis a was on while one of axis b was
     spans = {}
@@ -271,6 +272,8 @@ def test_machine_time_budget_from_the_axes():
     t = machine_summary({"name": "m"}, axes, 50.0, "t0", bus_model=model)["time_budget_s"]["total"]
     assert (t["bus"], t["host"]) == (1.5, 50.0 - 1.5 - 30.0)
     assert sorted(machine_summary({"name": "m"}, axes, 50.0, "t0")["time_budget_s"]) == ["axis_a", "axis_b", "total"]
+    t = machine_summary({"name": "m"}, axes, 50.0, "t0", measure_wall_s=44.0)["time_budget_s"]["total"]
+    assert (t["measure_wall"], t["measure_re_longest_excitation"]) == (44.0, 1.1)
 
 
 def test_machine_file_overrides_common_then_per_axis(tmp_path):
