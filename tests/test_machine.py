@@ -288,3 +288,57 @@ def test_machine_file_overrides_common_then_per_axis(tmp_path):
     assert [(a["name"], a["node_id"], a["cfg"]["drive"]["node_id"], a["cfg"]["tune"]["periods"])
             for a in m["axes"]] == [("p", 2, 2, 3), ("q", 9, 9, 5)]
     assert m["axes"][0]["cfg"]["tune"]["frequency_hz"] == SMALL["tune"]["frequency_hz"]
+
+
+def test_sigterm_stops_and_disables_every_axis(machine_sim, tmp_path):
+    """`kill -TERM` of a machine session (another process): exit 143, every drive stopped and
+    disabled (no heartbeats: only fftune's cleanup can). The signal is sent when a passive
+    listener on the bus has seen the start command go to both nodes."""
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    import can
+
+    from fftune.host.odmap import PARAMS
+
+    sim, d = machine_sim
+    no_hb = dict(SMALL, drive={"heartbeat_ms": 0, "fs_hz": 2560.0})
+    (d / "small_no_hb2.yaml").write_text(yaml.safe_dump(no_hb))
+    f = _machine_file(d, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}], "m4.yaml",
+                      config="small_no_hb2.yaml")
+    cmd = PARAMS["run_command"]
+    started, both = set(), threading.Event()
+
+    class StartSeen(can.Listener):
+        def on_message_received(self, msg):
+            data = bytes(msg.data)
+            if msg.arbitration_id in (0x605, 0x607) and len(data) >= 5 and data[0] & 0xE0 == 0x20 \
+                    and data[1:4] == struct.pack("<HB", cmd.index, cmd.subindex) and data[4] == 1:
+                started.add(msg.arbitration_id - 0x600)
+                if len(started) == 2:
+                    both.set()
+    spy = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    notifier = can.Notifier(spy, [StartSeen()])
+    fftune = os.path.join(os.path.dirname(sys.executable), "fftune")
+    proc = subprocess.Popen([fftune, "tune", "--machine", f, "--port", str(sim.port), "--out",
+                             str(tmp_path / "o"), "--no-progress", "--no-figures"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert both.wait(30), f"start commands seen for nodes {sorted(started)}"
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        notifier.stop()
+        spy.shutdown()
+    assert proc.returncode == 143, out + err
+    assert err.strip().splitlines()[-1] == "fftune: terminated"
+    for nid in (5, 7):
+        with DriveClient(BusOptions(port=sim.port, node_id=nid, eds=EDS), heartbeat_ms=0) as c:
+            assert int(c.get("run_state")) not in (1, 2)
+            status = struct.unpack("<H", c.node.sdo.upload(0x6041, 0))[0]
+            assert status & 0x6F != 0x27, hex(status)
