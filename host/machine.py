@@ -358,7 +358,8 @@ def machine_summary(machine, axes, wall_s, started, bus_model=None, measure_wall
     return {"machine": machine["name"], "machine_file": machine.get("file"), "started": started,
             "finished": datetime.datetime.now().isoformat(timespec="seconds"),
             "axes": axes, "bus_model": bus_model,
-            "time_budget_s": dict({f"axis_{k}": v for k, v in budgets.items()}, total=total)}
+            # (copies: the same dict twice would be a YAML alias)
+            "time_budget_s": dict({f"axis_{k}": dict(v) for k, v in budgets.items()}, total=total)}
 
 
 def write_machine(out, summary):

@@ -94,6 +94,7 @@ def test_axes_tuned_concurrently_and_an_absent_node_is_one_line(machine_sim, tmp
     assert spans["a"] and spans["b"]
     assert any(s1 < e2 and s2 < e1 for s1, e1 in spans["a"] for s2, e2 in spans["b"])
     assert "<td>ghost</td><td>9</td><td>failed</td>" in (out / "report.html").read_text()
+    assert "&id" not in (out / "results.yaml").read_text()      # plain YAML, no aliases
     # the axes' statistics captures re-analysed by the fleet: the same K_fc*, named by axis
     from fftune.host import fleet
     rows = fleet.run_graph(fleet.discover([str(out)])[0], scheduler="sync")
