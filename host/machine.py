@@ -507,7 +507,9 @@ def demo_cli(args):
         raise FftuneError("fftune demo --machine: the simulated machine serves its nodes over "
                           "socketcand (-i socketcand)")
     check_bus(args.interface, args.channel, bitrate)
-    out = check_output_dir(_set_aside_previous(args.out or machine["output"]))
+    out = args.out or machine["output"]
+    _set_aside_previous(out)            # (an earlier output directory kept as <out>.previous)
+    out = check_output_dir(out)
     for ax in machine["axes"]:
         ax["cfg"]["sim"]["bitrate"] = bitrate   # the steps' default capture follows it
     extra = sim_axis_args(machine, out)
