@@ -195,3 +195,21 @@ def test_analysis_package_does_not_import_dask():
             "print(bad); sys.exit(1 if bad else 0)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_a_logs_steps_are_told_apart_by_the_configuration():
+    from types import SimpleNamespace
+
+    from fftune.host.odmap import EXC_KINDS
+    cfg = _cfg()   # quantify: N 1024, 2.5 and 5 Hz; tune: N 1024 at 2.5 Hz; fs 2560 Hz
+
+    def rec(kind, n=1024, cycles=0):
+        return (None, SimpleNamespace(fs_hz=2560.0, parameters={
+            "exc_kind": EXC_KINDS[kind], "exc_period": n, "exc_sine_cycles": cycles, "fs": 2560.0}))
+    steps = fleet._logged_steps
+    only_q = SimpleNamespace(runs=[rec("sine", 1024, 2)])          # 5 Hz: quantify's, not tune's
+    assert steps(only_q, cfg) == {"detect": False, "quantify": True, "tune": False}
+    only_t = SimpleNamespace(runs=[rec("sine", 1024, 1)] * 3)      # 2.5 Hz: both grids have it
+    assert steps(only_t, cfg) == {"detect": False, "quantify": True, "tune": True}
+    other_n = SimpleNamespace(runs=[rec("multisine", 512), rec("sine", 2048, 2)])
+    assert steps(other_n, cfg) == {"detect": True, "quantify": False, "tune": False}
