@@ -68,7 +68,10 @@ def atomic_write(path, write, *, overwrite=False, suffix=".tmp"):
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise FftuneError(f"{path}: directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=directory)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=directory)
+    except OSError as exc:
+        raise FftuneError(f"{path}: cannot write in {directory} ({exc.strerror or exc})") from None
     os.close(fd)
     try:
         write(tmp)
@@ -150,9 +153,12 @@ def _validate_meta(meta, where):
                 raise InputError(f"{where}: {key} {out[key]!r} is not an ISO 8601 time") from None
     for key in _JSON_META:
         value = meta.get(key, {})
+        if not isinstance(value, dict):
+            raise InputError(f"{where}: {key} must be a mapping (JSON object), got "
+                             f"{type(value).__name__}")
         try:
             json.dumps(value)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, RecursionError) as exc:
             raise InputError(f"{where}: {key} is not JSON-serialisable ({exc})") from None
         out[key] = value
     unknown = set(meta) - set(out)
@@ -316,7 +322,7 @@ def _read_open(f, path, where):
         for key in _JSON_META:
             try:
                 meta[key] = json.loads(f.attrs.get(key, "{}"))
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, RecursionError):
                 raise InputError(f"{where}: attribute {key} is not valid JSON") from None
         meta = _validate_meta(meta, where)
         meta["format_version"] = version

@@ -6,6 +6,7 @@ Bad input raises :class:`fftune.analysis.errors.InputError` (one line, exit code
 written atomically and only after the analysis succeeded.
 """
 import json
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -234,6 +235,23 @@ def hosidf_to_json(res):
     }
 
 
+def check_json_target(path):
+    """``--json PATH``: one error line before any analysis when PATH cannot be written (an
+    empty name, a directory, a missing or unwritable directory)."""
+    if path is None:
+        return
+    p = Path(path)
+    if not str(path).strip():
+        raise InputError("--json: empty file name")
+    if p.is_dir():
+        raise InputError(f"--json {path}: is a directory")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"--json {path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"--json {path}: directory {parent} is not writable")
+
+
 def _write_json(path, document):
     from fftune.analysis.capture import atomic_write
 
@@ -259,6 +277,7 @@ def run_bla(args):
     from fftune.analysis.bla import robust_bla
     from fftune.analysis.io import load_lines, load_signals
 
+    check_json_target(args.json)
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "bla")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "bla")
@@ -314,6 +333,7 @@ def run_hosidf(args):
     from fftune.analysis.hosidf import hosidf
     from fftune.analysis.io import load_signals
 
+    check_json_target(args.json)
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "hosidf")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "hosidf")

@@ -53,6 +53,49 @@ def _numeric(path, name, value):
     return arr.astype(np.float64).reshape(-1)
 
 
+# Largest count a capture's layout may name (samples per period, periods, realizations):
+# the record holds far fewer samples; a larger number is a damaged or foreign comment.
+_LAYOUT_MAX = 2 ** 31 - 1
+_LINES_FILE_MAX_BYTES = 16 << 20
+_LAYOUT_MIN = {"n_period": 1, "settle_periods": 0, "record_periods": 1, "realizations": 1}
+
+
+def _shown(value, width=60):
+    text = repr(value)
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def _meta_from_comment(path, lineno, text):
+    """The ``# fftune capture: {...}`` metadata: a JSON object whose ``fs_hz`` (if any) is a
+    finite positive number and whose layout counts are integers in range; anything else is
+    one InputError naming the file, the line and the key."""
+    where = f"{path} line {lineno}: fftune metadata comment"
+    try:
+        meta = json.loads(text)
+    except (ValueError, RecursionError):
+        raise InputError(f"{where}: not JSON") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{where}: expected a JSON object {{...}}, got a {type(meta).__name__}")
+    fs = meta.get("fs_hz")
+    if fs is not None:
+        if isinstance(fs, bool) or not isinstance(fs, (int, float)) or not np.isfinite(fs) or fs <= 0:
+            raise InputError(f"{where}: fs_hz must be a positive number (Hz), got {_shown(fs)}")
+    for key, low in _LAYOUT_MIN.items():
+        if key in meta and not _layout_ok(key, meta[key]):
+            raise InputError(f"{where}: {key} must be an integer {low} .. {_LAYOUT_MAX}, "
+                             f"got {_shown(meta[key])}")
+    return meta
+
+
+def _layout_ok(key, v):
+    """A layout count (``_LAYOUT_MIN``): an integer (or integral float) within range."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    if isinstance(v, float) and not (np.isfinite(v) and v.is_integer()):
+        return False
+    return _LAYOUT_MIN[key] <= v <= _LAYOUT_MAX
+
+
 def _layout_from_meta(meta):
     layout = {}
     for key in ("n_period", "settle_periods", "record_periods", "realizations"):
@@ -87,10 +130,7 @@ def load_csv(path):
     header_index = None
     for i, line in enumerate(lines):
         if line.startswith("# fftune capture:"):
-            try:
-                meta = json.loads(line.split(":", 1)[1])
-            except ValueError:
-                raise InputError(f"{path} line {i + 1}: bad fftune metadata comment") from None
+            meta = _meta_from_comment(path, i + 1, line.split(":", 1)[1])
         if line.strip() and not line.lstrip().startswith("#"):
             header_index = i
             break
@@ -163,8 +203,12 @@ def _from_mapping(path, items):
             scalar = float(arr.reshape(-1)[0])
             if name in ("fs", "fs_hz"):
                 fs = scalar
-            elif name in ("n_period", "settle_periods", "record_periods", "realizations"):
-                layout[name] = int(scalar)
+            elif name in _LAYOUT_MIN:
+                v = arr.reshape(-1)[0].item()
+                if not _layout_ok(name, v):
+                    raise InputError(f"{path}: variable {name!r} must be an integer "
+                                     f"{_LAYOUT_MIN[name]} .. {_LAYOUT_MAX}, got {_shown(v)}")
+                layout[name] = int(v)
             continue
         signals[name] = _numeric(path, name, arr)
         _finite_or_raise(path, name, signals[name])
@@ -276,16 +320,28 @@ def load_lines(path):
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such file (excited lines)")
+    try:
+        if path.stat().st_size > _LINES_FILE_MAX_BYTES:
+            raise InputError(f"{path}: {path.stat().st_size} bytes: a list of excited lines holds "
+                             f"at most {_LINES_FILE_MAX_BYTES}")
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file (excited lines)") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
     bins = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    for lineno, line in enumerate(text.splitlines(), start=1):
         for token in line.split("#", 1)[0].replace(",", " ").split():
             try:
-                value = int(token)
+                value = int(token) if len(token) <= 30 else None
             except ValueError:
-                raise InputError(f"{path} line {lineno}: {token!r} is not an integer DFT bin") \
+                value = None
+            if value is None:
+                raise InputError(f"{path} line {lineno}: {_shown(token)} is not an integer DFT bin") \
                     from None
-            if value < 1:
-                raise InputError(f"{path} line {lineno}: bin {value} must be >= 1")
+            if not 1 <= value <= _LAYOUT_MAX:
+                raise InputError(f"{path} line {lineno}: bin {_shown(value)} must be 1 .. "
+                                 f"{_LAYOUT_MAX} (and below N/2 of the record)")
             bins.append(value)
     if not bins:
         raise InputError(f"{path}: no excited line listed")

@@ -48,8 +48,9 @@ class CaptureStore:
     """The ``captures/`` directory of an output directory."""
 
     def __init__(self, out_dir):
+        # made with the first capture: a session that fails before its first experiment
+        # leaves no directory behind
         self.dir = os.path.join(out_dir, "captures")
-        os.makedirs(self.dir, exist_ok=True)
 
     def path(self, key):
         return os.path.join(self.dir, f"{key}.h5")
@@ -79,6 +80,7 @@ class CaptureStore:
 
     def save(self, key, rec, *, experiment, request, config, identity, level_index=0,
              realization=0):
+        os.makedirs(self.dir, exist_ok=True)
         ident_text = json.dumps({k: identity.get(k) for k in
                                  ("vendor_id", "product_code", "revision", "serial", "device_name")},
                                 sort_keys=True)

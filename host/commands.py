@@ -32,8 +32,27 @@ def add_parser(sub):
         p.add_argument("--machine", default=None, metavar="FILE",
                        help="a machine file (configs/machine_demo.yaml): every axis on the bus "
                             "at once, one thread each (docs/machine.md)")
+        p.add_argument("--dry-run", action="store_true",
+                       help="connect, check the plan against the drive's limits and the "
+                            "configuration's (limits:), print it; nothing moves, nothing is written")
         add_bus_arguments(p)
         p.set_defaults(func=_experiment, steps=("detect", "quantify", "tune") if name == "run" else (name,))
+
+    p = sub.add_parser("plan", help="check and print the plan of a configuration (nothing moves)",
+                       description="Every excitation of the configuration's steps (levels, "
+                                   "amplitudes, velocities, frequencies, bands, periods, "
+                                   "capacities) against the drive's limits read from the drive "
+                                   "and the configuration's limits: section. Without a drive "
+                                   "(unreachable, or --offline) what the configuration alone "
+                                   "allows is checked and the rest is named as not checked. "
+                                   "Exit 2 with one error line on a violation.")
+    p.add_argument("--config", default=DEFAULT_CONFIG,
+                   help="experiment configuration YAML (default: configs/demo.yaml)")
+    p.add_argument("--steps", default="detect,quantify,tune",
+                   help="experiments to plan (comma separated; default all)")
+    p.add_argument("--offline", action="store_true", help="do not contact a drive")
+    add_bus_arguments(p)
+    p.set_defaults(func=_plan)
 
     p = sub.add_parser("import-canlog", help="analyse a CAN log of a session with the drive",
                        description="Decode a CAN traffic log (python-can formats: candump .log, "
@@ -59,30 +78,76 @@ def add_parser(sub):
 
 def _prepare(args):
     cfg = load_config(args.config)
-    out = check_output_dir(args.out or cfg["output"])
+    out = check_output_dir(args.out or cfg["output"], create=False)
     return cfg, out
 
 
+def _parse_steps(text):
+    steps = tuple(s.strip() for s in text.split(",") if s.strip())
+    bad = [s for s in steps if s not in ("detect", "quantify", "tune")]
+    if bad or not steps:
+        raise FftuneError(f"--steps: unknown experiment {bad[0] if bad else text!r} (detect, quantify, tune)")
+    return steps
+
+
+def _client(args, cfg):
+    d = cfg["drive"]
+    return DriveClient(BusOptions.from_args(args, d), sdo_timeout_s=d["sdo_timeout_s"],
+                       sdo_retries=d["sdo_retries"], heartbeat_ms=d["heartbeat_ms"],
+                       host_node_id=d["host_node_id"], run_timeout_s=d["run_timeout_s"],
+                       progress=not getattr(args, "no_progress", False))
+
+
 def _experiment(args):
-    from fftune.host.pipeline import run_pipeline, summary_lines
+    from fftune.host.pipeline import check_plan, run_pipeline, summary_lines
+    from fftune.host.plan import preflight
 
     if getattr(args, "machine", None):
         from fftune.host.machine import run_cli
         return run_cli(args)
     cfg = load_config(args.config)
-    opts = BusOptions.from_args(args, cfg["drive"])
-    d = cfg["drive"]
-    # The client checks the EDS (file, drive profile) before anything is written: a refused
-    # drive leaves no empty output directory behind.
-    client = DriveClient(opts, sdo_timeout_s=d["sdo_timeout_s"], sdo_retries=d["sdo_retries"],
-                         heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],
-                         run_timeout_s=d["run_timeout_s"], progress=not args.no_progress)
-    out = check_output_dir(args.out or cfg["output"])
+    # what the configuration alone tells (its limits:, drive.fs_hz, controller.u_max): refused
+    # before the drive is contacted
+    preflight(cfg, steps=args.steps)
+    # The client checks the EDS (file, drive profile) before anything is written. The output
+    # directory is proven writable here and made with the first capture: a session that
+    # fails before its first experiment (unreachable drive, refused plan) leaves none.
+    client = _client(args, cfg)
+    out = check_output_dir(args.out or cfg["output"], create=False)
     with client:
+        checked = check_plan(client, cfg, args.steps)   # the drive's limits: before enabling
+        if args.dry_run:
+            print("\n".join(checked.lines(args.config)))
+            print("fftune: dry run: the drive was not enabled, no run started, no file written")
+            return 0
         client.enable()
         results = run_pipeline(client, cfg, out, steps=args.steps, figures=not args.no_figures,
                                log=lambda s: print(s, flush=True))
     print("\n".join(summary_lines(results, out)))
+    return 0
+
+
+def _plan(args):
+    from fftune.host.pipeline import check_plan
+    from fftune.host.plan import preflight
+
+    cfg = load_config(args.config)
+    steps = _parse_steps(args.steps)
+    checked = preflight(cfg, steps=steps)
+    if args.offline:
+        checked.notes.append("--offline: checked against the configuration only; run "
+                             "`fftune plan` with the drive reachable to check its limits")
+    else:
+        client = _client(args, cfg)         # (options and the EDS: errors, not "no drive")
+        try:
+            client.connect()
+        except FftuneError as exc:
+            checked.notes.append(f"no drive reached ({exc}): checked against the configuration "
+                                 f"only")
+        else:
+            with client:
+                checked = check_plan(client, cfg, steps)
+    print("\n".join(checked.lines(args.config)))
     return 0
 
 
@@ -108,12 +173,10 @@ def _import_canlog(args):
     for step in ("detect", "quantify", "tune"):
         cfg[step]["capture"] = "raw"
     print(f"{args.file}: {len(transfers)} SDO transfers, {len(sess.runs)} runs of node {node_id}")
-    steps = tuple(s.strip() for s in args.steps.split(",") if s.strip())
-    bad = [s for s in steps if s not in ("detect", "quantify", "tune")]
-    if bad:
-        raise FftuneError(f"--steps: unknown experiment {bad[0]!r} (detect, quantify, tune)")
+    steps = _parse_steps(args.steps)
     results = run_pipeline(ReplayDrive(sess, args.file), cfg, out, steps=steps,
-                           figures=not args.no_figures, log=lambda s: print(s, flush=True))
+                           figures=not args.no_figures, log=lambda s: print(s, flush=True),
+                           preflight=False)
     results_note = f"analysed from CAN log {args.file}"
     print(results_note)
     print("\n".join(summary_lines(results, out)))

@@ -40,36 +40,75 @@ def add_parser(sub):
 
 def _set_aside_previous(out):
     """The demo is always a fresh run: an earlier output directory (perhaps made with
-    another configuration, whose captures would not resume) is kept as ``<out>.previous``."""
+    another configuration, whose captures would not resume) is kept as ``<out>.previous``.
+    Returns that path when one was set aside (None otherwise)."""
     if os.path.isdir(out) and os.listdir(out):
         previous = out.rstrip(os.sep) + ".previous"
         if os.path.isdir(previous):
             shutil.rmtree(previous)
         os.replace(out, previous)
-        print(f"fftune demo: the earlier {os.path.relpath(out)} is kept as {os.path.relpath(previous)}")
-    return out
+        return previous
+    return None
 
 
-def run(args):
-    from fftune.host.pipeline import run_pipeline, summary_lines
+def _experimented(out):
+    """True once a capture or the results are in ``out`` (the run got to its experiments)."""
+    captures = os.path.join(out, "captures")
+    return os.path.exists(os.path.join(out, "results.yaml")) or \
+        (os.path.isdir(captures) and bool(os.listdir(captures)))
 
-    if args.machine:
-        from fftune.host.machine import demo_cli
-        return demo_cli(args)
-    t0 = time.monotonic()
-    cfg = load_config(args.config)
-    bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
-    cfg["sim"]["bitrate"] = bitrate  # the steps' default capture follows it (Session.capture_mode)
-    check_bus(args.interface, args.channel, bitrate)  # before anything is moved or written
-    out = check_output_dir(_set_aside_previous(args.out or cfg["output"]))
-    d = cfg["drive"]
-    plant = args.plant or cfg["sim"]["plant"] or DEFAULT_PLANT
+
+def resolve_plant(cfg, plant=None):
+    """The simulated drive's plant file: ``plant``, else the configuration's ``sim.plant``,
+    else configs/plant_twomass.yaml ("configs/NAME" of the shipped files found from anywhere)."""
+    plant = plant or cfg["sim"]["plant"] or DEFAULT_PLANT
     if not os.path.isabs(plant) and not os.path.exists(plant):
-        # "configs/NAME" of the shipped configurations, from anywhere (also installed)
         from fftune.host.resources import config_path
         packaged = config_path(os.path.basename(plant))
         if os.path.dirname(plant) == "configs" and os.path.exists(packaged):
             plant = packaged
+    return plant
+
+
+def run(args):
+    from fftune.host.pipeline import summary_lines
+    from fftune.host.plan import preflight
+
+    t0 = time.monotonic()
+    # the demo starts its own drive on a free port: python-can's configuration plays no part
+    args.interface = args.interface or "socketcand"
+    if args.machine:
+        from fftune.host.machine import demo_cli
+        return demo_cli(args)
+    cfg = load_config(args.config)
+    bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
+    cfg["sim"]["bitrate"] = bitrate  # the steps' default capture follows it (Session.capture_mode)
+    check_bus(args.interface, args.channel, bitrate)  # before anything is moved or written
+    preflight(cfg)                                    # what the configuration alone tells
+    out = check_output_dir(args.out or cfg["output"], create=False)
+    previous = _set_aside_previous(out)
+    try:
+        check_output_dir(out)
+        results = _run(args, cfg, out, bitrate)
+    except BaseException:
+        # failed before its first experiment: no directory left behind, the earlier one back
+        if not _experimented(out):
+            shutil.rmtree(out, ignore_errors=True)
+            if previous is not None and not os.path.exists(out):
+                os.replace(previous, out)
+        raise
+    if previous is not None:
+        print(f"fftune demo: the earlier {os.path.relpath(out)} is kept as {os.path.relpath(previous)}")
+    print("\n".join(summary_lines(results, out)))
+    print(f"fftune demo: done in {time.monotonic() - t0:.1f} s; open {os.path.relpath(out)}/report.html")
+    return 0
+
+
+def _run(args, cfg, out, bitrate):
+    from fftune.host.pipeline import check_plan, run_pipeline
+
+    d = cfg["drive"]
+    plant = resolve_plant(cfg, args.plant)
     shown = os.path.relpath(plant)
     if cfg["sim"]["overrides"]:
         plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
@@ -94,10 +133,8 @@ def run(args):
                              heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],
                              run_timeout_s=d["run_timeout_s"], progress=not args.no_progress)
         with client:
+            check_plan(client, cfg)          # the drive's limits, before it is enabled
             client.enable()
-            results = run_pipeline(client, cfg, out, log=lambda s: print(s, flush=True))
+            return run_pipeline(client, cfg, out, log=lambda s: print(s, flush=True))
     finally:
         sim.stop()
-    print("\n".join(summary_lines(results, out)))
-    print(f"fftune demo: done in {time.monotonic() - t0:.1f} s; open {os.path.relpath(out)}/report.html")
-    return 0

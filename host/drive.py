@@ -55,9 +55,13 @@ def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_
     bus's bit rate, ``--host``/``--port`` the server's address, no ``--eds``.
     """
     g = parser.add_argument_group("CAN bus (python-can options)")
-    g.add_argument("-i", "--interface", default="socketcand",
-                   help="socketcand (default) or socketcan" if drive_side else
-                   "python-can interface: socketcand (default), socketcan, pcan, kvaser, virtual, ...")
+    g.add_argument("-i", "--interface", default=None,
+                   help="socketcand or socketcan (default: socketcand; `fftune sim`: python-can's "
+                        "configuration when it names one of these)" if drive_side else
+                   "python-can interface: socketcand, socketcan, pcan, kvaser, virtual, ... "
+                   "(default: python-can's configuration, as its own tools read it: "
+                   "CAN_INTERFACE / CAN_CHANNEL / CAN_BITRATE, ~/.canrc, can.ini ...; "
+                   "else socketcand, the simulated drive)")
     g.add_argument("-c", "--channel", default=None,
                    help="channel (socketcand: the bus name served, default can0; socketcan: vcan0 ...)")
     g.add_argument("-b", "--bitrate", type=int, default=None,
@@ -74,6 +78,24 @@ def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_
                        help="the drive's EDS (default: config, else the firmware_sim build's)")
 
 
+def python_can_config():
+    """python-can's own bus configuration, read as its tools read it
+    (:func:`can.util.load_config`: ``can.rc``, the environment variables CAN_INTERFACE,
+    CAN_CHANNEL, CAN_BITRATE and CAN_CONFIG, the files /etc/can.conf, ~/.can, ~/.canrc,
+    ~/can.conf); ``{}`` when it names no interface. A broken one is one error line."""
+    import can
+
+    try:
+        sources = (can.rc, can.util.load_environment_config(), can.util.load_file_config())
+        if not any(src.get("interface") or src.get("bustype") for src in sources):
+            return {}           # nothing configured: load_config would refuse interface None
+        conf = can.util.load_config()
+    except (can.CanError, ValueError, TypeError, KeyError, OSError) as exc:
+        raise FftuneError(f"python-can configuration (CAN_INTERFACE / CAN_CHANNEL / CAN_BITRATE "
+                          f"/ CAN_CONFIG, ~/.canrc ...): {exc}") from None
+    return dict(conf) if conf.get("interface") else {}
+
+
 @dataclass
 class BusOptions:
     """Where the drive is: python-can interface options plus node id and EDS."""
@@ -88,9 +110,22 @@ class BusOptions:
 
     @classmethod
     def from_args(cls, args, cfg_drive=None):
+        """The options of the command line; without ``-i``, python-can's own configuration
+        (:func:`python_can_config`) where it names an interface, else socketcand."""
         cfg_drive = cfg_drive or {}
-        return cls(interface=args.interface, channel=args.channel, bitrate=args.bitrate,
-                   host=args.host, port=args.port,
+        interface, channel, bitrate = args.interface, args.channel, args.bitrate
+        host, port = args.host, args.port
+        if interface is None:
+            conf = python_can_config()
+            interface = conf.get("interface") or "socketcand"
+            if conf.get("interface"):
+                channel = channel if channel is not None else conf.get("channel")
+                bitrate = bitrate if bitrate is not None else conf.get("bitrate")
+                if interface == "socketcand":
+                    # (python-can's socketcand keys; the command line's when given)
+                    host = conf.get("host", host) if host == DEFAULT_SOCKETCAND_HOST else host
+                    port = conf.get("port", port) if port == DEFAULT_SOCKETCAND_PORT else port
+        return cls(interface=interface, channel=channel, bitrate=bitrate, host=host, port=port,
                    node_id=args.node_id if args.node_id is not None else cfg_drive.get("node_id", 1),
                    eds=args.eds or cfg_drive.get("eds") or DEFAULT_EDS)
 

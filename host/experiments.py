@@ -259,8 +259,9 @@ def detect_lines(c, fs, src="config"):
     n = c["period_samples"]
     k_min = max(1, int(math.ceil(c["band_hz"][0] * n / fs - 1e-9)))
     k_max = int(math.floor(c["band_hz"][1] * n / fs + 1e-9))
-    if k_max >= n // 2:
-        k_max = n // 2 - 1
+    if k_max >= n // 2:     # never clipped: the verdict would be of another band
+        raise FftuneError(f"{src}: key 'detect.band_hz': {c['band_hz'][1]:g} Hz is at or above "
+                          f"fs/2 = {fs / 2:g} Hz of the drive")
     if k_min > k_max:
         raise FftuneError(f"{src}: key 'detect.band_hz': no DFT line of fs/N = {fs / n:g} Hz "
                           f"in {c['band_hz']}")

@@ -200,7 +200,7 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
 
     from fftune.host.drive import BusOptions, Cancelled, DriveClient, _BusErrorListener, _open_bus
     from fftune.host.odmap import DEFAULT_EDS
-    from fftune.host.pipeline import run_pipeline
+    from fftune.host.pipeline import check_plan, run_pipeline
 
     t0 = time.monotonic()
     started = datetime.datetime.now().isoformat(timespec="seconds")
@@ -264,10 +264,13 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
                 client.close()              # measured: this drive stopped and disabled now
                 wait_for_all_measured()
             try:
+                # the plan against this drive's limits and the axis' limits:, before enabling
+                check_plan(client, ax["cfg"], steps)
                 os.makedirs(axis_out, exist_ok=True)
                 client.enable()
                 res = run_pipeline(client, ax["cfg"], axis_out, steps=steps, figures=figures,
-                                   log=lambda s: log(f"[{name}] {s}"), before_figures=before_figures)
+                                   log=lambda s: log(f"[{name}] {s}"), preflight=False,
+                                   before_figures=before_figures)
                 res["axis"] = {"machine": machine["name"], "name": name, "node_id": ax["node_id"]}
                 from fftune.host.report import write_results
                 write_results(axis_out, res)
@@ -431,6 +434,18 @@ def exit_code(summary):
 # ---------------------------------------------------------------------------------------
 # fftune run --machine, fftune demo --machine
 # ---------------------------------------------------------------------------------------
+def preflight_axes(machine, steps=("detect", "quantify", "tune")):
+    """What every axis' configuration alone tells (:func:`fftune.host.plan.preflight`: its
+    limits:, drive.fs_hz, controller.u_max), before any drive is contacted; one line."""
+    from fftune.host.plan import preflight
+
+    for ax in machine["axes"]:
+        try:
+            preflight(ax["cfg"], steps=steps)
+        except FftuneError as exc:
+            raise FftuneError(f"axis '{ax['name']}': {exc}") from None
+
+
 def run_cli(args):
     """``fftune run --machine FILE`` (and detect|quantify|tune): against a running bus."""
     from fftune.host.config import check_output_dir
@@ -440,10 +455,13 @@ def run_cli(args):
     if args.node_id is not None:
         raise FftuneError(f"--node-id {args.node_id}: not with --machine (each axis' node id is in "
                           f"{args.machine})")
+    if getattr(args, "dry_run", False):
+        raise FftuneError("--dry-run: not with --machine (check each axis with its own configuration "
+                          "and --node-id)")
     machine = load_machine(args.machine)
-    opts = BusOptions(interface=args.interface, channel=args.channel, bitrate=args.bitrate,
-                      host=args.host, port=args.port, node_id=machine["axes"][0]["node_id"],
-                      eds=args.eds or DEFAULT_EDS)
+    preflight_axes(machine, args.steps)
+    opts = BusOptions.from_args(args, {"node_id": machine["axes"][0]["node_id"]})
+    opts.eds = args.eds or DEFAULT_EDS
     out = check_output_dir(args.out or machine["output"])
     summary = run_machine(machine, opts, out, steps=args.steps, figures=not args.no_figures,
                           log=lambda s: print(s, flush=True))
@@ -469,12 +487,11 @@ def _bus_model_figures(log_path, bitrate):
             "source": "drive_sim's bus model (every node's and the host's frames, whole session)"}
 
 
-def sim_axis_args(machine, plant_dir):
+def sim_axis_args(machine, plant_dir=None, plant_path=None):
     """drive_sim's ``--axis ID:PLANT`` options for a machine (a dict of :func:`load_machine`
-    or its file); plants with ``plant_overrides`` are written to ``plant_dir`` (default
-    ``<machine output>/sim``)."""
-    from fftune.host.config import check_output_dir
-    from fftune.host.sim import DEFAULT_PLANT, derived_plant
+    or its file). Plants with ``plant_overrides`` are written to ``plant_dir``, or handed to
+    ``plant_path(text) -> path`` (``fftune sim``: memory files that survive its exec)."""
+    from fftune.host.sim import DEFAULT_PLANT, derived_plant_text
 
     if isinstance(machine, str):
         machine = load_machine(machine)
@@ -482,9 +499,13 @@ def sim_axis_args(machine, plant_dir):
     for ax in machine["axes"]:
         plant = ax["plant"] or DEFAULT_PLANT
         if ax["plant_overrides"]:
-            plant_dir = plant_dir or check_output_dir(os.path.join(machine["output"], "sim"))
-            plant = derived_plant(plant, ax["plant_overrides"], os.path.join(plant_dir, f"plant_{ax['name']}.yaml"),
-                                  where=f"{machine['file']}: axis '{ax['name']}' plant_overrides")
+            text = derived_plant_text(plant, ax["plant_overrides"],
+                                      where=f"{machine['file']}: axis '{ax['name']}' plant_overrides")
+            if plant_path is not None:
+                plant = plant_path(text)
+            else:
+                plant = os.path.join(plant_dir, f"plant_{ax['name']}.yaml")
+                write_atomic(plant, text)
         extra += ["--axis", f"{ax['node_id']}:{plant}"]
     return extra
 
@@ -502,7 +523,9 @@ def demo_cli(args):
         raise FftuneError(f"--node-id {args.node_id}: not with --machine (each axis' node id is in "
                           f"{args.machine})")
     machine = load_machine(args.machine)
+    preflight_axes(machine)
     bitrate = args.bitrate if args.bitrate is not None else machine["bitrate"]
+    args.interface = args.interface or "socketcand"
     if args.interface != "socketcand":
         raise FftuneError("fftune demo --machine: the simulated machine serves its nodes over "
                           "socketcand (-i socketcand)")

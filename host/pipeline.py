@@ -37,15 +37,33 @@ def time_budget(account_before, account_after, wall_s):
     return {k: round(v, 3) for k, v in out.items()}
 
 
-def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, before_figures=None):
+def check_plan(drive, cfg, steps=STEPS, session=None):
+    """:func:`fftune.host.plan.preflight` with the limits read from ``drive`` and the capture
+    modes the session will use; raises on the first violation, returns the checked plan."""
+    from fftune.host.plan import preflight, read_drive_limits
+
+    session = session or ex.Session(drive, cfg, "", log=lambda s: None)
+    return preflight(cfg, read_drive_limits(drive, cfg), steps=[s for s in steps if s in STEPS],
+                     capture_mode=session.capture_mode)
+
+
+def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, preflight=True,
+                 before_figures=None):
     """Run ``steps`` in order; returns the results dict (also written to ``out_dir``).
+
+    With ``preflight`` (default; not for a CAN-log replay: its runs happened) every
+    excitation of the plan is first checked against the drive's limits and the
+    configuration's (:func:`fftune.host.plan.preflight`): a violation raises before any
+    experiment and before anything is written. ``out_dir`` is created when the first
+    capture is written.
 
     ``before_figures``: called (no arguments) after the experiments, before the figures are
     drawn: a machine's axis waits there until every axis has measured, so that drawing
-    (CPU-bound, holding the GIL) does not starve the other axes' bus threads.
-    """
+    (CPU-bound, holding the GIL) does not starve the other axes' bus threads."""
     t0 = time.monotonic()
     session = ex.Session(drive, cfg, out_dir, log=log)
+    if preflight:
+        check_plan(drive, cfg, steps, session=session)
     results = {
         "fftune_version": __version__,
         "config_file": cfg.get("_source"),
@@ -94,6 +112,7 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, befo
     results["experiments"] = dict(session.counts)
     results["finished"] = datetime.datetime.now().isoformat(timespec="seconds")
     results["wall_time_s"] = round(time.monotonic() - t0, 2)
+    os.makedirs(out_dir, exist_ok=True)
     write_results(out_dir, results)
     figs = {}
     if before_figures is not None:

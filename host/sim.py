@@ -145,35 +145,102 @@ def _drain(proc):
 
 def add_parser(sub):
     from fftune.host.drive import add_bus_arguments
+    from fftune.host.resources import config_path
 
     p = sub.add_parser("sim", help="start the simulated drive (drive_sim) in the foreground",
                        description="Run firmware_sim's drive_sim as a CANopen node on a "
                                    "socketcand server (default 127.0.0.1:29536) or on a SocketCAN "
                                    "interface (-i socketcan -c vcan0); stop it with Ctrl-C. The "
-                                   "host then connects with the same bus options.")
-    p.add_argument("--plant", default=DEFAULT_PLANT, help="plant configuration (default %(default)s)")
+                                   "host then connects with the same bus options. The plant is "
+                                   "the one `fftune demo` simulates for the same configuration: "
+                                   "its sim.plant with sim.overrides applied (and its "
+                                   "sim.bitrate, drive.node_id unless given here).")
+    p.add_argument("--config", default=config_path("demo.yaml"),
+                   help="configuration whose sim: section (plant, overrides, bitrate) is "
+                        "simulated (default: configs/demo.yaml, as fftune demo)")
+    p.add_argument("--plant", default=None,
+                   help="plant configuration (default: the configuration's sim.plant, else "
+                        "configs/plant_twomass.yaml); the configuration's sim.overrides apply to it")
     p.add_argument("--realtime", action="store_true", help="step at the controller rate")
     p.add_argument("--machine", default=None, metavar="FILE",
                    help="serve every axis of a machine file, one node each on the one bus "
-                        "(plants with overrides written to <machine output>/sim/)")
+                        "(docs/machine.md)")
     add_bus_arguments(p, drive_side=True)
     p.set_defaults(func=_run)
 
 
+def _bus_from_python_can(args):
+    """Without ``-i``: the bus python-can's configuration names (as ``fftune run`` reads it,
+    so that both meet) when the simulated drive can serve it, else socketcand (said so)."""
+    from fftune.host.drive import (DEFAULT_SOCKETCAND_HOST, DEFAULT_SOCKETCAND_PORT,
+                                   python_can_config)
+
+    if args.interface is not None:
+        return
+    conf = python_can_config()
+    name = conf.get("interface")
+    if name in SIM_INTERFACES:
+        args.interface = name
+        if args.channel is None:
+            args.channel = conf.get("channel")
+        if name == "socketcand":
+            if args.host == DEFAULT_SOCKETCAND_HOST:
+                args.host = conf.get("host", args.host)
+            if args.port == DEFAULT_SOCKETCAND_PORT:
+                args.port = conf.get("port", args.port)
+        return
+    if name:
+        print(f"fftune sim: python-can's configuration names interface {name}, which the "
+              f"simulated drive cannot serve: socketcand (-i socketcand | -i socketcan -c IFNAME "
+              f"to choose)", file=sys.stderr)
+    args.interface = "socketcand"
+
+
+def _plant_path(text):
+    """A path drive_sim can open holding ``text`` and surviving exec: an anonymous memory
+    file (Linux memfd, inherited by drive_sim; nothing left on disk), else a temporary file."""
+    data = text.encode("utf-8")
+    if hasattr(os, "memfd_create"):
+        fd = os.memfd_create("fftune-plant", 0)
+        os.write(fd, data)
+        os.lseek(fd, 0, os.SEEK_SET)
+        os.set_inheritable(fd, True)
+        return f"/proc/self/fd/{fd}"
+    import tempfile
+    fd, path = tempfile.mkstemp(prefix="fftune-plant-", suffix=".yaml")
+    os.write(fd, data)
+    os.close(fd)
+    return path
+
+
 def _run(args):
+    from fftune.host.config import load_config
+    from fftune.host.demo import resolve_plant
+
     exe = drive_sim_path()
     if args.machine:
         from fftune.host.machine import sim_axis_args
-        extra = sim_axis_args(args.machine, None)
+        _bus_from_python_can(args)
+        extra = sim_axis_args(args.machine, plant_path=_plant_path)
         cmd = drive_sim_command(DEFAULT_PLANT, args.host, args.port, 1, extra=extra,
                                 interface=args.interface, channel=args.channel, bitrate=args.bitrate,
                                 realtime=args.realtime)
         sys.stdout.flush()
+        sys.stderr.flush()
         os.execv(exe, cmd)
-    if not os.path.exists(args.plant):
-        raise FftuneError(f"plant configuration not found: {args.plant}")
-    cmd = drive_sim_command(args.plant, args.host, args.port, args.node_id if args.node_id is not None else 1,
-                            interface=args.interface, channel=args.channel, bitrate=args.bitrate,
+    cfg = load_config(args.config)
+    plant = resolve_plant(cfg, args.plant)
+    if not os.path.exists(plant):
+        raise FftuneError(f"plant configuration not found: {plant}")
+    bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
+    node_id = args.node_id if args.node_id is not None else cfg["drive"]["node_id"]
+    _bus_from_python_can(args)
+    check_bus(args.interface, args.channel, bitrate)
+    if cfg["sim"]["overrides"]:
+        plant = _plant_path(derived_plant_text(plant, cfg["sim"]["overrides"],
+                                               where=f"{args.config}: key 'sim.overrides'"))
+    cmd = drive_sim_command(plant, args.host, args.port, node_id,
+                            interface=args.interface, channel=args.channel, bitrate=bitrate,
                             realtime=args.realtime)
     sys.stdout.flush()
     sys.stderr.flush()
@@ -184,15 +251,26 @@ def _run(args):
 def derived_plant(base_path, overrides, out_path, where="sim.overrides"):
     """Write ``base_path`` with ``overrides`` ({section: {key: number}}) to ``out_path``
     in drive_sim's two-level YAML subset; returns ``out_path``."""
-    import yaml
-
     from fftune.host.atomic import write_atomic
+
+    write_atomic(out_path, derived_plant_text(base_path, overrides, where))
+    return out_path
+
+
+def derived_plant_text(base_path, overrides, where="sim.overrides"):
+    """``base_path`` with ``overrides`` applied, as drive_sim's two-level YAML subset."""
+
+    from fftune.host.config import MAX_CONFIG_BYTES, safe_yaml_load
 
     try:
         with open(base_path, "r", encoding="utf-8") as fh:
-            plant = yaml.safe_load(fh)
+            plant = safe_yaml_load(fh.read(MAX_CONFIG_BYTES + 1), f"plant configuration {base_path}")
     except OSError as exc:
         raise FftuneError(f"plant configuration {base_path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise FftuneError(f"plant configuration {base_path}: not UTF-8 text") from None
+    if not isinstance(plant, dict) or not all(isinstance(v, dict) for v in plant.values()):
+        raise FftuneError(f"plant configuration {base_path}: expected sections of key: value")
     for section, values in overrides.items():
         if section not in plant:
             raise FftuneError(f"{where}.{section}: no section '{section}' in {base_path}")
@@ -206,5 +284,4 @@ def derived_plant(base_path, overrides, out_path, where="sim.overrides"):
         lines.append(f"{section}:")
         for key, value in values.items():
             lines.append(f"  {key}: {value!r}")
-    write_atomic(out_path, "\n".join(lines) + "\n")
-    return out_path
+    return "\n".join(lines) + "\n"

@@ -150,16 +150,36 @@ def test_fftune_detect_on_statistics_over_canopen(tmp_path, capsys):
 
 
 def test_more_lines_than_the_drive_holds_is_one_error_line(tmp_path, capsys):
-    """A band of 3839 lines (N = 8192, up to 1200 Hz) asked for as statistics: the drive aborts
-    the line list download (0x06070012) and fftune says so in one line, naming the limit."""
+    """A band of 3839 lines (N = 8192, up to 1200 Hz) asked for as statistics: the preflight
+    refuses it against the drive's capacity (0x2040:9) before anything moves; a client that
+    writes the list anyway gets the drive's abort (0x06070012) as one line naming the limit."""
     from fftune.host.cli import main
+    from fftune.host.drive import BusOptions, DriveClient
+    from fftune.host.odmap import EXC_KINDS, INJECT
+    from fftune.host.sim import start_drive_sim
+    from host_fixtures import EDS
     _drive_sim_skip()
     cfg = _demo_config(tmp_path, capture="stats", period_samples=8192, band_hz=[0.3125, 1200.0])
     code = main(["demo", "--config", str(cfg), "--out", str(tmp_path / "out"), "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code != 0
-    assert len(err) == 1 and err[0].startswith("fftune: error: line statistics: 3839 lines (bins 1 .. 3839)"), err
-    assert "the drive holds at most" in err[0] and "0x2040:9" in err[0] and "0x06070012" in err[0]
+    assert code == 2 and not (tmp_path / "out").exists()
+    assert len(err) == 1 and err[0].startswith("fftune: error: ") and "key 'detect.band_hz'" in err[0]
+    assert "3839 lines is above 1024 lines" in err[0] and "0x2040:9" in err[0], err
+    sim = start_drive_sim(os.path.join(REPO, "configs", "plant_twomass.yaml"),
+                          log_path=str(tmp_path / "d.log"))
+    try:
+        with DriveClient(BusOptions(port=sim.port, eds=EDS), heartbeat_ms=0, progress=False) as c:
+            c.enable()
+            req = {"exc_kind": EXC_KINDS["multisine"], "exc_inject": INJECT["plant_input"],
+                   "exc_amplitude": 0.3, "exc_period": 8192, "exc_settle_periods": 0,
+                   "exc_record_periods": 1, "ms_k_min": 1, "ms_k_max": 3839, "ms_group": 0}
+            with pytest.raises(FftuneError) as exc:
+                c.run(req, capture="stats", lines=np.arange(1, 3840))
+    finally:
+        sim.stop()
+    msg = str(exc.value)
+    assert msg.startswith("line statistics: 3839 lines (bins 1 .. 3839)")
+    assert "the drive holds at most 1024" in msg and "0x2040:9" in msg and "0x06070012" in msg
 
 
 def test_a_line_at_nyquist_is_refused_by_the_drive_with_the_limit_named(tmp_path):

@@ -26,6 +26,7 @@ TWOMASS = os.path.join(REPO, "configs", "plant_twomass.yaml")
 SMALL = {
     "output": "out/unused",
     "drive": {"heartbeat_ms": 100, "fs_hz": 2560.0},
+    "detect": {"enabled": False}, "quantify": {"enabled": False},
     "tune": {"frequency_hz": 0.625, "amplitude_rad": 0.5, "period_samples": 4096, "periods": 2,
              "settle_periods": 2, "harmonics": 7, "capture": "stats",
              "sweep": {"k_fc_max": 0.3, "points": 0}, "search": {"method": "root", "max_experiments": 8},
@@ -247,14 +248,22 @@ def test_a_logged_machine_session_and_its_folders_analysed_by_the_fleet(machine_
     ([{"name": "x", "node_id": 128}], "axes[0].node_id: expected 1 .. 127, got 128"),
     ([{"name": "x", "node_id": 3, "overrides": {"tune": {"periods": 1}}}],
      "axes[0] (configuration with overrides): key 'tune.periods': expected an integer >= 2, got 1"),
+    ([{"name": "x", "node_id": 3}, {"name": "y", "node_id": 4,
+                                    "overrides": {"limits": {"max_amplitude_rad": 0.1}}}], None),
 ])
 def test_bad_machine_file_for_the_demo_is_one_line(tmp_path, capsys, axes, expected):
+    if expected is None:   # (a violation of the axis' limits: the message is plan.preflight's)
+        expected = "axis 'y': "
     (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
     f = _machine_file(tmp_path, axes)
     out = tmp_path / "out"
     assert main(["demo", "--machine", f, "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"fftune: error: {f}: {expected}"]
+    if expected.startswith("axis 'y'"):
+        assert len(err) == 1 and err[0].startswith(f"fftune: error: {expected}"), err
+        assert "max_amplitude_rad" in err[0] and "0.1" in err[0]
+    else:
+        assert err == [f"fftune: error: {f}: {expected}"]
     assert not out.exists()
 
 

@@ -58,8 +58,9 @@ def test_two_nodes_answer_in_bus_order_on_one_bus_model(tmp_path):
 
 
 def test_fftune_sim_serves_a_machine_file(tmp_path):
-    """`fftune sim --machine FILE`: drive_sim with one node per axis, plants with overrides
-    written to <output>/sim/; the readiness line names the nodes."""
+    """`fftune sim --machine FILE`: drive_sim with one node per axis (plants with overrides
+    handed over in memory, nothing written); the readiness line names the nodes, each node
+    answers with its own plant."""
     import subprocess
     import sys
 
@@ -68,16 +69,28 @@ def test_fftune_sim_serves_a_machine_file(tmp_path):
     f = tmp_path / "m.yaml"
     f.write_text(yaml.safe_dump({"machine": "s", "output": str(tmp_path / "out"), "axes": [
         {"name": "a", "node_id": 12, "plant": TWOMASS},
-        {"name": "b", "node_id": 3, "plant": TWOMASS, "plant_overrides": {"plant": {"j1": 2.0e-4}}}]}))
+        {"name": "b", "node_id": 3, "plant": TWOMASS,
+         "plant_overrides": {"plant": {"coulomb": 8.0e-3, "static": 8.0e-3}}}]}))
     fftune = os.path.join(os.path.dirname(sys.executable), "fftune")
-    proc = subprocess.Popen([fftune, "sim", "--machine", str(f), "--port", "0"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([fftune, "sim", "--machine", str(f), "--port", "0", "-i", "socketcand"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()
+        assert "listening on socketcand 127.0.0.1:" in line and line.rstrip().endswith(", nodes 12,3"), line
+        port = int(line.split("127.0.0.1:")[1].split(",")[0])
+        fc = {}
+        with can.Bus(interface="socketcand", channel="can0", host="127.0.0.1", port=port) as bus:
+            for nid in (12, 3):      # 0x2100:1, the simulated Coulomb level (V)
+                bus.send(can.Message(arbitration_id=0x600 + nid, is_extended_id=False,
+                                     data=[0x40, 0x00, 0x21, 0x01, 0, 0, 0, 0]))
+            while len(fc) < 2:
+                msg = bus.recv(5.0)
+                assert msg is not None, f"answers seen: {sorted(fc)}"
+                if msg.arbitration_id in (0x580 + 12, 0x580 + 3):
+                    fc[msg.arbitration_id - 0x580] = struct.unpack("<f", bytes(msg.data[4:8]))[0]
     finally:
         proc.terminate()
         proc.wait(10)
-    assert "listening on socketcand 127.0.0.1:" in line and line.rstrip().endswith(", nodes 12,3"), line
-    written = yaml.safe_load((tmp_path / "out" / "sim" / "plant_b.yaml").read_text())
-    assert written["plant"]["j1"] == 2.0e-4
-    assert not (tmp_path / "out" / "sim" / "plant_a.yaml").exists()     # unchanged: used as it is
+    assert fc[12] == pytest.approx(5.785e-3 / 0.05, rel=1e-5)     # plant_twomass.yaml as it is
+    assert fc[3] == pytest.approx(8.0e-3 / 0.05, rel=1e-5)        # with its plant_overrides
+    assert not (tmp_path / "out").exists()                        # nothing written

@@ -156,7 +156,7 @@ def test_tune_plan_against_the_drive_is_checked_before_any_experiment(tmp_path, 
     d = FakeDriveForTests(fc_volt=0.3)
     d.enable()
     with pytest.raises(FftuneError, match=expected.replace("(", r"\(")):
-        run_pipeline(d, cfg, str(tmp_path), log=lambda s: None)
+        run_pipeline(d, cfg, str(tmp_path), steps=("tune",), log=lambda s: None)
     assert d.runs == 0 and not (tmp_path / "results.yaml").exists()
 
 
