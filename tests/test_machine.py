@@ -352,3 +352,20 @@ def test_sigterm_stops_and_disables_every_axis(machine_sim, tmp_path):
             assert int(c.get("run_state")) not in (1, 2)
             status = struct.unpack("<H", c.node.sdo.upload(0x6041, 0))[0]
             assert status & 0x6F != 0x27, hex(status)
+
+
+def test_an_axis_refused_by_its_drives_limits_fails_before_it_is_enabled(machine_sim, tmp_path, capsys):
+    sim, d = machine_sim
+    f = _machine_file(d, [{"name": "a", "node_id": 5,
+                           "overrides": {"tune": {"search": {"k_fc_max": 20.0}}}}], "m5.yaml")
+    assert main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "o"),
+                 "--no-progress", "--no-figures"]) == 2
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fftune: error:")]
+    assert len(lines) == 1 and lines[0].startswith("fftune: error: axis 'a' (node 5): ")
+    assert "k_fc_max" in lines[0] and "20" in lines[0], lines[0]
+    summary = yaml.safe_load((tmp_path / "o" / "results.yaml").read_text())
+    assert [(a["name"], a["status"]) for a in summary["axes"]] == [("a", "failed")]
+    assert not (tmp_path / "o" / "a" / "captures").exists()
+    with DriveClient(BusOptions(port=sim.port, node_id=5, eds=EDS), heartbeat_ms=0) as c:
+        status = struct.unpack("<H", c.node.sdo.upload(0x6041, 0))[0]
+        assert status & 0x6F != 0x27, hex(status)                  # never enabled
