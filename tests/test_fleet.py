@@ -124,8 +124,10 @@ def test_nothing_to_analyse_is_one_error_line(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
-def test_unknown_scheduler_is_one_line_before_anything_is_written(fleet_dir, tmp_path, capsys):
-    assert main(["fleet", str(fleet_dir), "--out", str(tmp_path / "o"), "--scheduler", "tpc://x:1"]) == 2
+def test_unknown_scheduler_is_one_line_before_anything_is_written(tmp_path, capsys):
+    (tmp_path / "a" / "captures").mkdir(parents=True)
+    (tmp_path / "a" / "captures" / "detect-L00-M00.h5").write_bytes(b"x")
+    assert main(["fleet", str(tmp_path / "a"), "--out", str(tmp_path / "o"), "--scheduler", "tpc://x:1"]) == 2
     assert capsys.readouterr().err.strip().splitlines() == [
         "fftune: error: --scheduler tpc://x:1: expected tcp://HOST:PORT, processes, threads or sync"]
     assert not (tmp_path / "o").exists()
