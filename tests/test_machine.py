@@ -12,7 +12,6 @@ import struct
 import pytest
 import yaml
 
-from fftune.analysis import capture as _capture
 from fftune.host import drive as _drive
 from fftune.host.cli import main
 from fftune.host.drive import BusOptions, DriveClient
