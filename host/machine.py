@@ -32,6 +32,7 @@ import datetime
 import html
 import math
 import os
+import sys
 import threading
 import time
 
@@ -184,7 +185,7 @@ def _axis_entry(ax, results=None, status="failed", error=None, truth=None):
 
 
 def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"), figures=True,
-                log=print, progress=False):
+                log=print, progress=False, log_error=None):
     """Run ``steps`` on every axis concurrently over one bus; returns the machine summary.
 
     Parameters
@@ -195,6 +196,9 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
         The one bus (node id and EDS per axis come from the machine file / the default EDS).
     out : str
         Output directory (``<out>/<axis name>/`` per axis).
+    log, log_error : callable
+        Progress lines (prefixed ``[axis]``); an axis' failure, one line ``fftune: error:
+        axis 'NAME' (node N): ...`` (default: standard error).
     """
     import canopen
 
@@ -202,6 +206,9 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
     from fftune.host.odmap import DEFAULT_EDS
     from fftune.host.pipeline import check_plan, run_pipeline
 
+    if log_error is None:
+        def log_error(text):
+            print(text, file=sys.stderr, flush=True)
     t0 = time.monotonic()
     started = datetime.datetime.now().isoformat(timespec="seconds")
     d0 = machine["axes"][0]["cfg"]["drive"]
@@ -249,7 +256,7 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
                 c.cancel = cancel
                 c.connect()
             except FftuneError as exc:
-                log(f"fftune: error: axis '{ax['name']}' (node {ax['node_id']}): {exc}")
+                log_error(f"fftune: error: axis '{ax['name']}' (node {ax['node_id']}): {exc}")
                 entries[ax["name"]] = _axis_entry(ax, error=str(exc))
                 continue
             clients[ax["name"]] = c
@@ -281,10 +288,10 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
             except Cancelled:
                 entries[name] = _axis_entry(ax, status="cancelled", error="cancelled (Ctrl-C / SIGTERM)")
             except FftuneError as exc:
-                log(f"fftune: error: axis '{name}' (node {ax['node_id']}): {exc}")
+                log_error(f"fftune: error: axis '{name}' (node {ax['node_id']}): {exc}")
                 entries[name] = _axis_entry(ax, error=str(exc))
             except Exception as exc:  # an axis' own failure never takes the machine down
-                log(f"fftune: error: axis '{name}' (node {ax['node_id']}): {type(exc).__name__}: {exc}")
+                log_error(f"fftune: error: axis '{name}' (node {ax['node_id']}): {type(exc).__name__}: {exc}")
                 entries[name] = _axis_entry(ax, error=f"{type(exc).__name__}: {exc}")
             finally:
                 if not waited:

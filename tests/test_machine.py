@@ -63,7 +63,7 @@ def test_axes_tuned_concurrently_and_an_absent_node_is_one_line(machine_sim, tmp
                  "--no-progress", "--no-figures"])
     text = capsys.readouterr()
     assert code == 2, text.out + text.err           # an axis failed: reported, the others ran
-    ghost = [ln for ln in text.out.splitlines() if ln.startswith("fftune: error: axis 'ghost'")]
+    ghost = [ln for ln in text.err.splitlines() if ln.startswith("fftune: error: axis 'ghost'")]
     assert len(ghost) == 1 and "(node 9): no SDO answer from node 9" in ghost[0]
     assert "nodes answering on this bus: 5, 7" in ghost[0]
     summary = yaml.safe_load((out / "results.yaml").read_text())
@@ -171,7 +171,7 @@ def test_lost_bus_fails_every_axis_with_its_reason(tmp_path, monkeypatch, capsys
     assert [(a["name"], a["status"]) for a in summary["axes"]] == [("a", "failed"), ("b", "failed")]
     for a in summary["axes"]:
         assert f"on node {a['node_id']}: connection lost" in a["error"] and a["k_fc_star"] is None
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fftune: error: axis")]
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("fftune: error: axis")]
     assert len(lines) == 2
 
 
@@ -359,7 +359,7 @@ def test_an_axis_refused_by_its_drives_limits_fails_before_it_is_enabled(machine
                            "overrides": {"tune": {"search": {"k_fc_max": 20.0}}}}], "m5.yaml")
     assert main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "o"),
                  "--no-progress", "--no-figures"]) == 2
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fftune: error:")]
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("fftune: error:")]
     assert len(lines) == 1 and lines[0].startswith("fftune: error: axis 'a' (node 5): ")
     assert "k_fc_max" in lines[0] and "20" in lines[0], lines[0]
     summary = yaml.safe_load((tmp_path / "o" / "results.yaml").read_text())
