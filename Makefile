@@ -9,12 +9,13 @@ PY     := $(CURDIR)/$(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 FW     := $(MAKE) --no-print-directory -C firmware_sim PYTHON=$(PY)
 
-.PHONY: help setup firmware demo demo-machine test bench cross pil pil-run fuzz system-deps clean mutation
+.PHONY: help setup firmware demo demo-machine demo-track test bench cross pil pil-run fuzz system-deps clean mutation
 
 help:
 	@echo "make setup        venv (.venv) with pinned deps + firmware_sim build (other targets do it)"
 	@echo "make demo         the main job on the simulated drive (writes out/demo/)"
 	@echo "make demo-machine a simulated 4-axis machine on one 1 Mbit/s bus, every axis tuned at once (out/machine_demo/)"
+	@echo "make demo-track   K_fc tracked from the repeated task on a drifting simulated plant (writes out/demo-track/)"
 	@echo "make test         every test, C and Python (parallel: TEST_WORKERS=auto; prints its wall time)"
 	@echo "make bench        benchmarks, printing their figures"
 	@echo "make cross        deployable C for Cortex-M4F (arm-none-eabi-gcc), with sizes"
@@ -41,6 +42,10 @@ demo: setup
 
 demo-machine: setup
 	@$(VENV)/bin/fftune demo --machine configs/machine_demo.yaml
+
+# friction tracking from the repeated task on a drifting simulated plant (docs/track.md)
+demo-track: setup
+	@$(VENV)/bin/fftune demo-track
 
 # pytest-xdist workers (auto = one per core); --dist loadgroup keeps the tests that share
 # one qemu guest boot or firmware_sim build outputs on one worker (tests/conftest.py).

@@ -308,6 +308,17 @@ uint32_t co_od_write(co_node_t *n, const co_od_entry_t *e, const uint8_t *src, u
     return ab;
 }
 
+/* the drive's task statistics part (drv.h DRV_TASK_*) of a task DOMAIN */
+static uint32_t co_od_task_part(uint32_t ref)
+{
+    switch (ref) {
+    case CO_DOMAIN_TASK_DESIGN: return DRV_TASK_DESIGN;
+    case CO_DOMAIN_TASK_LAST_DATA: return DRV_TASK_LAST_DATA;
+    case CO_DOMAIN_TASK_LAST_DESIGN: return DRV_TASK_LAST_DESIGN;
+    default: return DRV_TASK_DATA;
+    }
+}
+
 uint32_t co_od_domain_size(co_node_t *n, const co_od_entry_t *e, uint32_t *size)
 {
     *size = 0u;
@@ -336,14 +347,32 @@ uint32_t co_od_domain_size(co_node_t *n, const co_od_entry_t *e, uint32_t *size)
         *size = drv_lines_size_bytes(n->drv);
         return 0u;
     }
+    if (e->ref == CO_DOMAIN_TASK_DATA || e->ref == CO_DOMAIN_TASK_DESIGN) { /* task statistics */
+        if (co_node_run_active(n)) {
+            return CO_SDO_AB_DATA_DEV_STATE; /* being accumulated */
+        }
+        *size = drv_task_stats_size_bytes(n->drv, co_od_task_part(e->ref));
+        return 0u;
+    }
+    if (e->ref == CO_DOMAIN_TASK_LAST_DATA || e->ref == CO_DOMAIN_TASK_LAST_DESIGN) { /* latched: any time */
+        *size = drv_task_stats_size_bytes(n->drv, co_od_task_part(e->ref));
+        return 0u;
+    }
     return CO_SDO_AB_GENERAL;
 }
 
 uint32_t co_od_domain_generation(co_node_t *n, const co_od_entry_t *e)
 {
     uint32_t counter = 0u;
-    if (e->ref == CO_DOMAIN_RECORDER || e->ref == CO_DOMAIN_STATS || e->ref == CO_DOMAIN_LINE_STATS) {
+    if (e->ref == CO_DOMAIN_RECORDER || e->ref == CO_DOMAIN_STATS || e->ref == CO_DOMAIN_LINE_STATS ||
+        e->ref == CO_DOMAIN_TASK_DATA || e->ref == CO_DOMAIN_TASK_DESIGN) {
         (void)drv_get_u32(n->drv, DRV_P_RUN_COUNTER, &counter);
+    } else if (e->ref == CO_DOMAIN_TASK_LAST_DATA || e->ref == CO_DOMAIN_TASK_LAST_DESIGN) {
+        /* a repetition latched under an upload changes the record: the upload aborts */
+        uint32_t run = 0u;
+        (void)drv_get_u32(n->drv, DRV_P_RUN_COUNTER, &run);
+        (void)drv_get_u32(n->drv, DRV_P_TASK_LATCHED, &counter);
+        counter += run << 20;
     } else if (e->ref == CO_DOMAIN_TABLE) {
         counter = drv_table_generation(n->drv); /* a multisine run start rewrites it */
     }
@@ -368,6 +397,13 @@ uint32_t co_od_domain_read(co_node_t *n, const co_od_entry_t *e, uint32_t off, u
             return CO_SDO_AB_DATA_DEV_STATE;
         }
         st = drv_line_stats_read(n->drv, off, dst, len);
+    } else if (e->ref == CO_DOMAIN_TASK_DATA || e->ref == CO_DOMAIN_TASK_DESIGN) {
+        if (co_node_run_active(n)) {
+            return CO_SDO_AB_DATA_DEV_STATE;
+        }
+        st = drv_task_stats_read(n->drv, co_od_task_part(e->ref), off, dst, len);
+    } else if (e->ref == CO_DOMAIN_TASK_LAST_DATA || e->ref == CO_DOMAIN_TASK_LAST_DESIGN) {
+        st = drv_task_stats_read(n->drv, co_od_task_part(e->ref), off, dst, len);
     } else if (e->ref == CO_DOMAIN_STAT_LINES) {
         st = drv_lines_read(n->drv, off, dst, len);
     } else if (e->ref == CO_DOMAIN_TABLE) {

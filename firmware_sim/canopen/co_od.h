@@ -64,7 +64,11 @@ typedef enum {
     CO_DOMAIN_RECORDER = 1,
     CO_DOMAIN_STATS = 2,
     CO_DOMAIN_STAT_LINES = 3, /* line list (rw) */
-    CO_DOMAIN_LINE_STATS = 4  /* line statistics data (ro) */
+    CO_DOMAIN_LINE_STATS = 4, /* line statistics data (ro) */
+    CO_DOMAIN_TASK_DATA = 5,  /* task statistics, data part (ro, core/task.h) */
+    CO_DOMAIN_TASK_DESIGN = 6, /* task statistics, design part (ro) */
+    CO_DOMAIN_TASK_LAST_DATA = 7,  /* the last repetition's (ro, readable while running) */
+    CO_DOMAIN_TASK_LAST_DESIGN = 8
 } co_domain_id_t;
 
 struct co_node;

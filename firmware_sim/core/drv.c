@@ -12,6 +12,14 @@
 
 #define DRV_FS_MAX_HZ 1.0e6f
 
+/* ---- the repeated task (issue 26, task.h): implemented at the end of this file ---- */
+static drv_status_t drv_task_get_f32(const drv_t *drv, drv_param_id_t id, float *value);
+static drv_status_t drv_task_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value);
+static drv_status_t drv_task_set_f32(drv_t *drv, drv_param_id_t id, float value);
+static drv_status_t drv_task_set_u32(drv_t *drv, drv_param_id_t id, uint32_t value);
+static drv_status_t drv_task_start(drv_t *drv);
+static void drv_task_end(drv_t *drv, float reference);
+
 /* ---- helpers ---- */
 
 static drv_status_t drv_from_ctl(ctl_status_t st)
@@ -76,6 +84,7 @@ drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
     (void)rec_init(&drv->rec, storage->rec_buf, storage->rec_capacity);
     stat_init(&drv->stat);
     lstat_init(&drv->lstat);
+    task_init(&drv->task, storage->fs_hz);
     drv->exc_kind = DRV_EXC_NONE;
     drv->exc_inject = DRV_INJECT_REFERENCE;
     drv->run_inject = DRV_INJECT_REFERENCE;
@@ -133,7 +142,7 @@ drv_status_t drv_get_f32(const drv_t *drv, drv_param_id_t id, float *value)
     case DRV_P_MEAS_LOAD_ANGLE: v = drv->load; break;
     case DRV_P_MEAS_REFERENCE: v = drv->reference; break;
     case DRV_P_MEAS_PLANT_INPUT: v = drv->u; break;
-    default: return DRV_E_NO_PARAM; /* an F32 id added to od.yaml but not to the drive */
+    default: return drv_task_get_f32(drv, id, value); /* the task's, or DRV_E_NO_PARAM */
     }
     *value = v;
     return DRV_OK;
@@ -186,7 +195,7 @@ drv_status_t drv_set_f32(drv_t *drv, drv_param_id_t id, float value)
     case DRV_P_U_MAX: return drv_from_ctl(ctl_set_u_max(&drv->ctl, value));
     case DRV_P_EXC_AMPLITUDE: drv->exc_amplitude = value; return DRV_OK;
     case DRV_P_EXC_OFFSET: drv->exc_offset = value; return DRV_OK;
-    default: return DRV_E_NO_PARAM;
+    default: return drv_task_set_f32(drv, id, value);
     }
 }
 
@@ -234,7 +243,7 @@ drv_status_t drv_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value)
     case DRV_P_STAT_LINE_PERIODS: v = drv->lstat.periods; break;
     case DRV_P_STAT_LINE_SATURATED: v = drv->sat_samples; break;
     case DRV_P_STAT_BYTES: v = stat_size_bytes(&drv->stat); break;
-    default: return DRV_E_NO_PARAM;
+    default: return drv_task_get_u32(drv, id, value);
     }
     *value = v;
     return DRV_OK;
@@ -295,7 +304,7 @@ drv_status_t drv_set_u32(drv_t *drv, drv_param_id_t id, uint32_t value)
         }
         return DRV_OK;
     default:
-        return DRV_E_NO_PARAM;
+        return drv_task_set_u32(drv, id, value);
     }
 }
 
@@ -341,6 +350,9 @@ drv_status_t drv_run_start(drv_t *drv)
 {
     if (!drv->enabled || drv->fault || run_active(&drv->run)) {
         return DRV_E_STATE;
+    }
+    if (drv->task.mode != TASK_MODE_OFF) {
+        return drv_task_start(drv); /* a task run (issue 26) */
     }
     uint32_t n = drv->exc_period;
     ms_design_t ms = {n, drv->ms_k_min, drv->ms_k_max, drv->ms_group, drv->ms_seed, drv->ms_realization};
@@ -428,6 +440,7 @@ void drv_run_abort(drv_t *drv, drv_stop_reason_t reason)
 {
     if (run_active(&drv->run)) {
         run_stop(&drv->run, RUN_ABORTED, (uint32_t)reason);
+        drv_task_end(drv, drv->reference); /* a task stops where its reference is */
         gen_stop(&drv->gen);
         stat_flush(&drv->stat); /* the samples so far go to the background */
     }
@@ -492,6 +505,7 @@ static float drv_fault_stop(drv_t *drv, drv_stop_reason_t reason)
     run_stop(&drv->run, RUN_FAULT, reason);
     drv->run.state = RUN_FAULT;
     drv->run.last_error = reason;
+    drv->task.running = false;
     gen_stop(&drv->gen);
     stat_flush(&drv->stat);
     ctl_reset(&drv->ctl);
@@ -510,12 +524,16 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
     drv->motor = motor;
     drv->load = meas->load_angle_rad;
 
-    float w = 0.0f, w_dot = 0.0f;
+    float w = 0.0f, w_dot = 0.0f, u_task = 0.0f;
     bool active = run_active(&drv->run);
     if (active) {
-        gen_next(&drv->gen, &w, &w_dot);
+        if (drv->task.running) {
+            task_next(&drv->task, &w, &w_dot, &u_task); /* issue 26 */
+        } else {
+            gen_next(&drv->gen, &w, &w_dot);
+        }
     }
-    float ref = drv->target, v_ref = 0.0f, u_add = 0.0f;
+    float ref = drv->target, v_ref = 0.0f, u_add = u_task;
     if (drv->run_inject == DRV_INJECT_REFERENCE) {
         ref += w;
         v_ref = w_dot;
@@ -542,8 +560,12 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
             const float sig[REC_NUM_SIGNALS] = {ref, u, motor, drv->load, e};
             rec_push(&drv->rec, sig);
             stat_push(&drv->stat, sig, drv->gen.sin_last, drv->gen.cos_last);
+            if (drv->task.running) {
+                task_push(&drv->task, ctl_ff_sign(&drv->ctl, v_ref), u, e);
+            }
         }
         if (!run_active(&drv->run)) {
+            drv_task_end(drv, ref);
             gen_stop(&drv->gen);
             stat_flush(&drv->stat); /* the last samples go to the background */
         }
@@ -744,4 +766,131 @@ drv_status_t drv_table_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uin
         dst[i] = src[i];
     }
     return DRV_OK;
+}
+
+/* ---- the repeated task (issue 26, task.h; objects 0x2060-0x2062) ---- */
+
+static drv_status_t drv_task_from(task_status_t st)
+{
+    return st == TASK_OK ? DRV_OK : DRV_E_RANGE_HIGH;
+}
+
+static drv_status_t drv_task_get_f32(const drv_t *drv, drv_param_id_t id, float *value)
+{
+    switch (id) {
+    case DRV_P_TASK_DISTANCE: *value = task_get_param(&drv->task, TASK_P_DISTANCE); return DRV_OK;
+    case DRV_P_TASK_V_MAX: *value = task_get_param(&drv->task, TASK_P_V_MAX); return DRV_OK;
+    case DRV_P_TASK_A_MAX: *value = task_get_param(&drv->task, TASK_P_A_MAX); return DRV_OK;
+    case DRV_P_TASK_JERK: *value = task_get_param(&drv->task, TASK_P_JERK); return DRV_OK;
+    case DRV_P_TASK_DWELL: *value = task_get_param(&drv->task, TASK_P_DWELL); return DRV_OK;
+    case DRV_P_TASK_KA: *value = task_get_param(&drv->task, TASK_P_KA); return DRV_OK;
+    default: return DRV_E_NO_PARAM; /* an F32 id added to od.yaml but not to the drive */
+    }
+}
+
+static drv_status_t drv_task_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value)
+{
+    switch (id) {
+    case DRV_P_TASK_MODE: *value = drv->task.mode; return DRV_OK;
+    case DRV_P_TASK_PERIOD: *value = task_period(&drv->task); return DRV_OK;
+    case DRV_P_TASK_BLOCKS: *value = TASK_BLOCKS; return DRV_OK;
+    case DRV_P_TASK_LATCHED: *value = drv->task.latched; return DRV_OK;
+    default: return DRV_E_NO_PARAM;
+    }
+}
+
+static drv_status_t drv_task_set_f32(drv_t *drv, drv_param_id_t id, float value)
+{
+    uint32_t which;
+    switch (id) {
+    case DRV_P_TASK_DISTANCE: which = TASK_P_DISTANCE; break;
+    case DRV_P_TASK_V_MAX: which = TASK_P_V_MAX; break;
+    case DRV_P_TASK_A_MAX: which = TASK_P_A_MAX; break;
+    case DRV_P_TASK_JERK: which = TASK_P_JERK; break;
+    case DRV_P_TASK_DWELL: which = TASK_P_DWELL; break;
+    case DRV_P_TASK_KA: /* like K_fc: may change at any time */
+        return drv_task_from(task_set_param(&drv->task, TASK_P_KA, value));
+    default: return DRV_E_NO_PARAM;
+    }
+    if (run_active(&drv->run)) {
+        return DRV_E_STATE; /* the profile of a running task stays */
+    }
+    return drv_task_from(task_set_param(&drv->task, which, value));
+}
+
+static drv_status_t drv_task_set_u32(drv_t *drv, drv_param_id_t id, uint32_t value)
+{
+    if (id != DRV_P_TASK_MODE) {
+        return DRV_E_NO_PARAM;
+    }
+    if (run_active(&drv->run)) {
+        return DRV_E_STATE;
+    }
+    return drv_task_from(task_set_mode(&drv->task, value));
+}
+
+/* A task run: the task replaces the excitation (which must be off); the harmonic / line
+ * statistics are refused by their own checks (no sine, period not a power of two). */
+static drv_status_t drv_task_start(drv_t *drv)
+{
+    uint32_t n = task_period(&drv->task);
+    if (drv->exc_kind != DRV_EXC_NONE || n == 0u) {
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
+    }
+    uint64_t settle = (uint64_t)drv->exc_settle_periods * n;
+    uint64_t record = (uint64_t)drv->exc_record_periods * n;
+    if (record == 0u || settle + record > UINT32_MAX) {
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
+    }
+    if (!rec_fits(&drv->rec, (uint32_t)record)) {
+        return drv_refuse(drv, DRV_STOP_NO_FIT, DRV_E_NO_FIT);
+    }
+    if (stat_check(&drv->stat, n, 0u) != STAT_OK) {
+        return drv_refuse(drv, DRV_STOP_STAT_NOT_SINE, DRV_E_INCOMPATIBLE);
+    }
+    if (drv->lstat.mode != 0u) {
+        return drv_refuse(drv, DRV_STOP_STAT_LINES, DRV_E_INCOMPATIBLE);
+    }
+    if (task_begin(&drv->task) != TASK_OK) {
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
+    }
+    gen_stop(&drv->gen);
+    rec_clear(&drv->rec);
+    stat_begin(&drv->stat, n);
+    lstat_begin(&drv->lstat, n);
+    drv->sat_scanned = 0u;
+    drv->sat_samples = 0u;
+    drv->run_inject = DRV_INJECT_REFERENCE;
+    drv->task.running = true;
+    (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);
+    return DRV_OK;
+}
+
+/* The task run ended (done or aborted): the set-point takes the last reference, so the
+ * axis holds where the task left it (a forward-only task ends D per repetition further). */
+static void drv_task_end(drv_t *drv, float reference)
+{
+    if (drv->task.running) {
+        drv->task.running = false;
+        drv->target = reference;
+    }
+}
+
+uint32_t drv_task_stats_size_bytes(const drv_t *drv, uint32_t part)
+{
+    return (part == DRV_TASK_DESIGN || part == DRV_TASK_LAST_DESIGN) ? task_design_size_bytes(&drv->task)
+                                                                   : task_data_size_bytes(&drv->task);
+}
+
+drv_status_t drv_task_stats_read(const drv_t *drv, uint32_t part, uint32_t offset, uint8_t *dst, uint32_t len)
+{
+    int r;
+    switch (part) {
+    case DRV_TASK_DATA: r = task_data_read(&drv->task, offset, dst, len); break;
+    case DRV_TASK_DESIGN: r = task_design_read(&drv->task, offset, dst, len); break;
+    case DRV_TASK_LAST_DATA: r = task_latch_data_read(&drv->task, offset, dst, len); break;
+    case DRV_TASK_LAST_DESIGN: r = task_latch_design_read(&drv->task, offset, dst, len); break;
+    default: return DRV_E_NO_PARAM;
+    }
+    return r == 0 ? DRV_OK : DRV_E_LENGTH;
 }

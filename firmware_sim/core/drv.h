@@ -193,4 +193,15 @@ drv_status_t drv_lines_read(const drv_t *drv, uint32_t offset, uint8_t *dst, uin
 uint32_t drv_line_stats_size_bytes(drv_t *drv);
 drv_status_t drv_line_stats_read(drv_t *drv, uint32_t offset, uint8_t *dst, uint32_t len);
 
+/* ---- The repeated task (core/task.h, issue 26; objects 0x2060-0x2062) ----
+ * With TASK_MODE != 0 a run plays the task instead of the excitation (EXC_KIND must be 0):
+ * EXC_SETTLE_PERIODS + EXC_RECORD_PERIODS repetitions of TASK_PERIOD samples, the reference
+ * at the set-point plus the task's offset, K_a a_r added to the plant input; at the end (or
+ * an abort) the set-point moves to the last reference (no jump back). The statistics
+ * (DRV_TASK_*): data or design part of the run's recorded repetitions (valid after the run),
+ * or of the last completed one alone (latched at its end, valid while the run goes on). */
+enum { DRV_TASK_DATA = 0, DRV_TASK_DESIGN = 1, DRV_TASK_LAST_DATA = 2, DRV_TASK_LAST_DESIGN = 3 };
+uint32_t drv_task_stats_size_bytes(const drv_t *drv, uint32_t part);
+drv_status_t drv_task_stats_read(const drv_t *drv, uint32_t part, uint32_t offset, uint8_t *dst, uint32_t len);
+
 #endif /* DRV_H */

@@ -14,6 +14,7 @@
 #include "rec.h"
 #include "run.h"
 #include "stat.h"
+#include "task.h"
 
 typedef struct {
     ctl_t ctl;
@@ -51,6 +52,7 @@ typedef struct {
      * the background from the recorder (STAT_LINE_SATURATED) */
     uint32_t sat_scanned;    /* recorded samples looked at */
     uint32_t sat_samples;    /* of them with |u| >= u_max */
+    task_t task;             /* the repeated task and its statistics (task.h, issue 26) */
 } drv_t;
 
 #endif /* DRV_STATE_H */

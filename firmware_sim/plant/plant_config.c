@@ -47,6 +47,22 @@ static const pc_key_t PC_KEYS[] = {
     PC_U("sensor", "counts_per_rev", plant.counts_per_rev, 0.0, 4294967295.0),
     PC_F("sensor", "noise_std", plant.noise_std, 0.0, 1.0),
     {"sensor", "seed", PC_U64, offsetof(plant_config_t, plant.seed), 0.0, 18446744073709551615.0},
+    PC_F("drift", "coulomb_step", drift_coulomb.step, -0.9, 10.0),
+    PC_F("drift", "coulomb_step_time_s", drift_coulomb.step_time_s, 0.0, 1e9),
+    PC_F("drift", "coulomb_ramp", drift_coulomb.ramp, -0.9, 10.0),
+    PC_F("drift", "coulomb_ramp_start_s", drift_coulomb.ramp_start_s, 0.0, 1e9),
+    PC_F("drift", "coulomb_ramp_end_s", drift_coulomb.ramp_end_s, 0.0, 1e9),
+    PC_F("drift", "coulomb_exp", drift_coulomb.exp, -0.9, 10.0),
+    PC_F("drift", "coulomb_exp_start_s", drift_coulomb.exp_start_s, 0.0, 1e9),
+    PC_F("drift", "coulomb_exp_tau_s", drift_coulomb.exp_tau_s, 1e-3, 1e9),
+    PC_F("drift", "viscous_step", drift_viscous.step, -0.9, 10.0),
+    PC_F("drift", "viscous_step_time_s", drift_viscous.step_time_s, 0.0, 1e9),
+    PC_F("drift", "viscous_ramp", drift_viscous.ramp, -0.9, 10.0),
+    PC_F("drift", "viscous_ramp_start_s", drift_viscous.ramp_start_s, 0.0, 1e9),
+    PC_F("drift", "viscous_ramp_end_s", drift_viscous.ramp_end_s, 0.0, 1e9),
+    PC_F("drift", "viscous_exp", drift_viscous.exp, -0.9, 10.0),
+    PC_F("drift", "viscous_exp_start_s", drift_viscous.exp_start_s, 0.0, 1e9),
+    PC_F("drift", "viscous_exp_tau_s", drift_viscous.exp_tau_s, 1e-3, 1e9),
 };
 #define PC_NKEYS (sizeof PC_KEYS / sizeof PC_KEYS[0])
 
@@ -78,6 +94,25 @@ void plant_config_defaults(plant_config_t *cfg)
     cfg->plant.counts_per_rev = 2000u;
     cfg->plant.noise_std = 0.0;
     cfg->plant.seed = 1u;
+    cfg->drift_coulomb.exp_tau_s = 60.0;
+    cfg->drift_viscous.exp_tau_s = 60.0;
+}
+
+double plant_drift_factor(const plant_drift_t *d, double t_s)
+{
+    double m = 1.0;
+    if (d->step != 0.0 && t_s >= d->step_time_s) {
+        m *= 1.0 + d->step;
+    }
+    if (d->ramp != 0.0 && t_s > d->ramp_start_s) {
+        double span = d->ramp_end_s - d->ramp_start_s;
+        double x = (span > 0.0 && t_s < d->ramp_end_s) ? (t_s - d->ramp_start_s) / span : 1.0;
+        m *= 1.0 + d->ramp * x;
+    }
+    if (d->exp != 0.0 && t_s > d->exp_start_s) {
+        m *= 1.0 + d->exp * (1.0 - exp(-(t_s - d->exp_start_s) / d->exp_tau_s));
+    }
+    return m;
 }
 
 static char *pc_trim(char *s)
@@ -203,7 +238,7 @@ int plant_config_load(const char *path, plant_config_t *out, char *err, size_t e
                 known |= strcmp(PC_KEYS[i].section, name) == 0;
             }
             if (!known) {
-                snprintf(msg, sizeof msg, "unknown section '%s' (drive, controller, plant, sensor)", name);
+                snprintf(msg, sizeof msg, "unknown section '%s' (drive, controller, plant, sensor, drift)", name);
                 rc = -1;
                 break;
             }
@@ -245,6 +280,12 @@ int plant_config_load(const char *path, plant_config_t *out, char *err, size_t e
     fclose(f);
     if (rc != 0) {
         snprintf(err, errlen, "%s:%d: %s", path, lineno, msg);
+        return -1;
+    }
+    if (cfg.drift_coulomb.ramp_end_s < cfg.drift_coulomb.ramp_start_s ||
+        cfg.drift_viscous.ramp_end_s < cfg.drift_viscous.ramp_start_s) {
+        snprintf(err, errlen, "%s: drift: a ramp's end (%s_ramp_end_s) before its start", path,
+                 cfg.drift_coulomb.ramp_end_s < cfg.drift_coulomb.ramp_start_s ? "coulomb" : "viscous");
         return -1;
     }
     if (plant_check_params(&cfg.plant, msg, sizeof msg) != 0) {

@@ -18,6 +18,20 @@
 
 #include "plant.h"
 
+/* Friction drift of the simulated plant (section `drift:`, issue 26): the Coulomb level
+ * (with the static level) and the viscous coefficient are the configured values times
+ *   m(t) = (1 + step H(t - step_time)) (1 + ramp clamp((t - ramp_start) / (ramp_end - ramp_start), 0, 1))
+ *          (1 + exp (1 - e^(-(t - exp_start) / exp_tau)) H(t - exp_start))
+ * of the simulated time t [s] (relative changes; all 0: no drift). */
+typedef struct {
+    double step, step_time_s;
+    double ramp, ramp_start_s, ramp_end_s;
+    double exp, exp_start_s, exp_tau_s;
+} plant_drift_t;
+
+/* m(t) of one drift profile (1 when all changes are 0). */
+double plant_drift_factor(const plant_drift_t *d, double t_s);
+
 typedef struct {
     /* drive: */
     double fs_hz;            /* controller rate */
@@ -27,6 +41,8 @@ typedef struct {
     double kp, kd, tau_d, kfc, kv, fc_smooth, u_max;
     /* plant: + sensor: */
     plant_params_t plant;
+    /* drift: (coulomb_*, viscous_*) */
+    plant_drift_t drift_coulomb, drift_viscous;
 } plant_config_t;
 
 void plant_config_defaults(plant_config_t *cfg);

@@ -1,6 +1,7 @@
 /* sim.c - see sim.h. Host only. */
 #include "sim.h"
 
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -43,6 +44,9 @@ int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table
         }
     }
     sim->dt = 1.0 / (double)sim->storage.fs_hz;
+    sim->drift = cfg->drift_coulomb.step != 0.0 ||
+                 cfg->drift_coulomb.ramp != 0.0 || cfg->drift_coulomb.exp != 0.0 || cfg->drift_viscous.step != 0.0 ||
+                 cfg->drift_viscous.ramp != 0.0 || cfg->drift_viscous.exp != 0.0;
     /* prime the drive with the first measurement so that enabling holds the true position */
     double m1, m2;
     plant_measure(&sim->plant, &m1, &m2);
@@ -108,8 +112,29 @@ plant_t *sim_plant(sim_t *sim)
     return &sim->plant;
 }
 
+/* Friction drift (plant_config.h, issue 26): the plant's friction follows the configured
+ * profiles of the simulated time. The viscous term enters the exact-ZOH matrices: they are
+ * recomputed only when it has changed by more than 1e-6 relative since the last time. */
+static void sim_drift(sim_t *sim)
+{
+    const plant_config_t *c = &sim->cfg;
+    plant_t *pl = &sim->plant;
+    double mc = plant_drift_factor(&c->drift_coulomb, pl->t);
+    pl->p.coulomb = c->plant.coulomb * mc;
+    pl->p.stat = c->plant.stat * mc;
+    double mv = plant_drift_factor(&c->drift_viscous, pl->t);
+    double bv = c->plant.viscous * mv;
+    if (fabs(bv - pl->p.viscous) > 1e-6 * fabs(pl->p.viscous) + 1e-300) {
+        pl->p.viscous = bv;
+        pl->fast_dt = 0.0; /* rediscretise at the next fast step */
+    }
+}
+
 float sim_step(sim_t *sim)
 {
+    if (sim->drift) {
+        sim_drift(sim);
+    }
     double m1, m2;
     plant_measure(&sim->plant, &m1, &m2);
     drv_meas_t meas = {(float)m1, (float)m2};

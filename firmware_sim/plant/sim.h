@@ -29,6 +29,7 @@ typedef struct {
     drv_storage_t storage;
     double dt;               /* 1/fs */
     uint64_t steps;          /* controller steps so far */
+    int drift;               /* the config has a friction drift (sim_step applies it) */
     float *owned_rec;        /* buffers allocated by sim_new (NULL with sim_init) */
     float *owned_table;
     float table_stage[DRV_TABLE_MAX]; /* the drive's download staging buffer */

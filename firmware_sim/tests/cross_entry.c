@@ -47,6 +47,11 @@ void cross_entry(void)
     (void)drv_lines_read(&cross_drv, 0u, cross_bytes, 4u);
     (void)drv_line_stats_size_bytes(&cross_drv);
     (void)drv_line_stats_read(&cross_drv, 0u, cross_bytes, 8u);
+    (void)drv_set_u32(&cross_drv, DRV_P_TASK_MODE, 1u); /* the task (issue 26) */
+    (void)drv_run_start(&cross_drv);
+    (void)drv_step(&cross_drv, &m);
+    (void)drv_task_stats_size_bytes(&cross_drv, DRV_TASK_DESIGN);
+    (void)drv_task_stats_read(&cross_drv, DRV_TASK_LAST_DATA, 0u, cross_bytes, 8u);
     drv_get_monitor(&cross_drv, &mon);
     (void)drv_fault(&cross_drv);
     drv_run_abort(&cross_drv, DRV_STOP_ABORT_CMD);

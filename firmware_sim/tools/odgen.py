@@ -140,7 +140,9 @@ ACCESS = {"ro": 1, "const": 1, "wo": 2, "rw": 3}
 NODEID_RE = re.compile(r"^\s*\$NODEID\s*\+\s*(0x[0-9A-Fa-f]+|\d+)\s*$")
 HOOK_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 DOMAINS = {"table": "CO_DOMAIN_TABLE", "recorder": "CO_DOMAIN_RECORDER", "stats": "CO_DOMAIN_STATS",
-           "stat_lines": "CO_DOMAIN_STAT_LINES", "line_stats": "CO_DOMAIN_LINE_STATS"}
+           "stat_lines": "CO_DOMAIN_STAT_LINES", "line_stats": "CO_DOMAIN_LINE_STATS",
+           "task_data": "CO_DOMAIN_TASK_DATA", "task_design": "CO_DOMAIN_TASK_DESIGN",
+           "task_last_data": "CO_DOMAIN_TASK_LAST_DATA", "task_last_design": "CO_DOMAIN_TASK_LAST_DESIGN"}
 
 
 def parse_default(value, typ, where):

@@ -284,3 +284,21 @@ void drv_get_monitor(const drv_t *d, drv_monitor_t *m)
 }
 
 bool drv_fault(const drv_t *d) { return d->fault; }
+
+/* task statistics (issue 26): header + synthetic bytes, design 296 / data 200 bytes */
+uint32_t drv_task_stats_size_bytes(const drv_t *d, uint32_t part)
+{
+    (void)d;
+    return (part & 1u) ? 296u : 200u;
+}
+
+drv_status_t drv_task_stats_read(const drv_t *d, uint32_t part, uint32_t off, uint8_t *dst, uint32_t len)
+{
+    if ((uint64_t)off + len > drv_task_stats_size_bytes(d, part)) {
+        return DRV_E_LENGTH;
+    }
+    for (uint32_t i = 0; i < len; i++) {
+        dst[i] = rec_byte(off + i);
+    }
+    return DRV_OK;
+}

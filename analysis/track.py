@@ -1,0 +1,401 @@
+"""Tracking friction from the machine's own repeated task (issue 26, docs/track.md).
+
+The drive plays its task (point-to-point moves with a third-order profile and dwell) and
+sums, per block of a repetition, the products of the reference-derived regressors
+
+    phi = [p, n, v_r, a_r],  p = max(s, 0), n = min(s, 0), s = sgn(v_r) as the feed-forward uses it
+
+with themselves (the *design* part) and with the plant input u (the *data* part), plus
+sum e^2 and sum u^2 (firmware_sim/core/task.h, objects 0x2061 / 0x2062). The model is
+
+    u = F_+ p + F_- n + b v_r + m a_r + (feedback of noise, model error)
+
+(F_+ and F_- the Coulomb levels of the two directions as input voltage, b the viscous
+coefficient, m = J / k_m the inertia). The regressors depend on the reference only: they are
+the instruments of an instrumental-variable estimator (here Z = Phi), so measurement noise,
+which enters u through the feedback and is uncorrelated with the reference, does not bias
+the estimate. The closed loop does bias it while the feed-forward is wrong (the feedback
+supplies the missing torque late, through the loop's bandwidth); the bias vanishes as the
+feed-forward (K_fc, K_v and the task's mass feed-forward K_a) approaches the plant, so the
+estimate is iterated task by task (iterative feed-forward tuning) and its fixed point is the
+plant's friction. K_fc = (F_+ + F_-) / 2; (F_+ - F_-) / 2 is a constant load torque (or the
+friction's asymmetry), which a task that never reverses cannot tell from Coulomb friction.
+
+Uncertainty: delete-one-block jackknife over the blocks of the repetition (the blocks hold
+different parts of the motion, so the spread includes model error that differs between
+them, not only noise).
+
+Pure numpy; no CAN code. The tracking policy (bounded updates, rollback, named stops) is
+:class:`Tracker`.
+"""
+import math
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fftune.analysis.errors import FftuneError
+
+TASK_HEADER_BYTES = 8
+DESIGN_NAMES = ("pp", "nn", "pv", "pa", "nv", "na", "vv", "va", "aa")
+DATA_NAMES = ("pu", "nu", "vu", "au", "ee", "uu")
+PARAM_NAMES = ("fc_pos", "fc_neg", "kv", "ka")
+# identifiability limits (documented in docs/track.md)
+COND_LIMIT = 1.0e6          # condition number of the correlation-normalised design matrix
+KV_UNIQUE_MIN = 0.02        # fraction of v_r's energy not explained by p, n, a_r needed for K_v
+
+
+class NotIdentifiable(FftuneError):
+    """The task's data cannot determine the estimate; ``cause`` names why (a short key)."""
+
+    def __init__(self, cause, message):
+        super().__init__(message)
+        self.cause = cause
+
+
+@dataclass
+class TaskStats:
+    """One task run's statistics (objects 0x2062 and 0x2061).
+
+    Attributes
+    ----------
+    repetitions : int
+        Recorded repetitions the sums cover.
+    samples : int
+        Samples per repetition.
+    design : ndarray, shape (B, 9)
+        Per block: pp nn pv pa nv na vv va aa (float64 of the drive's float32).
+    data : ndarray, shape (B, 6)
+        Per block: pu nu vu au ee uu.
+    """
+
+    repetitions: int
+    samples: int
+    design: np.ndarray
+    data: np.ndarray
+
+    @property
+    def blocks(self):
+        return self.design.shape[0]
+
+    @property
+    def total_samples(self):
+        return self.repetitions * self.samples
+
+
+def _parse(raw, nsums, what):
+    raw = bytes(raw)
+    if len(raw) < TASK_HEADER_BYTES or (len(raw) - TASK_HEADER_BYTES) % (4 * nsums):
+        raise FftuneError(f"task statistics {what}: {len(raw)} bytes is not an 8-byte header plus "
+                          f"blocks of {nsums} float32 sums")
+    reps, samples = struct.unpack_from("<II", raw, 0)
+    vals = np.frombuffer(raw, dtype="<f4", offset=TASK_HEADER_BYTES).astype(np.float64)
+    return reps, samples, vals.reshape(-1, nsums)
+
+
+def parse_task_stats(design_raw, data_raw):
+    """The drive's task statistics from the uploads of 0x2062 (design) and 0x2061 (data).
+
+    Raises
+    ------
+    FftuneError
+        Malformed data, parts of different runs, no repetition recorded, non-finite sums.
+    """
+    r1, n1, design = _parse(design_raw, len(DESIGN_NAMES), "design (0x2062)")
+    r2, n2, data = _parse(data_raw, len(DATA_NAMES), "data (0x2061)")
+    if design.shape[0] != data.shape[0] or (r1, n1) != (r2, n2):
+        raise FftuneError(f"task statistics: design ({r1} repetitions of {n1} samples, {design.shape[0]} blocks) "
+                          f"and data ({r2} of {n2}, {data.shape[0]} blocks) do not belong to one run")
+    if r1 == 0 or n1 == 0:
+        raise FftuneError("task statistics: no repetition recorded (the run did not finish one)")
+    for name, arr in (("design", design), ("data", data)):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            b, k = np.argwhere(bad)[0]
+            names = DESIGN_NAMES if name == "design" else DATA_NAMES
+            raise FftuneError(f"task statistics {name}: block {b} sum {names[k]} is not finite")
+    return TaskStats(repetitions=int(r1), samples=int(n1), design=design, data=data)
+
+
+def normal_matrix(design_row):
+    """The 4 x 4 matrix Phi^T Phi (order p, n, v, a) of one block's design sums."""
+    pp, nn, pv, pa, nv, na, vv, va, aa = design_row
+    return np.array([[pp, 0.0, pv, pa],
+                     [0.0, nn, nv, na],
+                     [pv, nv, vv, va],
+                     [pa, na, va, aa]])
+
+
+def _blocks(stats):
+    A = np.array([normal_matrix(d) for d in stats.design])
+    c = stats.data[:, :4].copy()
+    return A, c
+
+
+@dataclass
+class TaskEstimate:
+    """Friction (and inertia) estimated from one task run, input-voltage units.
+
+    ``k_fc`` = (F_+ + F_-) / 2 [V]; ``offset`` = (F_+ - F_-) / 2 [V]; ``k_v`` [V s/rad]
+    (the held value when ``k_v_identified`` is False); ``k_a`` [V s^2/rad]; sigmas from the
+    delete-one-block jackknife; ``rms_error`` [rad] the tracking error, ``rms_residual`` [V]
+    of the fit; ``condition`` of the normalised design matrix.
+    """
+
+    k_fc: float
+    k_fc_sigma: float
+    k_v: float
+    k_v_sigma: float
+    k_a: float
+    k_a_sigma: float
+    offset: float
+    offset_sigma: float
+    rms_error: float
+    rms_residual: float
+    condition: float
+    k_v_identified: bool
+    samples: int
+
+
+def _check_identifiable(A):
+    pp, nn, aa = A[0, 0], A[1, 1], A[3, 3]
+    if not pp > 0:
+        raise NotIdentifiable("no_forward", "the task never moves forward (no sample with a positive "
+                                            "reference velocity): Coulomb friction needs both directions")
+    if not nn > 0:
+        raise NotIdentifiable("no_reversal", "the task never reverses direction (no sample with a negative "
+                                             "reference velocity): its Coulomb level cannot be told from a "
+                                             "constant load torque; give the task a move back")
+    if not aa > 0:
+        raise NotIdentifiable("no_acceleration", "the task never accelerates: the inertia cannot be separated")
+
+
+def _kv_unique_fraction(A):
+    """Fraction of v_r's energy not explained by p, n, a_r (1 - R^2 of v on them)."""
+    try:
+        inv = np.linalg.inv(_normalise(A)[0])
+    except np.linalg.LinAlgError:
+        return 0.0
+    return float(1.0 / inv[2, 2])
+
+
+def _normalise(A):
+    d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
+    return A / np.outer(d, d), d
+
+
+def _solve(A, c, cols):
+    sub = np.ix_(cols, cols)
+    return np.linalg.solve(A[sub], c[cols])
+
+
+def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_UNIQUE_MIN, hold_k_v=False):
+    """Estimate K_fc (and K_v, K_a) with sigmas from one task run's statistics.
+
+    Parameters
+    ----------
+    stats : TaskStats
+    k_v_hold : float
+        K_v [V s/rad] assumed when the task does not excite the viscous term separately from
+        the Coulomb one (its velocity is nearly +-constant): the estimate then fixes b there.
+    cond_limit : float
+        Largest condition number of the correlation-normalised design matrix accepted.
+    kv_unique_min : float
+        Least fraction of v_r's energy not explained by p, n, a_r for estimating K_v.
+    hold_k_v : bool
+        Fix b at ``k_v_hold`` whatever the task (K_v not tracked).
+
+    Returns
+    -------
+    TaskEstimate
+
+    Raises
+    ------
+    NotIdentifiable
+        The task cannot determine K_fc (never reverses, never moves forward, collinear
+        regressors, too few blocks for an uncertainty); ``cause`` names it.
+    """
+    A_b, c_b = _blocks(stats)
+    A, c = A_b.sum(axis=0), c_b.sum(axis=0)
+    _check_identifiable(A)
+    kv_ok = not hold_k_v and _kv_unique_fraction(A) >= kv_unique_min
+    cols = [0, 1, 2, 3] if kv_ok else [0, 1, 3]
+    if not kv_ok:  # u - b v_r on p, n, a_r
+        c = c - k_v_hold * A[:, 2]
+        c_b = c_b - k_v_hold * A_b[:, :, 2]
+    An, _ = _normalise(A[np.ix_(cols, cols)])
+    cond = float(np.linalg.cond(An))
+    if not np.isfinite(cond) or cond > cond_limit:
+        raise NotIdentifiable("collinear", f"the task's regressors are nearly collinear (condition number "
+                                           f"{cond:.3g} > {cond_limit:.3g}): the friction terms cannot be separated")
+    theta = np.zeros(4)
+    theta[cols] = _solve(A, c, cols)
+    if not kv_ok:
+        theta[2] = k_v_hold
+    # delete-one-block jackknife
+    G = stats.blocks
+    loo = []
+    for g in range(G):
+        Ag, cg = A - A_b[g], c - c_b[g]
+        try:
+            if min(Ag[0, 0], Ag[1, 1], Ag[3, 3]) <= 0:
+                raise np.linalg.LinAlgError
+            th = np.zeros(4)
+            th[cols] = _solve(Ag, cg, cols)
+        except np.linalg.LinAlgError:
+            raise NotIdentifiable("one_block", f"one of the {G} blocks of the task holds all of a "
+                                               f"regressor's samples: no uncertainty can be given") from None
+        loo.append(th)
+    loo = np.array(loo)
+    var = (G - 1) / G * ((loo - loo.mean(axis=0)) ** 2).sum(axis=0)
+    fc = 0.5 * (theta[0] + theta[1])
+    fc_loo = 0.5 * (loo[:, 0] + loo[:, 1])
+    off_loo = 0.5 * (loo[:, 0] - loo[:, 1])
+    jk = lambda x: math.sqrt((G - 1) / G * float(((x - x.mean()) ** 2).sum()))
+    n = stats.total_samples
+    uu = float(stats.data[:, 5].sum())
+    full_c = stats.data[:, :4].sum(axis=0)
+    resid2 = uu - 2.0 * theta @ full_c + theta @ A @ theta
+    return TaskEstimate(
+        k_fc=float(fc), k_fc_sigma=jk(fc_loo),
+        k_v=float(theta[2]), k_v_sigma=float(math.sqrt(var[2])) if kv_ok else 0.0,
+        k_a=float(theta[3]), k_a_sigma=float(math.sqrt(var[3])),
+        offset=float(0.5 * (theta[0] - theta[1])), offset_sigma=jk(off_loo),
+        rms_error=math.sqrt(max(0.0, float(stats.data[:, 4].sum())) / n),
+        rms_residual=math.sqrt(max(0.0, resid2) / n),
+        condition=cond, k_v_identified=bool(kv_ok), samples=n)
+
+
+# ---- the tracking policy ----------------------------------------------------------------
+
+@dataclass
+class TrackSettings:
+    """Limits of the tracking policy (docs/track.md; ``track:`` keys of the configuration).
+
+    max_step_rel, max_step_abs : K_fc may change per update by at most
+        max(max_step_rel K_fc, max_step_abs) [V].
+    kv_max_step : largest K_v change per update [V s/rad].
+    ka_max_step_rel : largest K_a change per update relative to K_a (no limit while K_a = 0).
+    gain : fraction of the estimated correction applied (1: all of it).
+    rollback_ratio : the tracking error rms of the task after an update above this times
+        the one before it (and above rollback_min_rms_rad) undoes the update, if that update
+        changed K_fc by more than rollback_min_step_rel of it (a smaller change cannot
+        explain the growth: the friction itself moved).
+    max_rollbacks : consecutive rollbacks before stopping.
+    max_sigma_rel : K_fc's sigma above this fraction of K_fc holds K_fc (K_a is still
+        updated if its sigma is within ka_max_sigma_rel of it: the mass feed-forward is what a
+        first task without it lacks most); max_uncertain such tasks in a row stop.
+    rms_limit_rad : tracking error rms above this stops (safety).
+    update_kv : track K_v where the task identifies it.
+    """
+
+    max_step_rel: float = 0.25
+    max_step_abs: float = 0.005
+    kv_max_step: float = 0.005
+    ka_max_step_rel: float = 0.5
+    gain: float = 1.0
+    rollback_ratio: float = 2.0
+    rollback_min_rms_rad: float = 1e-3
+    rollback_min_step_rel: float = 0.05
+    max_rollbacks: int = 3
+    max_sigma_rel: float = 0.2
+    ka_max_sigma_rel: float = 0.5
+    max_uncertain: int = 5
+    rms_limit_rad: float = 0.5
+    update_kv: bool = True
+
+
+@dataclass
+class Decision:
+    """What to do after a task: ``action`` 'update', 'hold', 'rollback' or 'stop'; the gains to
+    apply next; ``cause`` a short key and ``reason`` a sentence (stops, rollbacks, holds)."""
+
+    action: str
+    k_fc: float
+    k_v: float
+    k_a: float
+    cause: str = ""
+    reason: str = ""
+
+
+def _bounded(old, new, limit):
+    step = new - old
+    if limit is not None and abs(step) > limit:
+        step = math.copysign(limit, step)
+    return old + step
+
+
+@dataclass
+class Tracker:
+    """Bounded task-by-task updates of K_fc, K_v, K_a with rollback and named stops.
+
+    Call :meth:`after_task` with each task's estimate (or the NotIdentifiable it raised);
+    it returns the :class:`Decision` for the next task. State: the gains in effect, those
+    before the last update and the tracking error then.
+    """
+
+    k_fc: float
+    k_v: float
+    k_a: float
+    settings: TrackSettings = field(default_factory=TrackSettings)
+    _prev: tuple = None
+    _prev_rms: float = None
+    _last_action: str = "start"
+    _rollbacks: int = 0
+    _uncertain: int = 0
+
+    def _stop(self, cause, reason):
+        self._last_action = "stop"
+        return Decision("stop", self.k_fc, self.k_v, self.k_a, cause, reason)
+
+    def after_task(self, est):
+        """The decision after one task (est: TaskEstimate or NotIdentifiable)."""
+        s = self.settings
+        if isinstance(est, NotIdentifiable):
+            return self._stop(est.cause, str(est))
+        if not math.isfinite(est.rms_error) or est.rms_error > s.rms_limit_rad:
+            return self._stop("tracking_error", f"tracking error rms {est.rms_error:.3g} rad above the limit "
+                                                f"{s.rms_limit_rad:g} rad")
+        if (self._last_action == "update" and self._prev_rms is not None
+                and abs(self.k_fc - self._prev[0]) > s.rollback_min_step_rel * max(self._prev[0], 1e-12)
+                and est.rms_error > s.rollback_ratio * self._prev_rms
+                and est.rms_error > s.rollback_min_rms_rad):
+            self._rollbacks += 1
+            if self._rollbacks >= s.max_rollbacks:
+                return self._stop("rollbacks", f"{self._rollbacks} updates in a row raised the tracking error "
+                                               f"(last: rms {est.rms_error:.3g} rad after {self._prev_rms:.3g} rad)")
+            self.k_fc, self.k_v, self.k_a = self._prev
+            self._last_action = "rollback"
+            return Decision("rollback", self.k_fc, self.k_v, self.k_a, "error_grew",
+                            f"tracking error rms {est.rms_error:.3g} rad > {s.rollback_ratio:g} x "
+                            f"{self._prev_rms:.3g} rad before the last update: its gains restored")
+        fc_certain = est.k_fc_sigma <= s.max_sigma_rel * max(abs(est.k_fc), 1e-12)
+        ka_certain = est.k_a_sigma <= s.ka_max_sigma_rel * max(abs(est.k_a), 1e-12)
+        if not fc_certain:
+            self._uncertain += 1
+            if self._uncertain >= s.max_uncertain:
+                return self._stop("uncertain", f"K_fc {est.k_fc:.4g} V with sigma {est.k_fc_sigma:.3g} V "
+                                               f"(> {s.max_sigma_rel:.0%} of it) in {self._uncertain} tasks "
+                                               f"in a row: the task's data cannot tell it")
+        else:
+            self._uncertain = 0
+        if self._last_action != "rollback":
+            self._rollbacks = 0
+        self._prev = (self.k_fc, self.k_v, self.k_a)
+        self._prev_rms = est.rms_error
+        if not fc_certain:  # hold K_fc (and K_v); the inertia may still be learnt
+            if ka_certain:
+                lim_ka = s.ka_max_step_rel * self.k_a if self.k_a > 0 else None
+                self.k_a = max(0.0, _bounded(self.k_a, self.k_a + s.gain * (est.k_a - self.k_a), lim_ka))
+            self._last_action = "hold"
+            return Decision("hold", self.k_fc, self.k_v, self.k_a, "uncertain",
+                            f"K_fc sigma {est.k_fc_sigma:.3g} V > {s.max_sigma_rel:.0%} of {est.k_fc:.4g} V: held")
+        lim_fc = max(s.max_step_rel * self.k_fc, s.max_step_abs)
+        target = self.k_fc + s.gain * (est.k_fc - self.k_fc)
+        self.k_fc = max(0.0, _bounded(self.k_fc, target, lim_fc))
+        if s.update_kv and est.k_v_identified:
+            self.k_v = max(0.0, _bounded(self.k_v, self.k_v + s.gain * (est.k_v - self.k_v), s.kv_max_step))
+        lim_ka = s.ka_max_step_rel * self.k_a if self.k_a > 0 else None
+        self.k_a = max(0.0, _bounded(self.k_a, self.k_a + s.gain * (est.k_a - self.k_a), lim_ka))
+        self._last_action = "update"
+        return Decision("update", self.k_fc, self.k_v, self.k_a)
