@@ -20,6 +20,7 @@ bla_levels             -- robust BLA at several excitation levels.
 detect_excited_lines   -- excited DFT bins of a periodic multisine.
 robust_bla_spectra     -- the same from per-period spectra at the band's lines.
 robust_bla_moments     -- the same from line moments (a drive's line statistics).
+robust_bla_mimo        -- robust MIMO BLA: n_u inputs, M = B n_u realizations.
 LineMoments            -- per-realization means and (co)variances over periods at lines.
 classify_grid          -- which odd/even claims an excitation grid allows.
 level_verdict          -- the cause a level's detection supports (plant, saturation ...).
@@ -64,7 +65,7 @@ _LAZY = {
     "fftune.analysis.bla": ("BLALevels", "BLAResult", "TransientWarning", "bla_levels",
                             "classify_grid", "detect_excited_lines", "level_verdict",
                             "robust_bla", "robust_bla_spectra", "robust_bla_moments",
-                            "LineMoments"),
+                            "LineMoments", "robust_bla_mimo", "MimoBLAResult"),
     "fftune.analysis.capture": ("export_csv", "export_mat", "load_experiment", "read_run",
                                 "write_run"),
     "fftune.analysis.multisine": ("Multisine", "crest_factor", "design_multisine",
@@ -99,7 +100,9 @@ __all__ = [
     "classify_grid", "level_verdict", "BLAResult", "BLALevels",
     "TransientWarning",
     "hosidf", "HosidfResult",
+    "robust_bla_moments", "LineMoments", "robust_bla_mimo", "MimoBLAResult",
     "harmonic_stats", "parse_stats", "hosidf_from_stats", "HarmonicStats",
+    "LineStats", "parse_line_stats", "line_stats", "line_moments",
     "odd_ratio", "signed_odd_ratio", "RatioMinimizer", "SignedRootSearch", "TuningResult",
     "read_run", "write_run", "load_experiment", "export_mat", "export_csv",
     "FftuneError", "InputError",

@@ -5,6 +5,7 @@ realization (repeat after repeat for ``hosidf``), each with T + P periods of N s
 Bad input raises :class:`fftune.analysis.errors.InputError` (one line, exit code 2); outputs are
 written atomically and only after the analysis succeeded.
 """
+import argparse
 import json
 import os
 import sys
@@ -23,7 +24,6 @@ _CAPTURE_DEFAULTS = {"bla": {"u": "plant_input", "y": "motor_angle", "r": "refer
 
 
 def _positive_float(text):
-    import argparse
     try:
         value = float(text)
     except ValueError:
@@ -45,6 +45,15 @@ def _int_at_least(minimum):
             raise argparse.ArgumentTypeError(f"{value} must be >= {minimum}")
         return value
     return parse
+
+
+class _DeprecatedAlias(argparse.Action):
+    """Store the value and say on stderr that the option was renamed."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"fftune: warning: {option_string} is deprecated, use --settle-periods "
+              f"(the library's settle_periods)", file=sys.stderr)
+        setattr(namespace, self.dest, values)
 
 
 def add_parser(subparsers):
@@ -69,9 +78,13 @@ def add_parser(subparsers):
                             " (default: what the record holds after T)")
         q.add_argument("--realizations", type=_int_at_least(1), metavar="M",
                        help=what + "s M in the record (default: from the file, else 1)")
-        q.add_argument("--skip-periods", type=_int_at_least(0), metavar="T",
+        q.add_argument("--settle-periods", type=_int_at_least(0), metavar="T",
+                       dest="settle_periods",
                        help="settle periods T dropped at the start of each " + what +
-                            " (default: from the file, else 0)")
+                            " (the library's settle_periods; default: from the file, else 0)")
+        # the old name, kept working (deprecated: the library calls them settle_periods)
+        q.add_argument("--skip-periods", type=_int_at_least(0), dest="settle_periods",
+                       action=_DeprecatedAlias, help=argparse.SUPPRESS)
         q.add_argument("--experiment", metavar="KIND",
                        help="directory of captures: use only runs of this experiment "
                             "(detect, quantify, tune)")
@@ -89,6 +102,10 @@ def add_parser(subparsers):
     b.add_argument("--lines", metavar="FILE",
                    help="excited lines (integer DFT bins of one period) instead of detecting "
                         "them from the u (or r) spectrum")
+    b.add_argument("--y-step", type=_positive_float, metavar="Q", dest="y_step",
+                   help="quantisation step of y (e.g. an encoder's 2 pi / counts in rad): its "
+                        "periodic error is not taken for plant distortion. Default: found "
+                        "from y when its values lie on a grid")
     b.set_defaults(func=run_bla)
 
     h = sub.add_parser("hosidf", help="HOSIDF H_1..H_K of a sine experiment, mean/std over repeats")
@@ -146,15 +163,23 @@ def _select(loaded, args, kind):
 
 def _layout(loaded, args, n_samples, kind):
     fs = args.fs if args.fs is not None else loaded.fs_hz
+    if loaded.time_fs_hz is not None:
+        if fs is None:
+            fs = loaded.time_fs_hz
+        elif abs(fs - loaded.time_fs_hz) > 1e-3 * loaded.time_fs_hz:
+            given = "--fs" if args.fs is not None else "the file's fs_hz"
+            raise InputError(f"{loaded.path}: {given} {fs:g} Hz disagrees with the time column "
+                             f"{loaded.time_column!r} ({loaded.time_fs_hz:g} Hz from its "
+                             f"spacing)")
     if fs is None:
         raise InputError(f"{loaded.path}: sample rate unknown: give --fs HZ")
     lay = loaded.layout
     m = args.realizations or lay.get("realizations") or 1
-    t = args.skip_periods if args.skip_periods is not None else lay.get("settle_periods", 0)
+    t = args.settle_periods if args.settle_periods is not None else lay.get("settle_periods", 0)
     n = args.period or lay.get("n_period")
     p = args.periods
     if p is None and n is not None and "record_periods" in lay and lay.get("n_period") == n \
-            and args.skip_periods is None:
+            and args.settle_periods is None:
         p = lay["record_periods"]
     if n is None:
         if kind == "bla":
@@ -178,6 +203,28 @@ def _layout(loaded, args, n_samples, kind):
         raise InputError(f"{loaded.path}: wrong length: {n_samples} samples per signal, expected "
                          f"M x (T+P) x N = {m} x ({t}+{p}) x {n} = {m * (t + p) * n}")
     return float(fs), m, t, p, n
+
+
+def _matrix_order(loaded, columns, sig, n):
+    """MAT files: a matrix signal must hold whole periods along its first dimension
+    (MATLAB's N x P layout, read column after column as x(:)) or along its last (P x N,
+    read row after row); any other layout is refused, naming it."""
+    out = dict(sig)
+    for role, name in columns.items():
+        arr = loaded.matrices.get(name)
+        if arr is None:
+            continue
+        shape = " x ".join(str(d) for d in arr.shape)
+        if arr.shape[0] % n == 0:
+            continue                                   # columns: whole periods (x(:))
+        if arr.shape[-1] % n == 0:
+            out[role] = np.asarray(arr, dtype=np.float64).reshape(-1)      # rows: periods
+            continue
+        raise InputError(
+            f"{loaded.path}: {role} = {name!r} is a {shape} matrix and N = {n} samples per "
+            f"period fit neither its columns (MATLAB's N x P layout) nor its rows (P x N): "
+            f"store it as one vector, or as N x P")
+    return out
 
 
 def _clean(values):
@@ -272,6 +319,24 @@ def _fmt_db(value):
     return "n/a" if value is None else f"{value:+.1f} dB"
 
 
+def _print_bands(bands, parity):
+    """Per-octave table: median and maximum over the noise (a band median hides a strong
+    narrow-band nonlinearity)."""
+    def cell(c):
+        if c["median_re_noise_db"] is None:
+            return f"{c['lines']:3d} lines        n/a       "
+        return (f"{c['lines']:3d} lines {c['median_re_noise_db']:+6.1f} / "
+                f"{c['max_re_noise_db']:+6.1f} dB")
+    print("  per octave, non-excited lines re noise (lines, median / max):")
+    for b in bands:
+        head = f"    {b['f_lo_hz']:g} .. {b['f_hi_hz']:g} Hz".ljust(22)
+        if parity:
+            print(f"{head}  odd {cell(b['odd'])}  even {cell(b['even'])}  odd re even "
+                  f"{_fmt_db(b['odd_re_even_db'])}")
+        else:
+            print(f"{head}  {cell(b['nonexcited'])}")
+
+
 def run_bla(args):
     """``fftune analyze bla``."""
     from fftune.analysis.bla import robust_bla
@@ -281,12 +346,21 @@ def run_bla(args):
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "bla")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "bla")
+    sig = _matrix_order(loaded, columns, sig, n)
     lines = load_lines(args.lines) if args.lines else None
     shaped = {k: v.reshape(m, t + p, n) for k, v in sig.items()}
+    q, q_note = args.y_step, None
+    if q is None:
+        from fftune.analysis.bla import estimate_quantisation_step
+        q = estimate_quantisation_step(shaped["y"])
+        if q is not None:
+            q_note = f"quantisation step of y found from its values: {q:.6g} (--y-step Q to set it)"
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = robust_bla(shaped["u"], shaped["y"], shaped.get("r"), fs=fs, settle_periods=t,
-                         excited_bins=lines)
+                         excited_bins=lines, y_quantisation_step=q)
+    if q_note:
+        res.notes.append(q_note)
     document = bla_to_json(res)
     plot_dir = _plot_dir(args.plot) if args.plot else None
     if args.json:
@@ -294,7 +368,7 @@ def run_bla(args):
     if plot_dir:
         from fftune.analysis import plots
         plots.plot_output_spectrum(res, plot_dir / "bla_output_spectrum.png")
-        plots.plot_bla(res, plot_dir / "bla_frf.png")
+        plots.plot_bla(res, plot_dir / "bla_frf.png", g_unit=f"{columns['y']}/{columns['u']}")
     for w in caught:
         print(f"fftune: warning: {w.message}", file=sys.stderr)
     s = res.summary
@@ -309,19 +383,26 @@ def run_bla(args):
     frac = s["line_fraction_nl_over_noise_6db"]
     print(f"    lines with nonlinear > noise + 6 dB: "
           f"{'n/a' if frac is None else f'{100 * frac:.0f} %'}")
+    if s["excited_detected"] is not None:
+        print(f"    excited lines var_total re var_noise: "
+              f"{_fmt_db(s['excited_line_median_re_noise_db'])} "
+              f"({s['excited_lines_over_noise_6db']} of {s['excited_lines']} lines 6 dB over, "
+              f"{s['excited_lines_needed']} needed)")
     if s["parity_classifiable"]:
         for kind in ("odd", "even"):
             over = s[f"{kind}_lines_over_noise_6db"]
             print(f"    {(kind + ' non-excited re noise').ljust(30)}: "
                   f"{_fmt_db(s[f'{kind}_line_median_re_noise_db'])} "
                   f"({'n/a' if over is None else over} of {s[f'{kind}_lines']} lines 6 dB over)")
-        print(f"    odd re even                   : {_fmt_db(s['line_median_odd_re_even_db'])}")
+        print(f"    odd re even (power ratio)     : {_fmt_db(s['odd_re_even_db'])}")
     else:
         over = s["nonexcited_lines_over_noise_6db"]
         print(f"    non-excited re noise          : "
               f"{_fmt_db(s['nonexcited_line_median_re_noise_db'])} "
               f"({'n/a' if over is None else over} of {s['nonexcited_lines']} lines 6 dB over; "
               f"no odd/even split with this grid)")
+    if s.get("bands"):
+        _print_bands(s["bands"], s["parity_classifiable"])
     print(f"  verdict: {document['verdict']['text']}")
     for note in res.notes:
         print(f"  note: {note}")
@@ -337,6 +418,7 @@ def run_hosidf(args):
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "hosidf")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "hosidf")
+    sig = _matrix_order(loaded, columns, sig, n)
     u = sig["u"].reshape(m, t + p, n)[:, t:, :]
     y = sig["y"].reshape(m, t + p, n)[:, t:, :]
     res = hosidf(u, y, fs=fs, n_harmonics=args.harmonics)

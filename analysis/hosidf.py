@@ -78,7 +78,7 @@ def _check_layout(name, x):
     return x
 
 
-def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
+def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2, other_line_tol=0.1):
     """HOSIDFs H_1 .. H_K from sine experiments, mean and std over repeats.
 
     Parameters
@@ -99,6 +99,11 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
         the DFT grid (a sine off by d bins raises them to about d / (1 -+ d)). Not
         checked for a sine of one period per block (its neighbours are DC and the
         second harmonic): give ``f0`` there.
+    other_line_tol : float
+        The input must be one sine: a record with another input line (not a harmonic of
+        f0) above ``other_line_tol`` times the sine's magnitude, or a harmonic of f0 above
+        half of it, is rejected (a multisine is not a sine: its other excited lines
+        would be read as harmonics of the lowest one).
 
     Returns
     -------
@@ -107,8 +112,8 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
     Raises
     ------
     InputError
-        Bad layout, NaN/inf, zero input, sine off the DFT grid, repeats at different
-        frequencies, harmonics beyond Nyquist.
+        Bad layout, NaN/inf, zero input, an input that is not one sine, sine off the DFT
+        grid, repeats at different frequencies, harmonics beyond Nyquist.
     """
     u = _check_layout("input u", u)
     y = _check_layout("output y", y)
@@ -163,13 +168,14 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
             raise InputError(
                 f"input u: the sine at {f0_arr[idx]:g} Hz (record {idx}) is not on a DFT "
                 f"line: f0 N / fs = {exact[idx]:.6g} is not an integer (N = {n}, fs = {fs:g} Hz)")
+    _check_one_sine(np.abs(U), k0, other_line_tol, fs, n)
     if k0.ndim and np.any(k0 != k0[..., :1]):
         raise InputError("input u: the repeats of one experiment have sines at different "
                          "frequencies")
     if np.any(k0 * n_harmonics >= n / 2):
         worst = int(k0.max())
         raise InputError(f"harmonic K = {n_harmonics} of the sine at {worst * fs / n:g} Hz lies "
-                         f"at or above fs/2 = {fs / 2:g} Hz: lower --harmonics")
+                         f"at or above fs/2 = {fs / 2:g} Hz: ask for fewer harmonics K")
 
     U1 = np.take_along_axis(U, k0[..., None], axis=-1)[..., 0]
     del U
@@ -177,6 +183,31 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2):
     Yk = np.take_along_axis(Y, k0[..., None] * np.arange(1, n_harmonics + 1), axis=-1)
     del Y
     return hosidf_from_lines(U1, Yk, k0[..., 0], n=n, n_blocks=n_blocks, fs=fs)
+
+
+def _check_one_sine(mag, k0, tol, fs, n):
+    """InputError unless each record's input is one sine at bin k0: every other line
+    (DC and the Nyquist line excepted) stays under ``tol`` of the sine's magnitude, its
+    harmonics under 0.5 (a distorted sine is still a sine)."""
+    lines = mag[..., 1:n // 2]                    # bins 1 .. N/2 - 1
+    k = np.arange(1, lines.shape[-1] + 1)
+    peak = np.take_along_axis(mag, k0[..., None], axis=-1)
+    rel = lines / np.where(peak > 0, peak, np.inf)
+    harmonic = (k % k0[..., None]) == 0
+    limit = np.where(harmonic, 0.5, tol)
+    limit = np.where(k == k0[..., None], np.inf, limit)
+    bad = rel > limit
+    if not bad.any():
+        return
+    idx = tuple(int(i) for i in np.argwhere(bad.any(axis=-1))[0])
+    worst = int(np.argmax(np.where(bad[idx], rel[idx], 0.0)))
+    count = int(bad[idx].sum())
+    raise InputError(
+        f"input u: not one sine: record {idx} has {count} other input line(s) comparable to "
+        f"the one at {k0[idx] * fs / n:g} Hz (the largest at {k[worst] * fs / n:g} Hz, "
+        f"{20 * np.log10(rel[idx][worst]):+.1f} dB re it; allowed "
+        f"{20 * np.log10(tol):.0f} dB): the HOSIDF needs a single-sine input (a multisine "
+        f"record is analysed with the BLA)")
 
 
 def hosidf_from_lines(U1, Yk, bins, *, n, n_blocks, fs):

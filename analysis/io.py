@@ -1,9 +1,10 @@
 """Load measured signals for the offline analysis: CSV, NPZ, MAT and capture files.
 
-Every loader returns :class:`LoadedSignals`: named 1-D float64 signals (multi-dimensional
-arrays are flattened in C order, i.e. row after row) plus what the file says about the
-layout (sample rate, samples per period ...). Errors name the file, and for CSV the line
-and column.
+Every loader returns :class:`LoadedSignals`: named 1-D float64 signals (NPZ arrays are
+flattened in C order, i.e. row after row; MATLAB matrices column after column, MATLAB's
+own x(:), and kept in ``matrices`` so that the CLI can check the layout against N) plus
+what the file says about the layout (sample rate, samples per period ...). Errors name the
+file, and for CSV the line and column.
 """
 import csv
 import io as _io
@@ -32,12 +33,22 @@ class LoadedSignals:
         in NPZ/MAT; the metadata comment of an exported CSV).
     layout : dict
         n_period, settle_periods, record_periods, realizations if the file states them.
+    matrices : dict of str -> ndarray
+        MAT files: the signals that were matrices (2-D or more), as read (the CLI picks
+        the order that puts whole periods together, or refuses).
+    time_column : str or None
+        CSV: the time column (``t``, ``time``, ``time_s``, ``t_s``), if there is one.
+    time_fs_hz : float or None
+        The sample rate its spacing gives (1 / median spacing).
     """
 
     path: Path
     signals: dict
     fs_hz: float = None
     layout: dict = field(default_factory=dict)
+    matrices: dict = field(default_factory=dict)
+    time_column: str = None
+    time_fs_hz: float = None
 
 
 def _finite_or_raise(path, name, arr):
@@ -164,8 +175,25 @@ def load_csv(path):
                          f"NaN or inf")
     signals = {name: table[:, j].copy() for j, name in enumerate(header)}
     fs = meta.get("fs_hz")
+    time_column, time_fs = _time_column(path, signals)
     return LoadedSignals(path=path, signals=signals, fs_hz=None if fs is None else float(fs),
-                         layout=_layout_from_meta(meta))
+                         layout=_layout_from_meta(meta), time_column=time_column,
+                         time_fs_hz=time_fs)
+
+
+_TIME_NAMES = ("t", "time", "time_s", "t_s")
+
+
+def _time_column(path, signals):
+    """(name, sample rate) of a CSV time column (1 / its median step, robust to a logger's
+    jitter), or (None, None) when there is none or it does not increase."""
+    name = next((n for n in signals if n.strip().lower() in _TIME_NAMES), None)
+    if name is None or signals[name].size < 2:
+        return None, None
+    step = float(np.median(np.diff(signals[name])))
+    if not step > 0:
+        return None, None
+    return name, 1.0 / step
 
 
 def _parse_rows(path, lines, header_index, header):
@@ -193,8 +221,8 @@ def _parse_rows(path, lines, header_index, header):
     return np.array(rows, dtype=np.float64)
 
 
-def _from_mapping(path, items):
-    signals, fs, layout = {}, None, {}
+def _from_mapping(path, items, matlab=False):
+    signals, fs, layout, matrices = {}, None, {}, {}
     for name, value in items:
         arr = np.asarray(value)
         if arr.dtype.kind in "US":
@@ -210,13 +238,18 @@ def _from_mapping(path, items):
                                      f"{_LAYOUT_MIN[name]} .. {_LAYOUT_MAX}, got {_shown(v)}")
                 layout[name] = int(v)
             continue
-        signals[name] = _numeric(path, name, arr)
+        if matlab and arr.ndim >= 2 and sum(d > 1 for d in arr.shape) >= 2:
+            matrices[name] = arr
+            signals[name] = _numeric(path, name, np.asarray(arr).reshape(-1, order="F"))
+        else:
+            signals[name] = _numeric(path, name, arr)
         _finite_or_raise(path, name, signals[name])
     if not signals:
         raise InputError(f"{path}: holds no numeric signal")
     if fs is not None and not (np.isfinite(fs) and fs > 0):
         raise InputError(f"{path}: fs = {fs} is not a positive sample rate")
-    return LoadedSignals(path=Path(path), signals=signals, fs_hz=fs, layout=layout)
+    return LoadedSignals(path=Path(path), signals=signals, fs_hz=fs, layout=layout,
+                         matrices=matrices)
 
 
 def load_npz(path):
@@ -245,8 +278,10 @@ def load_mat(path):
         cap = captures[0]
         return _from_mapping(path, [*cap["signals"].items(),
                                     *[(k, cap[k]) for k in ("fs_hz", "n_period", "settle_periods",
-                                                            "record_periods") if k in cap]])
-    return _from_mapping(path, [(k, v) for k, v in items.items() if not isinstance(v, dict)])
+                                                            "record_periods") if k in cap]],
+                             matlab=True)
+    return _from_mapping(path, [(k, v) for k, v in items.items() if not isinstance(v, dict)],
+                         matlab=True)
 
 
 def load_capture(path):

@@ -287,7 +287,8 @@ def design_multisine(fs, n_period, *, f_min=None, f_max=None, k_min=None, k_max=
         Samples per period N; frequency resolution f0 = fs / N (Hz).
     f_min, f_max : float, optional
         Band (Hz), inclusive; converted to bins ceil(f_min/f0) .. floor(f_max/f0),
-        clipped to 1 .. ceil(N/2) - 1 (f_min = 0, f_max = fs/2 mean "all").
+        clipped to 1 .. ceil(N/2) - 1 (f_min = 0, f_max = fs/2 mean "all"); f_max above
+        fs/2 is an InputError.
     k_min, k_max : int, optional
         Band directly in DFT bins (instead of f_min, f_max). Default 1 .. N/2 - 1.
     kind : {'random_odd', 'odd', 'full'}
@@ -328,6 +329,10 @@ def design_multisine(fs, n_period, *, f_min=None, f_max=None, k_min=None, k_max=
     if f_min is not None:
         k_min = max(int(np.ceil(f_min / f0 - 1e-9)), 1)
     if f_max is not None:
+        if not np.isfinite(f_max) or f_max > fs / 2 * (1 + 1e-12):
+            raise InputError(f"multisine: f_max = {f_max:g} Hz lies above the Nyquist "
+                             f"frequency fs/2 = {fs / 2:g} Hz (fs = {fs:g} Hz): no line "
+                             f"can be excited there")
         k_max = min(int(np.floor(f_max / f0 + 1e-9)), (n_period - 1) // 2)
     k_min = 1 if k_min is None else int(k_min)
     k_max = (n_period - 1) // 2 if k_max is None else int(k_max)

@@ -10,7 +10,8 @@ from the suffix, PNG by default) and returns the path.
   :func:`plot_bla` -- one BLA with its standard deviations.
 * :func:`plot_hosidf_amplitude` -- Figure 5: HOSIDFs vs amplitude with std.
   :func:`plot_hosidf_harmonics` -- one experiment's |H_k| and phases.
-* :func:`plot_tuning` -- Figure 7: |H_3|, |H_5|, |H_7|, phases and ratio vs K_fc.
+* :func:`plot_tuning` -- Figure 7: |H_3|, |H_5|, |H_7|, unwrapped phases and ratio (%) vs K_fc.
+  :func:`figure8` -- Figure 8 style: the same with standard deviations and the even level.
 * :func:`plot_time_response` -- Figure 9: time response and error for several K_fc.
 """
 from pathlib import Path
@@ -21,7 +22,7 @@ from matplotlib.figure import Figure
 
 from fftune.analysis.errors import InputError
 
-__all__ = ["figure3", "figure4", "figure5", "figure7", "figure9", "figure_bla",
+__all__ = ["figure3", "figure4", "figure5", "figure7", "figure8", "figure9", "figure_bla",
            "figure_hosidf_harmonics", "plot_output_spectrum", "plot_bla", "plot_bla_levels",
            "plot_hosidf_amplitude", "plot_hosidf_harmonics", "plot_tuning",
            "plot_time_response"]
@@ -42,6 +43,18 @@ def _save(fig, path):
     atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=110), overwrite=True,
                  suffix="." + fmt)
     return path
+
+
+def _plain_log_axis(ax, axis="x"):
+    """Log scale with plain tick labels (20, 50, 0.3), not 2x10^1."""
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
+    fmt = FuncFormatter(lambda v, _pos: f"{v:g}")
+    target = ax.xaxis if axis == "x" else ax.yaxis
+    (ax.set_xscale if axis == "x" else ax.set_yscale)("log")
+    target.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    target.set_major_formatter(fmt)
+    target.set_minor_formatter(FuncFormatter(lambda v, _pos: ""))
 
 
 def _db20(x):
@@ -90,7 +103,7 @@ def figure3(result, title=None, unit="unit"):
     if getattr(result, "plant_db", None) is not None and nonexc.size:
         ax.plot(nonexc * result.fs / result.n_period, result.plant_db, "x", color="tab:orange",
                 ms=3, label="plant-referred level at non-excited lines")
-    ax.set_xscale("log")
+    _plain_log_axis(ax)
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel(f"amplitude (dB re 1 {unit})")
     ax.grid(True, which="both", alpha=0.3)
@@ -104,8 +117,11 @@ def plot_output_spectrum(result, path, title=None, unit="unit"):
     return _save(figure3(result, title, unit), path)
 
 
-def figure_bla(result, title=None):
-    """One BLA: magnitude with its total and noise standard deviations, phase."""
+def figure_bla(result, title=None, g_unit="y/u"):
+    """One BLA: magnitude with its total and noise standard deviations, phase.
+
+    ``g_unit``: the BLA's unit, output per input (e.g. "rad/V"); the magnitude axis is
+    in dB re 1 ``g_unit``."""
     fig, (ax_m, ax_p) = _figure(rows=2, height=3.0)
     ax_m.plot(result.freq, _db20(result.G), "k", label="G_BLA")
     if result.var_total is not None:
@@ -114,21 +130,21 @@ def figure_bla(result, title=None):
     if result.var_noise is not None:
         ax_m.plot(result.freq, _db10(result.var_noise), "tab:green", lw=0.8,
                   label="std noise (s2_BLA,n)")
-    ax_m.set_ylabel("dB")
+    ax_m.set_ylabel(f"|G| (dB re 1 {g_unit})")
     ax_m.legend(fontsize=7)
     ax_p.plot(result.freq, np.degrees(np.unwrap(np.angle(result.G))), "k")
     ax_p.set_ylabel("phase (deg)")
     for ax in (ax_m, ax_p):
-        ax.set_xscale("log")
+        _plain_log_axis(ax)
         ax.grid(True, which="both", alpha=0.3)
     ax_p.set_xlabel("frequency (Hz)")
     ax_m.set_title(title or "Best linear approximation")
     return fig
 
 
-def plot_bla(result, path, title=None):
+def plot_bla(result, path, title=None, g_unit="y/u"):
     """:func:`figure_bla` written to ``path``."""
-    return _save(figure_bla(result, title), path)
+    return _save(figure_bla(result, title, g_unit), path)
 
 
 def figure4(levels, title=None, g_unit="unit/unit", level_unit="unit"):
@@ -154,7 +170,7 @@ def figure4(levels, title=None, g_unit="unit/unit", level_unit="unit"):
     ax_p.set_ylabel("phase (deg)")
     ax_p.set_xlabel("frequency (Hz)")
     for ax in (ax_m, ax_p):
-        ax.set_xscale("log")
+        _plain_log_axis(ax)
         ax.grid(True, which="both", alpha=0.3)
     ax_m.legend(fontsize=6, ncol=2)
     ax_m.set_title(title or "BLA vs frequency and excitation level")
@@ -166,51 +182,79 @@ def plot_bla_levels(levels, path, title=None, g_unit="unit/unit", level_unit="un
     return _save(figure4(levels, title, g_unit, level_unit), path)
 
 
-def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=0, title=None, unit="unit",
-            h_unit="unit/unit"):
-    """Figure 5: |H_k| vs the sine's rms amplitude (peak / sqrt 2, as the paper), mean
-    (solid) and standard deviation (dashed).
+def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=None, title=None, unit="unit",
+            h_unit="unit/unit", even_harmonics=(2, 4, 6)):
+    """Figure 5: |H_k| vs the sine's rms amplitude (peak / sqrt 2, as the paper) at every
+    measured frequency (one column each), odd HOSIDFs (top row) and even ones (bottom
+    row), mean (solid) and standard deviation over the repeats (dashed).
 
     Parameters
     ----------
     result : fftune.analysis.hosidf.HosidfResult
         Leading axes (L,) amplitudes, or (L, F) amplitudes x frequencies.
-    harmonics : sequence of int
-    frequency_index : int
-        Which frequency when the result is (L, F) (default the first).
+    harmonics, even_harmonics : sequence of int
+        The odd (with H_1) and even harmonics drawn (those beyond the result's K are left
+        out; an empty ``even_harmonics`` drops the row).
+    frequency_index : int, optional
+        Only this frequency of an (L, F) result (default: all).
     """
-    H, std, amp = result.H, result.H_std, np.asarray(result.amplitude)
-    if H.ndim == 3:
-        H, std, amp = H[:, frequency_index], std[:, frequency_index], amp[:, frequency_index]
-    if H.ndim != 2:
-        raise InputError(f"plot_hosidf_amplitude: expected H shaped (L, K), got {H.shape}")
-    order = np.argsort(amp)
-    amp = amp / np.sqrt(2.0)                  # peak -> rms
-    fig, (ax_m, ax_p) = _figure(rows=2, height=3.0)
+    H, std = np.asarray(result.H), np.asarray(result.H_std)
+    amp, f0 = np.asarray(result.amplitude, dtype=float), np.asarray(result.f0, dtype=float)
+    if H.ndim == 2:
+        H, std, amp = H[:, None], std[:, None], amp.reshape(-1)[:, None]
+        f_col = [float(f0.reshape(-1)[0])]
+    elif H.ndim == 3:
+        amp = np.broadcast_to(amp, H.shape[:2])
+        f_col = [float(v) for v in np.broadcast_to(f0, H.shape[:2])[0]]
+    else:
+        raise InputError(f"plot_hosidf_amplitude: expected H shaped (L, K) or (L, F, K), got {H.shape}")
+    cols = range(H.shape[1]) if frequency_index is None else [frequency_index]
+    K = H.shape[-1]
     for k in harmonics:
-        if k > H.shape[-1]:
+        if k > K:
             raise InputError(f"plot_hosidf_amplitude: harmonic {k} not in the result")
-        line, = ax_m.plot(amp[order], _db20(H[order, k - 1]), "-", label=f"H_{k}")
-        ax_m.plot(amp[order], _db20(std[order, k - 1]), "--", color=line.get_color(), lw=0.8)
-        ax_p.plot(amp[order], np.degrees(np.angle(H[order, k - 1])), "-", color=line.get_color())
-    ax_m.set_ylabel(f"|H_k| (dB re 1 {h_unit})")
-    ax_p.set_ylabel("phase (deg)")
-    ax_p.set_xlabel(f"sine amplitude ({unit} rms)")
-    for ax in (ax_m, ax_p):
-        ax.set_xscale("log")
-        ax.grid(True, which="both", alpha=0.3)
-    ax_m.legend(fontsize=7)
-    f0 = np.asarray(result.f0).reshape(-1)[0]
-    if np.ndim(result.f0) == 2:
-        f0 = np.asarray(result.f0)[0, frequency_index]
-    ax_m.set_title(title or f"HOSIDFs at {f0:g} Hz: mean (-) and std (--)")
+    even = [k for k in even_harmonics if k <= K]
+    rows = 2 if even else 1
+    ncol = len(cols)
+    fig = Figure(figsize=(max(8.0, 3.2 * ncol), 3.0 * rows), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.array([[fig.add_subplot(rows, ncol, r * ncol + c + 1) for c in range(ncol)]
+                     for r in range(rows)])
+    colours = {}
+    for c, fi in enumerate(cols):
+        a = amp[:, fi] / np.sqrt(2.0)            # peak -> rms
+        order = np.argsort(a)
+        for r, ks in enumerate([harmonics] + ([even] if even else [])):
+            ax = axes[r, c]
+            means = np.array([_db20(H[order, fi, k - 1]) for k in ks])
+            finite = means[np.isfinite(means)]
+            # a standard deviation far under every mean (a deterministic simulation repeats
+            # itself to the last bit) is drawn at the panel's floor, not at -400 dB
+            floor = (finite.min() - 40.0) if finite.size else -200.0
+            for k, m in zip(ks, means):
+                line, = ax.plot(a[order], m, "-o", ms=3, color=colours.get(k), label=f"H_{k}")
+                colours[k] = line.get_color()
+                sd = _db20(std[order, fi, k - 1])
+                ax.plot(a[order], np.maximum(np.where(np.isfinite(sd), sd, floor), floor), "--",
+                        color=line.get_color(), lw=0.8)
+            _plain_log_axis(ax)
+            ax.grid(True, which="both", alpha=0.3)
+            if c == 0:
+                ax.set_ylabel(f"|H_k| (dB re 1 {h_unit})")
+                ax.legend(fontsize=7, title="odd" if r == 0 else "even", title_fontsize=7)
+            if r == rows - 1:
+                ax.set_xlabel(f"sine amplitude ({unit} rms)")
+            if r == 0:
+                ax.set_title(f"{f_col[fi]:g} Hz", fontsize=9)
+    fig.suptitle(title or "HOSIDFs vs amplitude at each frequency: mean (-) and std (--)", fontsize=10)
     return fig
 
 
-def plot_hosidf_amplitude(result, path, harmonics=(1, 3, 5, 7), frequency_index=0,
-                          title=None, unit="unit", h_unit="unit/unit"):
+def plot_hosidf_amplitude(result, path, harmonics=(1, 3, 5, 7), frequency_index=None,
+                          title=None, unit="unit", h_unit="unit/unit", even_harmonics=(2, 4, 6)):
     """:func:`figure5` written to ``path``."""
-    return _save(figure5(result, harmonics, frequency_index, title, unit, h_unit), path)
+    return _save(figure5(result, harmonics, frequency_index, title, unit, h_unit,
+                         even_harmonics), path)
 
 
 def figure_hosidf_harmonics(result, title=None):
@@ -243,15 +287,16 @@ def plot_hosidf_harmonics(result, path, title=None):
 
 
 def figure7(k_fc, H, ratio=None, *, k_star=None, harmonics=(3, 5, 7), H_std=None,
-            title=None):
-    """Figure 7: |H_i| and phases of the odd HOSIDFs and their ratio to H_1 vs K_fc.
+            title=None, even_harmonics=None):
+    """Figure 7 (and 8): |H_i| and unwrapped phases of the odd HOSIDFs and their level
+    relative to H_1 (in %) vs K_fc.
 
     Parameters
     ----------
     k_fc : array_like, shape (n,)
-        Feed-forward gains of the experiments.
+        Feed-forward gains of the experiments (V).
     H : array_like of complex, shape (n, K)
-        HOSIDFs at each K_fc.
+        HOSIDFs at each K_fc (rad/rad: reference -> motor angle).
     ratio : array_like, shape (n,), optional
         The objective r per experiment; computed with
         :func:`fftune.analysis.tuning.odd_ratio` if omitted.
@@ -259,7 +304,12 @@ def figure7(k_fc, H, ratio=None, *, k_star=None, harmonics=(3, 5, 7), H_std=None
         K_fc* to mark.
     harmonics : sequence of int
     H_std : array_like, shape (n, K), optional
-        Standard deviations (plotted as dots).
+        Standard deviations (plotted as dots, as the paper's Figure 8).
+    even_harmonics : sequence of int, optional
+        Also the even level (rms of these |H_k| over |H_1|) in the bottom panel.
+
+    Phases are unwrapped along K_fc (sorted), so a small step across +-180 deg is drawn as
+    the small step it is and the turn at the optimum as the 180 deg it is.
     """
     from fftune.analysis.tuning import odd_ratio
 
@@ -271,23 +321,41 @@ def figure7(k_fc, H, ratio=None, *, k_star=None, harmonics=(3, 5, 7), H_std=None
     k_fc, H = k_fc[order], H[order]
     fig, (ax_m, ax_p, ax_r) = _figure(rows=3, height=2.6)
     for k in harmonics:
-        line, = ax_m.plot(k_fc, np.abs(H[:, k - 1]), "-o", ms=3, label=f"|H_{k}|")
+        line, = ax_m.plot(k_fc, np.abs(H[:, k - 1]), "-o", ms=3, label=f"|H_{k}| mean")
         if H_std is not None:
-            ax_m.plot(k_fc, np.asarray(H_std)[order, k - 1], ".", color=line.get_color())
-        ax_p.plot(k_fc, np.degrees(np.angle(H[:, k - 1])), "-o", ms=3, color=line.get_color())
+            ax_m.plot(k_fc, np.asarray(H_std)[order, k - 1], ".", color=line.get_color(),
+                      label=f"std of H_{k}")
+        ax_p.plot(k_fc, np.degrees(np.unwrap(np.angle(H[:, k - 1]))), "-o", ms=3,
+                  color=line.get_color(), label=f"H_{k}")
     ratio = odd_ratio(H, harmonics) if ratio is None else np.asarray(ratio, dtype=float)[order]
-    ax_r.plot(k_fc, 100 * ratio, "k-o", ms=3)
+    ax_r.plot(k_fc, 100 * ratio, "k-o", ms=3,
+              label="odd: rms(|H_" + "|, |H_".join(str(k) for k in harmonics) + "|) / |H_1|")
+    if even_harmonics:
+        ax_r.plot(k_fc, 100 * odd_ratio(H, even_harmonics), "-s", color="tab:purple", ms=3,
+                  label="even: rms(|H_" + "|, |H_".join(str(k) for k in even_harmonics) + "|) / |H_1|")
     ax_m.set_ylabel("|H_k| (rad/rad)")
-    ax_p.set_ylabel("phase (deg)")
-    ax_r.set_ylabel("odd NL / linear (%)")
+    ax_p.set_ylabel("phase, unwrapped (deg)")
+    ax_r.set_ylabel("level re |H_1| (%)")
     ax_r.set_xlabel("K_fc (V)")
-    ax_m.legend(fontsize=7)
     for ax in (ax_m, ax_p, ax_r):
         ax.grid(True, alpha=0.3)
         if k_star is not None:
-            ax.axvline(k_star, color="tab:red", lw=0.8, ls="--")
+            ax.axvline(k_star, color="tab:red", lw=0.8, ls="--",
+                       label=f"K_fc* = {k_star:.4g} V" if ax is ax_r else None)
+        ax.legend(fontsize=7, ncol=2 if ax is ax_m and H_std is not None else 1)
     ax_m.set_title(title or "Odd HOSIDFs vs Coulomb feed forward K_fc")
     return fig
+
+
+def figure8(k_fc, H, H_std=None, *, k_star=None, harmonics=(3, 5, 7), even_harmonics=(2, 4, 6),
+            title=None):
+    """Figure 8 style: :func:`figure7` with the standard deviations as dots and the even
+    level beside the odd one (the paper: "even nonlinearities ... 4 %, not influenced")."""
+    K = np.asarray(H).shape[-1]
+    return figure7(k_fc, H, None, k_star=k_star, harmonics=harmonics, H_std=H_std,
+                   even_harmonics=[k for k in even_harmonics if k <= K],
+                   title=title or "Set-up: odd HOSIDFs and odd / even levels vs K_fc "
+                                  "(mean, dots: std)")
 
 
 def plot_tuning(k_fc, H, path, ratio=None, *, k_star=None, harmonics=(3, 5, 7), H_std=None,

@@ -482,6 +482,13 @@ class KfcSearchResult:
     slope : float
         ds/dK_fc at K_fc* (1/feed-forward unit).
     points : list of SearchPoint
+    phases : ndarray or None
+        The reference phases phi_i (rad) of the signed objective at K_fc* (signed root
+        regime), for experiments made after the search (:func:`signed_point`).
+    sigma_fit : float
+        The flatness / model part: half the distance between the two root models of s near
+        K_fc* (the over-compensated secant and the line across the sign change), 0 when
+        only one applies (feed-forward unit).
     """
 
     k_fc: float
@@ -495,6 +502,8 @@ class KfcSearchResult:
     sigma_signed: float
     slope: float
     points: list = field(default_factory=list)
+    phases: object = None
+    sigma_fit: float = 0.0
 
 
 def _t_factor(dof):
@@ -661,26 +670,9 @@ class KfcSearch(_GeneratorSearch):
 
     def _signed(self, pts, phases):
         """s and its standard error at each point (inf-ratio points get NaN)."""
-        s, s_se = [], []
-        for p in pts:
-            if not np.isfinite(p.ratio):
-                s.append(np.nan)
-                s_se.append(np.nan)
-                continue
-            s_k = float(signed_odd_ratio(p.H, phases, self.harmonics))
-            s.append(s_k)
-            if p.H_periods is not None:
-                sp = np.asarray(signed_odd_ratio(p.H_periods, phases, self.harmonics))
-                s_se.append(float(np.std(sp, ddof=1) / np.sqrt(len(sp))))
-            else:
-                # s = mean_i Re(H_i e^{-j phi_i}) / |H_1|: gradient 1 / (n |H_1|) per
-                # line, -s / |H_1| through |H_1| (see _point_from_moments)
-                h1 = np.abs(p.H[0])
-                n = len(self.harmonics)
-                vi = np.array([_harmonic(p.H_var, i) for i in self.harmonics])
-                var_s = float(np.sum(vi)) / (2 * (n * h1) ** 2) + s_k ** 2 * p.H_var[0] / (2 * h1 ** 2)
-                s_se.append(float(np.sqrt(var_s / p.n_periods)))
-        return np.array(s), np.array(s_se)
+        out = [signed_point(p, phases, self.harmonics) if np.isfinite(p.ratio) else (np.nan, np.nan)
+               for p in pts]
+        return np.array([o[0] for o in out]), np.array([o[1] for o in out])
 
     def _phases(self, a, b):
         return reference_phases(self.points[a].H - self.points[b].H, self.harmonics)
@@ -790,6 +782,7 @@ class KfcSearch(_GeneratorSearch):
             j = int(np.nonzero((s[:-1] > 0) & (s[1:] <= 0))[0][0])
             k1, k2, s1, s2 = ks[j], ks[j + 1], s[j], s[j + 1]
             root = k1 + (k2 - k1) * s1 / (s1 - s2)
+            root_linear = root
             # Over-compensated (s < 0) the loop does not stick and s is close to linear in
             # K_fc; under-compensated it bends (stick-slip). So: the secant through the two
             # over-compensated points nearest the root when there are two, else the
@@ -845,7 +838,8 @@ class KfcSearch(_GeneratorSearch):
                             "smallest ratio within the noise"),
                     n_experiments=len(self.points), bracket=(float(a), float(b)),
                     extended_to=self.extended_to, regime=self.regime,
-                    sigma_signed=float(pooled), slope=float(slope), points=self._sorted())}
+                    sigma_signed=float(pooled), slope=float(slope), points=self._sorted(),
+                    phases=np.array(phases, dtype=float), sigma_fit=float(abs(root - root_linear) / 2))}
             nxt = root
             if min(abs(ks - nxt)) < 0.25 * tol:
                 # the estimate sits on a measured point that did not verify: probe the noise
@@ -886,8 +880,7 @@ class KfcSearch(_GeneratorSearch):
     def _pooled_signed_se(self, phases):
         pts = [p for p in self._sorted() if np.isfinite(p.ratio)]
         _, se = self._signed(pts, phases)
-        se = se[np.isfinite(se)]
-        return float(np.sqrt(np.mean(se ** 2))) if len(se) else np.nan
+        return pooled_standard_error(se)
 
     def _dof(self):
         return sum(p.n_periods - 1 for p in self.points.values() if np.isfinite(p.ratio))
@@ -896,3 +889,301 @@ class KfcSearch(_GeneratorSearch):
         return self._fail(f"{reason} before the estimate was verified: raise "
                           f"tune.search.max_experiments (now {self.max_experiments}) or the periods "
                           "per experiment (noise)")
+
+
+# ---------------------------------------------------------------------------------------
+# After the search: experiments at other conditions, the checks of every experiment, the
+# uncertainty budget (sigma_total) and the amplitude decision.
+# ---------------------------------------------------------------------------------------
+def signed_point(point, phases, harmonics=DEFAULT_HARMONICS):
+    """The signed objective s of one :class:`SearchPoint` and its standard error.
+
+    With per-period HOSIDFs the standard error is the spread of the per-period s over
+    sqrt(P); with moments (line statistics) first-order propagation: gradient
+    1 / (n |H_1|) per line (a circular line of variance v adds v / 2), -s / |H_1| through
+    |H_1|.
+
+    Returns
+    -------
+    (s, se) : (float, float)
+        NaN, NaN when the motor did not follow (|H_1| ~ 0).
+    """
+    h1 = float(np.abs(point.H[0]))
+    if not (h1 > 1e-6 and np.isfinite(point.ratio)):
+        return np.nan, np.nan
+    s_k = float(signed_odd_ratio(point.H, phases, harmonics))
+    if point.H_periods is not None:
+        sp = np.asarray(signed_odd_ratio(point.H_periods, phases, harmonics))
+        return s_k, float(np.std(sp, ddof=1) / np.sqrt(len(sp)))
+    n = len(harmonics)
+    vi = np.array([_harmonic(point.H_var, i) for i in harmonics])
+    var_s = float(np.sum(vi)) / (2 * (n * h1) ** 2) + s_k ** 2 * point.H_var[0] / (2 * h1 ** 2)
+    return s_k, float(np.sqrt(var_s / point.n_periods))
+
+
+def make_point(k_fc, H_periods=None, H=None, H_var=None, n_periods=None,
+               harmonics=DEFAULT_HARMONICS):
+    """A :class:`SearchPoint` from per-period HOSIDFs (P, K) or from moments (H, H_var, P),
+    as :meth:`KfcSearch.tell` / :meth:`KfcSearch.tell_moments` build them."""
+    helper = KfcSearch.__new__(KfcSearch)
+    helper.harmonics = tuple(harmonics)
+    if H_periods is not None:
+        return helper._point(float(k_fc), np.asarray(H_periods, dtype=complex))
+    return helper._point_from_moments(float(k_fc), np.asarray(H, dtype=complex),
+                                      np.asarray(H_var, dtype=float), int(n_periods))
+
+
+def pooled_standard_error(standard_errors):
+    """The pooled standard error of one value from experiments of (possibly) unequal noise:
+    the root mean square of their standard errors (the mean would understate it: an
+    experiment twice as noisy counts four times in the variance). NaN when none is finite."""
+    se = np.asarray(standard_errors, dtype=float)
+    se = se[np.isfinite(se)]
+    return float(np.sqrt(np.mean(se ** 2))) if len(se) else np.nan
+
+
+# Saturation and motion of one tune experiment.
+SATURATION_MAX_FRACTION = 0.02   # more samples at u_max: the loop is not the linear loop tuned
+MOTION_MIN_H1 = 0.2              # |H_1| below this: the motor does not follow the sine
+
+
+def check_experiment(h1_abs, saturated_fraction=None, u_rms_re_max=None, amplitude_rad=None,
+                     u_max_v=None):
+    """Saturation and motion of one closed-loop sine experiment.
+
+    Parameters
+    ----------
+    h1_abs : float
+        |H_1| reference -> motor angle (the motion re the commanded sine; 1 = follows).
+    saturated_fraction : float or None
+        Fraction of the recorded samples with |u| at u_max (raw samples).
+    u_rms_re_max : float or None
+        rms(u) / u_max (line statistics, no samples): a lower bound of the samples within
+        20 % of u_max is (rho^2 - 0.64) / 0.36.
+    amplitude_rad, u_max_v : float or None
+        For the message.
+
+    Returns
+    -------
+    dict
+        ``saturated_fraction`` (measured or the lower bound), ``saturation_basis``,
+        ``motion_h1``, ``cause`` (None, ``"saturation"`` or ``"no motion"``) and ``text``.
+    """
+    h1 = float(h1_abs) if h1_abs is not None and np.isfinite(h1_abs) else 0.0
+    basis, frac = None, None
+    if saturated_fraction is not None:
+        basis, frac = "samples at u_max", float(saturated_fraction)
+    elif u_rms_re_max is not None and np.isfinite(u_rms_re_max):
+        rho2 = float(u_rms_re_max) ** 2
+        basis, frac = "lower bound from rms(u) / u_max (samples within 20 % of u_max)", \
+            max(0.0, (rho2 - 0.64) / 0.36)
+    umax = f" = {u_max_v:g} V" if u_max_v else ""
+    at = f" at {amplitude_rad:g} rad" if amplitude_rad else ""
+    cause, text = None, ""
+    if h1 < MOTION_MIN_H1:
+        cause = "no motion"
+        text = (f"the motor does not follow the sine{at} (|H_1| = {h1:.3g} < {MOTION_MIN_H1:g})")
+        if frac is not None and frac > SATURATION_MAX_FRACTION:
+            text += (f" while the drive output sits at its limit u_max{umax} "
+                     f"({100 * frac:.0f} % of the samples, {basis}): the friction exceeds what the "
+                     "drive can give; raise u_max (it must exceed the break-away friction) or reduce "
+                     "the friction")
+        else:
+            text += ": the break-away friction holds it; raise the amplitude or check the set-up"
+    elif frac is not None and frac > SATURATION_MAX_FRACTION:
+        cause = "saturation"
+        text = (f"the drive output is at its limit u_max{umax} in {100 * frac:.0f} % of the samples"
+                f"{at} ({basis}; at most {100 * SATURATION_MAX_FRACTION:g} %): the friction plus "
+                "the sine's demand exceed u_max, the loop is not the one being tuned; lower the "
+                "amplitude or the frequency, or raise u_max")
+    return {"saturated_fraction": frac, "saturation_basis": basis, "motion_h1": h1,
+            "cause": cause, "text": text}
+
+
+def viscous_feedforward_estimate(U1, Y1, omega_rad_s, k_fc):
+    """The velocity feed-forward K_v (V s/rad) that cancels the viscous friction seen at the
+    plant input, from one experiment's fundamentals.
+
+    With the plant input u (V, the feed-forward included) and the motor angle y at the
+    sine's fundamental, a plant J y'' + b y' + F_c sgn(y') = k_m u gives
+    Im(U1 / Y1) / omega = b / k_m + 4 F_c / (pi k_m |Y1| omega) (the friction's describing
+    function, in phase with the velocity); with F_c / k_m ~ K_fc (the estimate):
+    K_v = Im(U1 / Y1) / omega - 4 K_fc / (pi |Y1| omega). Any lag of the motor behind the
+    reference (viscous friction, load-side damping through a stiff shaft) moves the
+    reversal of the motor's velocity away from the reversal of sgn(reference velocity) that
+    switches the Coulomb feed-forward; the odd-ratio criterion's optimum then moves off the
+    Coulomb level (by several % at a 5 deg lag, tens of % at 20 deg). K_v removes the lag.
+
+    Parameters
+    ----------
+    U1, Y1 : complex
+        Amplitude phasors of the fundamental: plant input (V) and motor angle (rad).
+    omega_rad_s : float
+    k_fc : float
+        The Coulomb level per volt taken for the friction's describing function.
+
+    Returns
+    -------
+    float
+        K_v >= 0 (0 when the estimate is negative or not finite).
+    """
+    U1, Y1 = complex(U1), complex(Y1)
+    if not (abs(Y1) > 0 and omega_rad_s > 0):
+        return 0.0
+    kv = (U1 / Y1).imag / omega_rad_s - 4 * float(k_fc) / (np.pi * abs(Y1) * omega_rad_s)
+    return float(kv) if np.isfinite(kv) and kv > 0 else 0.0
+
+
+def root_at_slope(k_fc, s, slope):
+    """K_fc where s reaches 0 along the slope ds/dK (< 0) from one experiment (k_fc, s)."""
+    if not (np.isfinite(s) and np.isfinite(slope) and slope < 0):
+        return np.nan
+    return float(k_fc - s / slope)
+
+
+def encoder_floor_v(encoder_step_rad, amplitude_rad, noise_rad, slope):
+    """The encoder-quantisation part of sigma(K_fc*) (feed-forward unit).
+
+    A sine of amplitude A measured with a step q carries quantisation harmonics of
+    relative size about (q / A)^(3/2) / pi at the low odd orders (the staircase's error
+    spreads over about A / q orders); measurement noise of standard deviation sigma_n
+    dithers it by exp(-2 pi^2 sigma_n^2 / q^2) (the first Fourier term of the
+    quantiser's error). Their phase does not follow K_fc: an offset of s of that size,
+    through the slope, is the floor. 0 without an encoder step (ideal sensor).
+    """
+    q = float(encoder_step_rad or 0.0)
+    if not (q > 0 and amplitude_rad > 0 and np.isfinite(slope) and slope != 0):
+        return 0.0
+    ds = (q / amplitude_rad) ** 1.5 / np.pi * np.exp(-2 * np.pi ** 2 * (noise_rad / q) ** 2)
+    return float(ds / abs(slope))
+
+
+def uncertainty_budget(parts):
+    """sigma_total = the root sum of squares of the parts (independent contributions).
+
+    Parameters
+    ----------
+    parts : dict
+        name -> standard uncertainty (feed-forward unit); None / NaN parts are skipped.
+
+    Returns
+    -------
+    (total, parts) : (float, dict)
+        The total and the parts kept (floats).
+    """
+    kept = {k: float(v) for k, v in parts.items() if v is not None and np.isfinite(v)}
+    return float(np.sqrt(sum(v ** 2 for v in kept.values()))), kept
+
+
+def encoder_step_estimate(y, noise_rad=0.0):
+    """The quantisation step of a recorded angle with additive measurement noise, or None.
+
+    The sample-to-sample changes of a slowly moving quantised angle are 0 or +-q (plus the
+    noise, standard deviation sqrt(2) sigma_n): q is the median of the smallest cluster of
+    changes above 4 sqrt(2) sigma_n, accepted when that cluster is tight (its spread at
+    most a quarter of q) and holds >= 20 changes. None when noise hides the steps
+    (sigma_n > q / 6: the quantiser is then dithered) or the signal is not quantised.
+    """
+    y = np.asarray(y, dtype=float).ravel()
+    d = np.abs(np.diff(y[np.isfinite(y)]))
+    floor = 4 * np.sqrt(2) * float(noise_rad) + 1e-12
+    d = d[d > floor]
+    if d.size < 20:
+        return None
+    c = float(np.percentile(d, 10))
+    cluster = d[(d > 0.5 * c) & (d < 1.5 * c)]
+    if cluster.size < 20:
+        return None
+    q = float(np.median(cluster))
+    if np.std(cluster) > 0.25 * q or q < 6 * float(noise_rad):
+        return None
+    return q
+
+
+
+def amplitude_combination(k1, sigma1, a1, k2, sigma2, a2, rule="trend"):
+    """K_fc* from its values at two sine amplitudes, and the amplitude part of the budget.
+
+    Parameters
+    ----------
+    k1, sigma1, a1 : float
+        K_fc* at the first amplitude a1 (rad), its noise part.
+    k2, sigma2, a2 : float
+        The same at the second amplitude.
+    rule : str
+        ``"trend"`` (default): when the two differ by more than twice their combined noise
+        (a real amplitude dependence), extrapolate linearly in 1/A to 1/A -> 0 (the
+        offsets of stick-slip, asymmetry, quantisation and noise dither fall about as 1/A)
+        and take the size of that step as the amplitude part; else the inverse-variance
+        mean, their difference the part (the mean leans on the quieter one, which need not
+        be the less biased). ``"extrapolate"``: always extrapolate.
+        ``"first"``: k1, the whole difference the part.
+
+    Returns
+    -------
+    (k, sigma_noise, amplitude_part, how) : (float, float, float, str)
+    """
+    d = k2 - k1
+    noise_d = float(np.hypot(sigma1, sigma2))
+    g = (1 / a1) / (1 / a1 - 1 / a2)          # k(1/A -> 0) = k1 + g (k2 - k1)
+    if rule == "first":
+        return float(k1), float(sigma1), float(abs(d)), "the first amplitude's K_fc*"
+    if rule == "extrapolate" or abs(d) > 2 * noise_d:
+        k = k1 + g * d
+        noise = float(np.hypot((1 - g) * sigma1, g * sigma2))
+        near = k1 if a1 > a2 else k2
+        return float(k), noise, float(abs(k - near)), (
+            f"K_fc* changes with the amplitude ({k1:.5g} at {a1:.3g} rad, {k2:.5g} at {a2:.3g} rad, "
+            f"beyond twice the noise {noise_d:.2g}): extrapolated to 1/A -> 0, the step is the "
+            "amplitude part")
+    floor = 1e-9 * max(abs(k1), abs(k2), 1e-12)     # noise-free values: equal weights
+    w1, w2 = 1 / max(sigma1, floor) ** 2, 1 / max(sigma2, floor) ** 2
+    k = (w1 * k1 + w2 * k2) / (w1 + w2)
+    return float(k), float(1 / np.sqrt(w1 + w2)), float(abs(d)), (
+        f"K_fc* at {a1:.3g} and {a2:.3g} rad agree within twice their noise {noise_d:.2g}: their "
+        "inverse-variance mean, the difference the amplitude part")
+
+
+def viscous_from_harmonics(U, Y, omega_rad_s, n_period, cycles, orders=(1, 3)):
+    """The viscous friction per volt, K_v (V s/rad), and the Coulomb level (V) of a rigid
+    plant fitted to one experiment's plant-input and angle harmonics.
+
+    k_m u = J y'' + b y' + F_c sgn(y') at the odd harmonics k (default 1 and 3):
+    U_k = -J' (k w)^2 Y_k + b' j k w Y_k + F_c' S_k, with S_k the DFT lines of the sign of
+    the velocity's fundamental (the relay the friction is while the motor slides) and the
+    primes "per volt". Least squares over the real and imaginary parts; the relay's 1/k
+    pattern at k = 3 separates F_c' from b'. The measured u contains the feed-forward, so
+    any K_fc, K_v of the experiment may be used.
+
+    Parameters
+    ----------
+    U, Y : array_like of complex, shape (K,)
+        Unnormalised DFT lines (numpy.fft.fft of one period) at k * cycles, k = 1 .. K, of
+        the plant input (V) and of the motor angle (rad).
+    omega_rad_s : float
+        The sine's angular frequency.
+    n_period, cycles : int
+        Samples per period and sine cycles in it.
+
+    Returns
+    -------
+    (k_v, f_c) : (float, float)
+        NaN, NaN when the lines do not determine them.
+    """
+    U, Y = np.asarray(U, dtype=complex), np.asarray(Y, dtype=complex)
+    n, c = int(n_period), int(cycles)
+    if not (len(U) >= max(orders) and len(Y) >= max(orders) and abs(Y[0]) > 0 and omega_rad_s > 0):
+        return np.nan, np.nan
+    t = np.arange(n)
+    v1 = np.real(1j * Y[0] * np.exp(2j * np.pi * c * t / n))      # the velocity's fundamental
+    S = np.fft.fft(np.sign(v1))
+    rows, rhs = [], []
+    for k in orders:
+        w = k * omega_rad_s
+        a = np.array([-(w ** 2) * Y[k - 1], 1j * w * Y[k - 1], S[k * c]])
+        rows += [a.real, a.imag]
+        rhs += [U[k - 1].real, U[k - 1].imag]
+    x, *_ = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)
+    if not np.all(np.isfinite(x)):
+        return np.nan, np.nan
+    return float(x[1]), float(x[2])

@@ -20,6 +20,7 @@ SUBCOMMAND_MODULES = [
     "fftune.analysis.cli",
     "fftune.host.demo",
     "fftune.host.fleet",
+    "fftune.host.paper",
     "fftune.host.track",
 ]
 

@@ -230,7 +230,9 @@ def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
         parts.append((f"plant nonlinearity at {', '.join(at)}" if at else
                       "no plant nonlinearity") + " (odd/even not classifiable with this grid)")
     for cause in ("drive output saturation", "quantisation floor",
-                  "loop nonlinearity outside the plant", "cannot tell"):
+                  "loop nonlinearity outside the plant", "nonlinear distortion (excited lines)",
+                  "unmeasured inputs", "unmeasured inputs or a scale-free nonlinearity",
+                  "cannot tell"):
         at = where(cause)
         if at:
             parts.append(f"{cause} at {', '.join(at)}")
@@ -477,6 +479,21 @@ def quantify(session):
         "max_odd_relative_level": _f(np.max(odd_rel)),
         "max_even_relative_level": _f(np.max(even_rel)),
     }
+    q = session.cfg["detect"].get("encoder_step_rad")
+    if q and c["harmonics"] >= 2:
+        # one encoder count in one sample of one block, relative to the output's fundamental
+        # (|H_1| x amplitude), averaged over the repeats' blocks: what "0" means
+        y1 = np.abs(hos.H[..., 0]) * np.asarray(hos.amplitude)
+        with np.errstate(divide="ignore"):
+            floor = 2.0 * q / (n * c["periods"] * c["repeats"] * y1)
+        results["even_relative_level_floor"] = [[_f(v) for v in row] for row in floor]
+    if np.any(even_rel == 0.0):
+        results["even_relative_level_note"] = (
+            "an exact 0.0 is no measurement of zero distortion but exact half-wave symmetry: the "
+            "recorded angle satisfies y(t + T/2) = -y(t) to the last bit (a symmetric, "
+            "deterministic plant in steady state, quantised by the encoder), so every even DFT "
+            "line is exactly zero: the even level is below the resolution of the record "
+            "(even_relative_level_floor: one encoder count in one sample)")
     return results, hos
 
 
@@ -484,8 +501,9 @@ def quantify(session):
 # tune
 # ---------------------------------------------------------------------------------------
 class _TuneProbe:
-    """One closed-loop sine experiment at (K_fc, K_v): HOSIDF reference -> motor angle per
-    recorded period, odd-harmonic objective, rms tracking error."""
+    """One closed-loop sine experiment at (K_fc, K_v, amplitude): HOSIDF reference -> motor
+    angle per recorded period, odd-harmonic objective, rms tracking error, and the checks
+    of every tune experiment: the share of samples at u_max and the motion (|H_1|)."""
 
     def __init__(self, session):
         self.s = session
@@ -501,9 +519,11 @@ class _TuneProbe:
         self.amplitude = c["amplitude_rad"] if c["amplitude_rad"] != "auto" else None
         self.points = {}
         # what the drive accumulates with capture stats/both: the HOSIDF lines of the
-        # reference and the angle, and the power of the tracking error
-        self.stats_request = {"harmonics": c["harmonics"], "signals": ["reference", "motor_angle"],
-                              "power": ["error"]}
+        # reference, the angle and the plant input (its fundamental: the viscous estimate),
+        # the power of the tracking error and of the plant input (saturation)
+        self.stats_request = {"harmonics": c["harmonics"],
+                              "signals": ["reference", "motor_angle", "plant_input"],
+                              "power": ["error", "plant_input"]}
         if session.capture_mode("tune") != "raw" and c["harmonics"] > _stats.STAT_K_MAX:
             raise FftuneError(f"{src}: key 'tune.harmonics': {c['harmonics']} harmonics with "
                               f"tune.capture {session.capture_mode('tune')}: the drive's statistics "
@@ -523,6 +543,8 @@ class _TuneProbe:
                            cycles=self.cycles, settle=c["settle_periods"], periods=c["periods"],
                            kfc=kfc, kv=kv)
         rec = self.s.run("tune", key, req, stats=self.stats_request)
+        u_max = _run_u_max(self.s, rec)
+        sat = u_rms_re_max = u_over_y = lines = None
         if rec.stats is not None:
             # the drive's line statistics: the mean HOSIDFs and their period-to-period
             # variance (the search propagates it; fftune.analysis.tuning.KfcSearch.tell_moments)
@@ -530,6 +552,13 @@ class _TuneProbe:
                 rec.stats, u_name="reference", y_name="motor_angle", n_harmonics=c["harmonics"])
             H_periods = None
             rms_error = rec.stats.rms("error")
+            if "plant_input" in rec.stats.mean:
+                lines = (np.asarray(rec.stats.mean["plant_input"]), np.asarray(rec.stats.mean["motor_angle"]))
+            if "plant_input" in rec.stats.mean and "plant_input" in rec.stats.power_msq:
+                y1 = rec.stats.mean["motor_angle"][0]
+                u_over_y = complex(rec.stats.mean["plant_input"][0] / y1) if abs(y1) > 0 else None
+                if u_max:
+                    u_rms_re_max = rec.stats.rms("plant_input") / u_max
         else:
             # each recorded period as a repeat: H_repeats are the per-period HOSIDFs
             r = _blocks(rec.signals["reference"], self.n)[:, None, :]
@@ -538,6 +567,13 @@ class _TuneProbe:
                                    f0=c["frequency_hz"])
             H, H_periods, H_var, n_periods = hos.H, hos.H_repeats, None, y.shape[0]
             rms_error = float(np.sqrt(np.mean(rec.signals["error"] ** 2)))
+            if "plant_input" in rec.signals:
+                sat = _saturation_fraction(rec.signals["plant_input"], u_max)
+                bins = self.cycles * np.arange(1, c["harmonics"] + 1)
+                lines = (np.fft.fft(_blocks(rec.signals["plant_input"], self.n).mean(axis=0))[bins],
+                         np.fft.fft(_blocks(rec.signals["motor_angle"], self.n).mean(axis=0))[bins])
+                u1, y1 = lines[0][0], lines[1][0]
+                u_over_y = complex(u1 / y1) if abs(y1) > 0 else None
         if "motor_angle" in rec.signals:
             # measurement noise of the angle: its spread over the recorded periods
             y_p = _blocks(rec.signals["motor_angle"], self.n)
@@ -545,69 +581,201 @@ class _TuneProbe:
         else:
             # statistics only: from the line variances (an upper bound, see the check in tune)
             noise_rad = _stats.period_noise_rms(rec.stats, "motor_angle", self.n)
-        moving = np.abs(H[0]) > 1e-6
+        h1 = float(np.abs(H[0]))
+        check = _tuning.check_experiment(h1, saturated_fraction=sat, u_rms_re_max=u_rms_re_max,
+                                         amplitude_rad=float(amplitude), u_max_v=u_max)
+        moving = h1 > 1e-6 and check["cause"] != "no motion"
         point = {
             "kfc": float(np.float32(kfc)), "kv": float(np.float32(kv)), "amplitude": float(amplitude),
             "H": H, "H_periods": H_periods, "H_var": H_var, "n_periods": n_periods,
             "ratio": float(_tuning.odd_ratio(H, self.harmonics)) if moving else math.inf,
             "rms_error": rms_error,
             "angle_noise_rad": noise_rad,
+            "u_over_y": u_over_y,
+            "lines": lines,          # DFT lines k = 1 .. K of the plant input and the angle
+            "check": check,
             "record": rec,
         }
         self.points[cache] = point
         self.s.tune_experiments = getattr(self.s, "tune_experiments", 0) + 1
         return point
 
+    def search_point(self, p):
+        """The :class:`fftune.analysis.tuning.SearchPoint` of a measured experiment."""
+        if p["H_periods"] is not None:
+            return _tuning.make_point(p["kfc"], H_periods=p["H_periods"], harmonics=self.harmonics)
+        return _tuning.make_point(p["kfc"], H=p["H"], H_var=p["H_var"], n_periods=p["n_periods"],
+                                  harmonics=self.harmonics)
 
-# Out of stick-slip: at K_fc = 0 the motor follows the sine (|H_1| >= 0.9) and the odd
-# harmonics stay below 5 % of it; below that the odd HOSIDF phases rotate with K_fc.
+
+def _viscous_estimate(probe, p):
+    """K_v (V s/rad) of the plant from one experiment's harmonics, and the share of the
+    viscous term in the plant input's fundamental; (0, 0) when it cannot be read."""
+    if p["lines"] is None or p["check"]["cause"] is not None or not math.isfinite(p["ratio"]):
+        return 0.0, 0.0
+    U, Y = p["lines"]
+    omega = 2 * math.pi * probe.c["frequency_hz"]
+    kv, _ = _tuning.viscous_from_harmonics(U, Y, omega, probe.n, probe.cycles)
+    if not (math.isfinite(kv) and kv > 0):
+        return 0.0, 0.0
+    return float(kv), float(kv * omega * abs(Y[0]) / max(abs(U[0]), 1e-300))
+
+
+def _check_block(p):
+    """The per-experiment checks for results.yaml."""
+    ck = p["check"]
+    return {"saturated_fraction": _f(ck["saturated_fraction"]), "saturation_basis": ck["saturation_basis"],
+            "motion_h1": _f(ck["motion_h1"]), "cause": ck["cause"]}
+
+
+# Out of stick-slip: at K_fc = 0 the motor follows the sine (|H_1| >= 0.5: a stuck motor has
+# |H_1| ~ 0; a loop with much viscous or load-side damping follows with |H_1| 0.7 at every
+# amplitude, so a higher limit only climbs into saturation) and the odd harmonics stay
+# below 5 % of it; below that the odd HOSIDF phases rotate with K_fc.
 AUTO_AMPLITUDE_MAX_RATIO = 0.05
-AUTO_AMPLITUDE_MIN_H1 = 0.9
+AUTO_AMPLITUDE_MIN_H1 = 0.5
 # Angle noise dithers the friction and moves the objective's zero: at 6 % of the amplitude
 # K_fc* came out 8 % low on configs/plant_twomass.yaml, at 2 % within 0.5 %
 # (tests/bench/bench_tune.py, rows "noise"). Above this the result is refused.
 MAX_NOISE_RE_AMPLITUDE = 0.02
+# A probe whose criteria lie within this relative margin of their limits (or within two
+# standard errors of the ratio) is near the threshold: a noise seed could flip the choice.
+# It is taken, and the amplitude the other answer gives is named as the alternative (and
+# measured by the second-amplitude experiment of the budget).
+AUTO_AMPLITUDE_MARGIN = 0.25
+# The encoder's quantisation offsets the criterion's optimum through the loop (steps of
+# kp q next to the friction) by an amount that falls with the amplitude (256 counts: +2.9 %
+# at 0.5 rad, +0.9 % at 2 rad, +0.1 % at 4 rad on configs/plant_twomass.yaml): auto raises the
+# amplitude until the step is at most this share of it (the demo's 2000 counts: 0.6 % at
+# 0.5 rad).
+MAX_STEP_RE_AMPLITUDE = 0.01
+
+
+def _next_amplitude(a, h1, ratio, noise, max_rad):
+    # r(0) falls about as 1/amplitude out of stick-slip; a stuck motor needs a big step
+    factor = 4.0 if not math.isfinite(ratio) or h1 < 0.5 else \
+        min(8.0, max(2.0, ratio / (0.8 * AUTO_AMPLITUDE_MAX_RATIO), 1.2 * noise / MAX_NOISE_RE_AMPLITUDE))
+    return min(max_rad, a * factor)
+
+
+def amplitude_verdict(h1, ratio, ratio_std, noise_re_amplitude, margin=AUTO_AMPLITUDE_MARGIN):
+    """``"pass"``, ``"fail"`` or ``"near"`` (a noise seed could flip it) for one auto probe.
+
+    The ratio criterion r(0) <= 0.05 is near when r(0) lies within ``margin`` (relative) or
+    two standard errors of the limit; |H_1| >= 0.5 within a fifth of ``margin``; the noise
+    criterion (also checked after the search) is passed only with the full margin below it.
+    """
+    rel = [(AUTO_AMPLITUDE_MIN_H1 - h1) / AUTO_AMPLITUDE_MIN_H1,
+           (ratio - AUTO_AMPLITUDE_MAX_RATIO) / AUTO_AMPLITUDE_MAX_RATIO if math.isfinite(ratio) else math.inf]
+    band = [margin / 5, max(margin, (2 * ratio_std / AUTO_AMPLITUDE_MAX_RATIO)
+                            if math.isfinite(ratio_std) else 0.0)]
+    noise = (noise_re_amplitude - MAX_NOISE_RE_AMPLITUDE) / MAX_NOISE_RE_AMPLITUDE
+    if noise > -margin or any(r > b for r, b in zip(rel, band)):
+        return "fail"
+    if all(r < -b for r, b in zip(rel, band)):
+        return "pass"
+    return "near"
 
 
 def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
     """``tune.amplitude_rad: auto``: the sine amplitude (rad) for the search, from probes
     at K_fc = 0, raised until the loop is out of stick-slip.
 
+    A probe near a limit (``amplitude_verdict`` "near") is taken, with the amplitude the
+    other answer would have given as ``alternative_rad``. A probe that saturates the drive
+    or a motor that does not move while the output sits at u_max ends the choice with that
+    cause (``stop``).
+
     Returns
     -------
     amplitude : float
     block : dict
-        The choice, its reason and the probes (for results.yaml).
+        The choice, its reason, the alternative and the probes (for results.yaml).
     p0 : dict
         The probe at the chosen amplitude (the search's K_fc = 0 experiment).
+    stop : dict or None
+        The check (:func:`fftune.analysis.tuning.check_experiment`) that ended the choice.
     """
     a = float(start_rad)
     probes = []
+    q_step, q_source = None, None
     for _ in range(max_probes):
         p = probe.measure("amplitude", 0.0, amplitude=a)
         h1 = float(np.abs(p["H"][0]))
         noise = p["angle_noise_rad"] / a
+        ratio_std = probe.search_point(p).ratio_std if math.isfinite(p["ratio"]) else math.inf
+        verdict = amplitude_verdict(h1, p["ratio"], ratio_std, noise)
         probes.append({"amplitude_rad": _f(a), "h1": _f(h1), "ratio_at_zero": _f(p["ratio"]),
-                       "angle_noise_re_amplitude": _f(noise)})
-        if h1 >= AUTO_AMPLITUDE_MIN_H1 and p["ratio"] <= AUTO_AMPLITUDE_MAX_RATIO \
-                and noise <= MAX_NOISE_RE_AMPLITUDE:
-            return a, {"chosen_rad": _f(a), "probes": probes, "reason": (
+                       "angle_noise_re_amplitude": _f(noise), "verdict": verdict, **_check_block(p)})
+        ck = p["check"]
+        if ck["cause"] == "saturation" or (ck["cause"] == "no motion" and (ck["saturated_fraction"] or 0)
+                                           > _tuning.SATURATION_MAX_FRACTION):
+            return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
+                       "reason": f"stopped: {ck['text']}"}, p, ck
+        if len(probes) >= 2 and noise > MAX_NOISE_RE_AMPLITUDE and probes[-2]["angle_noise_re_amplitude"] \
+                and (probes[-2]["h1"] or 0) >= AUTO_AMPLITUDE_MIN_H1 and h1 >= AUTO_AMPLITUDE_MIN_H1 \
+                and noise * a > 2 * probes[-2]["angle_noise_re_amplitude"] * probes[-2]["amplitude_rad"]:
+            # the spread over the recorded periods grew with the amplitude: not measurement
+            # noise but motion that differs between periods (a slow transient, a loop near its
+            # resonance, a limit cycle); a larger amplitude does not help
+            ck = {"cause": "unsettled", "saturated_fraction": ck["saturated_fraction"], "text": (
+                f"the motor angle differs between the recorded periods by {100 * noise:.2g} % of the "
+                f"amplitude at {a:g} rad and {100 * probes[-2]['angle_noise_re_amplitude']:.2g} % at "
+                f"{probes[-2]['amplitude_rad']:g} rad: not measurement noise (it grows with the "
+                "amplitude) but a loop that has not settled or does not repeat (near its resonance?); "
+                "raise tune.settle_periods or lower tune.frequency_hz")}
+            return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
+                       "reason": f"stopped: {ck['text']}"}, p, ck
+        nxt = _next_amplitude(a, h1, p["ratio"], noise, max_rad)
+        if q_step is None and p["record"] is not None:
+            q_step, q_source = _encoder_step(probe.s, p)
+        probes[-1]["encoder_step_re_amplitude"] = _f(q_step / a) if q_step else None
+        if verdict != "fail" and q_step and q_step / a > MAX_STEP_RE_AMPLITUDE and a < max_rad:
+            # the quantisation offset falls with the amplitude: go where the step is small
+            verdict = probes[-1]["verdict"] = "fail"
+            probes[-1]["encoder_note"] = (f"encoder step {q_step:.3g} rad ({q_source}) is "
+                                          f"{100 * q_step / a:.2g} % of the amplitude (> "
+                                          f"{100 * MAX_STEP_RE_AMPLITUDE:g} %)")
+            nxt = min(max_rad, max(nxt, 1.05 * q_step / MAX_STEP_RE_AMPLITUDE))
+        if verdict != "fail":
+            near = verdict == "near"
+            alt = nxt if near and nxt > a else None
+            return a, {"chosen_rad": _f(a), "alternative_rad": _f(alt), "probes": probes, "reason": (
                 f"at K_fc = 0 the motor follows the sine (|H_1| = {h1:.3g} >= "
                 f"{AUTO_AMPLITUDE_MIN_H1:g}), the odd-harmonic ratio {p['ratio']:.3g} is <= "
                 f"{AUTO_AMPLITUDE_MAX_RATIO:g} (out of stick-slip) and the angle noise is "
-                f"{100 * noise:.2g} % of the amplitude (<= {100 * MAX_NOISE_RE_AMPLITUDE:g} %)")}, p
+                f"{100 * noise:.2g} % of the amplitude (<= {100 * MAX_NOISE_RE_AMPLITUDE:g} %)"
+                + (f"; the encoder step is {100 * q_step / a:.2g} % of it (<= "
+                   f"{100 * MAX_STEP_RE_AMPLITUDE:g} %, else the amplitude is raised: the "
+                   "quantisation offset falls with it)" if q_step and q_step / a <= MAX_STEP_RE_AMPLITUDE
+                   else f"; the encoder step is {100 * q_step / a:.2g} % of it, above "
+                   f"{100 * MAX_STEP_RE_AMPLITUDE:g} %, at tune.amplitude_max_rad" if q_step else "")
+                + (f"; near a limit (within {100 * AUTO_AMPLITUDE_MARGIN:g} % or 2 standard errors): "
+                   f"another noise seed may choose {alt:.3g} rad, measured as the second amplitude"
+                   if alt else ""))}, p, None
         if a >= max_rad:
             break
-        # r(0) falls about as 1/amplitude out of stick-slip; a stuck motor needs a big step
-        factor = 4.0 if not math.isfinite(p["ratio"]) or h1 < 0.5 else \
-            min(8.0, max(2.0, p["ratio"] / (0.8 * AUTO_AMPLITUDE_MAX_RATIO),
-                         1.2 * noise / MAX_NOISE_RE_AMPLITUDE))
-        a = min(max_rad, a * factor)
-    return a, {"chosen_rad": _f(a), "probes": probes, "reason": (
+        a = nxt
+    return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes, "reason": (
         f"stick-slip at every amplitude up to tune.amplitude_max_rad = {max_rad:g} rad "
         f"(|H_1| = {probes[-1]['h1']:.3g}, ratio at K_fc = 0 {probes[-1]['ratio_at_zero']}); "
         "the search runs there and may rely on the ratio minimiser: raise "
-        "tune.amplitude_max_rad if the set-up allows")}, p
+        "tune.amplitude_max_rad if the set-up allows")}, p, None
+
+
+def _std_over_periods(points):
+    """Per point the standard deviation of the HOSIDFs over the recorded periods, (n, K)
+    (from the per-period HOSIDFs, or the drive's period-to-period variance); None when a
+    point has neither."""
+    out = []
+    for p in points:
+        if p.get("H_periods") is not None:
+            out.append(np.std(np.asarray(p["H_periods"]), axis=0, ddof=1).reshape(-1)[:len(p["H"])])
+        elif p.get("H_var") is not None:
+            out.append(np.sqrt(np.asarray(p["H_var"], dtype=float)))
+        else:
+            return None
+    return np.stack(out)
 
 
 def sweep_optimum(k, ratio, signed):
@@ -658,6 +826,236 @@ def check_tune_plan(session):
                           f"(its output limit u_max = {limit:g} V)")
 
 
+# The uncertainty budget after a converged search (fftune.analysis.tuning.uncertainty_budget).
+# A motor lagging the reference by more than this at K_fc* gets the viscous feed-forward
+# estimate in the loop before K_fc* is read (the lag moves the criterion's optimum).
+LAG_MIN_DEG = 1.5
+# The amplitude part: K_fc* at a second amplitude A2 (the auto choice's alternative, else 2 A,
+# else A / 2), combined by fftune.analysis.tuning.amplitude_combination with this rule.
+AMPLITUDE_RULE = "trend"
+# The viscous feed-forward goes into the search when its share of the plant input's
+# fundamental (K_v w |Y_1| / |U_1|) at K_fc = 0 is at least this. At K_fc = 0 the motor
+# sticks briefly at each reversal, which the sliding-relay fit reads as viscous friction:
+# on the matrix's plants without much viscous friction the share came out 0.07-0.17, with
+# it (demo, load-side damping) 0.4-0.7 (tests/bench/bench_tune_matrix.py). A smaller
+# viscous share is corrected after the search, from the lag at K_fc* (LAG_MIN_DEG).
+KV_MIN_SHARE = 0.25
+# The search's relative stopping tolerance: the experiments of the budget (the second
+# amplitude, the lag correction) read K_fc* again along the measured slope, so the search
+# only needs to land within this of it (fewer experiments than KfcSearch's default 0.5 %).
+SEARCH_RTOL = 0.02
+# At the second amplitude a root step along the scaled slope longer than this share of K_fc*
+# gets a second experiment there and the secant through both.
+SECOND_POINT_STEP = 0.05
+# A budget above this share of K_fc* is no tuning result: converged false, with the largest
+# part and what would shrink it.
+MAX_SIGMA_RE_K_FC = 0.1
+_BUDGET_ADVICE = {
+    "amplitude": "K_fc* depends on the sine amplitude (stick-slip, Stribeck, a loop that does not "
+                 "repeat): raise tune.amplitude_rad / tune.amplitude_max_rad, or lower tune.frequency_hz",
+    "encoder": "the encoder is coarse for this friction: a larger amplitude (tune.amplitude_max_rad) or a "
+               "finer encoder",
+    "noise": "raise tune.periods or the amplitude",
+    "flatness": "the objective is flat near its zero: raise the amplitude",
+    "viscous": "the viscous feed-forward estimate did not settle: check the plant's damping",
+}
+
+
+def _amplitude_allowed(session, a):
+    """A sine amplitude above the chosen one only within what the configuration allows
+    (tune.amplitude_max_rad, limits.max_amplitude_rad, limits.max_velocity_rad_s) and the
+    drive's amplitude range (1000 rad): the preflight checked those, not the larger sine."""
+    c = session.cfg["tune"]
+    lim = session.cfg.get("limits") or {}
+    if a > c["amplitude_max_rad"] or a > 1000.0:
+        return False
+    if lim.get("max_amplitude_rad") is not None and a > lim["max_amplitude_rad"]:
+        return False
+    v_max = lim.get("max_velocity_rad_s")
+    return v_max is None or 2 * math.pi * c["frequency_hz"] * a <= v_max
+
+
+def probe_limit(session):
+    """The largest K_fc an experiment after the search may ask for (the drive's limit)."""
+    return k_fc_limit(session)
+
+
+def _encoder_step(session, p):
+    q = session.cfg["detect"].get("encoder_step_rad")
+    if q:
+        return float(q), "detect.encoder_step_rad"
+    y = p["record"].signals.get("motor_angle")
+    if y is not None:
+        q = _tuning.encoder_step_estimate(y, p["angle_noise_rad"])
+        if q:
+            return float(q), "estimated from the recorded motor angle"
+        return 0.0, ("not found in the recorded motor angle (no steps, or noise above a sixth of a "
+                     "step dithers the quantiser): no encoder part")
+    return None, "unknown: no samples (tune.capture stats) and detect.encoder_step_rad unset"
+
+
+def _phases_and_slope(probe, outcome, by_k):
+    """The reference phases and ds/dK at K_fc*: the search's (signed root), else from the
+    ends of its last bracket (ratio minimiser); (None, nan) when s does not change sign there."""
+    if outcome.phases is not None and np.isfinite(outcome.slope) and outcome.slope < 0:
+        return np.asarray(outcome.phases), float(outcome.slope)
+    a, b = outcome.bracket
+    if not (np.isfinite(a) and np.isfinite(b) and a in by_k and b in by_k and b > a):
+        return None, math.nan
+    pa, pb = probe.search_point(by_k[a]), probe.search_point(by_k[b])
+    phases = _tuning.reference_phases(pa.H - pb.H, probe.harmonics)
+    sa = _tuning.signed_point(pa, phases, probe.harmonics)[0]
+    sb = _tuning.signed_point(pb, phases, probe.harmonics)[0]
+    if not (sa > 0 > sb):
+        return None, math.nan
+    return phases, (sb - sa) / (b - a)
+
+
+def _at(probe, tag, k, kv, amplitude, phases, slope):
+    """One experiment after the search: (point, s, se, root along the slope) or the check
+    that stopped it."""
+    p = probe.measure(tag, float(k), float(kv), amplitude=amplitude)
+    if p["check"]["cause"] is not None:
+        return p, None
+    s_k, se = _tuning.signed_point(probe.search_point(p), phases, probe.harmonics)
+    return p, (s_k, se, _tuning.root_at_slope(float(np.float32(k)), s_k, slope))
+
+
+def _budget(session, probe, outcome, by_k, amp_block):
+    """After a converged search at amplitude A1: (1) the viscous feed-forward in the loop when
+    the motor lags the reference (the lag moves the criterion's optimum off the Coulomb
+    level: corrected), (2) K_fc* at a second amplitude (the amplitude dependence: the
+    reported K_fc* is extrapolated to 1/A -> 0 and the part is the size of that step),
+    (3) the encoder floor and the flatness of s near the root. Returns a dict with
+    ``k_fc``, ``sigma_total``, ``parts`` and ``cause`` (not None: cannot tell, why)."""
+    c = session.cfg["tune"]
+    a1 = float(probe.amplitude)
+    omega = 2 * math.pi * c["frequency_hz"]
+    out = {"cause": None, "k_v_in_search": 0.0, "experiments": 0}
+    phases, slope = _phases_and_slope(probe, outcome, by_k)
+    if phases is None:
+        out["cause"] = ("cannot tell the uncertainty: the signed objective has no sign change "
+                        f"around K_fc = {outcome.k_fc:.4g} V (the odd phases rotate), so K_fc* at a "
+                        "second amplitude cannot be read; raise the amplitude (out of stick-slip)")
+        return out
+    n0 = session.tune_experiments
+    k1 = float(outcome.k_fc)
+    sig_noise = float(outcome.sigma)
+    p_star = min(by_k.items(), key=lambda kp: abs(kp[0] - k1))[1]
+    h1 = complex(p_star["H"][0])
+    lag_deg = float(-np.degrees(np.angle(h1)))
+    kv_search = float(getattr(probe, "kv_search", 0.0))
+    kv, _ = _viscous_estimate(probe, p_star)
+    if kv == 0.0 and p_star["u_over_y"] is not None:
+        y1 = h1 * a1
+        kv = _tuning.viscous_feedforward_estimate(p_star["u_over_y"] * y1, y1, omega, k1)
+    visc = {"lag_deg": _f(lag_deg), "k_v_in_search": _f(kv_search), "k_v_estimate": _f(kv),
+            "applied": False, "steps": []}
+    visc_part = 0.0
+    k = k1
+    if lag_deg > LAG_MIN_DEG and kv > 0 and abs(kv - kv_search) > 0.1 * kv:
+        last = None
+        for i in range(2):
+            p, r = _at(probe, "lag", k, kv, a1, phases, slope)
+            if r is None:
+                out["cause"] = f"{p['check']['cause']}: {p['check']['text']}"
+                return out
+            s_k, se, k_new = r
+            if not math.isfinite(k_new):
+                break
+            visc["steps"].append({"k_fc": _f(k), "s": _f(s_k), "s_std": _f(se), "root": _f(k_new)})
+            step = abs(k_new - k)
+            # one experiment: the root along the search's slope, its linearity unverified
+            # (half the step is the part); a second when the step exceeds 2 %
+            k, last = k_new, (p, se, step / 2 if i == 0 else step)
+            if step <= max(2 * se / abs(slope), 0.02 * abs(k)):
+                break
+        if last is not None:
+            lag_new = float(-np.degrees(np.angle(last[0]["H"][0])))
+            visc["lag_after_deg"] = _f(lag_new)
+            if abs(lag_new) < abs(lag_deg):
+                visc["applied"] = True
+                visc_part = last[2]
+                sig_noise = math.hypot(sig_noise, last[1] / abs(slope))
+            else:
+                visc_part = abs(k - k1)
+                k = k1
+    if not visc["applied"]:
+        kv = kv_search
+    visc["note"] = (
+        (f"the viscous feed-forward K_v = {kv_search:.4g} V s/rad (read from the K_fc = 0 experiment) "
+         "was in the loop during the search; " if kv_search else "")
+        + (f"the motor lagged the reference by {lag_deg:.3g} deg at K_fc*: K_fc* read again with "
+           f"K_v = {kv:.4g} V s/rad in the loop (corrected)" if visc["applied"] else
+           f"lag {lag_deg:.3g} deg at K_fc* (<= {LAG_MIN_DEG:g} deg, or no better K_v estimate): no "
+           "further correction" if visc_part == 0 else
+           "the new K_v estimate did not reduce the lag: not applied; the shift it gave is a part "
+           "of the budget"))
+    out["k_v_in_search"] = kv
+    # (2) a second amplitude
+    amax = c["amplitude_max_rad"]
+    alt = (amp_block or {}).get("alternative_rad")
+    candidates = [alt] if alt else []
+    candidates += [x for x in (2 * a1, a1 / 2) if x <= max(amax, a1) and x not in candidates]
+    candidates = [x for x in candidates if x <= a1 or _amplitude_allowed(session, x)]
+    p2 = r2 = None
+    tried = []
+    for a2 in candidates:
+        p2, r2 = _at(probe, "amplitude2", k, kv, a2, phases,
+                     slope * a1 * abs(h1) / a2 / max(abs(h1), 1e-12))
+        tried.append(f"{a2:.3g} rad: {p2['check']['cause'] or 'ok'}")
+        if r2 is not None:
+            break
+    if r2 is None or not math.isfinite(r2[2]):
+        out["cause"] = ("cannot tell the amplitude dependence of K_fc*: no second amplitude gave a "
+                        f"usable experiment ({'; '.join(tried)})")
+        return out
+    a2 = float(p2["amplitude"])
+    h1_2 = abs(complex(p2["H"][0]))
+    slope2 = slope * a1 * abs(h1) / (a2 * h1_2)
+    s2, se2, _ = r2
+    k_a = float(np.float32(k))
+    k2 = _tuning.root_at_slope(k_a, s2, slope2)
+    sigma2 = se2 / abs(slope2) * _tuning._t_factor(max(1, p2["n_periods"] - 1))
+    second = None
+    if math.isfinite(k2) and abs(k2 - k_a) > SECOND_POINT_STEP * abs(k_a) and 0 < k2 <= probe_limit(session):
+        # a long step along a scaled slope (the slope at A2 need not be the scaled one, e.g. in
+        # stick-slip): one more experiment at the root, then the secant through both
+        p3, r3 = _at(probe, "amplitude2", k2, kv, a2, phases, slope2)
+        if r3 is not None and r3[0] != s2:
+            s3, se3 = r3[0], r3[1]
+            k_b = float(np.float32(k2))
+            slope_m = (s3 - s2) / (k_b - k_a)
+            if slope_m < 0:
+                second = {"k_fc": _f(k_b), "s": _f(s3), "s_std": _f(se3), "slope_measured": _f(slope_m)}
+                k2 = _tuning.root_at_slope(k_b, s3, slope_m)
+                sigma2 = math.hypot(se3, se2) / abs(slope_m) * _tuning._t_factor(max(1, p3["n_periods"] - 1))
+    k_est, noise_est, amp_part, how = _tuning.amplitude_combination(
+        k, sig_noise, a1, k2, sigma2, a2, rule=AMPLITUDE_RULE)
+    q, q_source = _encoder_step(session, p_star)
+    if q is None:
+        out["cause"] = ("cannot tell the encoder part of the uncertainty: the encoder step is "
+                        f"{q_source}; set detect.encoder_step_rad (2 pi / counts per revolution, from "
+                        "the encoder's data sheet) or use tune.capture: both")
+        return out
+    enc = _tuning.encoder_floor_v(q, min(a1, a2), p_star["angle_noise_rad"], slope * (a1 / min(a1, a2)))
+    total, parts = _tuning.uncertainty_budget({
+        "noise": noise_est, "amplitude": amp_part, "encoder": enc,
+        "flatness": float(outcome.sigma_fit), "viscous": visc_part})
+    out.update({
+        "k_fc": float(k_est), "sigma_total": total, "parts": parts,
+        "k_fc_at_amplitude": {"amplitude_rad": [_f(a1), _f(a2)], "k_fc": [_f(k), _f(k2)],
+                              "sigma_noise": [_f(sig_noise), _f(sigma2)],
+                              "s_at_second": _f(s2), "s_std_at_second": _f(se2),
+                              "secant_at_second": second},
+        "rule": how,
+        "k_fc_search": _f(k1), "viscous": visc,
+        "encoder_step_rad": _f(q), "encoder_step_source": q_source,
+        "experiments": session.tune_experiments - n0,
+    })
+    return out
+
+
 def tune(session):
     """K_fc: (a) the paper's sweep (optional), (b) the automated search, then (c) K_v.
 
@@ -673,28 +1071,53 @@ def tune(session):
     probe = _TuneProbe(session)
     session.tune_experiments = 0
     # (0) amplitude
-    amp_block = None
+    amp_block = stop = None
     if c["amplitude_rad"] == "auto":
-        probe.amplitude, amp_block, _ = choose_amplitude(probe, c["amplitude_start_rad"],
-                                                         c["amplitude_max_rad"])
+        probe.amplitude, amp_block, _, stop = choose_amplitude(probe, c["amplitude_start_rad"],
+                                                               c["amplitude_max_rad"])
     n_amplitude_probes = session.tune_experiments
-    # (b) automated search, one experiment at a time
+    # (b) automated search, one experiment at a time; saturation or no motion ends it
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
     limit = k_fc_limit(session)
     search = _tuning.KfcSearch(0.0, k_hi, k_limit=limit, harmonics=probe.harmonics,
                                max_experiments=c["search"]["max_experiments"],
-                               xtol=c["search"]["xtol_v"] or 0.0)
+                               xtol=c["search"]["xtol_v"] or 0.0, rtol=SEARCH_RTOL)
     by_k = {}
-    while not search.done:
+    # the viscous feed-forward in the loop from the start when the plant's viscous friction
+    # is a noticeable share of the input (it makes the motor lag the reference, which moves
+    # the criterion's optimum off the Coulomb level); read from the K_fc = 0 experiment,
+    # which stays at K_v = 0 (the reference point of the search)
+    kv_pre, kv_share = 0.0, 0.0
+    if stop is None:
+        p_zero = probe.measure("search", 0.0)
+        if p_zero["check"]["cause"] is not None:
+            stop = p_zero["check"]
+            by_k[0.0] = p_zero
+        else:
+            kv_pre, kv_share = _viscous_estimate(probe, p_zero)
+            if kv_share < KV_MIN_SHARE:
+                kv_pre = 0.0
+    probe.kv_search = kv_pre
+    while not search.done and stop is None:
         k = search.ask()
-        p = probe.measure("search", float(k))
+        p = probe.measure("search", float(k), kv_pre if k != 0.0 else 0.0)
         by_k[float(k)] = p
+        if p["check"]["cause"] is not None:
+            stop = p["check"]
+            break
         if p["H_periods"] is not None:
             search.tell(k, p["H_periods"])
         else:
             search.tell_moments(k, p["H"], p["H_var"], p["n_periods"])
     outcome = search.result
-    n_search = session.tune_experiments
+    if stop is not None:
+        outcome.converged = False
+        outcome.reason = f"{stop['cause']}: {stop['text']}"
+        outcome.sigma = math.nan
+        if not by_k:                       # stopped in the amplitude choice
+            by_k[0.0] = probe.measure("amplitude", 0.0)
+        if not math.isfinite(outcome.k_fc):
+            outcome.k_fc = min(by_k)
     p_lo = by_k.get(0.0)
     if outcome.converged and p_lo is not None and \
             p_lo["angle_noise_rad"] > MAX_NOISE_RE_AMPLITUDE * probe.amplitude:
@@ -711,6 +1134,29 @@ def tune(session):
             f"{p_lo['angle_noise_rad'] / MAX_NOISE_RE_AMPLITUDE:.2g} rad or set it to auto"
             + ("; if the loop settles slowly, raise tune.settle_periods or use tune.capture: both"
                if from_lines else ""))
+    k_search = float(outcome.k_fc)
+    budget = None
+    kv_search = 0.0
+    if outcome.converged:
+        budget = _budget(session, probe, outcome, by_k, amp_block)
+        if budget["cause"] is not None:
+            outcome.converged = False
+            outcome.reason = budget["cause"]
+            outcome.sigma = math.nan
+        elif not budget["sigma_total"] <= MAX_SIGMA_RE_K_FC * abs(budget["k_fc"]):
+            part, value = max(budget["parts"].items(), key=lambda kv: kv[1])
+            outcome.converged = False
+            outcome.sigma = math.nan
+            outcome.k_fc = budget["k_fc"]
+            outcome.reason = (
+                f"cannot tell K_fc* better than +-{100 * budget['sigma_total'] / abs(budget['k_fc']):.3g} % "
+                f"(sigma_total {budget['sigma_total']:.3g} V at K_fc = {budget['k_fc']:.4g} V, more than "
+                f"{100 * MAX_SIGMA_RE_K_FC:g} %); the largest part is '{part}' ({value:.3g} V): "
+                + _BUDGET_ADVICE.get(part, "see tune.search.budget"))
+        else:
+            outcome.k_fc, outcome.sigma = budget["k_fc"], budget["sigma_total"]
+            kv_search = budget["k_v_in_search"]
+    n_search = session.tune_experiments
     pts = sorted(by_k.items())
     p0 = by_k.get(0.0) or probe.measure("verify", 0.0)
     k_star = float(outcome.k_fc)
@@ -728,7 +1174,8 @@ def tune(session):
     ratio_fig = np.array([p["ratio"] for p in fig_pts])
     kfc_fig = np.array([p["kfc"] for p in fig_pts])
     phases_fig = _tuning.reference_phases(H_fig[0] - H_fig[-1], probe.harmonics)
-    signed_fig = np.asarray(_tuning.signed_odd_ratio(H_fig, phases_fig, probe.harmonics))
+    with np.errstate(divide="ignore", invalid="ignore"):   # a motor that did not move: |H_1| = 0
+        signed_fig = np.asarray(_tuning.signed_odd_ratio(H_fig, phases_fig, probe.harmonics))
     if sweep:
         k_sweep_opt, sweep_note = sweep_optimum(kfc_fig, ratio_fig, signed_fig)
     # rms error minimum (the paper's +25 %): over the sweep, else over the search
@@ -759,7 +1206,7 @@ def tune(session):
         }
     truth = session.truth or {}
     fc_true = truth.get("sim_fc_volt")
-    sigma = _f(outcome.sigma)
+    sigma = _f(outcome.sigma) if outcome.converged else None
     results = {
         "frequency_hz": c["frequency_hz"], "amplitude_rad": _f(probe.amplitude),
         "amplitude": amp_block or {"chosen_rad": _f(probe.amplitude), "reason": "tune.amplitude_rad"},
@@ -774,7 +1221,15 @@ def tune(session):
             "method": "bracketed root of the signed objective, ratio minimiser where the odd "
                       "phases rotate (fftune.analysis.tuning.KfcSearch)",
             "k_fc_star": _f(k_star), "sigma_v": sigma, "uncertainty": sigma,
+            "sigma_parts_v": None if not (budget and "parts" in budget) else
+            {k: _f(v) for k, v in budget["parts"].items()},
+            "sigma_total_v": None if not (budget and "parts" in budget) else _f(budget["sigma_total"]),
+            "budget": None if not (budget and "parts" in budget) else {
+                k: budget[k] for k in ("k_fc_search", "k_fc_at_amplitude", "rule", "viscous",
+                                       "encoder_step_rad", "encoder_step_source", "experiments")},
+            "k_v_in_search": _f(kv_search),
             "converged": bool(outcome.converged), "stop_reason": outcome.reason,
+            "cause": (stop or {}).get("cause"),
             "regime": outcome.regime,
             "bracket_v": [_f(x) for x in outcome.bracket],
             "bracket_extended": None if outcome.extended_to is None else {
@@ -789,8 +1244,9 @@ def tune(session):
             "amplitude_probes": n_amplitude_probes,
             "relative_to_sweep_optimum": _f(k_star / k_sweep_opt - 1) if k_sweep_opt else None,
             "evaluations": [{"k_fc": _f(p["kfc"]), "ratio": _f(p["ratio"]),
-                             "ratio_std": _f(sp.ratio_std)}
-                            for (_, p), sp in zip(pts, outcome.points)],
+                             "ratio_std": _f(probe.search_point(p).ratio_std) if math.isfinite(p["ratio"])
+                             else None, **_check_block(p)}
+                            for _, p in pts],
         },
         "k_fc_star": _f(k_star) if outcome.converged else None,
         "k_fc_best_measured": _f(k_star),
@@ -805,6 +1261,7 @@ def tune(session):
     if kv_block:
         results["rms_error_rad"]["k_fc_star_k_v_star"] = kv_block["rms_error_rad"]
     data = {"k_sweep": kfc_fig, "H_sweep": H_fig, "ratio_sweep": ratio_fig,
+            "H_std_sweep": _std_over_periods(fig_pts),
             "signed_sweep": signed_fig, "k_star": k_star, "p0": p0, "p_star": p_star, "p_rms": p_rms,
             "p_kv": p_kv, "n": probe.n, "fs": session.fs_hz}
     return results, data

@@ -48,8 +48,11 @@ def check_plan(drive, cfg, steps=STEPS, session=None):
 
 
 def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, preflight=True,
-                 before_figures=None):
+                 before_figures=None, data=None):
     """Run ``steps`` in order; returns the results dict (also written to ``out_dir``).
+    ``data``: a dict that receives the analysis objects behind the figures
+    (``detect_levels``, ``hos``, ``tune_data``; None for a step not run) and the figures
+    made (``figures``: name -> (file name, caption)).
 
     With ``preflight`` (default; not for a CAN-log replay: its runs happened) every
     excitation of the plan is first checked against the drive's limits and the
@@ -95,7 +98,8 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, pref
             tr = results["tune"]
             srch = tr["search"]
             if srch["converged"]:
-                log(f"tune: K_fc* = {tr['k_fc_star']:.4g} V +- {srch['sigma_v']:.2g} V (1 sigma) "
+                log(f"tune: K_fc* = {tr['k_fc_star']:.4g} V +- {srch['sigma_v']:.2g} V (sigma_total: "
+                    "noise and the measured systematic parts, results.yaml tune.search.sigma_parts_v) "
                     f"after {srch['experiments']} experiments at {tr['amplitude_rad']:.3g} rad; "
                     f"ratio {tr['ratio_at_zero'] or math.inf:.3g} -> {tr['ratio_at_k_fc_star']:.3g}")
             else:
@@ -114,11 +118,15 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, pref
     results["wall_time_s"] = round(time.monotonic() - t0, 2)
     os.makedirs(out_dir, exist_ok=True)
     write_results(out_dir, results)
+    if data is not None:
+        data.update(detect_levels=detect_levels, hos=hos, tune_data=tune_data)
     figs = {}
     if before_figures is not None:
         before_figures()
     if figures:
         figs = make_figures(out_dir, detect_levels, hos, tune_data, results)
+    if data is not None:
+        data["figures"] = figs
     write_html(out_dir, results, figs)
     return results
 

@@ -105,12 +105,13 @@ def experiment_plan(cfg, fs_hz, lines_capacity=LSTAT_LINES_MAX):
             runs += 4
         if t["viscous"]["enabled"]:
             runs += t["viscous"]["max_experiments"] + 2
+        runs += 4      # the uncertainty budget: lag correction (<= 2), second amplitude (<= 2)
         k_ok = t["harmonics"] <= STAT_K_MAX
         out.append(StepPlan(
             "tune", runs, runs * (t["settle_periods"] + t["periods"]) * t["period_samples"] / fs,
             runs * t["periods"] * t["period_samples"] * 3 * FLOAT_BYTES,
-            runs * stats_bytes(t["harmonics"], 2, 1) if k_ok else None,
-            "runs: at most (sweep + search + viscous + probes)"))
+            runs * stats_bytes(t["harmonics"], 3, 2) if k_ok else None,
+            "runs: at most (sweep + search + viscous + probes + budget)"))
     return out
 
 
@@ -515,7 +516,8 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
         run_checks("tune", t, 0 if mode("tune") == "stats" else 4)
         runs = t["sweep"]["points"] + t["search"]["max_experiments"] + \
             (4 if t["amplitude_rad"] == "auto" else 0) + \
-            (t["viscous"]["max_experiments"] + 2 if t["viscous"]["enabled"] else 0)
+            (t["viscous"]["max_experiments"] + 2 if t["viscous"]["enabled"] else 0) + \
+            4       # the uncertainty budget: lag correction (<= 2), second amplitude (<= 2)
         plan = [StepPlan("tune", runs, runs * (t["settle_periods"] + t["periods"]) * n / fs, 0, None)] \
             if fs else []
         step_rows.append({"step": "tune", "text": (

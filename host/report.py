@@ -42,18 +42,20 @@ def figure_conclusions(results, detect_levels=None, tune_data=None):
                           f"line spacing {detect_levels.freq[1] - detect_levels.freq[0]:.3g} Hz")
     q = (results or {}).get("quantify")
     if q:
-        out["figure5"] = (f"largest odd HOSIDF {100 * q['max_odd_relative_level']:.3g} % of H_1, "
+        out["figure5"] = (f"largest odd HOSIDF {100 * q['max_odd_relative_level']:.3g} % of |H_1|, "
                           f"largest even {100 * q['max_even_relative_level']:.3g} %")
     t = (results or {}).get("tune")
     if t and tune_data is not None:
         k, H = np.asarray(tune_data["k_sweep"]), np.asarray(tune_data["H_sweep"])
         ks = tune_data["k_star"]
         below, above = k < ks, k > ks
-        if below.any() and above.any():
-            turn = abs(np.degrees(np.angle(H[above][0, 2] / H[below][-1, 2])))
-            out["figure7"] = (f"H_3 turns by {turn:.0f} deg across K_fc* = {ks:.4g} V (the paper: "
-                              f"180 deg); ratio {t['ratio_at_zero'] or float('inf'):.3g} at K_fc = 0, "
-                              f"{t['ratio_at_k_fc_star']:.3g} at K_fc*")
+        if below.any() and above.any() and len(k) >= 3:
+            from fftune.analysis.reproduction import phase_turn_deg
+            turn = phase_turn_deg(k, H, ks, 3)
+            out["figure7"] = (f"the unwrapped phase of H_3 turns by {turn:.0f} deg between the sweep "
+                              f"points around K_fc* = {ks:.4g} V (the paper: 180 deg); ratio "
+                              f"{100 * (t['ratio_at_zero'] or float('inf')):.3g} % at K_fc = 0, "
+                              f"{100 * t['ratio_at_k_fc_star']:.3g} % at K_fc*")
         e = t["rms_error_rad"]
         where = "above" if (e["sweep_min_at_k_fc"] or 0) > ks else "not above"
         out["figure9"] = (f"rms error {e['k_fc_0']:.3g} rad at K_fc = 0, {e['k_fc_star']:.3g} rad at "
@@ -62,6 +64,15 @@ def figure_conclusions(results, detect_levels=None, tune_data=None):
                           + (f"; with K_v* {e['k_fc_star_k_v_star']:.3g} rad"
                              if e.get("k_fc_star_k_v_star") is not None else ""))
     return out
+
+
+def save_figure(out_dir, name, fig, caption):
+    """``fig`` written atomically as ``<out_dir>/<name>.png``; returns (file name, caption)."""
+    fname = f"{name}.png"
+    tmp = os.path.join(out_dir, f".tmp-{fname}")
+    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    os.replace(tmp, os.path.join(out_dir, fname))
+    return fname, caption
 
 
 def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=None):
@@ -82,13 +93,7 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
         key = key or name.split("_")[0]
         if concl.get(key):
             caption = f"{caption} {concl[key]}."
-        fname = f"{name}.png"
-        tmp = os.path.join(out_dir, f".tmp-{fname}")
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-        os.replace(tmp, os.path.join(out_dir, fname))
-        import matplotlib.pyplot as plt
-        plt.close(fig)
-        made[name] = (fname, caption)
+        made[name] = save_figure(out_dir, name, fig, caption)
 
     if detect_levels is not None:
         unit_in = "V"
@@ -108,8 +113,10 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
                                                    level_unit=unit_in),
              "Figure 4: BLA as a function of frequency and excitation level.")
     if hos is not None:
-        save("figure5_hosidf_vs_amplitude", plots.figure5(hos, unit="rad", h_unit="rad/rad"),
-             "Figure 5: HOSIDFs vs amplitude (mean and standard deviation over repeats).")
+        q_in = "V" if ((results or {}).get("quantify") or {}).get("inject") == "plant_input" else "rad"
+        save("figure5_hosidf_vs_amplitude", plots.figure5(hos, unit=q_in, h_unit=f"rad/{q_in}"),
+             "Figure 5: odd and even HOSIDFs vs amplitude at every measured frequency (mean and "
+             "standard deviation over repeats).")
     if tune_data is not None:
         save("figure7_tuning", plots.figure7(tune_data["k_sweep"], tune_data["H_sweep"],
                                              tune_data["ratio_sweep"], k_star=tune_data["k_star"]),
@@ -141,11 +148,15 @@ def _table(rows):
     return "\n".join(out)
 
 
-def _fmt(v, unit="", pct=False):
+def _fmt(v, unit="", pct=False, level=False):
+    """A number for the report: ``pct`` a signed relative change in %, ``level`` a level
+    relative to H_1 in % (as Figures 7 and 8 plot it)."""
     if v is None:
         return "n/a"
     if pct:
         return f"{100 * v:+.2f} %"
+    if level:
+        return f"{100 * v:.3g} %"
     return f"{v:.4g}{unit}"
 
 
@@ -157,14 +168,16 @@ def key_numbers(results):
         rows += [
             ("K_fc* (automated search)", _fmt(t["k_fc_star"], " V") if t["search"]["converged"]
              else f"not converged: {t['search']['stop_reason']}"),
-            ("sigma(K_fc*) from the measured noise", _fmt(t["search"].get("sigma_v"), " V")),
+            ("sigma_total(K_fc*): noise and the measured systematic parts", _fmt(t["search"].get("sigma_v"), " V")),
+            ("sigma parts", ", ".join(f"{k} {_fmt(v, ' V')}" for k, v in
+                                      (t["search"].get("sigma_parts_v") or {}).items()) or "-"),
             ("K_fc optimum of the sweep", _fmt((t["sweep"] or {}).get("optimum_k_fc"), " V")),
             ("search vs sweep optimum", _fmt(t["search"]["relative_to_sweep_optimum"], pct=True)),
             ("closed-loop experiments of the search", t["search"]["experiments"]),
             ("true Coulomb friction (simulation)", _fmt(t["true_coulomb_v"], " V")),
             ("K_fc* vs truth", _fmt(t["k_fc_star_error_re_truth"], pct=True)),
-            ("odd-harmonic ratio at K_fc = 0", _fmt(t["ratio_at_zero"])),
-            ("odd-harmonic ratio at K_fc*", _fmt(t["ratio_at_k_fc_star"])),
+            ("odd-harmonic ratio at K_fc = 0 (re |H_1|)", _fmt(t["ratio_at_zero"], level=True)),
+            ("odd-harmonic ratio at K_fc* (re |H_1|)", _fmt(t["ratio_at_k_fc_star"], level=True)),
             ("ratio improvement", _fmt(t["ratio_improvement"], "x")),
             ("rms tracking error at K_fc = 0", _fmt(t["rms_error_rad"]["k_fc_0"], " rad")),
             ("rms tracking error at K_fc*", _fmt(t["rms_error_rad"]["k_fc_star"], " rad")),
@@ -186,39 +199,87 @@ def key_numbers(results):
                          f"{_fmt(s.get('line_median_noise_re_nl_db'), ' dB')}"))
         top = d["levels"][-1]["summary_db"]
         if top.get("parity_classifiable"):
-            rows.append(("per line, highest level: odd re even (median)",
-                         _fmt(top.get("line_median_odd_re_even_db"), " dB")))
+            rows.append(("highest level: odd re even (power ratio)",
+                         _fmt(top.get("odd_re_even_db"), " dB")))
     q = results.get("quantify")
     if q:
-        rows.append(("largest odd HOSIDF level re H_1", _fmt(q["max_odd_relative_level"])))
-        rows.append(("largest even HOSIDF level re H_1", _fmt(q["max_even_relative_level"])))
+        rows.append(("largest odd HOSIDF level re |H_1|", _fmt(q["max_odd_relative_level"], level=True)))
+        rows.append(("largest even HOSIDF level re |H_1|", _fmt(q["max_even_relative_level"], level=True)))
     rows.append(("experiments measured / resumed from captures",
                  f"{results['experiments']['measured']} / {results['experiments']['resumed']}"))
     return rows
 
 
-def write_html(out_dir, results, figures):
-    """``report.html``: the key numbers, the figures with captions, the full results."""
+# dB values below this are a floor (an exactly zero power clipped at 1e-300 before the log,
+# -3000 dB), not a level: the report prints them as "below floor".
+DB_FLOOR = -200.0
+
+
+def _floors_readable(node):
+    """A copy of the results for display: every ``*_db`` number below :data:`DB_FLOOR` as
+    the text "below floor (< -200 dB)"."""
+    if isinstance(node, dict):
+        out = {}
+        for k, v in node.items():
+            if isinstance(v, float) and str(k).endswith("_db") and v < DB_FLOOR:
+                out[k] = f"below floor (< {DB_FLOOR:g} dB)"
+            else:
+                out[k] = _floors_readable(v)
+        return out
+    if isinstance(node, list):
+        return [_floors_readable(v) for v in node]
+    return node
+
+
+def _zero_levels_readable(results):
+    """A copy of the results for display with each exact 0.0 quantify even level printed as
+    "below floor (< F)" (F: its even_relative_level_floor, one encoder count; see the
+    note quantify.even_relative_level_note), not as a measured 0."""
+    q = results.get("quantify")
+    if not q or not any(v == 0.0 for row in q.get("even_relative_level", []) for v in row):
+        return results
+    floors = q.get("even_relative_level_floor")
+    rows = []
+    for i, row in enumerate(q["even_relative_level"]):
+        out = []
+        for j, v in enumerate(row):
+            if v == 0.0:
+                f = floors[i][j] if floors else None
+                out.append(f"below floor (< {f:.2g}): exact half-wave symmetry" if f is not None
+                           else "below floor: exact half-wave symmetry")
+            else:
+                out.append(v)
+        rows.append(out)
+    return dict(results, quantify=dict(q, even_relative_level=rows))
+
+
+def write_html(out_dir, results, figures, title="fftune report", sections=()):
+    """``report.html``: ``sections`` ((heading, HTML) pairs) first, then the key numbers,
+    the figures with captions, the full results (dB floors printed as such)."""
     ident = results.get("drive", {}).get("identity", {})
     parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>fftune report</title>",
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
         "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}"
         "table{border-collapse:collapse}th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}"
-        "img{max-width:100%}pre{background:#f4f4f4;padding:8px;overflow:auto}</style></head><body>",
-        "<h1>fftune report</h1>",
+        "img{max-width:100%}pre{background:#f4f4f4;padding:8px;white-space:pre-wrap;"
+        "overflow-wrap:anywhere}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
         f"<p>{html.escape(datetime.datetime.now().isoformat(timespec='seconds'))} &mdash; drive "
         f"{html.escape(str(ident.get('device_name', '?')))}, firmware "
         f"{html.escape(str(ident.get('firmware_version', '?')))}, "
         f"{html.escape(str(ident.get('bus', '')))}; configuration "
         f"{html.escape(str(results.get('config_file', '')))}</p>",
-        "<h2>Key numbers</h2>", _table(key_numbers(results)),
     ]
+    for heading, body in sections:
+        parts += [f"<h2>{html.escape(heading)}</h2>", body]
+    parts += ["<h2>Key numbers</h2>", _table(key_numbers(results))]
     for name, (fname, caption) in figures.items():
         parts.append(f"<h2>{html.escape(caption.split(':')[0])}</h2>")
         parts.append(f"<figure><img src='{html.escape(fname)}' alt='{html.escape(name)}'>"
                      f"<figcaption>{html.escape(caption)}</figcaption></figure>")
     parts.append("<h2>All results (results.yaml)</h2><pre>")
-    parts.append(html.escape(yaml.safe_dump(results, sort_keys=False, default_flow_style=None, width=100)))
+    parts.append(html.escape(yaml.safe_dump(_floors_readable(_zero_levels_readable(results)), sort_keys=False,
+                                            default_flow_style=None, width=90)))
     parts.append("</pre></body></html>")
     path = os.path.join(out_dir, "report.html")
     write_atomic(path, "\n".join(parts))

@@ -262,8 +262,8 @@ def test_interp_frf_exact_for_power_laws():
 
 
 def test_summary_line_figures_against_the_arrays():
-    """line_fraction_nl_over_noise_6db and line_median_odd_re_even_db from the result's own
-    per-line arrays (Figure 3)."""
+    """line_fraction_nl_over_noise_6db and odd_re_even_db (the one odd-re-even figure: a
+    power ratio, issue 23) from the result's own per-line arrays (Figure 3)."""
     m, p, n = 6, 4, 1024
     excited, one = _multisine_table(m, n, 200, seed=3)
     x = _periodic_filter(one)
@@ -280,8 +280,9 @@ def test_summary_line_figures_against_the_arrays():
     assert s["line_fraction_nl_over_noise_6db"] == pytest.approx(
         np.mean(nl > res.noise_db + 10 * np.log10(4.0)))
     assert 0.0 < s["line_fraction_nl_over_noise_6db"] <= 1.0
-    assert s["line_median_odd_re_even_db"] == pytest.approx(
-        np.median(res.odd_db) - np.median(res.even_db))
+    assert "line_median_odd_re_even_db" not in s
+    assert s["odd_re_even_db"] == pytest.approx(
+        10 * np.log10(np.mean(10 ** (res.odd_db / 10)) / np.mean(10 ** (res.even_db / 10))))
 
 
 def test_sample_rate_must_be_positive_and_finite():
@@ -410,8 +411,13 @@ _LINEAR = {"odd_detected": False, "even_detected": False, "nl_detected": False,
 
 
 def test_level_verdict_every_cause_and_its_text():
-    v = bla_mod.level_verdict({"odd_detected": None, "even_detected": None, "nl_detected": None})
-    assert v["causes"] == ["cannot tell"] and v["text"].startswith("cannot tell: no noise estimate")
+    v = bla_mod.level_verdict({"odd_detected": None, "even_detected": None, "nl_detected": None,
+                               "periods": 1, "realizations": 4, "nonexcited_lines": 30})
+    assert v == {"causes": ["cannot tell"], "text": "cannot tell: no noise estimate (P = 1 period)"}
+    v = bla_mod.level_verdict({"odd_detected": None, "even_detected": None, "nl_detected": None,
+                               "periods": 5, "realizations": 1, "nonexcited_lines": 0})
+    assert v["text"] == ("cannot tell: no nonlinear variance (M = 1 realization) and no "
+                         "non-excited line in the band")
     v = bla_mod.level_verdict(_LINEAR, None, "1 V rms")
     assert v == {"causes": ["linear"],
                  "text": "linear at 1 V rms: no nonlinear distortion above the noise"}
@@ -482,7 +488,7 @@ def test_odd_grid_without_odd_detection_lines_has_no_odd_re_even_median():
     u = np.tile(one, (2, 2, 1))
     res = robust_bla(u, u + 0.1 * u ** 2 + 1e-6 * rng.standard_normal(u.shape), excited_bins=excited)
     assert res.odd_bins.size == 0 and res.even_bins.size > 0
-    assert res.summary["line_median_odd_re_even_db"] is None
+    assert res.summary["odd_re_even_db"] is None
 
 
 def test_spectra_transient_warning_points_at_the_caller():
@@ -539,9 +545,12 @@ def test_notes_reference_checks_and_level_lists():
     spec[..., excited[3]] = 0
     with pytest.raises(InputError, match=r"reference r: zero power at 1 excited line"):
         robust_bla(u, u, np.fft.irfft(spec, n=128, axis=-1), excited_bins=excited)
-    # the quantisation floor 4 (q^2 / 12) / N
+    # the quantisation model: the error of quantising the predicted periodic output
+    # (issue 23: not the white floor 4 (q^2 / 12) / N); a step far above the signal gives
+    # an error -u itself, at the lines where the output is
     res = robust_bla(u, u, excited_bins=excited, y_quantisation_step=0.01)
-    assert res.summary["quantisation_floor_db"] == pytest.approx(10 * np.log10(0.01 ** 2 / (3 * 128)))
+    assert res.summary["quantisation_model"].startswith("periodic")
+    assert res.quantisation_db.shape == res.nonexcited_bins.shape
     with pytest.raises(InputError, match="same number of levels"):
         bla_mod.bla_levels([u, u], [u])
 

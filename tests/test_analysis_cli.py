@@ -40,7 +40,7 @@ def cli(capsys, *args):
     return code, out.out, out.err
 
 
-BLA_ARGS = ("--fs", FS, "--period", N, "--realizations", M, "--skip-periods", T)
+BLA_ARGS = ("--fs", FS, "--period", N, "--realizations", M, "--settle-periods", T)
 
 
 def test_bla_json_keys_and_shapes(tmp_path, capsys):
@@ -252,7 +252,7 @@ def test_console_script_subprocess(tmp_path):
     exe = Path(sys.executable).parent / "fftune"
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "fftune.host.cli"]
     ok = subprocess.run(cmd + ["analyze", "bla", str(f), "--fs", str(FS), "--period", str(N),
-                               "--realizations", str(M), "--skip-periods", "1"],
+                               "--realizations", str(M), "--settle-periods", "1"],
                         capture_output=True, text=True)
     assert ok.returncode == 0 and "BLA of y / u" in ok.stdout
     bad = subprocess.run(cmd + ["analyze", "bla", str(tmp_path / "missing.csv"), "--fs", "1",

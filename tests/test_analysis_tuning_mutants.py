@@ -989,3 +989,95 @@ def test_a_point_with_s_exactly_zero_is_not_over_compensated():
     search = _made({0.0: 0.15, 0.2: 0.05, 0.3: 0.0, 0.35: -0.03, 0.4: -0.055, 1.0: -0.35})
     est = search._estimate(0.2, 0.4)
     assert not est["stop"] and est["next"] == pytest.approx(0.29, rel=1e-9)
+
+
+def test_pooled_standard_error_of_unequal_experiments_is_their_rms():
+    """Experiments of unequal noise (stick-slip points are noisier): the pooled standard
+    error of s is the rms of theirs, sqrt((1 + 9 + 1 + 1) / 4) SIGMA = sqrt(3) SIGMA, not
+    their mean (1.5 SIGMA)."""
+    from fftune.analysis.tuning import pooled_standard_error
+    search = _made({0.0: (0.15, 0.0, SIGMA), 0.2: (0.05, 0.0, 3 * SIGMA), 0.3: (0.0, 0.0, SIGMA),
+                    1.0: (-0.35, 0.0, SIGMA)})
+    assert search._pooled_signed_se(np.zeros(3)) == pytest.approx(np.sqrt(3) * SIGMA, rel=1e-9)
+    assert pooled_standard_error([SIGMA, 3 * SIGMA, SIGMA, SIGMA, np.nan]) == pytest.approx(
+        np.sqrt(3) * SIGMA, rel=1e-12)
+    assert np.isnan(pooled_standard_error([np.nan]))
+
+
+def test_uncertainty_budget_is_the_root_sum_of_squares_of_its_parts():
+    from fftune.analysis.tuning import uncertainty_budget
+    total, parts = uncertainty_budget({"noise": 3e-3, "amplitude": 4e-3, "encoder": None,
+                                       "flatness": np.nan, "viscous": 12e-3})
+    assert total == pytest.approx(13e-3, rel=1e-12)
+    assert set(parts) == {"noise", "amplitude", "viscous"}
+
+
+def test_check_experiment_names_saturation_and_no_motion():
+    from fftune.analysis.tuning import check_experiment
+    ok = check_experiment(1.02, saturated_fraction=0.01, u_max_v=10)
+    assert ok["cause"] is None
+    sat = check_experiment(0.9, saturated_fraction=0.81, amplitude_rad=8.0, u_max_v=0.6)
+    assert sat["cause"] == "saturation" and "u_max = 0.6 V in 81 %" in sat["text"]
+    stuck = check_experiment(0.0, saturated_fraction=0.97, u_max_v=0.4)
+    assert stuck["cause"] == "no motion" and "the friction exceeds what the drive can give" in stuck["text"]
+    # statistics only: the lower bound from rms(u) / u_max = 0.9 is (0.81 - 0.64) / 0.36
+    bound = check_experiment(1.0, u_rms_re_max=0.9)
+    assert bound["saturated_fraction"] == pytest.approx(0.17 / 0.36) and bound["cause"] == "saturation"
+    assert check_experiment(1.0, u_rms_re_max=0.7)["saturated_fraction"] == 0.0
+
+
+def test_root_at_slope_and_encoder_floor():
+    from fftune.analysis.tuning import encoder_floor_v, encoder_step_estimate, root_at_slope
+    assert root_at_slope(0.1, 0.02, -0.5) == pytest.approx(0.14)
+    assert np.isnan(root_at_slope(0.1, 0.02, 0.5))
+    q = 2 * np.pi / 256
+    f0 = encoder_floor_v(q, 1.0, 0.0, -0.2)
+    assert f0 == pytest.approx(q ** 1.5 / np.pi / 0.2)
+    # noise dithers the quantiser: exp(-2 pi^2 (sigma / q)^2)
+    assert encoder_floor_v(q, 1.0, q / 4, -0.2) == pytest.approx(f0 * np.exp(-2 * np.pi ** 2 / 16))
+    assert encoder_floor_v(0.0, 1.0, 0.0, -0.2) == 0.0
+    rng = np.random.default_rng(1)
+    t = np.arange(8192) / 2560
+    y = q * np.round(0.5 * np.sin(2 * np.pi * 0.625 * t) / q) + 1e-4 * rng.standard_normal(t.size)
+    assert encoder_step_estimate(y, 1e-4) == pytest.approx(q, rel=0.02)
+    assert encoder_step_estimate(y, q / 3) is None       # noise hides (dithers) the steps
+
+
+def test_amplitude_combination_rules():
+    from fftune.analysis.tuning import amplitude_combination
+    # a real trend (difference 0.02 >> noise): extrapolated in 1/A, A2 = 2 A1: 2 k2 - k1
+    k, noise, part, how = amplitude_combination(1.00, 0.001, 0.5, 0.98, 0.002, 1.0)
+    assert k == pytest.approx(0.96) and part == pytest.approx(0.02) and "extrapolated" in how
+    assert noise == pytest.approx(np.hypot(0.001, 2 * 0.002))
+    # agreement within the noise: inverse-variance mean, the whole difference the part
+    k, noise, part, how = amplitude_combination(1.000, 0.004, 0.5, 0.996, 0.002, 1.0)
+    assert k == pytest.approx((1.000 / 16 + 0.996 / 4) / (1 / 16 + 1 / 4))
+    assert part == pytest.approx(0.004) and noise == pytest.approx(1 / np.sqrt(1 / 16e-6 + 1 / 4e-6))
+    # noise-free values (a simulation without noise) do not divide by zero
+    k, noise, part, _ = amplitude_combination(1.0, 0.0, 0.5, 1.0, 0.0, 1.0)
+    assert k == pytest.approx(1.0) and part == 0.0
+    assert amplitude_combination(1.0, 0.001, 0.5, 0.98, 0.002, 1.0, rule="first")[:3] == (1.0, 0.001, pytest.approx(0.02))
+
+
+def test_viscous_from_harmonics_recovers_a_rigid_plant():
+    """u = J y'' + b y' + F_c sgn(y') (per volt) for a sliding sine y with a small third
+    harmonic: the fit returns b and F_c; J, b, F_c unequal so a swapped column fails."""
+    from fftune.analysis.tuning import viscous_feedforward_estimate, viscous_from_harmonics
+    n, c, fs = 4096, 1, 2560.0
+    w = 2 * np.pi * c * fs / n
+    t = np.arange(n) / fs
+    y = 0.5 * np.sin(w * t + 0.3) + 0.004 * np.sin(3 * w * t + 1.1)
+    yd = 0.5 * w * np.cos(w * t + 0.3) + 0.012 * w * np.cos(3 * w * t + 1.1)
+    ydd = -0.5 * w ** 2 * np.sin(w * t + 0.3) - 0.036 * w ** 2 * np.sin(3 * w * t + 1.1)
+    J, b, fc = 2e-3, 0.04, 0.1157
+    v1 = 0.5 * w * np.cos(w * t + 0.3)                 # the friction switches with the fundamental
+    u = J * ydd + b * yd + fc * np.sign(v1)
+    U = np.fft.fft(u)[c * np.arange(1, 8)]
+    Y = np.fft.fft(y)[c * np.arange(1, 8)]
+    kv, fc_fit = viscous_from_harmonics(U, Y, w, n, c)
+    assert kv == pytest.approx(b, rel=1e-3) and fc_fit == pytest.approx(fc, rel=1e-3)
+    # from the fundamentals (phasors of amplitude: V, rad) with the Coulomb level known
+    U1, Y1 = 2 * U[0] / n, 2 * Y[0] / n
+    assert viscous_feedforward_estimate(U1, Y1, w, fc) == pytest.approx(b, rel=2e-3)
+    assert viscous_feedforward_estimate(U1, Y1, w, 10 * fc) == 0.0    # negative: none
+    assert np.isnan(viscous_from_harmonics(U, np.zeros(7), w, n, c)[0])

@@ -46,10 +46,11 @@ def write_config(tmp_path, base=TWOMASS, **overrides):
 def rhs(t, x, u, s, p):
     th1, w1, th2, w2 = x
     spring = p["k"] * (th1 - th2) + p["c"] * (w1 - w2)
-    fc = p["coulomb"] * (1 + s * p.get("coulomb_asymmetry", 0.0))
+    g = 1 + p.get("coulomb_position", 0.0) * np.sin(th1)     # run-out: friction levels x g(th1)
+    fc = g * p["coulomb"] * (1 + s * p.get("coulomb_asymmetry", 0.0))
     fr = fc
     if p["stribeck_velocity"] > 0:
-        fr += (p["static"] - fc) * np.exp(-(w1 / p["stribeck_velocity"]) ** 2)
+        fr += (g * p["static"] - fc) * np.exp(-(w1 / p["stribeck_velocity"]) ** 2)
     friction = s * fr + p["viscous"] * w1
     return [w1, (p["km"] * u - spring - friction) / p["j1"], w2, (spring - p["load_viscous"] * w2) / p["j2"]]
 
@@ -79,7 +80,8 @@ def reference_trajectory(p, x0, inputs):
                 t = sol.t[-1]
                 x[1] = 0.0
                 net = p["km"] * u - p["k"] * (x[0] - x[2]) + p["c"] * x[3]
-                assert abs(net) > p["static"], "reference trajectory sticks: not the case under test"
+                g = 1 + p.get("coulomb_position", 0.0) * np.sin(x[0])
+                assert abs(net) > g * p["static"], "reference trajectory sticks: not the case under test"
                 s = np.sign(net)
                 reversals += 1
             else:
@@ -98,14 +100,16 @@ def c_trajectory(path, x0, inputs):
     return np.array(out)
 
 
-@pytest.mark.parametrize("case", ["exact_zoh_path", "rk4_substep_path"])
+@pytest.mark.parametrize("case", ["exact_zoh_path", "rk4_substep_path", "position_dependent"])
 def test_plant_matches_solve_ivp_with_reversals(tmp_path, case):
     # the Stribeck term makes the slip dynamics nonlinear: the plant then integrates with
     # RK4 sub-steps; without it, exact ZOH steps between events
     if case == "exact_zoh_path":  # with direction-dependent Coulomb friction
         over = {"plant__coulomb_asymmetry": 0.3, "plant__static": 8e-3}
-    else:
+    elif case == "rk4_substep_path":
         over = {"plant__stribeck_velocity": 0.5, "plant__static": 8e-3}
+    else:  # friction levels x (1 + e sin(th1)): the sub-step path; th1 swings over ~1 rad
+        over = {"plant__coulomb_position": 0.6, "plant__static": 8e-3}
     path, p = write_config(tmp_path, **over)
     n = 768
     t = np.arange(n) * DT

@@ -88,9 +88,13 @@ def test_demo_config_finds_the_true_coulomb_level(tuned):
     t = r["tune"]
     truth = r["drive"]["plant_truth"]["sim_fc_volt"]
     assert t["true_coulomb_v"] == pytest.approx(truth)
-    assert abs(t["k_fc_star"] / truth - 1) <= 0.02
+    assert abs(t["k_fc_star"] / truth - 1) <= 0.015
+    assert t["search"]["sigma_v"] <= 0.03 * t["k_fc_star"]
     assert t["search"]["experiments"] <= 8
-    assert abs(t["search"]["relative_to_sweep_optimum"]) <= 0.01
+    # the paper's sweep runs at K_v = 0, where the motor's lag (viscous friction) puts the
+    # criterion's optimum about 1 % high; the search has the viscous feed-forward in the loop
+    assert abs(t["sweep"]["optimum_k_fc"] / truth - 1) > abs(t["k_fc_star"] / truth - 1)
+    assert abs(t["search"]["relative_to_sweep_optimum"]) <= 0.02
     assert t["ratio_at_zero"] >= 10 * t["ratio_at_k_fc_star"]
 
 

@@ -30,6 +30,10 @@ int plant_check_params(const plant_params_t *p, char *err, size_t errlen)
         snprintf(err, errlen, "coulomb_asymmetry = %g: must be in [-0.9, 0.9]", p->coulomb_asym);
         return -1;
     }
+    if (!isfinite(p->coulomb_pos) || fabs(p->coulomb_pos) > 0.9) {
+        snprintf(err, errlen, "coulomb_position = %g: must be in [-0.9, 0.9]", p->coulomb_pos);
+        return -1;
+    }
     if (p->stat < p->coulomb * (1.0 + fabs(p->coulomb_asym))) {
         snprintf(err, errlen, "static = %g: must be >= coulomb (1 + |coulomb_asymmetry|) = %g", p->stat,
                  p->coulomb * (1.0 + fabs(p->coulomb_asym)));
@@ -95,6 +99,12 @@ double plant_net_torque(const plant_t *pl, double u)
     return plant_net_torque_x(&pl->p, pl->x, u);
 }
 
+/* g(th1) = 1 + e sin(th1): the position-dependent scale of the friction levels (1 if e = 0) */
+static double plant_friction_scale(const plant_params_t *p, const double x[4])
+{
+    return p->coulomb_pos == 0.0 ? 1.0 : 1.0 + p->coulomb_pos * sin(x[0]);
+}
+
 /* right-hand side in a fixed mode (the friction sign is the mode, not sign(w1), so the
  * slipping dynamics extend smoothly past w1 = 0 for the event location) */
 static void plant_rhs(const plant_params_t *p, int mode, const double x[4], double u, double dx[4])
@@ -104,11 +114,12 @@ static void plant_rhs(const plant_params_t *p, int mode, const double x[4], doub
         dx[0] = 0.0;
         dx[1] = 0.0;
     } else {
-        double fc = p->coulomb * (1.0 + (double)mode * p->coulomb_asym);
+        double g = plant_friction_scale(p, x);
+        double fc = g * p->coulomb * (1.0 + (double)mode * p->coulomb_asym);
         double fr = fc;
         if (p->stribeck_vel > 0.0) {
             double r = x[1] / p->stribeck_vel;
-            fr += (p->stat - fc) * exp(-r * r);
+            fr += (g * p->stat - fc) * exp(-r * r);
         }
         double friction = (double)mode * fr + p->viscous * x[1];
         dx[0] = x[1];
@@ -146,7 +157,7 @@ static void plant_rk4(const plant_params_t *p, int mode, const double x[4], doub
 static double plant_event(const plant_params_t *p, int mode, const double x[4], double u)
 {
     if (mode == 0) {
-        return p->stat - fabs(plant_net_torque_x(p, x, u));
+        return plant_friction_scale(p, x) * p->stat - fabs(plant_net_torque_x(p, x, u));
     }
     return (double)mode * x[1];
 }
@@ -155,7 +166,7 @@ static double plant_event(const plant_params_t *p, int mode, const double x[4], 
 static int plant_mode_at_rest(const plant_params_t *p, const double x[4], double u)
 {
     double tn = plant_net_torque_x(p, x, u);
-    if (fabs(tn) <= p->stat) {
+    if (fabs(tn) <= plant_friction_scale(p, x) * p->stat) {
         return 0;
     }
     return tn > 0.0 ? 1 : -1;
@@ -358,7 +369,7 @@ void plant_advance(plant_t *pl, double u, double dt)
     if (!isfinite(u) || !isfinite(dt) || !(dt > 0.0)) {
         return; /* documented: no advance on a non-finite input or step */
     }
-    if (pl->p.stribeck_vel == 0.0) {
+    if (pl->p.stribeck_vel == 0.0 && pl->p.coulomb_pos == 0.0) {
         if (dt != pl->fast_dt) {
             plant_discretise(pl, dt);
         }

@@ -8,10 +8,14 @@
  * Motor friction while slipping in direction s = sign(w1), with the Coulomb level of that
  * direction Fc_s = Fc (1 + s a) (asymmetry a, 0 = symmetric; a != 0 gives even harmonics):
  *   F = s (Fc_s + (Fs - Fc_s) exp(-(w1/vs)^2)) + bv w1   (Stribeck term only if vs > 0)
+ * Position-dependent friction (coulomb_position e, 0 = none): the normal force of the friction
+ * contact varies once per revolution (run-out of the friction wheel), so Fc_s and Fs are
+ * scaled by g(th1) = 1 + e sin(th1). The part e Fc sin(th1) sign(w1) is EVEN in the motion:
+ * even harmonics that a Coulomb feed-forward K_fc sign(.) (odd) leaves as they are.
  * Stiction: while w1 = 0 the motor sticks (th1 fixed, w1 = 0 exactly: no creep) as long as
  * |T| <= Fs, T = km u - k (th1 - th2) + c w2 the net non-friction torque on it.
  *
- * Fast path (no Stribeck term): between stick/slip events the plant is LINEAR (friction sign
+ * Fast path (no Stribeck term, e = 0): between stick/slip events the plant is LINEAR (friction sign
  * fixed, u held), so a controller step is propagated exactly by the zero-order-hold
  * discretisation x+ = Phi x + Gamma (km u - s Fc) (slip) or of the load-side dynamics with
  * th1 fixed (stick), Phi and Gamma from a matrix exponential (scaling and squaring, Taylor)
@@ -20,7 +24,7 @@
  * Assumption of the fast path: at most one such event inside one controller step (w1 does
  * not reverse twice within 1/fs), true when the plant's modes are well below fs/2.
  *
- * Sub-step path (events; Stribeck): a fixed number of RK4 sub-steps per controller step
+ * Sub-step path (events; Stribeck; e != 0): a fixed number of RK4 sub-steps per controller step
  * (u held). Stick/slip
  * switching is event-driven inside a sub-step: when w1 would change sign (slip) or |T|
  * would exceed Fs (stick), the event time is located by bisection on the RK4 step length
@@ -44,6 +48,7 @@ typedef struct {
     double km;              /* N m/V: torque per input volt */
     double coulomb;         /* Fc, N m (mean of the two directions) */
     double coulomb_asym;    /* a in [-0.9, 0.9]: Fc_+ = Fc (1 + a), Fc_- = Fc (1 - a) */
+    double coulomb_pos;     /* e in [-0.9, 0.9]: friction levels x (1 + e sin th1) (run-out) */
     double stat;            /* Fs >= Fc (1 + |a|), N m (static / break-away) */
     double stribeck_vel;    /* vs, rad/s; 0 = no Stribeck term */
     double viscous;         /* bv, N m s/rad (motor side) */

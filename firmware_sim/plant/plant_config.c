@@ -39,6 +39,7 @@ static const pc_key_t PC_KEYS[] = {
     PC_F("plant", "km", plant.km, 1e-12, 1e6),
     PC_F("plant", "coulomb", plant.coulomb, 0.0, 1e6),
     PC_F("plant", "coulomb_asymmetry", plant.coulomb_asym, -0.9, 0.9),
+    PC_F("plant", "coulomb_position", plant.coulomb_pos, -0.9, 0.9),
     PC_F("plant", "static", plant.stat, 0.0, 1e6),
     PC_F("plant", "stribeck_velocity", plant.stribeck_vel, 0.0, 1e6),
     PC_F("plant", "viscous", plant.viscous, 0.0, 1e6),
@@ -86,6 +87,7 @@ void plant_config_defaults(plant_config_t *cfg)
     cfg->plant.km = 0.05;
     cfg->plant.coulomb = 0.05 * 0.1157;
     cfg->plant.coulomb_asym = 0.0;
+    cfg->plant.coulomb_pos = 0.0;
     cfg->plant.stat = 0.05 * 0.1157;
     cfg->plant.stribeck_vel = 0.0;
     cfg->plant.viscous = 1.0e-4;

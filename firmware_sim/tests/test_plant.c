@@ -209,6 +209,7 @@ static void test_config_errors_name_file_line_key(void)
         {"plant:\n  j1: .nan\n", ":2: plant.j1: '.nan' is not a finite number"},
         {"plant:\n  coulomb: 0.2\n  static: 0.1\n", "static = 0.1: must be >= coulomb"},
         {"plant:\n  coulomb_asymmetry: 0.95\n", ":2: plant.coulomb_asymmetry = 0.95: out of range [-0.9, 0.9]"},
+        {"plant:\n  coulomb_position: -0.91\n", ":2: plant.coulomb_position = -0.91: out of range [-0.9, 0.9]"},
         {"plant:\n  coulomb: 0.1\n  coulomb_asymmetry: 0.5\n  static: 0.12\n", "static = 0.12: must be >= coulomb (1 + |coulomb_asymmetry|) = 0.15"},
         {"drive: 3\n", ":1: top-level 'drive' must be a section"},
     };

@@ -100,7 +100,7 @@ int main(int argc, char **argv)
              "};\n",
              path, c.fs_hz, (unsigned)c.rec_capacity, (unsigned)c.table_capacity,
              c.kp, c.kd, c.tau_d, c.kfc, c.kv, c.fc_smooth, c.u_max,
-             p->j1, p->j2, p->k, p->c, p->km, p->coulomb, p->coulomb_asym, p->stat, p->stribeck_vel,
+             p->j1, p->j2, p->k, p->c, p->km, p->coulomb, p->coulomb_asym, p->coulomb_pos, p->stat, p->stribeck_vel,
              p->viscous, p->load_viscous, (unsigned)p->substeps, (unsigned)p->counts_per_rev,
              p->noise_std, (unsigned long long)p->seed);
     char head[1024];
