@@ -69,8 +69,11 @@ def main():
             for a in s["axes"]:
                 err = (f"{100 * a['k_fc_error_re_truth']:+.2f} %" if a["k_fc_error_re_truth"] is not None
                        else a.get("error"))
-                print(f"    {a['name']} node {a['node_id']}: {a['status']}, K_fc* {a['k_fc_star']} V, "
-                      f"truth {a['k_fc_true']} V, {err}")
+                z = ((a["k_fc_star"] - a["k_fc_true"]) / a["sigma"]
+                     if a["k_fc_star"] is not None and a["k_fc_true"] and a["sigma"] else None)
+                print(f"    {a['name']} node {a['node_id']}: {a['status']}, K_fc* {a['k_fc_star']} V "
+                      f"+- {a['sigma']} V (1 sigma), truth {a['k_fc_true']} V, {err}"
+                      + (f", {z:+.2f} sigma" if z is not None else ""))
 
 
 if __name__ == "__main__":
