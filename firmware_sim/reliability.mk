@@ -4,7 +4,9 @@
 #                   leak or UB report, or if fewer than REL_FUZZ_MIN_EXECS ran in total.
 #                   Figures: build/fuzz/summary.txt (executions, cov, ft, corpus per target).
 #   rel-fuzz-replay run the committed regression inputs (fuzz/regress/) and the seeds once
-#                   through the fuzz targets (seconds; part of rel-asan-test)
+#                   through the fuzz targets (seconds; part of rel-asan-test when clang is
+#                   installed; without clang rel-asan-test still replays fuzz/regress/co_node
+#                   through build/asan/replay_co_node, fuzz_co_node.c + fuzz/replay_main.c)
 #   rel-asan-test   C unit tests (test_core, test_plant, co_test) and drive_sim built with
 #                   -fsanitize=address,undefined -fno-sanitize-recover=all into build/asan/,
 #                   the unit tests run under it; tests/test_reliability_*.py use
@@ -102,7 +104,10 @@ ASAN_CC     ?= $(CC)
 ASAN_FLAGS  := -g -O1 -fno-omit-frame-pointer -fsanitize=address,undefined -fno-sanitize-recover=all
 ASAN_ENV    := ASAN_OPTIONS=detect_leaks=1:abort_on_error=0:halt_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
 ASAN_TESTS  := $(ASAN_DIR)/test_core $(ASAN_DIR)/test_plant $(if $(REL_HAVE_CO),$(ASAN_DIR)/co_test)
-ASAN_BINS   := $(ASAN_TESTS) $(if $(REL_HAVE_PORT),$(ASAN_DIR)/drive_sim)
+# fuzz_co_node without libFuzzer (fuzz/replay_main.c, any compiler): the regression inputs
+# of fuzz/regress/co_node are replayed by every `make test`, with or without clang
+ASAN_REPLAY := $(if $(REL_HAVE_CO),$(ASAN_DIR)/replay_co_node)
+ASAN_BINS   := $(ASAN_TESTS) $(ASAN_REPLAY) $(if $(REL_HAVE_PORT),$(ASAN_DIR)/drive_sim)
 
 $(ASAN_DIR)/test_core: tests/test_core.c tests/th.h $(GEN)/ms_vectors.h $(CORE_SRC) $(PLANT_SRC) $(wildcard core/*.h plant/*.h)
 	@mkdir -p $(@D)
@@ -114,6 +119,10 @@ $(ASAN_DIR)/co_test: $(CO_SRC) $(CO_TEST_SRC) $(wildcard canopen/tests/*.h) $(CO
 	@mkdir -p $(@D)
 	$(ASAN_CC) $(CSTD) $(WARN) $(ASAN_FLAGS) -DCO_SIM_BUILD -I$(CO_DOUBLE) -Icanopen -Icanopen/tests -I$(GEN) \
 	    $(CO_SRC) $(CO_TEST_SRC) $(GEN)/od_table.c -lm -o $@
+$(ASAN_DIR)/replay_co_node: fuzz/replay_main.c fuzz/fuzz_co_node.c $(CORE_SRC) $(PLANT_SRC) $(CO_SRC) $(CO_HDR) $(GEN)/od_table.c $(wildcard core/*.h plant/*.h)
+	@mkdir -p $(@D)
+	$(ASAN_CC) $(CSTD) -Wall -Wextra $(ASAN_FLAGS) -D_GNU_SOURCE -DCO_SIM_BUILD -Icore -Iplant -Icanopen -Iport -I$(GEN) \
+	    fuzz/replay_main.c fuzz/fuzz_co_node.c $(CORE_SRC) $(PLANT_SRC) $(CO_SRC) $(GEN)/od_table.c -lm -o $@
 $(ASAN_DIR)/drive_sim: $(CO_SRC) $(PORT_SRC) $(PORT_HDR) $(CO_HDR) $(GEN)/od_table.c $(CORE_SRC) $(PLANT_SRC)
 	@mkdir -p $(@D)
 	$(ASAN_CC) $(CO_CFLAGS) $(ASAN_FLAGS) -D_GNU_SOURCE -DCO_SIM_BUILD -Icore -Iplant -Iport \
@@ -124,6 +133,10 @@ rel-asan-build: $(if $(REL_HAVE_CO),$(CO_STAMP)) $(ASAN_BINS)
 
 rel-asan-test: rel-asan-build
 	@set -e; for t in $(ASAN_TESTS); do echo "== $$t (ASan + UBSan)"; $(ASAN_ENV) $$t; done
+	@if [ -n "$(ASAN_REPLAY)" ]; then files="$$(ls fuzz/regress/co_node/*)"; \
+	  $(ASAN_ENV) $(ASAN_REPLAY) $$files > $(ASAN_DIR)/replay_co_node.log 2>&1 \
+	    || { tail -30 $(ASAN_DIR)/replay_co_node.log >&2; echo "rel-asan-test: fuzz/regress/co_node replay FAILED" >&2; exit 1; }; \
+	  echo "== fuzz/regress/co_node: $$(echo $$files | wc -w) regression inputs replayed clean ($(ASAN_REPLAY), no libFuzzer)"; fi
 	@if [ -z "$(FZ_TARGETS)" ]; then echo "rel-asan-test: no fuzz targets in this tree: nothing to replay"; \
 	elif command -v $(FZ_CC) >/dev/null 2>&1; then $(MAKE) --no-print-directory rel-fuzz-replay; \
 	  else echo "rel-asan-test: $(FZ_CC) not installed: fuzz regression inputs not replayed (apt-get install clang)"; fi

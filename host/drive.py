@@ -31,6 +31,10 @@ DEFAULT_SOCKETCAND_HOST = "127.0.0.1"
 DEFAULT_SOCKETCAND_PORT = 29536
 DEFAULT_SOCKETCAND_CHANNEL = "can0"
 CONNECT_DEADLINE_S = 4.5
+# CiA 402 abort connection option code: what the drive does when the host is lost
+# (0 nothing, 1 fault, 2 disable voltage, 3 quick stop); the host never leaves it at 0.
+ABORT_CONNECTION_INDEX = 0x6007
+ABORT_CONNECTION_DEFAULT = 2
 
 logger = logging.getLogger(__name__)
 
@@ -598,6 +602,15 @@ class DriveClient:
         """NMT OPERATIONAL and CiA 402 OPERATION ENABLED in the excitation-run mode."""
         node = self.node
         self._enabled = True  # from the first attempt on: close() disables again
+        self._arm_abort_connection()
+        # python-canopen waits 0.2 .. 0.8 s for each statusword TPDO of the state machine; a
+        # loaded host machine or a slow bus misses that now and then (issue 21 item 7). A
+        # drive that answers in time costs nothing more; the longer bound only waits longer.
+        for name, at_least_s in (("TIMEOUT_SWITCH_STATE_FINAL", 8.0), ("TIMEOUT_SWITCH_STATE_SINGLE", 4.0),
+                                 ("TIMEOUT_CHECK_TPDO", 2.0), ("TIMEOUT_SWITCH_OP_MODE", 5.0),
+                                 ("TIMEOUT_RESET_FAULT", 4.0)):
+            if hasattr(node, name):
+                setattr(node, name, max(float(getattr(node, name)), at_least_s))
         try:
             node.nmt.state = "PRE-OPERATIONAL"
             node.setup_402_state_machine(read_pdos=True)
@@ -615,6 +628,36 @@ class DriveClient:
                 raise FftuneError(f"enabling node {self.opts.node_id}: {sdo_abort_text(exc)}") from None
             raise FftuneError(f"enabling node {self.opts.node_id} (CiA 402 OPERATION ENABLED): "
                               f"{type(exc).__name__}: {exc}") from None
+
+    def _arm_abort_connection(self):
+        """Before the power stage goes on: the drive's reaction to a lost host (CiA 402
+        0x6007, acted on when the host heartbeat in 0x1016 is missing or NMT ends the
+        connection). A drive set to 0 (no action) would stay enabled after the host died: it
+        is set to 2 (disable voltage); 1 (fault) and 3 (quick stop) are the integrator's
+        choice for the axis and are kept. Drives without 0x6007 are left as they are."""
+        if ABORT_CONNECTION_INDEX not in self.node.object_dictionary:
+            return
+        code = int(self.read(ABORT_CONNECTION_INDEX, 0))
+        if code not in (1, 2, 3):
+            logger.info("node %d: abort connection option code 0x6007 was %d; set to %d (disable "
+                        "voltage when the host is lost)", self.opts.node_id, code,
+                        ABORT_CONNECTION_DEFAULT)
+            self.write(ABORT_CONNECTION_INDEX, 0, ABORT_CONNECTION_DEFAULT)
+
+    def _ensure_enabled(self):
+        """Before a run: the drive may have left OPERATION ENABLED since :meth:`enable`
+        by its own reaction to a lost host (0x6007): its heartbeat consumer missed the host
+        for longer than the consumer time (this process stalled, e.g. on a loaded machine).
+        The host is alive and in charge: enable again, saying so, instead of a run start
+        refused for the device state."""
+        if not self._enabled or 0x6041 not in self.node.object_dictionary:
+            return
+        status = int(self.read(0x6041, 0))
+        if status & 0x006F == 0x0027:  # OPERATION ENABLED
+            return
+        logger.warning("node %d left OPERATION ENABLED (statusword 0x%04X: its reaction to a missed "
+                       "host heartbeat, 0x6007); enabling it again", self.opts.node_id, status)
+        self.enable()
 
     # ---- runs -------------------------------------------------------------------------
     def run(self, parameters, signals=("reference", "plant_input", "motor_angle", "error"),
@@ -669,6 +712,7 @@ class DriveClient:
         counter0 = int(self.get("run_counter"))
         boots0 = self._bootups
         t_start = time.time()
+        self._ensure_enabled()
         self._run_active = True  # (also if the start's answer is lost): close() stops it
         self._start_run(stats if capture != "raw" and not want_lines else None,
                         lines if want_lines else None, parameters)

@@ -72,6 +72,54 @@ def test_eds_imports_with_device_info_pdos_and_402_objects(tmp_path):
     assert od[0x6041].pdo_mappable and not od["Controller"]["Kp"].pdo_mappable
 
 
+def test_drive_profile_eds_has_no_simulation_only_objects(tmp_path):
+    """odgen --profile drive (issue 21, docs/porting.md): the EDS of a drive build lacks the
+    simulation-only objects (0x2100, and a sim_only sub of any record), holds every other
+    entry exactly as the simulation EDS does, passes the host's drive-profile check, and
+    its C tables are the simulation build's (their sim rows are under CO_SIM_BUILD)."""
+    import yaml
+    from fftune.host.odmap import missing_profile_objects
+
+    sim = _generate(tmp_path)
+    drive = tmp_path / "drive"
+    proc = subprocess.run([sys.executable, ODGEN, OD_YAML, str(drive), "--profile", "drive"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    od_sim = canopen.import_od(str(sim / "fftune_drive.eds"), 1)
+    od_drive = canopen.import_od(str(drive / "fftune_drive.eds"), 1)
+    sim_only = [o["index"] for o in yaml.safe_load(open(OD_YAML))["objects"] if o.get("sim_only")]
+    assert 0x2100 in sim_only
+    for index in sim_only:
+        assert index in od_sim and index not in od_drive
+    kept = {(v.index, v.subindex) for v in _variables(od_drive)}
+    want = {(v.index, v.subindex) for v in _variables(od_sim) if v.index not in sim_only}
+    assert kept == want and len(kept) > 150
+    for v in _variables(od_drive):
+        ref = od_sim[v.index] if isinstance(od_sim[v.index], ODVariable) else od_sim[v.index][v.subindex]
+        assert (v.name, v.data_type, v.access_type, v.default) == (ref.name, ref.data_type, ref.access_type, ref.default)
+    text = open(drive / "fftune_drive.eds").read()
+    assert "0x2100" not in text.split("[ManufacturerObjects]")[1].split("[")[0]
+    assert "Drive build" in text and "Simulation build" in open(sim / "fftune_drive.eds").read()
+    assert missing_profile_objects(od_drive) == []
+    for name in ("od_table.c", "od_table.h", "od_params.h"):
+        assert open(drive / name).read() == open(sim / name).read(), name
+    # a sim_only sub-index of a record goes too (sub 0 recounted), the record stays
+    y = open(OD_YAML).read().replace(
+        "{sub: 4, name: Plant input, type: REAL32, access: ro, param: MEAS_PLANT_INPUT, default: 0.0, unit: V}",
+        "{sub: 4, name: Plant input, type: REAL32, access: ro, param: MEAS_PLANT_INPUT, default: 0.0, unit: V, sim_only: true}")
+    assert "sim_only: true}" in y
+    (tmp_path / "od.yaml").write_text(y)
+    subprocess.run([sys.executable, ODGEN, str(tmp_path / "od.yaml"), str(tmp_path / "d2"), "--profile", "drive"],
+                   check=True)
+    od2 = canopen.import_od(str(tmp_path / "d2" / "fftune_drive.eds"), 1)
+    assert 3 in od2[0x2030] and 4 not in od2[0x2030] and od2[0x2030][0].default == 3
+    # the profile is checked: one line, exit 2
+    proc = subprocess.run([sys.executable, ODGEN, OD_YAML, str(tmp_path / "x"), "--profile", "real"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "--profile real" in proc.stderr and proc.stderr.count("\n") == 1
+    assert "Traceback" not in proc.stderr
+
+
 def test_bad_od_yaml_gives_one_line_naming_the_entry(tmp_path):
     bad = tmp_path / "od.yaml"
     text = open(OD_YAML).read().replace('map: ["0x6041:0", "0x6061:0"]', 'map: ["0x2000:1"]')

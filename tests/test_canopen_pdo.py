@@ -49,7 +49,8 @@ def test_rpdo_controlword_and_mode(co_node):
     assert wait_for(lambda: node.tpdo[1]["Modes of operation display"].raw == -1, 1.0)
     node.rpdo[2]["Modes of operation"].raw = 5          # not supported: dropped
     node.rpdo[2].transmit()
-    time.sleep(0.2)
+    # the SDO read goes after the RPDO on the same connection: the drive has handled the
+    # RPDO (frames are processed in their bus order) when it answers
     assert node.sdo[0x6060].raw == -1
 
 

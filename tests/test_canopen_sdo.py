@@ -248,10 +248,11 @@ def test_abort_general_error_when_a_new_run_replaces_data_being_uploaded(co_node
     node.sdo.send_request(bytes([0x60, 0, 0, 0, 0, 0, 0, 0]))
     assert node.sdo.read_response()[0] & 0xE0 == 0x00                  # first segment
     counters = collect(net, 0x380 + node.id)      # TPDO3: run counter, last stop reason
+    states = collect(net, 0x280 + node.id)        # TPDO2: run state, progress
     rpdo["Run control.Command"].raw = 1
     rpdo.transmit()                               # a new run, by PDO (no SDO in between)
-    assert wait_for(lambda: any(struct.unpack_from("<I", d)[0] == 2 for d in counters), 2.0)
-    time.sleep(0.2)                               # 256 samples: long done in free-run
+    assert wait_for(lambda: any(struct.unpack_from("<I", d)[0] == 2 for d in counters), 10.0)
+    assert wait_for(lambda: any(d[0] == 3 for d in states), 10.0)  # the new run is done
     node.sdo.send_request(bytes([0x70, 0, 0, 0, 0, 0, 0, 0]))
     assert _abort_of(node.sdo.read_response) == 0x08000000
     assert node.sdo["Run control"]["State"].raw == 3

@@ -25,6 +25,32 @@ def _raw_client(sim, handshake=True):
     return s
 
 
+def _until(pred, what, timeout_s=10.0):
+    """Poll pred() until it returns something true (returned); fail naming ``what`` after a
+    generous deadline (synchronisation on a condition, not on a sleep)."""
+    end = time.monotonic() + timeout_s
+    while True:
+        got = pred()
+        if got:
+            return got
+        assert time.monotonic() < end, f"{what}: not within {timeout_s:g} s"
+        time.sleep(0.01)
+
+
+def _try_raw_client(sim):
+    """A handshaken raw client, or None if the server closed the connection (no slot)."""
+    s = socket.create_connection((sim.host, sim.port), timeout=2.0)
+    hello = s.recv(256)
+    if hello == b"":
+        s.close()
+        return None
+    assert hello == b"< hi >"
+    for line in (b"< open can0 >", b"< rawmode >"):
+        s.sendall(line)
+        assert s.recv(256) == b"< ok >"
+    return s
+
+
 def _recv_until(s, needle, timeout_s=2.0):
     s.settimeout(0.2)
     buf = b""
@@ -45,7 +71,9 @@ def test_handshake_replies_arrive_alone_even_while_the_node_talks(drive_sim):
     try:
         a.send(can.Message(arbitration_id=0x605 - 4, is_extended_id=False,   # 0x601: SDO
                            data=[0x2B, 0x17, 0x10, 0, 10, 0, 0, 0]))        # 0x1017 = 10 ms
-        time.sleep(0.1)                      # heartbeats every 10 ms from now on
+        # heartbeats every 10 ms once the drive has answered the write
+        _until(lambda: (lambda m: m is not None and m.arbitration_id == 0x581)(a.recv(0.05)),
+               "the answer to the 0x1017 write")
         for _ in range(5):
             s = _raw_client(drive_sim)       # each recv(256) is exactly the reply
             buf = _recv_until(s, b"< frame 701 ")
@@ -99,12 +127,19 @@ def test_two_python_can_clients_and_two_canopen_networks_share_the_bus(drive_sim
         r1.sdo.RESPONSE_TIMEOUT = r2.sdo.RESPONSE_TIMEOUT = 0.8
         n1.add_node(r1)
         n2.add_node(r2)
-        r1.sdo["Controller"]["Kp"].raw = 7.0
         # both clients use the one SDO channel of node 1 (CiA 301 allows one client at a
-        # time): r2's receive queue also got r1's answer, let it arrive before r2 asks
-        time.sleep(0.2)
+        # time): each answer reaches both receive queues. python-canopen empties a queue
+        # before its request, so an answer still on its way to the other client would be
+        # taken for that client's own: each waits until it has seen the other's answer
+        # (counted by a callback subscribed after the SDO client's, so it runs after the
+        # answer is queued), with a generous deadline instead of a fixed sleep.
+        seen = {1: 0, 2: 0}
+        n1.subscribe(0x581, lambda *a: seen.__setitem__(1, seen[1] + 1))
+        n2.subscribe(0x581, lambda *a: seen.__setitem__(2, seen[2] + 1))
+        r1.sdo["Controller"]["Kp"].raw = 7.0
+        _until(lambda: seen[2] >= 1, "r1's answer in r2's queue")
         assert r2.sdo["Controller"]["Kp"].raw == 7.0
-        time.sleep(0.2)                      # and r2's answer reaches r1's queue too
+        _until(lambda: seen[1] >= 2, "r2's answer in r1's queue")
         r1.sdo[0x1017].raw = 20
         assert r2.nmt.wait_for_heartbeat(1.0) == "PRE-OPERATIONAL"
         assert r1.nmt.wait_for_heartbeat(1.0) == "PRE-OPERATIONAL"
@@ -119,8 +154,8 @@ def test_client_count_is_bounded(drive_sim):
     assert extra.recv(256) == b""                                 # closed: 8 is the limit
     extra.close()
     clients.pop().close()
-    time.sleep(0.1)
-    clients.append(_raw_client(drive_sim))                         # a slot is free again
+    clients.append(_until(lambda: _try_raw_client(drive_sim),       # a slot is free again
+                          "a client slot after one closed"))
     for c in clients:
         c.close()
 

@@ -250,7 +250,11 @@ HOST_SCRIPT = textwrap.dedent("""
 """)
 
 
-def test_host_killed_mid_run_drive_stops_and_holds(tmp_path):
+@pytest.mark.parametrize("abort_code", [2, 3])
+def test_host_killed_mid_run_drive_stops_and_holds(tmp_path, abort_code):
+    """Issue 21: with 0x6007 = 3 (quick stop) the drive holds position after the host is
+    lost (QUICK STOP ACTIVE); with the default 2 (disable voltage) the power stage goes off
+    (SWITCH ON DISABLED, plant input 0). The host script's DriveClient keeps both."""
     import canopen
 
     quiet_can_loggers()
@@ -262,6 +266,7 @@ def test_host_killed_mid_run_drive_stops_and_holds(tmp_path):
     obs.sdo.RESPONSE_TIMEOUT = 1.0
     rd_u = lambda i, s: int.from_bytes(obs.sdo.upload(i, s), "little")  # noqa: E731
     rd_f = lambda i, s: struct.unpack("<f", obs.sdo.upload(i, s))[0]  # noqa: E731
+    obs.sdo.download(0x6007, 0, struct.pack("<h", abort_code))
     host = subprocess.Popen([sys.executable, "-c", HOST_SCRIPT, str(drive.port), EDS], cwd=REPO,
                             env=dict(os.environ, PYTHONPATH=REPO), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -287,6 +292,12 @@ def test_host_killed_mid_run_drive_stops_and_holds(tmp_path):
         # within the consumer time (plus the observer's SDO round trip and polling)
         assert t_stop <= consumer_ms / 1000.0 + 0.15, f"stopped {t_stop * 1000:.0f} ms after the kill"
         assert any(e.code == 0x8130 for e in obs.emcy.log), "no heartbeat EMCY"
+        if abort_code == 2:  # power stage off: nothing drives the axis any more
+            assert rd_u(0x6041, 0) & 0x6F == 0x40, "not SWITCH ON DISABLED"
+            assert rd_f(0x2030, 4) == 0.0, "plant input not 0 with the power stage off"
+            print(f"run stopped {t_stop * 1000:.0f} ms after the host was killed, power off")
+            return
+        assert rd_u(0x6041, 0) & 0x6F == 0x07, "not QUICK STOP ACTIVE"
         # holds position: the reference is frozen where the motor was (no excitation); the
         # motor, moving when the run stopped, comes to rest near it and stays there
         ref, mot = [], []

@@ -73,8 +73,16 @@ def test_client_beyond_the_bound_is_closed_others_keep_working(drive):
         assert _device_type_ok(cli)
     # a slot that frees up is usable again
     clients.pop().close()
-    time.sleep(0.2)
-    again = RawClient(drive.port)
+    # the server notices the close in its next pass: retry until a connection gets the
+    # freed slot (closed without a greeting until then), with a generous deadline
+    deadline = time.monotonic() + 10.0
+    while True:
+        try:
+            again = RawClient(drive.port)
+            break
+        except (AssertionError, OSError):
+            assert time.monotonic() < deadline, "no client slot within 10 s of a close"
+            time.sleep(0.01)
     assert _device_type_ok(again)
     for cli in clients + [again]:
         cli.close()

@@ -129,6 +129,32 @@ static void co_402_controlword(co_node_t *n, uint16_t cw)
     }
 }
 
+/* The connection to the master was lost (host heartbeat missing) or ended by NMT (stop,
+ * pre-operational from operational, reset communication): while the power stage is on,
+ * act as 0x6007 (abort connection option code) says. The caller has stopped an active run
+ * first (with its own stop reason). 0x6007 outside 0 .. 3 cannot be stored (od.yaml
+ * limits); anything else is treated as the default, disable voltage. */
+void co_402_abort_connection(co_node_t *n)
+{
+    co402_state_t s = n->cia402.state;
+    if (!enabled_in(s)) {
+        return; /* power stage already off: nothing to do */
+    }
+    switch (n->ram.abort_connection) {
+    case CO402_ABORT_NONE:
+        break;
+    case CO402_ABORT_FAULT:
+        set_state(n, CO402_FAULT); /* power off; a fault reset (controlword bit 7) leaves it */
+        break;
+    case CO402_ABORT_QUICK_STOP:
+        set_state(n, CO402_QUICK_STOP_ACTIVE); /* excitation off, holds position */
+        break;
+    default: /* CO402_ABORT_DISABLE_VOLTAGE */
+        set_state(n, CO402_SWITCH_ON_DISABLED);
+        break;
+    }
+}
+
 void co_402_fault(co_node_t *n)
 {
     if (n->cia402.state == CO402_FAULT) {

@@ -29,6 +29,10 @@ void co_nmt_set_state(co_node_t *n, co_nmt_state_t s)
     if (old == CO_NMT_OPERATIONAL && co_node_run_active(n)) {
         drv_safe_stop(n->drv, DRV_STOP_NMT);
     }
+    /* the master ended the connection (left OPERATIONAL, or stopped the node): 0x6007 */
+    if (old == CO_NMT_OPERATIONAL || s == CO_NMT_STOPPED) {
+        co_402_abort_connection(n);
+    }
     if (s != CO_NMT_PRE_OPERATIONAL && s != CO_NMT_OPERATIONAL) {
         co_sdo_init(&n->sdo); /* no SDO in STOPPED: drop a transfer in progress */
     }
@@ -68,6 +72,7 @@ void co_nmt_rx(co_node_t *n, const co_frame_t *f)
         if (co_node_run_active(n)) {
             drv_safe_stop(n->drv, DRV_STOP_NMT);
         }
+        co_402_abort_connection(n); /* 0x6007 (an application object: kept by the reset) */
         co_nmt_boot(n);
         break;
     default:
@@ -157,13 +162,14 @@ void co_hb_process(co_node_t *n)
             continue;
         }
         if ((uint32_t)(n->now_us - c->last_us) > time_ms * 1000u) {
-            /* host lost: stop a run safely, report it; monitoring resumes with the next
-             * heartbeat of that node */
+            /* host lost: stop a run safely, act per 0x6007, report it; monitoring resumes
+             * with the next heartbeat of that node */
             c->active = false;
             c->timed_out = true;
             if (co_node_run_active(n)) {
                 drv_safe_stop(n->drv, DRV_STOP_HEARTBEAT);
             }
+            co_402_abort_connection(n); /* 0x6007: by default the power stage goes off */
             uint8_t mfr[5] = {(uint8_t)(cfg >> 16), 0, 0, 0, 0};
             co_emcy_send(n, CO_EMCY_HEARTBEAT, CO_ERR_REG_COMM | CO_ERR_REG_GENERIC, 0u, mfr);
         }

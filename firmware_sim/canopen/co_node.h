@@ -51,6 +51,14 @@ typedef enum {
     CO_NMT_PRE_OPERATIONAL = 127
 } co_nmt_state_t;
 
+/* 0x6007 abort connection option codes (CiA 402). */
+enum {
+    CO402_ABORT_NONE = 0,
+    CO402_ABORT_FAULT = 1,
+    CO402_ABORT_DISABLE_VOLTAGE = 2,
+    CO402_ABORT_QUICK_STOP = 3
+};
+
 /* CiA 402 power states. */
 typedef enum {
     CO402_NOT_READY = 0,
@@ -240,5 +248,7 @@ void co_402_init(co_node_t *n);
 void co_402_process(co_node_t *n);
 void co_402_refresh(co_node_t *n);
 void co_402_fault(co_node_t *n);
+/* Connection to the master lost / ended (heartbeat, NMT): act per 0x6007. */
+void co_402_abort_connection(co_node_t *n);
 
 #endif /* CO_NODE_H */

@@ -97,6 +97,9 @@ drv_status_t drv_init(drv_t *drv, const drv_storage_t *storage)
     drv->motor = 0.0f;
     drv->load = 0.0f;
     drv->motor_prev = 0.0f;
+    drv->sat_scanned = 0u;
+    drv->sat_samples = 0u;
+    drv->sat_u_max = 0.0f;
     /* defaults of every writable drive parameter from od.yaml, through the checked path */
     for (uint32_t i = 0u; i < (uint32_t)DRV_PARAM_COUNT; i++) {
         const drv_param_info_t *info = &DRV_PARAM_INFO[i];
@@ -148,9 +151,14 @@ drv_status_t drv_get_f32(const drv_t *drv, drv_param_id_t id, float *value)
     return DRV_OK;
 }
 
+/* Parameters fixed for the duration of a run (DRV_E_STATE while one is active): the
+ * excitation, the recorder and statistics set-up, and u_max (the run's saturation count
+ * compares the recorded u with it: one limit per run, latched at the start for the
+ * background, sat_u_max). */
 static bool drv_exc_param(drv_param_id_t id)
 {
     switch (id) {
+    case DRV_P_U_MAX:
     case DRV_P_EXC_KIND: case DRV_P_EXC_INJECT: case DRV_P_EXC_AMPLITUDE: case DRV_P_EXC_OFFSET:
     case DRV_P_EXC_PERIOD: case DRV_P_EXC_SINE_CYCLES: case DRV_P_EXC_SETTLE_PERIODS:
     case DRV_P_EXC_RECORD_PERIODS: case DRV_P_MS_K_MIN: case DRV_P_MS_K_MAX: case DRV_P_MS_GROUP:
@@ -431,6 +439,7 @@ drv_status_t drv_run_start(drv_t *drv)
     lstat_begin(&drv->lstat, n);
     drv->sat_scanned = 0u;
     drv->sat_samples = 0u;
+    drv->sat_u_max = drv->ctl.u_max;
     drv->run_inject = drv->exc_inject;
     (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);
     return DRV_OK;
@@ -577,7 +586,9 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
 
 /* The recorded samples of u below `done` not looked at yet: count those at the output
  * limit (the clamp in ctl_step returns exactly +-u_max). In the background, from the
- * recorder, so that drv_step pays nothing for it. */
+ * recorder, so that drv_step pays nothing for it. Reads only what the run latched at its
+ * start (the recording's layout rec.nsel / rec.sel, sat_u_max): a write of 0x2020:1 or
+ * u_max after the run, while this is still behind, changes nothing here. */
 static void drv_sat_scan(drv_t *drv, uint32_t done)
 {
     uint32_t col = REC_NUM_SIGNALS;
@@ -590,7 +601,7 @@ static void drv_sat_scan(drv_t *drv, uint32_t done)
         drv->sat_scanned = done;
         return;
     }
-    const float u_max = drv->ctl.u_max;
+    const float u_max = drv->sat_u_max; /* the run's limit, whatever was written since */
     for (uint32_t k = drv->sat_scanned; k < done; k++) {
         if (fabsf(drv->rec.buf[(size_t)k * drv->rec.nsel + col]) >= u_max) {
             drv->sat_samples++;
@@ -860,6 +871,7 @@ static drv_status_t drv_task_start(drv_t *drv)
     lstat_begin(&drv->lstat, n);
     drv->sat_scanned = 0u;
     drv->sat_samples = 0u;
+    drv->sat_u_max = drv->ctl.u_max;
     drv->run_inject = DRV_INJECT_REFERENCE;
     drv->task.running = true;
     (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);

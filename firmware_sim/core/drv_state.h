@@ -51,7 +51,8 @@ typedef struct {
     /* with the line statistics: recorded samples of u at the output limit, counted in
      * the background from the recorder (STAT_LINE_SATURATED) */
     uint32_t sat_scanned;    /* recorded samples looked at */
-    uint32_t sat_samples;    /* of them with |u| >= u_max */
+    uint32_t sat_samples;    /* of them with |u| >= sat_u_max */
+    float sat_u_max;         /* u_max latched at run start (the count's threshold) */
     task_t task;             /* the repeated task and its statistics (task.h, issue 26) */
 } drv_t;
 

@@ -45,6 +45,7 @@ void lstat_init(lstat_t *ls)
     for (uint32_t i = 0u; i < LSTAT_LINES_MAX; i++) {
         ls->stage[i] = 0u;
         ls->lines[i] = 0u;
+        ls->run_lines[i] = 0u;
     }
     lstat_clear(ls);
 }
@@ -126,8 +127,11 @@ lstat_status_t lstat_set_mode(lstat_t *ls, uint32_t mode)
 
 lstat_status_t lstat_check(const lstat_t *ls, uint32_t n, uint32_t rec_signals, uint32_t work_floats)
 {
-    if (ls->mode == 0u || ls->nlines == 0u) {
+    if (ls->mode == 0u) {
         return LSTAT_OK;
+    }
+    if (ls->nlines == 0u) {
+        return LSTAT_E_SETUP; /* on, but no list (e.g. after reset node): nothing to report */
     }
     if (!lstat_list_ok(ls->lines, ls->nlines, n)) {
         return LSTAT_E_NYQUIST;
@@ -142,6 +146,9 @@ void lstat_begin(lstat_t *ls, uint32_t n)
 {
     ls->nl_run = (ls->mode != 0u) ? ls->nlines : 0u;
     ls->n = n;
+    for (uint32_t i = 0u; i < ls->nl_run; i++) {
+        ls->run_lines[i] = ls->lines[i];
+    }
     lstat_clear(ls);
 }
 
@@ -193,21 +200,27 @@ static void lstat_base(lstat_t *ls, const float *rec, uint32_t nsel, float *work
     /* recorder columns (bit order): 0 reference r, 1 plant input u, 2 motor angle y */
     lstat_transform(ls, rec, nsel, 0u, 1u, false, work);
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
-        lstat_bin(work, n, ls->lines[i], &ls->acc[i].base[0], &ls->acc[i].base[1]);
+        lstat_bin(work, n, ls->run_lines[i], &ls->acc[i].base[0], &ls->acc[i].base[1]);
     }
     lstat_transform(ls, rec, nsel, 0u, 2u, false, work);
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
-        lstat_bin(work, n, ls->lines[i], &ls->acc[i].base[2], &ls->acc[i].base[3]);
+        lstat_bin(work, n, ls->run_lines[i], &ls->acc[i].base[2], &ls->acc[i].base[3]);
     }
     lstat_transform(ls, rec, nsel, 0u, 0u, false, work);
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
-        lstat_bin(work, n, ls->lines[i], &ls->acc[i].mean[4], &ls->acc[i].mean[5]);
+        lstat_bin(work, n, ls->run_lines[i], &ls->acc[i].mean[4], &ls->acc[i].mean[5]);
     }
 }
 
 bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t samples_done, float *work)
 {
-    if (ls->nl_run == 0u || rec == NULL || work == NULL || nsel < 3u) {
+    if (ls->nl_run == 0u || ls->nl_run > LSTAT_LINES_MAX || rec == NULL || work == NULL || nsel < 3u) {
+        return false;
+    }
+    /* every bin against the run's own period before one is used as an index (lstat_bin
+     * reads w[2k] and w[2(n/2 - k)]): the list was checked at the start, this keeps any
+     * later change from turning into an out-of-bounds read */
+    if (ls->n < LSTAT_N_MIN || !lstat_list_ok(ls->run_lines, ls->nl_run, ls->n)) {
         return false;
     }
     const uint32_t n = ls->n;
@@ -230,7 +243,7 @@ bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t sample
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
         lstat_line_t *a = &ls->acc[i];
         float xr, xi;
-        lstat_bin(work, n, ls->lines[i], &xr, &xi);
+        lstat_bin(work, n, ls->run_lines[i], &xr, &xi);
         const float dr = xr - a->mean[0], di = xi - a->mean[1];
         a->mean[0] += dr * w;
         a->mean[1] += di * w;
@@ -242,7 +255,7 @@ bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t sample
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
         lstat_line_t *a = &ls->acc[i];
         float xr, xi;
-        lstat_bin(work, n, ls->lines[i], &xr, &xi);
+        lstat_bin(work, n, ls->run_lines[i], &xr, &xi);
         const float dr = xr - a->mean[2], di = xi - a->mean[3];
         a->mean[2] += dr * w;
         a->mean[3] += di * w;
@@ -255,7 +268,7 @@ bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t sample
     for (uint32_t i = 0u; i < ls->nl_run; i++) {
         lstat_line_t *a = &ls->acc[i];
         float xr, xi;
-        lstat_bin(work, n, ls->lines[i], &xr, &xi);
+        lstat_bin(work, n, ls->run_lines[i], &xr, &xi);
         a->mean[4] += (xr - a->mean[4]) * w;
         a->mean[5] += (xi - a->mean[5]) * w;
     }
@@ -280,7 +293,7 @@ static uint32_t lstat_word(const lstat_t *ls, uint32_t i)
     i -= 2u;
     const uint32_t line = i / (1u + LSTAT_LINE_FLOATS), r = i % (1u + LSTAT_LINE_FLOATS);
     if (r == 0u) {
-        return ls->lines[line];
+        return ls->run_lines[line];
     }
     const lstat_line_t *a = &ls->acc[line];
     const float inv = ls->periods > 1u ? 1.0f / (float)(ls->periods - 1u) : 0.0f;

@@ -32,7 +32,8 @@
  * (fft.h) of the real samples (or differences) packed two per complex value, then per line
  * the split of the even / odd halves (one sinf/cosf pair per line).
  *
- * Line statistics data (object 0x2043, little-endian):
+ * Line statistics data (object 0x2043, little-endian): the run's own list (latched at its
+ * start), whatever was committed to 0x2042 since:
  *   u32 periods P; u16 lines L; u8 status (0); u8 0;
  *   per line: u32 bin; f32 mean U re, im; mean Y re, im; mean R re, im;
  *             var U, var Y (sum |X_p - mean|^2 / (P - 1), 0 when P < 2);
@@ -58,8 +59,9 @@ typedef enum {
     LSTAT_E_ODD = 2,     /* not a whole number of u16 bins */
     LSTAT_E_VALUE = 3,   /* bin 0, at or above N/2, or not strictly ascending */
     LSTAT_E_NYQUIST = 4, /* run start: a line at or above N/2 of this run's period */
-    LSTAT_E_SETUP = 5    /* run start: N not a power of two >= 8 within the work space, or
-                            the recorder does not hold r, u and y */
+    LSTAT_E_SETUP = 5    /* run start: N not a power of two >= 8 within the work space,
+                            the recorder does not hold r, u and y, or no line list (mode on
+                            with 0x2042 empty) */
 } lstat_status_t;
 
 /* One line's accumulators (signal order U, Y, R; re, im). */
@@ -73,10 +75,12 @@ typedef struct {
 typedef struct {
     /* configuration */
     uint16_t stage[LSTAT_LINES_MAX];  /* the list being downloaded */
-    uint16_t lines[LSTAT_LINES_MAX];  /* the committed list */
+    uint16_t lines[LSTAT_LINES_MAX];  /* the committed list (0x2042: the next run's) */
     uint32_t nlines;
     uint32_t mode;                    /* 0 off, 1 on */
-    /* latched at run start */
+    /* latched at run start: what the background and the data (0x2043) use, so a later
+     * commit of 0x2042 or write of the period never changes the run's own bins */
+    uint16_t run_lines[LSTAT_LINES_MAX]; /* the run's list, each 1 <= bin < n/2 */
     uint32_t nl_run;                  /* lines this run, 0 = off */
     uint32_t n;                       /* period */
     /* background */
@@ -98,11 +102,14 @@ lstat_status_t lstat_set_mode(lstat_t *ls, uint32_t mode);
 /* Run start: would a run of period n with recorder signal mask rec_signals and a work
  * space of work_floats be accepted? (LSTAT_OK when off.) */
 lstat_status_t lstat_check(const lstat_t *ls, uint32_t n, uint32_t rec_signals, uint32_t work_floats);
-/* Start of a run (after lstat_check): clears the statistics. */
+/* Start of a run (after lstat_check): clears the statistics, copies the committed list
+ * as the run's (run_lines). */
 void lstat_begin(lstat_t *ls, uint32_t n);
 /* Background: transform the next recorded period if the recorder holds it (samples_done
- * samples of nsel values each, r, u, y the first three); work: n floats. At most one
- * period per call; returns true if it did one. */
+ * samples of nsel values each, r, u, y the first three: the recording's latched layout);
+ * work: n floats. At most one period per call; returns true if it did one. Only the run's
+ * own list (run_lines) is read, each bin checked against the run's n (a bin outside
+ * 1 .. n/2 - 1 cannot come from lstat_begin; it would stop the statistics, not index). */
 bool lstat_process(lstat_t *ls, const float *rec, uint32_t nsel, uint32_t samples_done, float *work);
 
 uint32_t lstat_size_bytes(const lstat_t *ls);

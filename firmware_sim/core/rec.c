@@ -17,8 +17,19 @@ int rec_init(rec_t *rec, float *buf, uint32_t capacity)
     rec->wpos = 0u;
     rec->samples = 0u;
     rec->signals = 0u;
+    rec->nsel = 0u;
     (void)rec_set_signals(rec, 0x07u);
+    rec_clear(rec);
     return 0;
+}
+
+static uint32_t rec_count(uint32_t mask)
+{
+    uint32_t c = 0u;
+    for (uint32_t b = 0u; b < REC_NUM_SIGNALS; b++) {
+        c += (mask >> b) & 1u;
+    }
+    return c;
 }
 
 int rec_set_signals(rec_t *rec, uint32_t mask)
@@ -27,18 +38,12 @@ int rec_set_signals(rec_t *rec, uint32_t mask)
         return -1;
     }
     rec->signals = mask;
-    rec->nsel = 0u;
-    for (uint32_t b = 0u; b < REC_NUM_SIGNALS; b++) {
-        if (mask & (1u << b)) {
-            rec->sel[rec->nsel++] = (uint8_t)b;
-        }
-    }
     return 0;
 }
 
 bool rec_fits(const rec_t *rec, uint32_t samples)
 {
-    uint64_t need = (uint64_t)samples * (uint64_t)rec->nsel;
+    uint64_t need = (uint64_t)samples * (uint64_t)rec_count(rec->signals);
     return need <= (uint64_t)rec->capacity;
 }
 
@@ -46,6 +51,12 @@ void rec_clear(rec_t *rec)
 {
     rec->wpos = 0u;
     rec->samples = 0u;
+    rec->nsel = 0u;
+    for (uint32_t b = 0u; b < REC_NUM_SIGNALS; b++) {
+        if (rec->signals & (1u << b)) {
+            rec->sel[rec->nsel++] = (uint8_t)b;
+        }
+    }
 }
 
 uint32_t rec_size_bytes(const rec_t *rec)

@@ -15,19 +15,24 @@
 typedef struct {
     float *buf;
     uint32_t capacity;  /* float values */
-    uint32_t signals;   /* selection bit mask, 1 .. 0x1F */
-    uint32_t nsel;      /* popcount(signals) */
-    uint8_t sel[REC_NUM_SIGNALS]; /* selected signal numbers in bit order */
+    uint32_t signals;   /* configured selection (0x2020:1), 0 .. 0x1F: the next recording's */
+    /* layout of the recording in the buffer: the selection latched by rec_clear (run start),
+     * so that a later write of the selection never changes how the background (line
+     * statistics, saturation count) or a reader indexes the samples already recorded */
+    uint32_t nsel;      /* popcount of the latched selection */
+    uint8_t sel[REC_NUM_SIGNALS]; /* latched signal numbers in bit order */
     uint32_t wpos;      /* floats written */
     uint32_t samples;   /* samples recorded */
 } rec_t;
 
-/* buf may be NULL only with capacity 0. Selection starts at 0x07. */
+/* buf may be NULL only with capacity 0. Selection starts at 0x07 (latched). */
 int rec_init(rec_t *rec, float *buf, uint32_t capacity);
-/* 0 .. 0x1F (0: nothing recorded, statistics only); returns -1 (unchanged) otherwise. */
+/* 0 .. 0x1F (0: nothing recorded, statistics only); returns -1 (unchanged) otherwise.
+ * Configures the next recording: the layout of the present one stays until rec_clear. */
 int rec_set_signals(rec_t *rec, uint32_t mask);
-/* Would `samples` samples of the present selection fit? (no overflow) */
+/* Would `samples` samples of the configured selection fit? (no overflow) */
 bool rec_fits(const rec_t *rec, uint32_t samples);
+/* Empty the recorder and latch the configured selection as its layout (run start). */
 void rec_clear(rec_t *rec);
 
 /* ---- per-sample hot path, inline (controller step budget) ---- */

@@ -56,6 +56,8 @@ void stat_init(stat_t *st)
     st->k_run = 0u;
     st->nh = 0u;
     st->np = 0u;
+    st->hmask_run = 0u;
+    st->pmask_run = 0u;
     st->n = 1u;
     st->inv_n = 1.0f;
     st->active = false;
@@ -108,6 +110,8 @@ stat_status_t stat_check(const stat_t *st, uint32_t n, uint32_t cycles)
 void stat_begin(stat_t *st, uint32_t n)
 {
     st->k_run = st->hmask != 0u ? st->k : 0u;
+    st->hmask_run = st->k_run > 0u ? st->hmask : 0u;
+    st->pmask_run = st->pmask;
     st->nh = 0u;
     st->np = 0u;
     if (st->k_run > 0u) {
@@ -274,7 +278,7 @@ static uint32_t stat_word(const stat_t *st, uint32_t i)
         return st->overrun ? 0u : st->periods;
     }
     if (i == 1u) {
-        return (st->k_run & 0xFFu) | ((st->k_run ? st->hmask : 0u) << 8) | (st->pmask << 16) |
+        return (st->k_run & 0xFFu) | (st->hmask_run << 8) | (st->pmask_run << 16) |
                ((st->overrun ? STAT_FLAG_OVERRUN : 0u) << 24);
     }
     if (st->overrun) {

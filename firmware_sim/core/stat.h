@@ -77,8 +77,10 @@ typedef struct {
     /* configuration (STAT_HARMONICS, STAT_SIGNALS, STAT_POWER) */
     uint32_t k;            /* harmonics K, 0 = harmonic statistics off */
     uint32_t hmask, pmask; /* signal masks */
-    /* latched at run start */
+    /* latched at run start (the data's header reports these masks, not the configured
+     * ones: a write of 0x2040:2 / :3 after the run never relabels its numbers) */
     uint32_t k_run, nh, np;
+    uint32_t hmask_run, pmask_run;
     uint8_t hsel[STAT_SIG_MAX], psel[STAT_NUM_SIGNALS];
     uint32_t n;            /* period [samples] */
     float inv_n;

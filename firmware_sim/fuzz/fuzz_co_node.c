@@ -11,7 +11,8 @@
  *   - after controller steps the plant input is finite and |u| <= u_max (the controller
  *     output stays saturated, whatever parameters were written or tables downloaded:
  *     "plant input finite");
- *   - when the host's heartbeat times out, no run is active afterwards (safe stop).
+ *   - when the host's heartbeat times out, no run is active afterwards (safe stop), and the
+ *     drive is no longer OPERATION ENABLED unless 0x6007 says "no action" (issue 21).
  *
  * Input format: a stream of records, each an opcode byte followed by its operands (a
  * record cut short by the end of the input is ignored); fuzz/gen_seeds.py writes seeds:
@@ -23,16 +24,30 @@
  *   5 steps            lo, hi                        -> (lo | hi << 8) controller steps (at
  *                                                       most 4 when no run is active; 512
  *                                                       per input); process
- *   6 back-pressure    flag                          -> the transmit hook refuses frames
+ *   6 back-pressure    flag                          -> bit 0: the transmit hook refuses
+ *                                                       frames; bits 1..7: the background
+ *                                                       schedule B (below)
  *   7 RPDO             which, len, 8 bytes           -> id 0x200 + 0x100 * (which & 3) + node
  * Opcodes are taken modulo 8.
+ *
+ * Background schedule (the way the MCU port's main loop can run, port/mcu/main.c: its
+ * drv_background falls behind the control interrupt when the bus keeps it busy): B = 0 (the
+ * start of every input) never calls drv_background, the background entirely behind (only the
+ * readers' own catch-up, 0x2041 / 0x2043 uploads, computes anything); B >= 1 calls it after
+ * every B-th controller step and once per time record (a main-loop turn between bus work),
+ * so the background is anywhere from in step (B = 1, as drive_sim) to many periods behind
+ * when the frames that follow change the configuration it reads (issue 21).
  *
  * Structure-aware mutation (LLVMFuzzerCustomMutator): half of the mutations are libFuzzer's
  * own; the other half walk the records and overwrite 4 bytes at a random place of the data
  * bytes of one frame record (SDO, any frame, RPDO) with a float from a list of values where
- * float arithmetic breaks (near +-FLT_MAX, 1e30, denormals, NaN, inf, the od.yaml limits).
- * So table samples (in download segments) and amplitudes / gains (in expedited writes) reach
- * the overflow region, where byte-level mutations almost never land.
+ * float arithmetic breaks (near +-FLT_MAX, 1e30, denormals, NaN, inf, the od.yaml limits),
+ * or (an SDO record: its expedited value, bytes 4..7) with integers at the bounds the drive
+ * checks (powers of two and neighbours: periods, bins, counts; one u32 or two u16, i.e. a
+ * two-line list 0x2042). So table samples (in download segments) and amplitudes / gains (in
+ * expedited writes) reach the overflow region, and periods / bins the index bounds, where
+ * byte-level mutations almost never land (issue 21: libFuzzer's own mutations alone did not
+ * reach the stale-list crash from the line-statistics seed in 200 000 executions).
  *
  * FUZZ_TRACE=1 in the environment prints every frame in and out (to check the seeds).
  */
@@ -59,6 +74,8 @@ static sim_t g_sim;
 static co_node_t g_node;
 static plant_config_t g_cfg;
 static bool g_tx_full;
+static uint32_t g_bg_every; /* background schedule B (op 6): 0 never, else every B-th step */
+static uint32_t g_bg_count;
 static bool g_trace;
 static uint32_t g_now;
 
@@ -137,6 +154,10 @@ static void process(void)
     for (unsigned i = 0; i < CO_NUM_HB_CONSUMERS; i++) {
         if (!was_timed_out[i] && g_node.hb.consumer[i].timed_out) {
             fz_check(!co_node_run_active(&g_node), "run still active after heartbeat loss");
+            /* 0x6007 (abort connection option code) other than 0: the drive has left
+             * OPERATION ENABLED (disabled, fault or quick stop) */
+            fz_check(g_node.ram.abort_connection == 0 || g_node.cia402.state != CO402_OPERATION_ENABLED,
+                     "drive still OPERATION ENABLED after heartbeat loss (0x6007 != 0)");
             uint32_t reason = 0;
             (void)drv_get_u32(sim_drv(&g_sim), DRV_P_RUN_LAST_ERROR, &reason);
             (void)reason;
@@ -179,6 +200,8 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     cc.sdo_timeout_us = 500000u;
     cc.table_capacity_bytes = FZ_TABLE_CAPACITY * 4u;
     g_tx_full = false;
+    g_bg_every = 0u;
+    g_bg_count = 0u;
     g_now = 0xFFF00000u; /* wraps around during long inputs: the timers must not care */
     co_node_init(&g_node, &cc, sim_drv(&g_sim), g_now);
 
@@ -230,6 +253,9 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             }
             g_now += (uint32_t)(data[p] | (data[p + 1] << 8)) * 16u;
             p += 2;
+            if (g_bg_every != 0u) {
+                drv_background(sim_drv(&g_sim)); /* a main-loop turn */
+            }
             process();
             break;
         case 5: {
@@ -246,6 +272,9 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             bool stepped = false;
             while (n > 0 && steps_left > 0) {
                 (void)sim_step(&g_sim);
+                if (g_bg_every != 0u && ++g_bg_count % g_bg_every == 0u) {
+                    drv_background(sim_drv(&g_sim));
+                }
                 stepped = true;
                 n--;
                 steps_left--;
@@ -260,7 +289,9 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             if (size - p < 1) {
                 return 0;
             }
-            g_tx_full = (data[p++] & 1u) != 0u;
+            g_tx_full = (data[p] & 1u) != 0u;
+            g_bg_every = (uint32_t)(data[p] >> 1);
+            p++;
             process();
             break;
         default: {
@@ -287,6 +318,14 @@ static const float FZ_EDGE_FLOATS[] = {
     FLT_MAX, -FLT_MAX, 3.0e38f, -3.0e38f, 1.7e38f, -1.7e38f, 1.0e30f, -1.0e30f, 1.0e20f,
     -1.0e20f, 1000.0f, -1000.0f, 999.99994f, 100000.0f, 1.0f, -1.0f, 0.0f, -0.0f, 1.0e-40f,
     -1.0e-40f, FLT_MIN, 1.0e-30f, INFINITY, -INFINITY, NAN,
+};
+
+/* Integers at and around the bounds the drive checks: powers of two (periods N, N/2, the
+ * table and line capacities) and their neighbours, the u16 / u32 extremes. */
+static const uint32_t FZ_EDGE_INTS[] = {
+    0u, 1u, 2u, 3u, 4u, 5u, 7u, 8u, 9u, 15u, 16u, 17u, 31u, 32u, 33u, 40u, 63u, 64u, 65u, 100u,
+    127u, 128u, 129u, 255u, 256u, 257u, 511u, 512u, 1023u, 1024u, 1025u, 2048u, 4095u, 4096u,
+    8191u, 8192u, 8193u, 0x7FFFu, 0xFFFFu, 0x10000u, 0x7FFFFFFFu, 0xFFFFFFFFu,
 };
 
 /* Offset of the first data byte and the data length of the record at p (0 if none). */
@@ -325,6 +364,7 @@ size_t LLVMFuzzerCustomMutator(uint8_t *data, size_t size, size_t max_size, unsi
         return LLVMFuzzerMutate(data, size, max_size);
     }
     size_t pick = (r >> 1) % count;
+    uint32_t r2 = r * 2246822519u + 3266489917u; /* a second draw */
     p = 0;
     while (p < size) {
         size_t at = fz_record_data(data, size, p, &len, &next);
@@ -332,8 +372,22 @@ size_t LLVMFuzzerCustomMutator(uint8_t *data, size_t size, size_t max_size, unsi
             /* expedited SDO values sit at bytes 4..7, segment data at 1..7: any 4-byte
              * window of the 8 data bytes (also one straddling two samples) */
             size_t off = (r >> 8) % 5u;
-            float v = FZ_EDGE_FLOATS[(r >> 12) % (sizeof FZ_EDGE_FLOATS / sizeof FZ_EDGE_FLOATS[0])];
-            memcpy(&data[at + off], &v, 4u); /* little-endian host, as the CAN payload */
+            if ((r2 & 1u) == 0u) {
+                float v = FZ_EDGE_FLOATS[(r >> 12) % (sizeof FZ_EDGE_FLOATS / sizeof FZ_EDGE_FLOATS[0])];
+                memcpy(&data[at + off], &v, 4u); /* little-endian host, as the CAN payload */
+            } else {
+                /* integers where index checks break (periods, bins, counts, masks): one
+                 * u32, or two u16 (a two-line list of an expedited 0x2042 download) */
+                const size_t ni = sizeof FZ_EDGE_INTS / sizeof FZ_EDGE_INTS[0];
+                uint32_t a = FZ_EDGE_INTS[(r2 >> 1) % ni], b = FZ_EDGE_INTS[(r2 >> 9) % ni];
+                uint8_t w[4];
+                if ((r2 >> 17) & 1u) {
+                    w[0] = (uint8_t)a; w[1] = (uint8_t)(a >> 8); w[2] = (uint8_t)(a >> 16); w[3] = (uint8_t)(a >> 24);
+                } else {
+                    w[0] = (uint8_t)a; w[1] = (uint8_t)(a >> 8); w[2] = (uint8_t)b; w[3] = (uint8_t)(b >> 8);
+                }
+                memcpy(&data[at + (data[p] % 8u == 0u ? 4u : off)], w, 4u);
+            }
             break;
         }
         p = next;

@@ -61,8 +61,10 @@ def steps(n):
     return out
 
 
-def backpressure(on):
-    return bytes([6, 1 if on else 0])
+def backpressure(on, background=0):
+    """Op 6: transmit back-pressure on / off and the background schedule B (0: never, else
+    drv_background after every B-th controller step and once per time record)."""
+    return bytes([6, (1 if on else 0) | (background << 1)])
 
 
 def rpdo(which, data):
@@ -257,6 +259,20 @@ def co_node_seeds(eds_path):
     seeds["run_multisine"] = (operational_enabled() + write_u(0x2001, 1, 3, 1) + write_u(0x2001, 5, 256, 4) + write_u(0x2001, 7, 0, 4)
                               + write_u(0x2001, 10, 40, 4) + write_f32(0x2001, 3, 0.5) + start_run()
                               + steps(1200) + upload(0x2020, 3))
+    # line statistics of a multisine run (N = 32, 3 recorded periods) with the background
+    # behind (every 40th step: the run ends with periods pending), then the next run's set-up
+    # written before anything reads 0x2043: another period, list, recorder selection, u_max
+    # (issue 21: the old core read the new list against the run's N, out of bounds)
+    lines = (operational_enabled() + backpressure(False, background=40)
+             + write_u(0x2001, 1, 3, 1) + write_u(0x2001, 5, 32, 4) + write_u(0x2001, 7, 0, 4)
+             + write_u(0x2001, 8, 3, 4) + write_u(0x2001, 9, 1, 4) + write_u(0x2001, 10, 10, 4)
+             + write_f32(0x2001, 3, 0.2) + write_u(0x2020, 1, 0x07, 4)
+             + sdo(0x23, *mux(0x2042, 0), 3, 0, 5, 0) + write_u(0x2040, 7, 1, 1)
+             + start_run() + steps(100) + upload(0x2010, 2)
+             + write_u(0x2001, 5, 256, 4) + sdo(0x23, *mux(0x2042, 0), 3, 0, 9, 0)
+             + write_u(0x2020, 1, 0x1F, 4) + write_f32(0x2000, 7, 2.0)
+             + upload(0x2040, 10) + segmented_upload(0x2043, 0, 4) + upload(0x2040, 11))
+    seeds["line_stats_background_behind"] = lines
     hb = (write_u(0x1017, 0, 100, 2) + write_u(0x1016, 1, (0x7F << 16) | 300, 4) + heartbeat(0x7F)
           + operational_enabled() + setup_sine_run(period=512, record=8, settle=2) + start_run()
           + heartbeat(0x7F) + steps(200) + wait_us(100000) + heartbeat(0x7F) + steps(200) + wait_us(400000)

@@ -854,6 +854,11 @@ static void test_random_api_sequences_keep_invariants(void)
      * rejected set leaves the value unchanged; the output is finite and within +-u_max; the
      * recorder never exceeds its capacity; progress never exceeds the run length. */
     drv_t d = make_drv(4096u);
+    /* a one-line list, so that the line statistics switched on at random refuse a start
+     * for their set-up only (with no list at all every later start would be refused) */
+    const uint16_t one_line[1] = {1u};
+    TH_EQ(drv_lines_write(&d, 0u, (const uint8_t *)one_line, 2u), DRV_OK);
+    TH_EQ(drv_lines_commit(&d, 2u), DRV_OK);
     float motor = 0.0f;
     int fails = 0;
     for (int i = 0; i < 200000 && fails < 5; i++) {
@@ -886,7 +891,19 @@ static void test_random_api_sequences_keep_invariants(void)
             }
         } else if (op == 5u) {
             switch (rnd() % 6u) {
-            case 0: (void)drv_run_start(&d); break;
+            case 0:
+                if (rnd() % 4u == 0u) {
+                    /* now and then a consistent set-up first (a short sine run), so that
+                     * runs keep starting whatever the random writes left configured */
+                    (void)drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_SINE);
+                    (void)drv_set_u32(&d, DRV_P_EXC_PERIOD, 64u);
+                    (void)drv_set_u32(&d, DRV_P_EXC_SINE_CYCLES, 1u);
+                    (void)drv_set_u32(&d, DRV_P_EXC_SETTLE_PERIODS, rnd() % 2u);
+                    (void)drv_set_u32(&d, DRV_P_EXC_RECORD_PERIODS, 1u + rnd() % 3u);
+                    (void)drv_set_u32(&d, DRV_P_REC_SIGNALS, 0x07u);
+                }
+                (void)drv_run_start(&d);
+                break;
             case 1: drv_run_abort(&d, DRV_STOP_ABORT_CMD); break;
             case 2: drv_safe_stop(&d, DRV_STOP_HEARTBEAT); break;
             case 3: drv_enable(&d, (rnd() & 1u) != 0u); break;
@@ -929,6 +946,7 @@ static void test_random_api_sequences_keep_invariants(void)
     uint32_t runs;
     (void)drv_get_u32(&d, DRV_P_RUN_COUNTER, &runs);
     TH_ASSERT(runs > 10u); /* the sequence did exercise runs */
+    printf("random API sequences: %u runs started\n", (unsigned)runs);
 }
 
 
@@ -1521,6 +1539,140 @@ static void test_line_list_checks_and_run_refusals(void)
     TH_EQ(drv_set_u32(&d, DRV_P_STAT_LINE_MODE, 0u), DRV_E_STATE);
 }
 
+
+/* Issue 21: what a run's background work reads is fixed at its start. A multisine run with
+ * line statistics whose background is behind when the run ends (as on the MCU port: not
+ * one drv_background call during the run), then, before the background catches up: a new
+ * period and a new list committed (bin 100 is valid for N = 256 but beyond the run's
+ * N/2 = 32: the old code indexed the FFT work space with it), another recorder selection
+ * (5 signals instead of 3: the old code walked the recording with the new stride), a new
+ * u_max (the saturation count's threshold), the line statistics off. The run's 0x2043 and
+ * saturation count must be exactly those of the same run read with nothing written. */
+static void lines_run_behind(drv_t *d, uint32_t n, uint32_t periods, const uint16_t *bins, uint32_t nb)
+{
+    lines_setup(d, n, periods, bins, nb);
+    TH_EQ(drv_set_u32(d, DRV_P_MS_K_MAX, 20u), DRV_OK); /* below N/2 */
+    TH_EQ(drv_set_f32(d, DRV_P_U_MAX, 1.0f), DRV_OK); /* some samples at the limit, not all */
+    TH_EQ(drv_run_start(d), DRV_OK);
+    float motor = 1.5f;
+    for (uint32_t i = 0u; i < (periods + 1u) * n; i++) {
+        motor = stat_step(d, motor); /* no drv_background: every period still pending */
+    }
+    uint32_t v;
+    TH_EQ(drv_get_u32(d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_DONE);
+    TH_EQ(drv_get_u32(d, DRV_P_STAT_LINE_PERIODS, &v), DRV_OK);
+    TH_EQ(v, 0u);
+}
+
+static void test_line_stats_fixed_at_run_start(void)
+{
+    const uint32_t n = 64u, periods = 3u, nb = 4u;
+    const uint16_t bins[4] = {3u, 5u, 9u, 31u};
+    static uint8_t want[LSTAT_HEADER_BYTES + LSTAT_LINE_BYTES * 4u];
+    static uint8_t got[LSTAT_HEADER_BYTES + LSTAT_LINE_BYTES * 4u];
+    uint32_t sat_want, sat_got, v;
+
+    drv_t a = make_drv(REC_CAP); /* the reference: read with nothing written after the run */
+    lines_run_behind(&a, n, periods, bins, nb);
+    uint32_t size = drv_line_stats_size_bytes(&a);
+    TH_EQ(size, (uint32_t)sizeof want);
+    TH_EQ(drv_line_stats_read(&a, 0u, want, size), DRV_OK);
+    TH_EQ(drv_get_u32(&a, DRV_P_STAT_LINE_SATURATED, &sat_want), DRV_OK);
+    TH_ASSERT(sat_want > 0u && sat_want < periods * n);
+    uint32_t p0;
+    memcpy(&p0, want, 4u);
+    TH_EQ(p0, periods);
+
+    drv_t b = make_drv(REC_CAP); /* the same run, then the writes while the background is behind */
+    lines_run_behind(&b, n, periods, bins, nb);
+    drv_background(&b); /* the main loop gets one turn: one period done, two pending */
+    TH_EQ(drv_get_u32(&b, DRV_P_STAT_LINE_PERIODS, &v), DRV_OK);
+    TH_EQ(v, 1u);
+    TH_EQ(drv_set_u32(&b, DRV_P_EXC_PERIOD, 256u), DRV_OK);
+    const uint16_t next[2] = {2u, 100u};
+    TH_EQ(drv_lines_write(&b, 0u, (const uint8_t *)next, 4u), DRV_OK);
+    TH_EQ(drv_lines_commit(&b, 4u), DRV_OK); /* the next run's list: accepted */
+    TH_EQ(drv_set_u32(&b, DRV_P_REC_SIGNALS, 0x1Fu), DRV_OK);
+    TH_EQ(drv_set_f32(&b, DRV_P_U_MAX, 1000.0f), DRV_OK);
+    TH_EQ(drv_set_u32(&b, DRV_P_STAT_LINE_MODE, 0u), DRV_OK);
+    drv_background(&b);
+    TH_EQ(drv_line_stats_size_bytes(&b), size);
+    TH_EQ(drv_line_stats_read(&b, 0u, got, size), DRV_OK);
+    TH_ASSERT(memcmp(got, want, size) == 0); /* the run's own bins and numbers */
+    uint32_t bin0;
+    memcpy(&bin0, got + LSTAT_HEADER_BYTES, 4u);
+    TH_EQ(bin0, 3u);
+    TH_EQ(drv_get_u32(&b, DRV_P_STAT_LINE_SATURATED, &sat_got), DRV_OK);
+    TH_EQ(sat_got, sat_want);
+    /* the recording keeps its layout (3 signals a sample) */
+    TH_EQ(drv_get_u32(&b, DRV_P_REC_BYTES, &v), DRV_OK);
+    TH_EQ(v, 4u * 3u * periods * n);
+    /* 0x2042 reads back the committed list, the next run's */
+    uint8_t back[4];
+    TH_EQ(drv_lines_read(&b, 0u, back, 4u), DRV_OK);
+    TH_ASSERT(memcmp(back, next, 4u) == 0);
+    TH_EQ(drv_get_u32(&b, DRV_P_REC_SIGNALS, &v), DRV_OK);
+    TH_EQ(v, 0x1Fu);
+}
+
+/* Line statistics switched on with no list (e.g. 0x2040:7 = 1 after reset node): refused at
+ * the start with stop reason 11, not a run that reports P = 0, L = 0. */
+static void test_line_stats_on_without_a_list_refused(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    drv_enable(&d, true);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_MULTISINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 64u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_K_MIN, 2u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_MS_K_MAX, 20u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_STAT_LINE_MODE, 1u), DRV_OK);
+    uint32_t v;
+    TH_EQ(drv_get_u32(&d, DRV_P_STAT_LINES, &v), DRV_OK);
+    TH_EQ(v, 0u);
+    TH_EQ(drv_run_start(&d), DRV_E_INCOMPATIBLE);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+    TH_EQ(v, DRV_STOP_STAT_LINES);
+    TH_EQ(drv_get_u32(&d, DRV_P_RUN_STATE, &v), DRV_OK);
+    TH_EQ(v, DRV_RUN_IDLE);
+    /* off again: the same run starts */
+    TH_EQ(drv_set_u32(&d, DRV_P_STAT_LINE_MODE, 0u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    /* u_max is fixed while a run is active (the saturation count's threshold) */
+    TH_EQ(drv_set_f32(&d, DRV_P_U_MAX, 5.0f), DRV_E_STATE);
+    float um;
+    TH_EQ(drv_get_f32(&d, DRV_P_U_MAX, &um), DRV_OK);
+    TH_NEAR(um, 10.0f, 0.0f);
+}
+
+/* The harmonic statistics' header (0x2041) names the run's masks: a write of 0x2040:2 / :3
+ * after the run does not relabel its numbers (the old header showed the new masks beside
+ * numbers of the old ones). */
+static void test_stat_header_names_the_runs_masks(void)
+{
+    static uint8_t want[STAT_MAX_BYTES], got[STAT_MAX_BYTES];
+    const uint32_t n = 64u, periods = 2u;
+    drv_t a = make_drv(REC_CAP);
+    stat_setup(&a, n, 2u, periods);
+    float motor = 0.3f;
+    for (uint32_t i = 0u; i < (periods + 1u) * n; i++) {
+        motor = stat_step(&a, motor);
+    }
+    uint32_t size = drv_stat_size_bytes(&a);
+    TH_EQ(drv_stat_read(&a, 0u, want, size), DRV_OK);
+    uint32_t hdr;
+    memcpy(&hdr, want + 4u, 4u);
+    TH_EQ(hdr & 0xFFu, 8u);
+    TH_EQ((hdr >> 8) & 0xFFu, 0x07u);
+    TH_EQ((hdr >> 16) & 0xFFu, 0x14u);
+    TH_EQ(drv_set_u32(&a, DRV_P_STAT_SIGNALS, 0x18u), DRV_OK);
+    TH_EQ(drv_set_u32(&a, DRV_P_STAT_POWER, 0x03u), DRV_OK);
+    TH_EQ(drv_set_u32(&a, DRV_P_STAT_HARMONICS, 2u), DRV_OK);
+    TH_EQ(drv_stat_size_bytes(&a), size);
+    TH_EQ(drv_stat_read(&a, 0u, got, size), DRV_OK);
+    TH_ASSERT(memcmp(got, want, size) == 0);
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
@@ -1550,5 +1702,8 @@ int main(void)
     TH_RUN(test_line_stats_equal_a_double_dft_of_the_recorded_periods);
     TH_RUN(test_line_stats_shifted_data_quiet_and_identical_periods);
     TH_RUN(test_line_list_checks_and_run_refusals);
+    TH_RUN(test_line_stats_fixed_at_run_start);
+    TH_RUN(test_line_stats_on_without_a_list_refused);
+    TH_RUN(test_stat_header_names_the_runs_masks);
     return th_finish();
 }

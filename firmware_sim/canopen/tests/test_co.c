@@ -765,7 +765,9 @@ static void test_heartbeat(void)
     g_ntx = 0;
     advance_ms(250);
     CHECK(g_drv.run_state == DRV_RUN_ABORTED && g_drv.last_error == DRV_STOP_HEARTBEAT);
-    CHECK(g_drv.enabled); /* holds position */
+    /* issue 21: 0x6007 = 2 (default, disable voltage): the power stage goes off */
+    CHECK(!g_drv.enabled && g_n.cia402.state == CO402_SWITCH_ON_DISABLED);
+    CHECK((g_n.ram.statusword & 0x006Fu) == 0x0040u);
     const co_frame_t *e = last_id(0x85);
     CHECK(e && co_get_u16(e->data) == CO_EMCY_HEARTBEAT && e->data[2] == 0x11 && e->data[3] == 0x7F);
     CHECK(g_n.ram.error_register == 0x11);
@@ -773,6 +775,82 @@ static void test_heartbeat(void)
     rx(0x77F, &hb, 1); /* host back: error reset EMCY */
     e = last_id(0x85);
     CHECK(e && co_get_u16(e->data) == 0 && g_n.ram.error_register == 0);
+}
+
+/* Issue 21: 0x6007 abort connection option code, acted on when the host's heartbeat is
+ * missing and on NMT events while the power stage is on; each option leaves its own state
+ * (a disabled drive and a drive holding position are told apart). */
+static co402_state_t after_host_loss(uint32_t option, int how)
+{
+    setup();
+    uint32_t v = 99;
+    CHECK(sdo_read_u32(0x6007, 0, &v) == 0 && v == 2u); /* the default: disable voltage */
+    CHECK(sdo_write(0x6007, 0, option, 2) == 0);
+    CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 200u, 4) == 0);
+    nmt(0x01);
+    enable_402();
+    CHECK(g_n.cia402.state == CO402_OPERATION_ENABLED && g_drv.enabled);
+    uint8_t hb = 5;
+    rx(0x77F, &hb, 1);
+    CHECK(sdo_write(0x2010, 1, 1, 1) == 0 && g_drv.run_state == DRV_RUN_SETTLING);
+    advance_ms(150);
+    rx(0x77F, &hb, 1);
+    CHECK(g_n.cia402.state == CO402_OPERATION_ENABLED); /* alive: nothing */
+    switch (how) {
+    case 0: /* heartbeat missing: acted on within the consumer time + 1 ms */
+        advance_ms(199);
+        CHECK(g_n.cia402.state == CO402_OPERATION_ENABLED);
+        advance_ms(2);
+        CHECK(g_drv.last_error == DRV_STOP_HEARTBEAT);
+        break;
+    case 1: nmt(0x02); CHECK(g_drv.last_error == DRV_STOP_NMT); break; /* stop */
+    case 2: nmt(0x80); CHECK(g_drv.last_error == DRV_STOP_NMT); break; /* pre-operational */
+    default: nmt(0x82); CHECK(g_drv.last_error == DRV_STOP_NMT); break; /* reset communication */
+    }
+    CHECK(g_drv.run_state == DRV_RUN_ABORTED);
+    return g_n.cia402.state;
+}
+
+static void test_abort_connection_option_code(void)
+{
+    for (int how = 0; how < 4; how++) {
+        CHECK(after_host_loss(2u, how) == CO402_SWITCH_ON_DISABLED && !g_drv.enabled);
+        CHECK((g_n.ram.statusword & 0x006Fu) == 0x0040u);
+        CHECK(after_host_loss(1u, how) == CO402_FAULT && !g_drv.enabled);
+        CHECK((g_n.ram.statusword & 0x004Fu) == 0x0008u);
+        CHECK(after_host_loss(3u, how) == CO402_QUICK_STOP_ACTIVE && g_drv.enabled);
+        CHECK((g_n.ram.statusword & 0x006Fu) == 0x0007u);
+        CHECK(after_host_loss(0u, how) == CO402_OPERATION_ENABLED && g_drv.enabled);
+    }
+    /* the reset communication keeps 0x6007 (an application object) */
+    after_host_loss(3u, 3);
+    uint32_t v = 0;
+    CHECK(sdo_read_u32(0x6007, 0, &v) == 0 && v == 3u);
+    /* fault: a fault reset and the enable sequence bring the drive back */
+    after_host_loss(1u, 0);
+    CHECK(sdo_write(0x6040, 0, 0x80, 2) == 0 && g_n.cia402.state == CO402_SWITCH_ON_DISABLED);
+    enable_402();
+    CHECK(g_n.cia402.state == CO402_OPERATION_ENABLED);
+    /* values outside 0 .. 3 refused, the old one kept; reset node restores the default */
+    CHECK(sdo_write(0x6007, 0, 4u, 2) == CO_SDO_AB_VALUE_HIGH);
+    CHECK(sdo_write(0x6007, 0, 0xFFFFu, 2) == CO_SDO_AB_VALUE_LOW); /* -1 */
+    CHECK(sdo_read_u32(0x6007, 0, &v) == 0 && v == 1u);
+    nmt(0x81);
+    CHECK(sdo_read_u32(0x6007, 0, &v) == 0 && v == 2u);
+    /* NMT stop of a drive enabled in PRE-OPERATIONAL: also acted on */
+    setup();
+    enable_402();
+    CHECK(g_n.cia402.state == CO402_OPERATION_ENABLED);
+    nmt(0x02);
+    CHECK(g_n.cia402.state == CO402_SWITCH_ON_DISABLED && !g_drv.enabled);
+    /* a drive that is not enabled is left alone (no fault at a session's end) */
+    setup();
+    CHECK(sdo_write(0x6007, 0, 1u, 2) == 0);
+    CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 200u, 4) == 0);
+    uint8_t hb = 5;
+    rx(0x77F, &hb, 1);
+    advance_ms(300);
+    CHECK(g_n.cia402.state == CO402_SWITCH_ON_DISABLED);
 }
 
 /* Issue 10, finding 2: a write to the producer heartbeat time (0x1017) reset every consumer
@@ -1420,6 +1498,7 @@ int main(void)
     test_block_download();
     test_line_list_and_line_statistics();
     test_heartbeat();
+    test_abort_connection_option_code();
     test_producer_write_keeps_the_consumer_armed();
     test_table_upload_aborts_when_the_table_changes();
     test_repeated_request_after_a_lost_response();
