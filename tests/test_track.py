@@ -1,12 +1,14 @@
 """Friction tracking from the repeated task (issue 26): the drive's task generator and
 statistics (through ctypes), the plant's drift, the estimator and the tracking policy."""
+import math
 import struct
 
 import numpy as np
 import pytest
 
 from fftune.analysis.errors import FftuneError
-from fftune.analysis.track import (DATA_NAMES, DESIGN_NAMES, NotIdentifiable, TaskEstimate,
+from fftune.analysis.track import (DATA_NAMES, DESIGN_NAMES, NOTE_VISCOUS_FOLDED, SCATTER_WINDOW, SYS_FLOOR_REL,
+                                   NotIdentifiable, TaskEstimate, scatter_sigma,
                                    TaskStats, Tracker, TrackSettings, estimate_task,
                                    parse_task_stats)
 
@@ -383,3 +385,55 @@ def test_task_latches_each_repetition_while_running():
         assert np.allclose(run.design, 3 * last.design, rtol=1e-5, atol=1e-5)
         # the data of two repetitions: close (the same task, the periodic state)
         assert np.allclose(last.data[:, :4], first.data[:, :4], rtol=0.05, atol=0.5)
+
+
+def _analytic_fc_se(st, noise):
+    """sigma sqrt(w^T (Phi^T Phi)^-1 w) of K_fc = (F_+ + F_-) / 2, all four parameters fitted."""
+    from fftune.analysis.track import normal_matrix
+    A = sum(normal_matrix(d) for d in st.design)
+    w = np.array([0.5, 0.5, 0.0, 0.0])
+    return noise * math.sqrt(w @ np.linalg.solve(A, w))
+
+
+def test_sigma_is_the_analytic_standard_error_on_white_noise():
+    # unequal noise levels and a floor-free view (k_fc_sigma_stat): the sandwich equals the
+    # analytic standard error; a missing square root (1e-6 scale), a dof of the blocks
+    # instead of the samples, or dropping the residual variance would all miss by far more
+    for noise, samples in ((0.05, 3000), (0.013, 6000)):
+        ratios = []
+        for seed in range(5):
+            st = _synthetic([0.13, 0.10, 0.003, 0.006], noise=noise, seed=seed, samples=samples)
+            est = estimate_task(st)
+            ratios.append(est.k_fc_sigma_stat / _analytic_fc_se(st, noise))
+        assert 0.8 < np.mean(ratios) < 1.2, (noise, ratios)
+        # the reported sigma adds the systematic floor in quadrature
+        assert est.k_fc_sigma == pytest.approx(math.hypot(est.k_fc_sigma_stat, SYS_FLOOR_REL * est.k_fc))
+        assert est.k_fc_sigma_sys == pytest.approx(SYS_FLOOR_REL * est.k_fc)
+
+
+def test_sigma_uses_the_scatter_of_recent_estimates():
+    st = _synthetic([0.12, 0.12, 0.003, 0.006], noise=0.05, seed=3)
+    alone = estimate_task(st)
+    # three earlier estimates are too few: the sandwich stays
+    assert estimate_task(st, recent_k_fc=[0.12, 0.121, 0.119]).k_fc_sigma_stat == alone.k_fc_sigma_stat
+    rng = np.random.default_rng(7)
+    s = 2e-4
+    hist = list(0.12 + s * rng.standard_normal(9))
+    est = estimate_task(st, recent_k_fc=hist)
+    assert est.k_fc_sigma_stat == pytest.approx(scatter_sigma(hist + [est.k_fc]))
+    assert est.k_fc_sigma < alone.k_fc_sigma
+    # on average over windows of SCATTER_WINDOW estimates it is the standard deviation ...
+    wins = [0.12 + s * rng.standard_normal(SCATTER_WINDOW) for _ in range(400)]
+    assert np.mean([scatter_sigma(w) for w in wins]) == pytest.approx(s, rel=0.15)
+    # ... a linear drift does not change it, a single jump (a step of the friction) hardly
+    ramp = np.arange(SCATTER_WINDOW) * 1e-3
+    jump = np.where(np.arange(SCATTER_WINDOW) >= 6, 0.03, 0.0)
+    assert scatter_sigma(wins[0] + ramp) == pytest.approx(scatter_sigma(wins[0]), rel=1e-6)
+    assert np.mean([scatter_sigma(w + jump) for w in wins]) == pytest.approx(s, rel=0.3)
+    assert scatter_sigma([0.1, 0.2, 0.3, 0.4]) is None
+
+
+def test_held_k_v_is_named_in_the_notes():
+    st = _synthetic([0.12, 0.12, 0.003, 0.006])
+    assert estimate_task(st).notes == ()
+    assert estimate_task(st, k_v_hold=0.003, hold_k_v=True).notes == (NOTE_VISCOUS_FOLDED,)
