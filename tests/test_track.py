@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from fftune.analysis.errors import FftuneError
-from fftune.analysis.track import (DATA_NAMES, DESIGN_NAMES, NOTE_VISCOUS_FOLDED, SCATTER_WINDOW, SYS_FLOOR_REL,
+from fftune.analysis.track import (DATA_NAMES, DESIGN_NAMES, NOTE_KV_SPLIT, NOTE_VISCOUS_FOLDED, SCATTER_WINDOW,
+                                   SYS_FLOOR_KV_REL, SYS_FLOOR_REL,
                                    NotIdentifiable, TaskEstimate, scatter_sigma,
                                    TaskStats, Tracker, TrackSettings, estimate_task,
                                    parse_task_stats)
@@ -407,8 +408,7 @@ def test_sigma_is_the_analytic_standard_error_on_white_noise():
             ratios.append(est.k_fc_sigma_stat / _analytic_fc_se(st, noise))
         assert 0.8 < np.mean(ratios) < 1.2, (noise, ratios)
         # the reported sigma adds the systematic floor in quadrature
-        assert est.k_fc_sigma == pytest.approx(math.hypot(est.k_fc_sigma_stat, SYS_FLOOR_REL * est.k_fc))
-        assert est.k_fc_sigma_sys == pytest.approx(SYS_FLOOR_REL * est.k_fc)
+        assert est.k_fc_sigma == pytest.approx(math.hypot(est.k_fc_sigma_stat, est.k_fc_sigma_sys))
 
 
 def test_sigma_uses_the_scatter_of_recent_estimates():
@@ -435,5 +435,9 @@ def test_sigma_uses_the_scatter_of_recent_estimates():
 
 def test_held_k_v_is_named_in_the_notes():
     st = _synthetic([0.12, 0.12, 0.003, 0.006])
-    assert estimate_task(st).notes == ()
-    assert estimate_task(st, k_v_hold=0.003, hold_k_v=True).notes == (NOTE_VISCOUS_FOLDED,)
+    both = estimate_task(st)
+    held = estimate_task(st, k_v_hold=0.003, hold_k_v=True)
+    assert both.notes == (NOTE_KV_SPLIT,) and held.notes == (NOTE_VISCOUS_FOLDED,)
+    # the split bias's wider floor while K_v is estimated; the narrower one with K_v held
+    assert both.k_fc_sigma_sys == pytest.approx(SYS_FLOOR_KV_REL * both.k_fc)
+    assert held.k_fc_sigma_sys == pytest.approx(SYS_FLOOR_REL * held.k_fc)

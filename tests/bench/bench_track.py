@@ -29,7 +29,28 @@ sys.path.insert(0, os.path.join(REPO, "tests", "bench"))
 
 from track_sim import TWOMASS, plant_file, run_tracking  # noqa: E402
 
+from fftune.analysis.track import SYS_FLOOR_REL  # noqa: E402
+
 DRIFT = os.path.join(REPO, "configs", "plant_twomass_drift.yaml")
+
+
+def coverage(rows, skip=()):
+    """K_fc estimates vs the truth at the task's end: fraction within 2 sigma, and the ratio of
+    the mean sigma to the rms error, over the rows not in ``skip`` (task indices: the first
+    tasks, the drift's task and the one after it) and over all rows; text."""
+    def part(sel):
+        e = [r["k_fc_estimate"] - r["k_fc_true"] for r in sel]
+        sg = [r["k_fc_sigma"] for r in sel]
+        cov = sum(abs(a) <= 2 * b for a, b in zip(e, sg)) / len(e)
+        rms = math.sqrt(sum(a * a for a in e) / len(e))
+        return cov, statistics.mean(sg) / rms if rms > 0 else float("inf")
+    ok = [r for r in rows if r["k_fc_estimate"] is not None]
+    c_s, q_s = part([r for r in ok if r["task"] not in skip])
+    c_a, _ = part(ok)
+    worst = max(ok, key=lambda r: abs(r["k_fc_estimate"] - r["k_fc_true"]) / r["k_fc_sigma"])
+    z = (worst["k_fc_estimate"] - worst["k_fc_true"]) / worst["k_fc_sigma"]
+    return (f"within 2 sigma {100 * c_s:.0f} % of the settled tasks (mean sigma / rms error {q_s:.2f}), "
+            f"{100 * c_a:.0f} % of all; worst {z:+.1f} sigma at task {worst['task']}")
 
 
 def drift_figures():
@@ -48,10 +69,12 @@ def drift_figures():
           f"over {len(ramp)} tasks (goal < 2 %); first tasks (K_a learnt from 0): "
           f"{', '.join(f'{100 * e:+.1f}%' for e in err[:3])}")
     print(f"  ({len(rows)} tasks = {rows[-1]['t_s']:.0f} s of task time in {cpu:.2f} s CPU)")
+    print(f"  sigma: {coverage(rows, skip=set(range(3)) | {step, step + 1})} "
+          f"(settled: not the first 3 tasks, the step's task and the next)")
 
 
 def noise_figures(seeds=20, tasks=12):
-    errs, sigs = [], []
+    errs, sigs, stats_ = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(1, seeds + 1):
             plant = plant_file(tmp, name=f"n{seed}.yaml", sensor={"noise_std": 2.0e-3, "seed": seed})
@@ -59,15 +82,22 @@ def noise_figures(seeds=20, tasks=12):
             last = rows[-1]
             errs.append(last["k_fc_estimate"] - last["k_fc_true"])
             sigs.append(last["k_fc_sigma"])
+            stats_.append(last["k_fc_sigma_stat"])
     mean = statistics.mean(errs)
     sd = statistics.stdev(errs)
     sig = statistics.mean(sigs)
+    rms = math.sqrt(statistics.mean(e * e for e in errs))
+    cov2 = sum(abs(e) <= 2 * s for e, s in zip(errs, sigs))
+    cov1 = sum(abs(e) <= s for e, s in zip(errs, sigs))
     truth = 0.1157
     print(f"noise 2e-3 rad, {seeds} seeds, estimate after {tasks} tasks: mean error "
           f"{1e3 * mean:+.3f} mV ({100 * mean / truth:+.3f} %), mean sigma {1e3 * sig:.3f} mV "
           f"-> |mean| {'<=' if abs(mean) <= sig else '>'} sigma (goal: within 1 sigma); "
-          f"seed-to-seed std {1e3 * sd:.3f} mV, standard error of the mean {1e3 * sd / math.sqrt(seeds):.3f} mV "
-          f"(the sigma is the block jackknife's: it includes model error, docs/track.md)")
+          f"seed-to-seed std {1e3 * sd:.3f} mV, standard error of the mean {1e3 * sd / math.sqrt(seeds):.3f} mV")
+    print(f"  sigma = hypot(statistical {1e3 * statistics.mean(stats_):.3f} mV (scatter of the recent tasks), "
+          f"systematic floor {1e3 * SYS_FLOOR_REL * truth:.3f} mV = {100 * SYS_FLOOR_REL:.1f} %); "
+          f"statistical / seed-to-seed std {statistics.mean(stats_) / sd:.2f}; sigma / rms error {sig / rms:.2f}; "
+          f"truth within 1 sigma for {cov1}/{seeds} seeds, within 2 sigma for {cov2}/{seeds}")
     return mean, sig
 
 
@@ -102,8 +132,10 @@ def kv_figures():
             for track_kv in (False, True):
                 rows, _ = run_tracking(plant, 15, k_fc=0.1157, k_v=fv, k_a=0.0, track_k_v=track_kv)
                 k = rows[-1]["k_fc"]
+                est, sig = rows[-1]["k_fc_estimate"], rows[-1]["k_fc_sigma"]
                 print(f"{name}, K_v {'tracked' if track_kv else 'held at the truth'}: K_fc after 15 tasks "
-                      f"{k:.5f} V = {100 * (k / 0.1157 - 1):+.2f} % of the truth")
+                      f"{k:.5f} V = {100 * (k / 0.1157 - 1):+.2f} % of the truth; last estimate "
+                      f"{(est - 0.1157) / sig:+.1f} sigma from it (sigma {1e3 * sig:.3f} mV)")
 
 
 def variant_figures():
@@ -129,6 +161,9 @@ def variant_figures():
             print(f"{name:30s}: within 2 % from {'task ' + str(after) if after is not None else 'never'} "
                   f"(drift in task {step}); after it {100 * min(tail):+.2f} .. {100 * max(tail):+.2f} %, "
                   f"final {100 * err[-1]:+.2f} %")
+            notes = sorted({n for r in rows for n in r["notes"]})
+            print(f"{'':32s}sigma: {coverage(rows, skip=set(range(3)) | {step, step + 1})}"
+                  f"{'; notes: ' + ', '.join(notes) if notes else ''}")
 
 
 def hold_figures():
@@ -138,25 +173,29 @@ def hold_figures():
 
     from track_sim import DEMO_TASK, FwSim, Tracker, estimate_task, task_stats
     for settle in (0, 1):
-        ks = []
+        ks, zs = [], []
         for hold in (0, 50, 500, 2560):
             with FwSim(TWOMASS) as sim:
                 sim.configure(task_mode=1, exc_kind=0, exc_settle_periods=settle, exc_record_periods=1,
                               rec_signals=0, **DEMO_TASK)
                 sim.enable()
                 tr = Tracker(k_fc=0.1157, k_v=0.002, k_a=0.0062)
+                recent = []
                 for _ in range(10):
                     sim.set("KFC", tr.k_fc)
                     sim.set("TASK_KA", tr.k_a)
                     sim.run(hold)
                     sim.start()
                     sim.run_until_idle()
-                    est = estimate_task(task_stats(sim), k_v_hold=0.002, hold_k_v=True)
+                    est = estimate_task(task_stats(sim), k_v_hold=0.002, hold_k_v=True, recent_k_fc=recent)
+                    recent.append(est.k_fc)
                     tr.after_task(est)
                 ks.append(est.k_fc)
+                zs.append((est.k_fc - 0.1157) / est.k_fc_sigma)
         ks = np.array(ks)
         print(f"settle repetitions {settle}: estimate after 10 runs with 0 / 50 / 500 / 2560 samples "
-              f"held between runs: {', '.join(f'{100 * (k / 0.1157 - 1):+.2f} %' for k in ks)} of the truth")
+              f"held between runs: {', '.join(f'{100 * (k / 0.1157 - 1):+.2f} %' for k in ks)} of the truth "
+              f"({', '.join(f'{z:+.1f}' for z in zs)} sigma)")
 
 
 def realtime_bus_figures():
