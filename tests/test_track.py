@@ -333,6 +333,27 @@ def test_tracking_step_within_two_percent_after_three_tasks(tmp_path):
     assert rows[step_task]["k_fc_true"] == pytest.approx(1.3 * rows[0]["k_fc_true"], rel=1e-6)
 
 
+def test_tracking_sigma_covers_the_truth_and_is_the_size_of_the_error(tmp_path):
+    # settled tasks (from task 5) of 5 noisy seeds and the noise-free plant: the truth within
+    # 2 sigma; sigma not ~30x the error (the block jackknife was 4 mV for errors of 0.2 mV)
+    # nor below the seed-to-seed spread; the statistical part is the task-to-task scatter
+    finals, stats_ = [], []
+    for seed in (None, 1, 2, 3, 4, 5):
+        plant = TWOMASS if seed is None else plant_file(
+            str(tmp_path), name=f"n{seed}.yaml", sensor={"noise_std": 2.0e-3, "seed": seed})
+        rows, _ = run_tracking(plant, 12, k_fc=0.1157, k_v=0.002, k_a=0.0)
+        for r in rows[5:]:
+            assert abs(r["k_fc_estimate"] - r["k_fc_true"]) <= 2 * r["k_fc_sigma"], (seed, r)
+        if seed is not None:
+            finals.append(rows[-1]["k_fc_estimate"] - rows[-1]["k_fc_true"])
+            stats_.append(rows[-1]["k_fc_sigma_stat"])
+    rms = math.sqrt(np.mean(np.square(finals)))
+    sig = rows[-1]["k_fc_sigma"]
+    assert 1.0 < sig / rms < 3.5
+    spread = np.std(finals, ddof=1)
+    assert 0.3 < np.mean(stats_) / spread < 3.0
+
+
 def test_tracking_forward_only_task_stops_named():
     rows, decision = run_tracking(TWOMASS, 3, mode=2)
     assert decision.action == "stop" and decision.cause == "no_reversal"

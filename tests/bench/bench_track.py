@@ -6,9 +6,12 @@ estimator and tracker of ``fftune track``), the demo task (1 rad back and forth,
 
 1. the drift of configs/plant_twomass_drift.yaml (+30 % Coulomb step at 20 s, -30 % ramp
    40 .. 160 s): tasks after the step until K_fc is within 2 %, largest overshoot, largest
-   error during the ramp;
+   error during the ramp; the sigma's coverage of the truth (within 2 sigma) and its ratio
+   to the rms error, here and for the other drifts (``coverage``);
 2. sensor noise 2e-3 rad, 20 seeds: mean error of the steady-state estimate against its
-   sigma (unbiased: |mean| <= sigma) and the seed-to-seed spread;
+   sigma (unbiased: |mean| <= sigma), the seed-to-seed spread against the sigma's
+   statistical part, coverage; ``sigma_alternatives``: the first version's block
+   jackknife and the sandwich against the task-to-task scatter;
 3. the steady state of tracking against ``fftune tune``'s K_fc* on the same plant
    (tests/bench/bench_tune.py's path), within their combined 2 sigma or not;
 4. K_v tracked as well (track_k_v): the closed-loop bias of the K_fc / K_v split;
