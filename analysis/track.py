@@ -260,7 +260,7 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     ------
     NotIdentifiable
         The task cannot determine K_fc (never reverses, never moves forward, collinear
-        regressors, too few blocks for an uncertainty); ``cause`` names it.
+        regressors, fewer samples than parameters); ``cause`` names it.
     """
     A_b, c_b = _blocks(stats)
     A, c = A_b.sum(axis=0), c_b.sum(axis=0)
@@ -283,11 +283,10 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     k = len(cols)
     # residual sum of squares per block, u - Phi theta (theta with the held K_v: the
     # residual of the fit actually made), from the block's sums alone
-    A_o, c_o = _blocks(stats)
+    c_o = stats.data[:, :4]
     uu_b = stats.data[:, 5]
-    rss_b = uu_b - 2.0 * c_o @ theta + np.einsum("i,bij,j->b", theta, A_o, theta)
-    A_t = A_o.sum(axis=0)
-    resid2 = max(0.0, float(uu_b.sum() - 2.0 * theta @ c_o.sum(axis=0) + theta @ A_t @ theta))
+    rss_b = uu_b - 2.0 * c_o @ theta + np.einsum("i,bij,j->b", theta, A_b, theta)
+    resid2 = max(0.0, float(uu_b.sum() - 2.0 * theta @ c_o.sum(axis=0) + theta @ A @ theta))
     rss_b = np.clip(rss_b, 0.0, None)
     if n <= k:
         raise NotIdentifiable("too_few_samples", f"{n} samples for {k} parameters: no uncertainty can be given")
