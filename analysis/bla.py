@@ -464,6 +464,23 @@ def _spread2(z):
     return mean, dev, _abs2_sum(dev, axis=0)
 
 
+def _abs2(z):
+    """|z|^2 elementwise, as re^2 + im^2 (no hypot and square root)."""
+    z = np.asarray(z)
+    return z.real ** 2 + z.imag ** 2 if np.iscomplexobj(z) else z * z
+
+
+def _spread2_inplace(z):
+    """Mean over axis 0 of a (P, K) complex128 array whose rows are contiguous, and the
+    sum over axis 0 of |z - mean|^2; z is overwritten with its deviations z - mean (no
+    temporary of z's size: the sums read its real view)."""
+    mean = np.add.reduce(z, axis=0) / z.shape[0]
+    z -= mean
+    v = z.view(np.float64)                                # (P, 2K): re, im interleaved
+    s = np.einsum("pk,pk->k", v, v)
+    return mean, s[0::2] + s[1::2]
+
+
 def _transient(Y_exc, settle, n_periods):
     """Compare each period's output at the excited lines with the steady state.
 
@@ -478,7 +495,7 @@ def _transient(Y_exc, settle, n_periods):
     centre = Y_exc[:, n_total - max(n_periods // 2, 1):, :].mean(axis=1, keepdims=True)
     diff = Y_exc - centre
     d = _abs2_sum(diff, axis=2).mean(axis=0) / Y_exc.shape[2]          # (T+P,)
-    ref = float(np.mean(np.abs(centre) ** 2))
+    ref = float(np.mean(_abs2(centre)))
     level = d / ref if ref > 0 else np.full_like(d, np.nan)
     check = TransientCheck(level_db=to_db(level))
     if n_periods >= 3:
@@ -568,16 +585,17 @@ def _interp_frf(freq, G, f_at):
         g_at = np.exp(np.interp(np.log(f_at), x, logmag) + 1j * np.interp(np.log(f_at), x, phase))
         return g_at, np.full(e, np.inf)
 
-    def lagrange(xs, ys, xa):
+    def lagrange_weights(xs, xa):
         w = np.ones_like(xs)
         for j in range(4):
             for i in range(4):
                 if i != j:
                     w[:, j] *= (xa - xs[:, i]) / (xs[:, j] - xs[:, i])
-        return np.sum(w * ys, axis=1)
+        return w
 
     def predict(idx, xa):
-        return np.exp(lagrange(x[idx], logmag[idx], xa) + 1j * lagrange(x[idx], phase[idx], xa))
+        w = lagrange_weights(x[idx], xa)        # the same weights for |G| and the phase
+        return np.exp(np.sum(w * logmag[idx], axis=1) + 1j * np.sum(w * phase[idx], axis=1))
 
     xa = np.log(np.asarray(f_at, dtype=float))
     start = np.clip(np.searchsorted(x, xa) - 2, 0, e - 4)
@@ -948,10 +966,24 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
 
     lo, hi = int(band[0]), int(band[-1]) + 1      # the band is contiguous: a view, no copy
 
+    # float64 records: each realization's spectra go into the same buffers (rfft's out=:
+    # no allocation per call, the buffers stay in cache); robust_bla_spectra may
+    # overwrite them (it takes the deviations from the period mean in place)
+    # (one buffer per signal, even when r is u: each is overwritten separately)
+    signals = (u, y, r)
+    buffers = [np.empty((n_total, n // 2 + 1), np.complex128)
+               if x is not None and x.dtype == np.float64 else None for x in signals]
+
     def one_realization(m):
-        return tuple(None if x is None else
-                     np.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128, copy=False)
-                     for x in (u, y, r))
+        out = []
+        for x, buf in zip(signals, buffers):
+            if x is None:
+                out.append(None)
+            elif buf is not None:
+                out.append(np.fft.rfft(x[m], axis=-1, out=buf)[:, lo:hi])
+            else:
+                out.append(np.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128))
+        return tuple(out)
 
     y_mean_time = None
     if y_quantisation_step:
@@ -1094,17 +1126,19 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     s_yu = np.empty((n_real, L), c)
     G_per = None if known_ref else (np.empty((n_real, exc_i.size), c), np.empty((n_real, exc_i.size)))
     for m in range(n_real):
-        Um, Ym, Rm = _get(m)
+        Um, Ym, Rm = _get(m)        # (T + P, L) complex128, overwritten below
         Y_exc[m] = Ym[:, trans_i]
-        mU[m], dU, ss_u[m] = _spread2(Um[settle:])
-        mY[m], dY, ss_y[m] = _spread2(Ym[settle:])
-        s_yu[m] = np.einsum("pk,pk->k", dY, np.conj(dU))
-        if Rm is not None:
-            mR[m], _, ss_r[m] = _spread2(Rm[settle:])
-        else:
+        if Rm is None:
             with np.errstate(divide="ignore", invalid="ignore"):
                 G = Ym[settle:, exc_i] / Um[settle:, exc_i]
-            G_per[0][m], _, G_per[1][m] = _spread2(G)
+            # (a fancy index's result may be laid out column-major: make rows contiguous)
+            G_per[0][m], G_per[1][m] = _spread2_inplace(np.ascontiguousarray(G))
+        else:
+            mR[m], ss_r[m] = _spread2_inplace(Rm[settle:])
+        dU, dY = Um[settle:], Ym[settle:]
+        mU[m], ss_u[m] = _spread2_inplace(dU)        # dU, dY: now the deviations
+        mY[m], ss_y[m] = _spread2_inplace(dY)
+        s_yu[m] = np.add.reduce(dY * dU.conj(), axis=0)
     mom = LineMoments(bins=band, n_periods=n_per, U=mU, Y=mY, ss_u=ss_u, ss_y=ss_y, s_yu=s_yu,
                       R=mR if known_ref else None, ss_r=ss_r if known_ref else None)
     return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=Y_exc,
@@ -1223,7 +1257,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     exc_i, det_i = np.flatnonzero(is_exc), np.flatnonzero(is_det)
     U_mean_e, Y_mean_e = mom.U[:, exc_i], mom.Y[:, exc_i]
     # sum over realizations and periods of |U_p|^2 = P |mean|^2 + sum |deviation|^2
-    u_power = np.sum(n_per * np.abs(U_mean_e) ** 2 + mom.ss_u[:, exc_i], axis=0)
+    u_power = np.sum(n_per * _abs2(U_mean_e) + mom.ss_u[:, exc_i], axis=0)
     ud, yd = mom.U[:, det_i], mom.Y[:, det_i]
     ud_ss, yd_ss, yud = mom.ss_u[:, det_i], mom.ss_y[:, det_i], mom.s_yu[:, det_i]
     if known_ref:
@@ -1243,9 +1277,9 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
             var_total = _abs2_sum((G_m - G)[:, None, :], axis=0)[0] / (n_real * (n_real - 1))
         if n_per >= 2:
             var_noise = G_ss.sum(axis=0) / (n_per * (n_per - 1)) / n_real ** 2
-        u_level = np.mean(np.abs(U_mean_e) ** 2, axis=0)
+        u_level = np.mean(_abs2(U_mean_e), axis=0)
     else:
-        check_power("reference r", np.sum(np.abs(R_mean) ** 2, axis=0))
+        check_power("reference r", np.sum(_abs2(R_mean), axis=0))
         # rotate each realization by conj(R / |R|) (removes its random phase); the sums
         # of squared deviations and the cross sum do not change under the rotation
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -1256,16 +1290,16 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         with np.errstate(divide="ignore", invalid="ignore"):
             G = Y_bar / U_bar
         check_finite(G)
-        u_level = np.abs(U_bar) ** 2
+        u_level = _abs2(U_bar)
 
         def propagate(s2y, s2u, cyu):
-            return (s2y + np.abs(G) ** 2 * s2u - 2 * np.real(np.conj(G) * cyu)) / u_level
+            return (s2y + _abs2(G) * s2u - 2 * np.real(np.conj(G) * cyu)) / u_level
 
         var_total = var_noise = None
         if n_real >= 2:
             du, dy = U_m - U_bar, Y_m - Y_bar
             k = n_real * (n_real - 1)
-            var_total = propagate(np.sum(np.abs(dy) ** 2, 0) / k, np.sum(np.abs(du) ** 2, 0) / k,
+            var_total = propagate(np.sum(_abs2(dy), 0) / k, np.sum(_abs2(du), 0) / k,
                                   np.sum(dy * np.conj(du), 0) / k)
         if n_per >= 2:
             k = n_per * (n_per - 1) * n_real ** 2
@@ -1283,8 +1317,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         # the rounding of the recorded numbers is the same in every period (not in
         # var_noise) but differs between realizations (in var_total): its variance of G
         # (uniform error of +-rounding per sample: N rounding^2 / 3 per line) is added
-        u_abs2 = u_level if known_ref else np.mean(np.abs(U_mean_e) ** 2, axis=0)
-        round_var = (n * (float(y_rounding) ** 2 + np.abs(G) ** 2 * float(u_rounding) ** 2)
+        u_abs2 = u_level if known_ref else np.mean(_abs2(U_mean_e), axis=0)
+        round_var = (n * (float(y_rounding) ** 2 + _abs2(G) * float(u_rounding) ** 2)
                      / 3.0 / np.maximum(u_abs2, 1e-300) / n_real)
         ref_var = var_noise + round_var
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -1322,7 +1356,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         notes.append(gridinfo["note"])
 
     # Figure 3 view (levels as squared line amplitudes, scale2)
-    output_power = scale2 * np.mean(np.abs(Y_mean_e) ** 2, axis=0)
+    output_power = scale2 * np.mean(_abs2(Y_mean_e), axis=0)
     u_level = scale2 * u_level
     nl_power = None if var_nl is None else var_nl * u_level
     noise_power = None if var_noise is None else n_real * var_noise * u_level
@@ -1332,7 +1366,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     def line_levels(mean, ss, floor=0.0):
         """Level (mean over m of |period mean|^2) and noise of the period mean (plus a
         rounding floor) from the period means and sums of squared deviations."""
-        level = scale2 * np.mean(np.abs(mean) ** 2, axis=0)
+        level = scale2 * np.mean(_abs2(mean), axis=0)
         noise = None if n_per < 2 else scale2 * ss.mean(axis=0) / (n_per * (n_per - 1)) + floor
         return level, noise
 
@@ -1352,11 +1386,11 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     if det_bins.size and excited.size >= 5:
         g_det, loo = _interp_frf(freq, G, det_bins * fs / n)
         e_mean = yd - g_det * ud
-        e_ss = yd_ss + np.abs(g_det) ** 2 * ud_ss - 2 * np.real(np.conj(g_det) * yud)
+        e_ss = yd_ss + _abs2(g_det) * ud_ss - 2 * np.real(np.conj(g_det) * yud)
         plant_power, plant_noise = line_levels(e_mean, np.maximum(e_ss, 0.0), rounding_floor)
         nb = np.clip(np.searchsorted(excited, det_bins), 1, excited.size - 1)
         rel = np.maximum(loo[nb - 1], loo[nb])
-        g_u = scale2 * np.mean(np.abs(g_det * ud) ** 2, axis=0)
+        g_u = scale2 * np.mean(_abs2(g_det * ud), axis=0)
         plant_bound = rel ** 2 * g_u
         if plant_noise is not None:
             plant_expected = plant_noise + plant_bound
@@ -1465,7 +1499,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     summary["excitation_distorted"] = None
     if det_bins.size:
         x_det, x_noise = line_levels(xd, xd_ss)
-        x_exc = scale2 * np.mean(np.abs(xe) ** 2, axis=0)
+        x_exc = scale2 * np.mean(_abs2(xe), axis=0)
         rel_db = float(np.median(to_db(np.maximum(x_det, 1e-300))) - np.median(to_db(x_exc)))
         summary["excitation_nonexcited_re_excited_db"] = rel_db
         # the strongest tenth: an odd distortion of an odd grid leaves the even lines
