@@ -464,6 +464,38 @@ def _spread2(z):
     return mean, dev, _abs2_sum(dev, axis=0)
 
 
+def _in_band(band, bins):
+    """np.isin(band, bins) for a contiguous band (consecutive bins) that holds every one
+    of the sorted ``bins`` (the excited lines of their own band): an index, no search."""
+    if band.size and band[-1] - band[0] == band.size - 1 and np.size(bins) \
+            and bins[0] >= band[0] and bins[-1] <= band[-1]:
+        mask = np.zeros(band.size, dtype=bool)
+        mask[np.asarray(bins) - band[0]] = True
+        return mask
+    return np.isin(band, bins)
+
+
+def _mean0(x):
+    """Mean over axis 0 (np.mean's sum / count without its Python-level overhead)."""
+    return np.add.reduce(x, axis=0) / x.shape[0]
+
+
+def _median(a):
+    """np.median of all values (NaN if any is NaN), without np.median's Python-level
+    overhead (called for many small arrays per estimate)."""
+    a = np.asarray(a, dtype=float).reshape(-1)
+    n = a.size
+    if n == 0:
+        return np.median(a)          # nan and numpy's warning, as before
+    if np.isnan(a).any():
+        return np.float64(np.nan)
+    k = (n - 1) // 2
+    if n % 2:
+        return np.partition(a, k)[k]
+    part = np.partition(a, (k, k + 1))
+    return (part[k] + part[k + 1]) / 2.0
+
+
 def _abs2(z):
     """|z|^2 elementwise, as re^2 + im^2 (no hypot and square root)."""
     z = np.asarray(z)
@@ -543,7 +575,9 @@ def classify_grid(excited_bins, n_period):
         grids: an odd number of odd bins sums to an odd bin, an even number to an even
         bin); ``note``: why there is no parity claim (None when there is).
     """
-    exc = np.unique(np.asarray(excited_bins, dtype=np.int64))
+    exc = np.asarray(excited_bins, dtype=np.int64).reshape(-1)
+    if exc.size > 1 and not np.all(exc[1:] > exc[:-1]):     # (sorted and unique: as is)
+        exc = np.unique(exc)
     band = np.arange(exc[0], exc[-1] + 1)
     keep = np.ones(band.size, bool)
     keep[exc - exc[0]] = False
@@ -703,7 +737,7 @@ def _class_stats(level, reference, nu, prefix, alpha=1e-3, tail=None, known=None
     p_line = float(tail(np.array(4.0)))
     over = int(np.sum(level > 4.0 * reference))
     need = _false_alarm_count(level.size, p_line, alpha)
-    med = float(np.median(excess))
+    med = float(_median(excess))
     strongest = bool(level.size * np.nanmin(p_lines) <= alpha)
     out.update({f"{prefix}line_median_re_noise_db": med if np.isfinite(med) else None,
                 f"{prefix}lines_over_noise_6db": over, f"{prefix}lines_needed": need,
@@ -788,7 +822,7 @@ def _quantisation_lines(q, y_mean_time, mom, *, is_exc, det_i, g_det, n, n_per, 
     sigma2 = 0.0
     if n_per >= 2:
         # white noise: a line's period-to-period variance is N sigma^2
-        sigma2 = float(np.median(mom.ss_y[:, det_i]) / (n_per - 1) / n)
+        sigma2 = float(_median(mom.ss_y[:, det_i]) / (n_per - 1) / n)
     sigma = float(np.sqrt(max(sigma2 - q ** 2 / 12.0, 0.0)))
     # The predicted output's offset within a step decides the error's symmetry (odd vs
     # even lines) and is not known to better than q: per realization, the offset whose
@@ -804,13 +838,13 @@ def _quantisation_lines(q, y_mean_time, mom, *, is_exc, det_i, g_det, n, n_per, 
             better = err < best
             best[better], shift[better] = err[better], c
         D = quantisation_error_lines(smooth + shift[:, None], q, sigma, band[det_i])
-        power = scale2 * np.mean(np.abs(D) ** 2, axis=0)
+        power = scale2 * _mean0(_abs2(D))
     else:
         power = np.zeros(det_i.size)
         offsets = np.linspace(-0.5 * q, 0.5 * q, 8, endpoint=False)
         for c in offsets:
             D = quantisation_error_lines(smooth + c, q, sigma, band[det_i])
-            power += scale2 * np.mean(np.abs(D) ** 2, axis=0) / offsets.size
+            power += scale2 * _mean0(_abs2(D)) / offsets.size
     # the error's odd and even lines differ by tens of dB (odd-symmetric error of a
     # half-wave symmetric signal): smooth each parity on its own
     local = np.empty_like(power)
@@ -868,7 +902,7 @@ def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_no
         out["power_db"] = float(10 * np.log10(max(float(np.mean(power[i:j])), 1e-300)))
         if noise is not None:
             ex = excess[id(bins)][i:j]
-            med, top = float(np.median(ex)), float(np.max(ex))
+            med, top = float(_median(ex)), float(np.max(ex))
             out.update({"median_re_noise_db": med if np.isfinite(med) else None,
                         "max_re_noise_db": top if np.isfinite(top) else None,
                         "lines_over_noise_6db": int(np.sum(ex > 10 * np.log10(4.0)))})
@@ -894,7 +928,7 @@ def _median_db(values_db):
     v = np.asarray(values_db, dtype=float)
     if v.size == 0:
         return None
-    med = float(np.median(np.where(np.isnan(v), -np.inf, v)))
+    med = float(_median(np.where(np.isnan(v), -np.inf, v)))
     return med if np.isfinite(med) else None
 
 
@@ -1105,7 +1139,7 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     n_per = n_total - settle
     band = np.arange(excited[0], excited[-1] + 1)
     pos = _band_positions(bins, band)
-    is_exc = np.isin(band, excited)
+    is_exc = _in_band(band, excited)
     known_ref = R is not None if _get is None else _known_ref
     if _get is None:
         def _get(m):
@@ -1225,7 +1259,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     for detection (stray input tones found by the line finder)."""
     band = mom.bins
     n_real, n_per = mom.U.shape[0], mom.n_periods
-    is_exc = np.isin(band, excited)
+    is_exc = _in_band(band, excited)
     is_det = ~is_exc
     if ignore_bins is not None and np.size(ignore_bins):
         is_det &= ~np.isin(band, ignore_bins)
@@ -1246,7 +1280,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     def check_power(name, power):
         # "zero" power: 120 dB or more under the median excited line (rounding noise)
         check_finite(power)
-        low = np.flatnonzero(~(power > 1e-12 * np.median(power)))
+        low = np.flatnonzero(~(power > 1e-12 * _median(power)))
         if low.size:
             raise InputError(
                 f"{name}: zero power at {low.size} excited line(s) "
@@ -1277,7 +1311,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
             var_total = _abs2_sum((G_m - G)[:, None, :], axis=0)[0] / (n_real * (n_real - 1))
         if n_per >= 2:
             var_noise = G_ss.sum(axis=0) / (n_per * (n_per - 1)) / n_real ** 2
-        u_level = np.mean(_abs2(U_mean_e), axis=0)
+        u_level = _mean0(_abs2(U_mean_e))
     else:
         check_power("reference r", np.sum(_abs2(R_mean), axis=0))
         # rotate each realization by conj(R / |R|) (removes its random phase); the sums
@@ -1317,7 +1351,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         # the rounding of the recorded numbers is the same in every period (not in
         # var_noise) but differs between realizations (in var_total): its variance of G
         # (uniform error of +-rounding per sample: N rounding^2 / 3 per line) is added
-        u_abs2 = u_level if known_ref else np.mean(_abs2(U_mean_e), axis=0)
+        u_abs2 = u_level if known_ref else _mean0(_abs2(U_mean_e))
         round_var = (n * (float(y_rounding) ** 2 + _abs2(G) * float(u_rounding) ** 2)
                      / 3.0 / np.maximum(u_abs2, 1e-300) / n_real)
         ref_var = var_noise + round_var
@@ -1356,7 +1390,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         notes.append(gridinfo["note"])
 
     # Figure 3 view (levels as squared line amplitudes, scale2)
-    output_power = scale2 * np.mean(_abs2(Y_mean_e), axis=0)
+    output_power = scale2 * _mean0(_abs2(Y_mean_e))
     u_level = scale2 * u_level
     nl_power = None if var_nl is None else var_nl * u_level
     noise_power = None if var_noise is None else n_real * var_noise * u_level
@@ -1366,8 +1400,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     def line_levels(mean, ss, floor=0.0):
         """Level (mean over m of |period mean|^2) and noise of the period mean (plus a
         rounding floor) from the period means and sums of squared deviations."""
-        level = scale2 * np.mean(_abs2(mean), axis=0)
-        noise = None if n_per < 2 else scale2 * ss.mean(axis=0) / (n_per * (n_per - 1)) + floor
+        level = scale2 * _mean0(_abs2(mean))
+        noise = None if n_per < 2 else scale2 * _mean0(ss) / (n_per * (n_per - 1)) + floor
         return level, noise
 
     det_power, det_noise = line_levels(yd, yd_ss, rounding_floor)
@@ -1390,7 +1424,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         plant_power, plant_noise = line_levels(e_mean, np.maximum(e_ss, 0.0), rounding_floor)
         nb = np.clip(np.searchsorted(excited, det_bins), 1, excited.size - 1)
         rel = np.maximum(loo[nb - 1], loo[nb])
-        g_u = scale2 * np.mean(_abs2(g_det * ud), axis=0)
+        g_u = scale2 * _abs2(g_det) * _mean0(_abs2(ud))
         plant_bound = rel ** 2 * g_u
         if plant_noise is not None:
             plant_expected = plant_noise + plant_bound
@@ -1499,13 +1533,13 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     summary["excitation_distorted"] = None
     if det_bins.size:
         x_det, x_noise = line_levels(xd, xd_ss)
-        x_exc = scale2 * np.mean(_abs2(xe), axis=0)
-        rel_db = float(np.median(to_db(np.maximum(x_det, 1e-300))) - np.median(to_db(x_exc)))
+        x_exc = scale2 * _mean0(_abs2(xe))
+        rel_db = float(_median(to_db(np.maximum(x_det, 1e-300))) - _median(to_db(x_exc)))
         summary["excitation_nonexcited_re_excited_db"] = rel_db
         # the strongest tenth: an odd distortion of an odd grid leaves the even lines
         # (half of the detection lines) empty, so the median alone can miss it
         top_db = float(np.quantile(to_db(np.maximum(x_det, 1e-300)), 0.9)
-                       - np.median(to_db(x_exc)))
+                       - _median(to_db(x_exc)))
         summary["excitation_nonexcited_top_re_excited_db"] = top_db
         if x_noise is not None:
             xs = _class_stats(x_det, x_noise, nu, "x_")
