@@ -619,13 +619,14 @@ def _interp_frf(freq, G, f_at):
         g_at = np.exp(np.interp(np.log(f_at), x, logmag) + 1j * np.interp(np.log(f_at), x, phase))
         return g_at, np.full(e, np.inf)
 
+    eye4 = np.eye(4, dtype=bool)
+
     def lagrange_weights(xs, xa):
-        w = np.ones_like(xs)
-        for j in range(4):
-            for i in range(4):
-                if i != j:
-                    w[:, j] *= (xa - xs[:, i]) / (xs[:, j] - xs[:, i])
-        return w
+        # w_j = prod_{i != j} (xa - x_i) / (x_j - x_i), the factors in the order of i
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = (xa[:, None, None] - xs[:, None, :]) / (xs[:, :, None] - xs[:, None, :])
+        f[:, eye4] = 1.0
+        return np.multiply.reduce(f, axis=2)
 
     def predict(idx, xa):
         w = lagrange_weights(x[idx], xa)        # the same weights for |G| and the phase
@@ -894,18 +895,19 @@ def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_no
             excess[key] = np.where(np.isfinite(ex), ex, -np.inf)
 
     def cls(bins, power, noise, a, b):
-        i, j = np.searchsorted(bins, [a, b])
-        out = {"lines": int(j - i), "median_re_noise_db": None, "max_re_noise_db": None,
+        i, j = (int(v) for v in np.searchsorted(bins, (a, b)))
+        out = {"lines": j - i, "median_re_noise_db": None, "max_re_noise_db": None,
                "lines_over_noise_6db": None, "power_db": None}
         if j <= i:
             return out
-        out["power_db"] = float(10 * np.log10(max(float(np.mean(power[i:j])), 1e-300)))
+        mean = float(np.add.reduce(power[i:j]) / (j - i))
+        out["power_db"] = float(10 * np.log10(max(mean, 1e-300)))
         if noise is not None:
             ex = excess[id(bins)][i:j]
-            med, top = float(_median(ex)), float(np.max(ex))
+            med, top = float(_median(ex)), float(ex.max())
             out.update({"median_re_noise_db": med if np.isfinite(med) else None,
                         "max_re_noise_db": top if np.isfinite(top) else None,
-                        "lines_over_noise_6db": int(np.sum(ex > 10 * np.log10(4.0)))})
+                        "lines_over_noise_6db": int(np.count_nonzero(ex > 10 * np.log10(4.0)))})
         return out
 
     bands = []
