@@ -506,6 +506,11 @@ def _spread2_inplace(z):
     """Mean over axis 0 of a (P, K) complex128 array whose rows are contiguous, and the
     sum over axis 0 of |z - mean|^2; z is overwritten with its deviations z - mean (no
     temporary of z's size: the sums read its real view)."""
+    if z.strides[-1] != z.itemsize:      # (e.g. a fancy index's column-major result)
+        zc = np.ascontiguousarray(z)
+        mean, ss = _spread2_inplace(zc)
+        z[...] = zc
+        return mean, ss
     mean = np.add.reduce(z, axis=0) / z.shape[0]
     z -= mean
     v = z.view(np.float64)                                # (P, 2K): re, im interleaved
