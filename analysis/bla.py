@@ -1194,7 +1194,8 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
         dU, dY = Um[settle:], Ym[settle:]
         mU[m], ss_u[m] = _spread2_inplace(dU)        # dU, dY: now the deviations
         mY[m], ss_y[m] = _spread2_inplace(dY)
-        np.multiply(dY, np.conjugate(dU, out=prod), out=prod)
+        np.conjugate(dU, out=prod)
+        prod *= dY
         s_yu[m] = np.add.reduce(prod, axis=0)
     mom = LineMoments(bins=band, n_periods=n_per, U=mU, Y=mY, ss_u=ss_u, ss_y=ss_y, s_yu=s_yu,
                       R=mR if known_ref else None, ss_r=ss_r if known_ref else None)
