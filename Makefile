@@ -9,11 +9,12 @@ PY     := $(CURDIR)/$(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 FW     := $(MAKE) --no-print-directory -C firmware_sim PYTHON=$(PY)
 
-.PHONY: help setup firmware demo demo-track paper test bench cross pil pil-run fuzz system-deps clean mutation
+.PHONY: help setup firmware demo demo-machine demo-track paper test bench cross pil pil-run fuzz system-deps clean mutation
 
 help:
 	@echo "make setup        venv (.venv) with pinned deps + firmware_sim build (other targets do it)"
 	@echo "make demo         the main job on the simulated drive (writes out/demo/)"
+	@echo "make demo-machine a simulated 4-axis machine on one 1 Mbit/s bus, every axis tuned at once (out/machine_demo/)"
 	@echo "make paper        the paper's results reproduced side by side (out/paper/, docs/paper-reproduction.md)"
 	@echo "make demo-track   K_fc tracked from the repeated task on a drifting simulated plant (writes out/demo-track/)"
 	@echo "make test         every test, C and Python (parallel: TEST_WORKERS=auto; prints its wall time)"
@@ -39,6 +40,9 @@ firmware: $(STAMP)
 
 demo: setup
 	@$(VENV)/bin/fftune demo
+
+demo-machine: setup
+	@$(VENV)/bin/fftune demo --machine configs/machine_demo.yaml
 
 # The paper's results beside the measured ones: out/paper/reproduction.json, figures, report,
 # and docs/paper-reproduction.md rewritten from its template (docs/paper-reproduction.md).

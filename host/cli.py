@@ -19,6 +19,7 @@ SUBCOMMAND_MODULES = [
     "fftune.host.sim",
     "fftune.analysis.cli",
     "fftune.host.demo",
+    "fftune.host.fleet",
     "fftune.host.paper",
     "fftune.host.track",
 ]

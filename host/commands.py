@@ -29,6 +29,9 @@ def add_parser(sub):
     for name in ("detect", "quantify", "tune", "run"):
         p = sub.add_parser(name, help=_HELP[name], description=_HELP[name] + ".")
         _common(p)
+        p.add_argument("--machine", default=None, metavar="FILE",
+                       help="a machine file (configs/machine_demo.yaml): every axis on the bus "
+                            "at once, one thread each (docs/machine.md)")
         p.add_argument("--dry-run", action="store_true",
                        help="connect, check the plan against the drive's limits and the "
                             "configuration's (limits:), print it; nothing moves, nothing is written")
@@ -99,6 +102,9 @@ def _experiment(args):
     from fftune.host.pipeline import check_plan, run_pipeline, summary_lines
     from fftune.host.plan import preflight
 
+    if getattr(args, "machine", None):
+        from fftune.host.machine import run_cli
+        return run_cli(args)
     cfg = load_config(args.config)
     # what the configuration alone tells (its limits:, drive.fs_hz, controller.u_max): refused
     # before the drive is contacted

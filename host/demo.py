@@ -29,6 +29,9 @@ def add_parser(sub):
     p.add_argument("--out", default=None, help="output directory (default: the configuration's); "
                    "an earlier one is kept as <out>.previous")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--machine", default=None, metavar="FILE",
+                   help="a machine file (configs/machine_demo.yaml): one drive_sim serving every "
+                        "axis' node on one bus, all axes tuned at once (docs/machine.md)")
     p.add_argument("--realtime", action="store_true",
                    help="the simulated drive steps at its controller rate (default: as fast as it can)")
     add_bus_arguments(p, drive_side=True, port_default=0)
@@ -74,6 +77,9 @@ def run(args):
     t0 = time.monotonic()
     # the demo starts its own drive on a free port: python-can's configuration plays no part
     args.interface = args.interface or "socketcand"
+    if args.machine:
+        from fftune.host.machine import demo_cli
+        return demo_cli(args)
     cfg = load_config(args.config)
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     cfg["sim"]["bitrate"] = bitrate  # the steps' default capture follows it (Session.capture_mode)

@@ -274,6 +274,18 @@ def _signals_deferred(signums=(signal.SIGINT, signal.SIGTERM)):
                 signal.raise_signal(pending[0])
 
 
+class Cancelled(BaseException):
+    """The session was cancelled from another thread (``DriveClient.cancel`` set: a
+    machine's Ctrl-C / SIGTERM): raised at the axis' next SDO request, past every
+    ``except FftuneError``, so that its thread ends and the machine leaves every drive safe."""
+
+
+# python-canopen takes the block upload's sub-block size from a class attribute: the
+# retries with smaller sub-blocks change it for every client of the process (several axes).
+_BLKSIZE_LOCK = threading.Lock()
+_BLKSIZE_DEFAULT = 127
+
+
 class DriveClient:
     """A connected drive. Use as a context manager, or call :meth:`close`.
 
@@ -290,6 +302,10 @@ class DriveClient:
         watches the host with 4x this time. 0 switches both off.
     host_node_id : int
         Node id under which the host produces its heartbeat.
+    network : canopen.Network, optional
+        A network (bus) shared with other drive clients (the axes of a machine): the node
+        is added to it; its owner connects it, produces the host heartbeat and
+        disconnects it. Default: the client opens its own bus.
 
     Attributes
     ----------
@@ -301,7 +317,7 @@ class DriveClient:
     """
 
     def __init__(self, opts, *, sdo_timeout_s=2.0, sdo_retries=2, heartbeat_ms=100,
-                 host_node_id=0x7F, run_timeout_s=120.0, progress=True):
+                 host_node_id=0x7F, run_timeout_s=120.0, progress=True, network=None):
         import canopen
 
         self.opts = opts
@@ -321,6 +337,8 @@ class DriveClient:
         # Where the session's time goes (fftune.host.pipeline's time budget): see time_account.
         self.time_account = {"runs": 0, "excitation_s": 0.0, "run_wait_s": 0.0, "transfer_s": 0.0}
         self.network = None
+        self._shared_network = network
+        self.cancel = None            # a threading.Event: set, the next SDO request raises Cancelled
         try:
             self.node = canopen.BaseNode402(opts.node_id, opts.eds)
         except FileNotFoundError:
@@ -333,11 +351,15 @@ class DriveClient:
     def connect(self):
         import canopen
 
-        bus = _open_bus(self.opts)
-        self.network = canopen.Network(bus)
-        self.network.add_node(self.node)
-        self.network.connect()
-        self.network.notifier.add_listener(_BusErrorListener())
+        if self._shared_network is not None:
+            self.network = self._shared_network
+            self.network.add_node(self.node)
+        else:
+            bus = _open_bus(self.opts)
+            self.network = canopen.Network(bus)
+            self.network.add_node(self.node)
+            self.network.connect()
+            self.network.notifier.add_listener(_BusErrorListener())
         self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.node.sdo.MAX_RETRIES = max(1, self.sdo_retries)
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
@@ -384,11 +406,13 @@ class DriveClient:
         if not self.heartbeat_ms:
             return
         period = self.heartbeat_ms / 1000.0
-        # Host heartbeat (state 0x05 operational) on 0x700 + host id.
-        self._hb_task = self.network.send_periodic(0x700 + self.host_node_id, [0x05], period)
+        # Host heartbeat (state 0x05 operational) on 0x700 + host id (on a shared network:
+        # its owner's, one for all nodes).
+        if self._shared_network is None:
+            self._hb_task = self.network.send_periodic(0x700 + self.host_node_id, [0x05], period)
         # A send error (the bus went away) ends the heartbeat thread quietly; the next SDO
         # request reports the lost connection as one error line instead of a thread traceback.
-        task = getattr(self._hb_task, "_task", None)
+        task = getattr(self._hb_task, "_task", None) if self._hb_task is not None else None
         if task is not None and hasattr(task, "on_error"):
             task.on_error = lambda exc: False
         self.write(0x1017, 0, self.heartbeat_ms)
@@ -413,7 +437,8 @@ class DriveClient:
                 if self._hb_task is not None:
                     self._hb_task.stop()
                     self._hb_task = None
-                self.network.disconnect()
+                if self._shared_network is None:
+                    self.network.disconnect()
             except Exception:
                 pass
             self.network = None
@@ -462,6 +487,8 @@ class DriveClient:
         import can
         from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
+        if self.cancel is not None and self.cancel.is_set():
+            raise Cancelled()
         self._transfer_open = True
         t0 = time.monotonic()
         try:
@@ -945,16 +972,18 @@ class DriveClient:
                 self.node.sdo.abort(0x05040000)
                 raise SdoCommunicationError("No SDO response received (end of the block upload)") from None
 
-        saved = BlockUploadStream.blksize
-        try:
-            for i, size in enumerate(block_sizes):
-                # python-canopen takes the sub-block size from this class attribute
-                BlockUploadStream.blksize = size
+        for i, size in enumerate(block_sizes):
+            # python-canopen takes the sub-block size from a class attribute: changed only
+            # under the lock (other axes of the process upload meanwhile), then restored
+            lock = _BLKSIZE_LOCK if size != _BLKSIZE_DEFAULT else contextlib.nullcontext()
+            with lock:
+                if size != _BLKSIZE_DEFAULT:
+                    BlockUploadStream.blksize = size
                 try:
                     return self._sdo_call(f"block upload (sub-blocks of {size}) of", index, sub, do)
                 except FftuneError:
                     if i == len(block_sizes) - 1:
                         raise
-                    time.sleep(0.2)
-        finally:
-            BlockUploadStream.blksize = saved
+                finally:
+                    BlockUploadStream.blksize = _BLKSIZE_DEFAULT
+            time.sleep(0.2)

@@ -48,7 +48,7 @@ def check_plan(drive, cfg, steps=STEPS, session=None):
 
 
 def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, preflight=True,
-                 data=None):
+                 before_figures=None, data=None):
     """Run ``steps`` in order; returns the results dict (also written to ``out_dir``).
     ``data``: a dict that receives the analysis objects behind the figures
     (``detect_levels``, ``hos``, ``tune_data``; None for a step not run) and the figures
@@ -58,7 +58,11 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, pref
     excitation of the plan is first checked against the drive's limits and the
     configuration's (:func:`fftune.host.plan.preflight`): a violation raises before any
     experiment and before anything is written. ``out_dir`` is created when the first
-    capture is written."""
+    capture is written.
+
+    ``before_figures``: called (no arguments) after the experiments, before the figures are
+    drawn: a machine's axis waits there until every axis has measured, so that drawing
+    (CPU-bound, holding the GIL) does not starve the other axes' bus threads."""
     t0 = time.monotonic()
     session = ex.Session(drive, cfg, out_dir, log=log)
     if preflight:
@@ -117,6 +121,8 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, pref
     if data is not None:
         data.update(detect_levels=detect_levels, hos=hos, tune_data=tune_data)
     figs = {}
+    if before_figures is not None:
+        before_figures()
     if figures:
         figs = make_figures(out_dir, detect_levels, hos, tune_data, results)
     if data is not None:

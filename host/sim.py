@@ -162,6 +162,9 @@ def add_parser(sub):
                    help="plant configuration (default: the configuration's sim.plant, else "
                         "configs/plant_twomass.yaml); the configuration's sim.overrides apply to it")
     p.add_argument("--realtime", action="store_true", help="step at the controller rate")
+    p.add_argument("--machine", default=None, metavar="FILE",
+                   help="serve every axis of a machine file, one node each on the one bus "
+                        "(docs/machine.md)")
     add_bus_arguments(p, drive_side=True)
     p.set_defaults(func=_run)
 
@@ -215,6 +218,16 @@ def _run(args):
     from fftune.host.demo import resolve_plant
 
     exe = drive_sim_path()
+    if args.machine:
+        from fftune.host.machine import sim_axis_args
+        _bus_from_python_can(args)
+        extra = sim_axis_args(args.machine, plant_path=_plant_path)
+        cmd = drive_sim_command(DEFAULT_PLANT, args.host, args.port, 1, extra=extra,
+                                interface=args.interface, channel=args.channel, bitrate=args.bitrate,
+                                realtime=args.realtime)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execv(exe, cmd)
     cfg = load_config(args.config)
     plant = resolve_plant(cfg, args.plant)
     if not os.path.exists(plant):

@@ -1,9 +1,12 @@
 """Host-in-the-loop over virtual SocketCAN: the drive and `fftune tune` both on vcan0
 inside the qemu guest (tests/vmguest.py), compared with the same configuration over
 socketcand on this machine. The guest runs exactly the README's two commands, one for the
-drive and one for the host: `fftune sim -i socketcan -c vcan0` and `fftune tune -i
-socketcan -c vcan0 ...` (the guest's init has set up vcan0 as the README says). Skipped,
-with the reason, where qemu or the kernel is missing."""
+drive and one for the host: `fftune sim -i socketcan -c vcan0 --config C` and `fftune tune
+-i socketcan -c vcan0 --config C ...` (the guest's init has set up vcan0 as the README
+says). Both take the same configuration C: `fftune sim` simulates its sim.plant with its
+sim.overrides, and without --config it takes configs/demo.yaml's (viscous friction 20x the
+plant file's), which is not the plant the socketcand side simulates. Skipped, with the
+reason, where qemu or the kernel is missing."""
 import os
 
 import pytest
@@ -26,6 +29,9 @@ FFTUNE = os.path.join(REPO, ".venv", "bin", "fftune")
 # of recordings over vcan0 are tested by test_vm_canopen_conformance.
 TINY = {
     "output": "unused",
+    # the simulated drive's plant, for `fftune sim --config` in the guest and for the
+    # socketcand side here: the file as it is (no sim.overrides)
+    "sim": {"plant": PLANT, "overrides": {}},
     "drive": {"heartbeat_ms": 200, "sdo_timeout_s": 1.0, "sdo_retries": 3, "run_timeout_s": 300.0},
     "tune": {"frequency_hz": 5.0, "amplitude_rad": 0.3, "period_samples": 512, "periods": 2,
              "settle_periods": 3, "capture": "stats", "sweep": {"k_fc_max": 0.3, "points": 3},
@@ -40,7 +46,7 @@ wait_can_receivers() {
         _i=$((_i + 1)); [ "$_i" -gt 600 ] && return 1; sleep 0.1
     done
 }
-@FFTUNE@ sim -i socketcan -c vcan0 --plant @PLANT@ > "$SECTION_OUT/drive_sim.out" 2>&1 &
+@FFTUNE@ sim -i socketcan -c vcan0 --config "$FFTUNE_VM_JOB/tiny.yaml" > "$SECTION_OUT/drive_sim.out" 2>&1 &
 sim_pid=$!
 wait_can_receivers vcan0 1 || exit 3
 @FFTUNE@ tune -i socketcan -c vcan0 --config "$FFTUNE_VM_JOB/tiny.yaml" --out /tmp/vmout \
@@ -49,7 +55,7 @@ status=$?
 cp /tmp/vmout/results.yaml "$SECTION_OUT/results.yaml" 2>/dev/null
 kill "$sim_pid"; wait "$sim_pid"
 exit $status
-'''.replace("@PLANT@", PLANT).replace("@FFTUNE@", FFTUNE)
+'''.replace("@FFTUNE@", FFTUNE)
 
 
 # One section of the guest boot all VM test modules share (tests/vmguest.py).
@@ -71,13 +77,16 @@ def test_tuning_over_vcan_in_the_guest_matches_socketcand(tmp_path, vm_session, 
     # The same on this machine over socketcand.
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(text)
-    sim = start_drive_sim(PLANT)
+    sim = start_drive_sim(TINY["sim"]["plant"])
     try:
         assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "host"),
                      "--port", str(sim.port), "--no-progress", "--no-figures"]) == 0
     finally:
         sim.stop()
     host = yaml.safe_load(open(tmp_path / "host" / "results.yaml"))
+    # the same plant on both buses (0x2100, the simulation's truth) before any sweep compares
+    assert vm["drive"]["plant_truth"] == host["drive"]["plant_truth"], \
+        "the guest's drive_sim and this machine's simulate different plants"
     tv, th = vm["tune"], host["tune"]
     assert tv["search"]["experiments"] == th["search"]["experiments"] <= 4
     # (this tiny search may end unconverged, K_fc* None: the same on both buses)

@@ -2,7 +2,7 @@
  * cbus.h - a classic CAN bus model for drive_sim (--bitrate): every frame occupies the bus
  * for the bit time a CAN controller needs for it (its bits from SOF to EOF with the stuff
  * bits of its actual content, CRC-15 included, plus the 3-bit interframe space); the nodes
- * (the drive and each socketcand client) share the bus: a frame waits while another is on
+ * (each drive node and each socketcand client) share the bus: a frame waits while another is on
  * the wire, and among waiting frames the lowest identifier wins arbitration (CiA / ISO
  * 11898-1; REFERENCE.md section 3). Each source transmits its own frames in order (one
  * FIFO per source, as a SocketCAN or CANopen driver queue).
@@ -21,7 +21,8 @@
 
 #include "scd.h"
 
-#define CBUS_SOURCES (1 + SCD_MAX_CLIENTS) /* 0: the drive, 1 + i: socketcand client i */
+#define CBUS_NODES 8                               /* drive_sim's nodes: sources 0 .. 7 */
+#define CBUS_SOURCES (CBUS_NODES + SCD_MAX_CLIENTS) /* CBUS_NODES + i: socketcand client i */
 #define CBUS_QUEUE 512u                    /* frames per source (an SDO block is 127) */
 #define CBUS_BITRATE_MIN 10000u
 #define CBUS_BITRATE_MAX 1000000u

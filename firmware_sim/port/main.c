@@ -3,7 +3,14 @@
  * slave (canopen/co_node.h) on a socketcand TCP server or a SocketCAN interface.
  *
  *   drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N]
- *             [--node-id N] [--config FILE] [--realtime] [--bitrate B] [--quiet]
+ *             [--node-id N] [--config FILE] [--axis ID:FILE ...] [--realtime] [--bitrate B] [--quiet]
+ *
+ * Several axes (--axis ID:FILE, repeated, up to DS_AXES_MAX): one process serves several
+ * CANopen nodes, each with its own plant, drive core and recorder, on the one bus: every
+ * frame of a node reaches the other nodes and the clients, and with --bitrate every node's
+ * frames take their bit time on the one bus model (cbus source = the node's index). In
+ * free-run each axis steps while its own run is active (its simulated time holds
+ * otherwise); --realtime steps every axis each period (the axes must share fs_hz).
  *
  * Timing. CANopen timers (heartbeat, SDO timeout, PDO inhibit / event) always run on
  * CLOCK_MONOTONIC wall time.
@@ -44,6 +51,13 @@
 #include "sim.h"
 #include "sockcan.h"
 
+#define DS_AXES_MAX CBUS_NODES
+
+typedef struct {
+    int node_id;
+    const char *config;
+} axis_opt_t;
+
 typedef struct {
     bool socketcan;
     char host[64];
@@ -54,6 +68,8 @@ typedef struct {
     bool realtime;
     bool quiet;
     int bitrate; /* 0: no bus model */
+    int n_axes;  /* --axis options given (0: one axis from --node-id / --config) */
+    axis_opt_t axis[DS_AXES_MAX];
 } opts_t;
 
 #define SCD_RT_READ 256u              /* --realtime: bytes read per client per bus pass */
@@ -61,19 +77,33 @@ typedef struct {
 #define SCD_BUS_READ 1024u            /* --bitrate: at most ~100 frames per read */
 #define CBUS_PAUSE_AT (CBUS_QUEUE / 2u) /* a client's bus queue this full: stop reading it */
 
+struct app;
+
+/* One axis: a CANopen node with its own plant, drive core and recorder. */
 typedef struct {
-    opts_t o;
+    struct app *app;
+    int index;             /* 0 .. n_axes - 1, its bus model source */
+    int node_id;
+    const char *config;
     plant_config_t cfg;
     sim_t sim;
     float *rec_buf;
     float *table_buf;
     co_node_t node;
+    bool ready;            /* node initialised: frames are delivered to it */
+    uint64_t steps;
+} axis_t;
+
+typedef struct app {
+    opts_t o;
+    int n_axes;
+    axis_t ax[DS_AXES_MAX];
     scd_server_t *scd;
     cbus_t *bus;           /* NULL without --bitrate */
     int64_t realtime_offset_us; /* CLOCK_REALTIME - CLOCK_MONOTONIC (frame time stamps) */
     int can_fd;
     uint64_t now_us;
-    uint64_t tx_time_ns;   /* bus time at which the node's next frame is queued */
+    uint64_t tx_time_ns;   /* bus time at which a node's next frame is queued */
     uint64_t steps;
     uint64_t overruns;
     uint64_t bus_passes;   /* bus service passes (poll + handle + flush) */
@@ -104,7 +134,7 @@ static int usage_error(const char *msg, const char *arg)
 {
     fprintf(stderr, "drive_sim: error: %s%s%s\n", msg, arg ? ": " : "", arg ? arg : "");
     fprintf(stderr, "usage: drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N] "
-                    "[--node-id N] [--config FILE] [--realtime] [--bitrate B] [--quiet]\n");
+                    "[--node-id N] [--config FILE] [--axis ID:FILE ...] [--realtime] [--bitrate B] [--quiet]\n");
     return 2;
 }
 
@@ -173,6 +203,30 @@ static int parse_args(opts_t *o, int argc, char **argv)
         } else if (strcmp(a, "--config") == 0 && v) {
             o->config = v;
             i++;
+        } else if (strcmp(a, "--axis") == 0 && v) {
+            const char *colon = strchr(v, ':');
+            char idtext[8];
+            int id;
+            if (colon == NULL || colon == v || (size_t)(colon - v) >= sizeof idtext || colon[1] == '\0') {
+                return usage_error("--axis ID:FILE expected", v);
+            }
+            memcpy(idtext, v, (size_t)(colon - v));
+            idtext[colon - v] = '\0';
+            if (!parse_int(idtext, 1, 127, &id)) {
+                return usage_error("--axis: node id must be 1..127", v);
+            }
+            if (o->n_axes >= DS_AXES_MAX) {
+                return usage_error("--axis: at most 8 axes", v);
+            }
+            for (int k = 0; k < o->n_axes; k++) {
+                if (o->axis[k].node_id == id) {
+                    return usage_error("--axis: duplicate node id", v);
+                }
+            }
+            o->axis[o->n_axes].node_id = id;
+            o->axis[o->n_axes].config = colon + 1;
+            o->n_axes++;
+            i++;
         } else if (strcmp(a, "--bitrate") == 0 && v) {
             if (!parse_int(v, CBUS_BITRATE_MIN, CBUS_BITRATE_MAX, &o->bitrate)) {
                 return usage_error("--bitrate must be 10000..1000000 bit/s", v);
@@ -184,10 +238,12 @@ static int parse_args(opts_t *o, int argc, char **argv)
             o->quiet = true;
         } else if (strcmp(a, "--help") == 0 || strcmp(a, "-h") == 0) {
             printf("usage: drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N] "
-                   "[--node-id N] [--config FILE] [--realtime] [--bitrate B] [--quiet]\n"
+                   "[--node-id N] [--config FILE] [--axis ID:FILE ...] [--realtime] [--bitrate B] [--quiet]\n"
                    "  --can      bus (default socketcand:127.0.0.1:29536; --port 0 picks a free port)\n"
                    "  --node-id  CANopen node id 1..127 (default 1)\n"
                    "  --config   plant / controller configuration (configs/plant_*.yaml; default: built-in twomass)\n"
+                   "  --axis     ID:FILE, repeated (up to 8): one node per axis on the one bus, node id\n"
+                   "             and plant configuration each (instead of --node-id / --config)\n"
                    "  --realtime step at the controller rate on absolute deadlines (default: free-run)\n"
                    "  --bitrate  model a classic CAN bus of B bit/s shared by all nodes (socketcand only;\n"
                    "             default: frames pass at once)\n");
@@ -204,16 +260,22 @@ static int parse_args(opts_t *o, int argc, char **argv)
 
 /* ---- CANopen hooks ---- */
 
+static void node_rx(app_t *app, const scd_frame_t *f, int except_axis);
+
 static bool tx_hook(void *ctx, const co_frame_t *f)
 {
-    app_t *app = ctx;
+    axis_t *ax = ctx;
+    app_t *app = ax->app;
     scd_frame_t sf = {f->id, false, f->len, {0}};
     memcpy(sf.data, f->data, f->len);
+    if (app->bus) {
+        return cbus_submit(app->bus, ax->index, &sf, app->tx_time_ns); /* full queue: not sent (counted) */
+    }
+    /* the other nodes of this process see it at once (SocketCAN does not loop a socket's
+     * own frames back to it) */
+    node_rx(app, &sf, ax->index);
     if (app->o.socketcan) {
         return sockcan_write(app->can_fd, &sf);
-    }
-    if (app->bus) {
-        return cbus_submit(app->bus, 0, &sf, app->tx_time_ns); /* full queue: not sent (counted) */
     }
     scd_broadcast(app->scd, &sf, -1, 0u);
     return true;
@@ -221,28 +283,44 @@ static bool tx_hook(void *ctx, const co_frame_t *f)
 
 static bool sim_hook(void *ctx, drv_param_id_t id, float *value)
 {
-    app_t *app = ctx;
-    return sim_get_f32(&app->sim, id, value) == DRV_OK;
+    axis_t *ax = ctx;
+    return sim_get_f32(&ax->sim, id, value) == DRV_OK;
 }
 
 static void reset_hook(void *ctx)
 {
     /* NMT reset node: the drive and the plant start again from the configuration */
-    app_t *app = ctx;
+    axis_t *ax = ctx;
     char err[256];
-    if (sim_init(&app->sim, &app->cfg, app->rec_buf, app->table_buf, err, sizeof err) != 0) {
-        fprintf(stderr, "drive_sim: reset node: %s\n", err);
+    if (sim_init(&ax->sim, &ax->cfg, ax->rec_buf, ax->table_buf, err, sizeof err) != 0) {
+        fprintf(stderr, "drive_sim: reset node %d: %s\n", ax->node_id, err);
     }
 }
 
-static void node_rx(app_t *app, const scd_frame_t *f)
+/* A frame on the bus reaches every node of this process but its sender (except_axis, -1:
+ * a frame from outside). */
+static void node_rx(app_t *app, const scd_frame_t *f, int except_axis)
 {
     if (f->ext) {
         return; /* CANopen uses 11-bit identifiers */
     }
     co_frame_t cf = {(uint16_t)f->id, f->len, {0}};
     memcpy(cf.data, f->data, f->len);
-    co_node_rx(&app->node, &cf);
+    for (int i = 0; i < app->n_axes; i++) {
+        if (i != except_axis && app->ax[i].ready) {
+            co_node_rx(&app->ax[i].node, &cf);
+        }
+    }
+}
+
+static bool any_run_active(const app_t *app)
+{
+    for (int i = 0; i < app->n_axes; i++) {
+        if (co_node_run_active(&app->ax[i].node)) {
+            return true;
+        }
+    }
+    return false;
 }
 
 /* A frame from socketcand client `client` (or, with client -1, from SocketCAN). */
@@ -250,15 +328,15 @@ static void rx_hook(void *ctx, int client, const scd_frame_t *f)
 {
     app_t *app = ctx;
     if (app->bus && client >= 0) {
-        if (!cbus_submit(app->bus, 1 + client, f, app->tx_time_ns)) {
+        if (!cbus_submit(app->bus, CBUS_NODES + client, f, app->tx_time_ns)) {
             return; /* (not reached: reading pauses well before the queue is full) */
         }
-        if (cbus_queued(app->bus, 1 + client) >= CBUS_PAUSE_AT) {
+        if (cbus_queued(app->bus, CBUS_NODES + client) >= CBUS_PAUSE_AT) {
             app->scd->client[client].rx_paused = true; /* TCP flow control holds it back */
         }
         return;
     }
-    node_rx(app, f);
+    node_rx(app, f, -1);
     if (client >= 0) {
         scd_broadcast(app->scd, f, client, 0u); /* the other clients: one bus */
     }
@@ -269,12 +347,10 @@ static void deliver_hook(void *ctx, int src, const scd_frame_t *f, uint64_t end_
 {
     app_t *app = ctx;
     uint64_t saved = app->tx_time_ns;
-    app->tx_time_ns = end_ns; /* the node answers as soon as the frame is in */
-    if (src != 0) {
-        node_rx(app, f);
-    }
+    app->tx_time_ns = end_ns; /* the nodes answer as soon as the frame is in */
+    node_rx(app, f, src < CBUS_NODES ? src : -1);
     uint64_t stamp_us = (uint64_t)((int64_t)(end_ns / 1000u) + app->realtime_offset_us);
-    scd_broadcast(app->scd, f, src - 1, stamp_us);
+    scd_broadcast(app->scd, f, src < CBUS_NODES ? -1 : src - CBUS_NODES, stamp_us);
     app->tx_time_ns = saved;
 }
 
@@ -298,10 +374,10 @@ static int service_bus(app_t *app, uint64_t timeout_ns)
         if (app->bus) {
             for (int i = 0; i < SCD_MAX_CLIENTS; i++) {
                 scd_client_t *c = &app->scd->client[i];
-                if (c->fd < 0 && cbus_queued(app->bus, 1 + i) > 0u) {
-                    cbus_flush_source(app->bus, 1 + i); /* its client went away */
+                if (c->fd < 0 && cbus_queued(app->bus, CBUS_NODES + i) > 0u) {
+                    cbus_flush_source(app->bus, CBUS_NODES + i); /* its client went away */
                 }
-                if (c->rx_paused && cbus_queued(app->bus, 1 + i) < CBUS_PAUSE_AT / 2u) {
+                if (c->rx_paused && cbus_queued(app->bus, CBUS_NODES + i) < CBUS_PAUSE_AT / 2u) {
                     c->rx_paused = false;
                 }
             }
@@ -336,9 +412,11 @@ static int service_bus(app_t *app, uint64_t timeout_ns)
     if (app->bus) {
         cbus_advance(app->bus, now_ns, deliver_hook, app);
     }
-    co_node_process(&app->node, (uint32_t)app->now_us);
+    for (int i = 0; i < app->n_axes; i++) {
+        co_node_process(&app->ax[i].node, (uint32_t)app->now_us);
+    }
     if (app->bus) {
-        cbus_advance(app->bus, now_ns, deliver_hook, app); /* (the node's timers may have sent) */
+        cbus_advance(app->bus, now_ns, deliver_hook, app); /* (the nodes' timers may have sent) */
     }
     if (!app->o.socketcan) {
         scd_expire(app->scd, app->now_us);
@@ -350,16 +428,21 @@ static int service_bus(app_t *app, uint64_t timeout_ns)
 static void loop_free_run(app_t *app)
 {
     while (!g_stop) {
-        if (co_node_run_active(&app->node)) {
-            /* as fast as the CPU allows; service the bus every ~1 ms */
+        if (any_run_active(app)) {
+            /* as fast as the CPU allows (each axis while its own run is active); service
+             * the bus every ~1 ms */
             uint64_t until = app->now_us + 1000u;
             do {
-                for (int k = 0; k < 64 && co_node_run_active(&app->node); k++) {
-                    sim_step(&app->sim);
-                    drv_background(sim_drv(&app->sim)); /* statistics sums, between steps */
-                    app->steps++;
+                for (int i = 0; i < app->n_axes; i++) {
+                    axis_t *ax = &app->ax[i];
+                    for (int k = 0; k < 64 && co_node_run_active(&ax->node); k++) {
+                        sim_step(&ax->sim);
+                        drv_background(sim_drv(&ax->sim)); /* statistics sums, between steps */
+                        ax->steps++;
+                        app->steps++;
+                    }
                 }
-            } while (mono_us() < until && co_node_run_active(&app->node));
+            } while (mono_us() < until && any_run_active(app));
             service_bus(app, 0u);
             continue;
         }
@@ -370,7 +453,7 @@ static void loop_free_run(app_t *app)
 
 static void loop_realtime(app_t *app)
 {
-    const uint64_t period_ns = (uint64_t)(1e9 / app->cfg.fs_hz + 0.5);
+    const uint64_t period_ns = (uint64_t)(1e9 / app->ax[0].cfg.fs_hz + 0.5);
     struct timespec next;
     clock_gettime(CLOCK_MONOTONIC, &next);
     while (!g_stop) {
@@ -388,9 +471,12 @@ static void loop_realtime(app_t *app)
                 next = now; /* far behind: re-base instead of catching up */
             }
         }
-        sim_step(&app->sim);
-        app->steps++;
-        drv_background(sim_drv(&app->sim)); /* statistics sums, before the bus work */
+        for (int i = 0; i < app->n_axes; i++) {
+            sim_step(&app->ax[i].sim);
+            app->ax[i].steps++;
+            app->steps++;
+            drv_background(sim_drv(&app->ax[i].sim)); /* statistics sums, before the bus work */
+        }
         /* bus work in bounded passes while the next deadline is far enough away (at least
          * one pass per period, so the bus is never starved) */
         uint64_t deadline_ns = (uint64_t)next.tv_sec * 1000000000u + (uint64_t)next.tv_nsec + period_ns;
@@ -414,20 +500,39 @@ int main(int argc, char **argv)
     if (parse_args(&app.o, argc, argv) != 0) {
         return 2;
     }
-    plant_config_defaults(&app.cfg);
-    if (app.o.config && plant_config_load(app.o.config, &app.cfg, err, sizeof err) != 0) {
-        fprintf(stderr, "drive_sim: error: %s\n", err);
-        return 2;
+    if (app.o.n_axes == 0) {
+        app.o.axis[0].node_id = app.o.node_id;
+        app.o.axis[0].config = app.o.config;
+        app.o.n_axes = 1;
     }
-    app.rec_buf = calloc(app.cfg.rec_capacity ? app.cfg.rec_capacity : 1u, sizeof(float));
-    app.table_buf = calloc(app.cfg.table_capacity ? app.cfg.table_capacity : 1u, sizeof(float));
-    if (app.rec_buf == NULL || app.table_buf == NULL) {
-        fprintf(stderr, "drive_sim: error: out of memory (recorder of %u floats)\n", (unsigned)app.cfg.rec_capacity);
-        return 2;
-    }
-    if (sim_init(&app.sim, &app.cfg, app.rec_buf, app.table_buf, err, sizeof err) != 0) {
-        fprintf(stderr, "drive_sim: error: %s: %s\n", app.o.config ? app.o.config : "built-in config", err);
-        return 2;
+    app.n_axes = app.o.n_axes;
+    for (int i = 0; i < app.n_axes; i++) {
+        axis_t *ax = &app.ax[i];
+        ax->app = &app;
+        ax->index = i;
+        ax->node_id = app.o.axis[i].node_id;
+        ax->config = app.o.axis[i].config;
+        plant_config_defaults(&ax->cfg);
+        if (ax->config && plant_config_load(ax->config, &ax->cfg, err, sizeof err) != 0) {
+            fprintf(stderr, "drive_sim: error: %s\n", err);
+            return 2;
+        }
+        ax->rec_buf = calloc(ax->cfg.rec_capacity ? ax->cfg.rec_capacity : 1u, sizeof(float));
+        ax->table_buf = calloc(ax->cfg.table_capacity ? ax->cfg.table_capacity : 1u, sizeof(float));
+        if (ax->rec_buf == NULL || ax->table_buf == NULL) {
+            fprintf(stderr, "drive_sim: error: out of memory (recorder of %u floats)\n", (unsigned)ax->cfg.rec_capacity);
+            return 2;
+        }
+        if (sim_init(&ax->sim, &ax->cfg, ax->rec_buf, ax->table_buf, err, sizeof err) != 0) {
+            fprintf(stderr, "drive_sim: error: %s: %s\n", ax->config ? ax->config : "built-in config", err);
+            return 2;
+        }
+        if (app.o.realtime && ax->cfg.fs_hz != app.ax[0].cfg.fs_hz) {
+            fprintf(stderr, "drive_sim: error: --realtime steps every axis each period: node %d runs at %g Hz, "
+                            "node %d at %g Hz (drive.fs_hz must be equal)\n",
+                    ax->node_id, ax->cfg.fs_hz, app.ax[0].node_id, app.ax[0].cfg.fs_hz);
+            return 2;
+        }
     }
     int bound = app.o.port;
     if (app.o.socketcan) {
@@ -465,24 +570,32 @@ int main(int argc, char **argv)
     sigaction(SIGTERM, &sa, NULL);
     signal(SIGPIPE, SIG_IGN);
 
-    co_cfg_t cc;
-    memset(&cc, 0, sizeof cc);
-    cc.node_id = (uint8_t)app.o.node_id;
-    cc.tx = tx_hook;
-    cc.tx_ctx = &app;
-    cc.sim_get = sim_hook;
-    cc.sim_ctx = &app;
-    cc.reset_app = reset_hook;
-    cc.app_ctx = &app;
-    cc.table_capacity_bytes = app.cfg.table_capacity * 4u;
     app.now_us = mono_us();
     app.tx_time_ns = app.now_us * 1000u;
-    co_node_init(&app.node, &cc, sim_drv(&app.sim), (uint32_t)app.now_us);
+    char nodes[DS_AXES_MAX * 4 + 8];
+    size_t used = 0;
+    for (int i = 0; i < app.n_axes; i++) {
+        axis_t *ax = &app.ax[i];
+        co_cfg_t cc;
+        memset(&cc, 0, sizeof cc);
+        cc.node_id = (uint8_t)ax->node_id;
+        cc.tx = tx_hook;
+        cc.tx_ctx = ax;
+        cc.sim_get = sim_hook;
+        cc.sim_ctx = ax;
+        cc.reset_app = reset_hook;
+        cc.app_ctx = ax;
+        cc.table_capacity_bytes = ax->cfg.table_capacity * 4u;
+        co_node_init(&ax->node, &cc, sim_drv(&ax->sim), (uint32_t)app.now_us);
+        ax->ready = true;
+        used += (size_t)snprintf(nodes + used, sizeof nodes - used, "%s%d", i ? "," : "", ax->node_id);
+    }
+    const char *noun = app.n_axes > 1 ? "nodes" : "node";
 
     if (app.o.socketcan) {
-        printf("drive_sim: listening on socketcan %s, node %d\n", app.o.ifname, app.o.node_id);
+        printf("drive_sim: listening on socketcan %s, %s %s\n", app.o.ifname, noun, nodes);
     } else {
-        printf("drive_sim: listening on socketcand %s:%d, node %d", app.o.host, bound, app.o.node_id);
+        printf("drive_sim: listening on socketcand %s:%d, %s %s", app.o.host, bound, noun, nodes);
         if (app.bus) {
             printf(", CAN bus model %d bit/s", app.o.bitrate);
         }
@@ -497,11 +610,16 @@ int main(int argc, char **argv)
     }
 
     if (!app.o.quiet) {
+        unsigned rx_frames = 0u, tx_frames = 0u, tx_dropped = 0u;
+        for (int i = 0; i < app.n_axes; i++) {
+            rx_frames += (unsigned)app.ax[i].node.rx_frames;
+            tx_frames += (unsigned)app.ax[i].node.tx_frames;
+            tx_dropped += (unsigned)app.ax[i].node.tx_dropped;
+        }
         fprintf(stderr,
                 "drive_sim: stopped: %llu steps, %llu overruns, %u frames received, %u sent, %u not sent, %llu bus passes, "
                 "%llu periods with bus work past the next deadline",
-                (unsigned long long)app.steps, (unsigned long long)app.overruns, (unsigned)app.node.rx_frames,
-                (unsigned)app.node.tx_frames, (unsigned)app.node.tx_dropped, (unsigned long long)app.bus_passes,
+                (unsigned long long)app.steps, (unsigned long long)app.overruns, rx_frames, tx_frames, tx_dropped, (unsigned long long)app.bus_passes,
                 (unsigned long long)app.bus_late);
         if (app.scd) {
             fprintf(stderr, ", socketcand: %llu frames dropped at full client buffers, %llu bad commands, %llu refused connections"
