@@ -13,12 +13,19 @@ MCU_DIR    := port/mcu
 # Deployable flags as `make cross`; -ffp-contract=off is spelled out (it is the ISO C mode's
 # default) because the determinism check compares the samples with drive_sim bit for bit.
 MCU_CPU    := -mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard -mthumb
-# LSTAT_LINES_MAX: the 128 KiB RAM holds the PIL recorder and table; the line statistics
-# (core/lstat.h, 68 bytes per line: 16 lines leave 108 bytes of the RAM) get 16 lines here
-# (0x2040:9 tells the host; drive_sim holds 1024). In MCU_BASE:
-# every object that sees drv_t (core, canopen, the plant's sim_t) must agree on its layout.
+# Port-level capacities (the 128 KiB RAM holds the PIL recorder and table; drive_sim is
+# sized for the host and holds the drive's maxima):
+#   LSTAT_LINES_MAX      the line statistics (core/lstat.h, 68 bytes per line) get 16 lines
+#                        here (0x2040:9 tells the host; drive_sim holds 1024)
+#   SIM_TABLE_STAGE_MAX  the table download staging buffer in sim_t (plant/sim.h) holds
+#                        MCU_TABLE_MAX floats, not drive_sim's 8192 (32 KiB): the PIL
+#                        configuration's drive.table_capacity must be at most this (cfggen
+#                        refuses more; 0x2003:2 tells the host the table capacity)
+# In MCU_BASE: every object that sees drv_t / sim_t (core, canopen, the plant's sim_t)
+# must agree on their layout.
+MCU_TABLE_MAX := 4096
 MCU_BASE   := $(CSTD) $(WARN) -O2 -g $(MCU_CPU) -ffp-contract=off -ffunction-sections -fdata-sections \
-              -DLSTAT_LINES_MAX=16u
+              -DLSTAT_LINES_MAX=16u -DSIM_TABLE_STAGE_MAX=$(MCU_TABLE_MAX)u
 MCU_DEPLOY := $(MCU_BASE) -Wdouble-promotion -ffreestanding -fsingle-precision-constant -fno-math-errno
 # The plant simulation is double precision (software floating point on the M4F) and must
 # not take -fsingle-precision-constant; its error messages go through mcu_snprintf.
@@ -34,7 +41,7 @@ MCU_CO_OBJ    := $(CO_SRC:canopen/%.c=$(MCU)/canopen/%.o) $(MCU)/canopen/od_tabl
 MCU_PLANT_OBJ := $(MCU)/plant/plant.o $(MCU)/plant/sim.o $(MCU)/plant/pil_config.o
 MCU_PORT_SRC  := startup.c uart.c slcan.c mcu_libc.c
 MCU_PORT_OBJ  := $(MCU_PORT_SRC:%.c=$(MCU)/port/%.o)
-MCU_HDRS      := $(wildcard core/*.h plant/*.h canopen/*.h $(MCU_DIR)/*.h) $(GEN)/od_params.h $(GEN)/od_table.h
+MCU_HDRS      := $(wildcard core/*.h plant/*.h canopen/*.h $(MCU_DIR)/*.h) $(GEN)/od_params.h $(GEN)/od_table.h pil.mk
 
 pil-check-tools:
 	@command -v $(ARM_CC) >/dev/null 2>&1 || { echo "make pil: $(ARM_CC) not found (install: sudo make system-deps, packages gcc-arm-none-eabi libnewlib-arm-none-eabi)" >&2; exit 1; }
@@ -61,9 +68,9 @@ $(MCU)/port/main.o: $(MCU_DIR)/main.c $(MCU_HDRS) $(MCU)/pil_config.h
 # the plant configuration: PIL_CONFIG's sim.plant + sim.overrides -> plant.yaml (also what
 # drive_sim reads in the determinism check) -> pil_config.[ch] (bit-exact doubles; the .c
 # is compiled with the plant's flags, never with -fsingle-precision-constant)
-$(MCU)/cfggen: $(MCU_DIR)/cfggen.c $(LIBFWSIM)
+$(MCU)/cfggen: $(MCU_DIR)/cfggen.c $(LIBFWSIM) pil.mk
 	@mkdir -p $(@D)
-	$(CC) $(CSTD) $(WARN) $(OPT) -D_DEFAULT_SOURCE $(FW_INC) $< $(LIBFWSIM) -lm -o $@
+	$(CC) $(CSTD) $(WARN) $(OPT) -D_DEFAULT_SOURCE -DCFGGEN_TABLE_MAX=$(MCU_TABLE_MAX)u $(FW_INC) $< $(LIBFWSIM) -lm -o $@
 $(MCU)/plant.yaml: $(PIL_CONFIG) $(MCU_DIR)/pil_plant.py FORCE_PIL_CONFIG
 	@mkdir -p $(@D)
 	@$(PYTHON) $(MCU_DIR)/pil_plant.py $(PIL_CONFIG) $@.new > $(MCU)/node_id.new

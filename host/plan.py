@@ -180,8 +180,9 @@ class DriveLimits:
     lines_capacity : int or None
         Lines the line statistics hold (0x2040:9).
     table_capacity : int or None
-        Longest excitation period N in samples: the high limit of 0x2001:5 in the drive's
-        EDS (the drive has no object of its own for its table capacity).
+        Longest excitation period N in samples: the drive's table capacity 0x2004 (a port
+        short of RAM holds fewer than the EDS allows: the M4 build 4096), else (a drive
+        without 0x2004) the high limit of 0x2001:5 in the drive's EDS.
     amplitude_high : float or None
         High limit of the excitation amplitude object 0x2001:3.
     drive_u_max_v : float or None
@@ -236,13 +237,15 @@ def read_drive_limits(drive, cfg):
     drive_u_max = get("u_max")
     cap = get("rec_capacity")
     lines = get("stat_lines_cap")
+    table = get("table_cap")
     describe = getattr(getattr(drive, "opts", None), "describe", None)
     where = f"node {cfg['drive']['node_id']} on {describe()}" if describe else "the drive"
     return DriveLimits(fs_hz=get("fs"), u_max_v=float(u_max) if u_max is not None else drive_u_max,
                        drive_u_max_v=drive_u_max,
                        rec_capacity=None if cap is None else int(cap),
                        lines_capacity=None if lines is None else int(lines),
-                       table_capacity=int(_od_high(drive, "EXC_PERIOD")),
+                       table_capacity=int(min(table, _od_high(drive, "EXC_PERIOD")) if table is not None
+                                          else _od_high(drive, "EXC_PERIOD")),
                        amplitude_high=_od_high(drive, "EXC_AMPLITUDE"),
                        source=f"read from {where}")
 
@@ -299,7 +302,7 @@ class CheckedPlan:
         out.append(f"  u_max = {val(lim.u_max_v, 'V')}")
         out.append(f"  recorder capacity = {val(lim.rec_capacity, 'float values')}")
         out.append(f"  line statistics capacity = {val(lim.lines_capacity, 'lines')}")
-        out.append(f"  period N <= {val(lim.table_capacity, 'samples')} (EDS), "
+        out.append(f"  period N <= {val(lim.table_capacity, 'samples')} (table capacity 0x2004, else the EDS), "
                    f"excitation amplitude <= {val(lim.amplitude_high, '')}".rstrip())
         for st in [{"step": "drive", "text": "controller parameters written with every run"}] + self.steps:
             if st["step"] == "drive" and not any(c.step == "drive" for c in self.checks):

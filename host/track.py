@@ -395,6 +395,7 @@ def _progress_pdo_off(client):
 def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counter, k_fc, k_v, k_a):
     tc = cfg["track"]
     rows = []
+    recent_k_fc = []  # the K_fc estimates so far: their scatter is K_fc sigma's statistical part
     checks = []
     stop = None
     t_s = 0.0
@@ -423,7 +424,9 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
             stats = drive.run_task()
             t_s += drive.run_s
         try:
-            est = estimate_task(stats, k_v_hold=tracker.k_v, hold_k_v=not tc["track_k_v"])
+            est = estimate_task(stats, k_v_hold=tracker.k_v, hold_k_v=not tc["track_k_v"],
+                                recent_k_fc=recent_k_fc)
+            recent_k_fc.append(est.k_fc)
         except NotIdentifiable as exc:
             est = exc
         decision = tracker.after_task(est)
@@ -450,6 +453,8 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
                "offset": _f(est.offset) if ok else None,
                "rms_error": _f(est.rms_error) if ok else None,
                "action": decision.action, "bus_frames": f1 - f0, "bus_bits": b1 - b0}
+        if ok and est.notes:
+            row["notes"] = list(est.notes)
         if decision.cause:
             row["cause"] = decision.cause
         if fc_true is not None:

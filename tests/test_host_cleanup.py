@@ -123,7 +123,9 @@ class Observer:
             return self.status and self.status[-1][1] & STATUS_POWER_MASK != OPERATION_ENABLED
         wait_until(off, timeout_s, "the drive leaving OPERATION ENABLED after the host was lost")
         log = list(self.status)
-        last_on = max(i for i, (_, sw) in enumerate(log) if sw & STATUS_POWER_MASK == OPERATION_ENABLED)
+        on = [i for i, (_, sw) in enumerate(log) if sw & STATUS_POWER_MASK == OPERATION_ENABLED]
+        assert on, "the observer never saw OPERATION ENABLED (wait for it before the host is lost)"
+        last_on = on[-1]
         t_off = log[last_on + 1][0]
         assert self.host_hb, "no heartbeat of the host seen"
         return t_off - max(t for t in self.host_hb if t <= t_off)
@@ -409,6 +411,10 @@ def test_host_stall_longer_than_the_consumer_time_is_survived(tmp_path):
         with client:
             client.enable()
             wait_until(lambda: len(obs.host_hb) >= 2, 10.0, "the host's heartbeat")
+            # the observer must have seen the drive enabled before the stall, or it cannot
+            # tell the drive's reaction from a TPDO it missed (flaky under load otherwise)
+            wait_until(lambda: obs.status and obs.status[-1][1] & STATUS_POWER_MASK == OPERATION_ENABLED,
+                       10.0, "the statusword TPDO showing OPERATION ENABLED")
             client._hb_task.stop()  # the stall: no heartbeat from the host
             obs.power_off_after_host_lost()
             assert obs.statusword() & STATUS_POWER_MASK == SWITCH_ON_DISABLED

@@ -66,3 +66,54 @@ def test_plant_configuration_is_compiled_in_bit_for_bit():
     assert fs_hz == float(plant["drive"]["fs_hz"])
     assert (kp, kd, tau_d) == (plant["controller"]["kp"], plant["controller"]["kd"], plant["controller"]["tau_d"])
     assert (j1, j2, k, c, km, coulomb) == tuple(float(plant["plant"][n]) for n in ("j1", "j2", "k", "c", "km", "coulomb"))
+
+
+def _cfggen(tmp_path, text):
+    """Run port/mcu/cfggen (built by make pil) on a plant file with ``text``; (code, stderr, .c text)."""
+    build_pil()
+    plant = tmp_path / "plant.yaml"
+    plant.write_text(text)
+    out = tmp_path / "out"
+    out.mkdir()
+    r = subprocess.run([os.path.join(MCU_BUILD, "cfggen"), str(plant), "3", str(out)], capture_output=True, text=True)
+    c_file = out / "pil_config.c"
+    return r.returncode, r.stderr, c_file.read_text() if c_file.exists() else None
+
+
+def _c_double(c_text, field):
+    """The hexadecimal floating-point initializer ``.field = 0x...`` of the generated C."""
+    m = re.search(r"\." + field + r" = (-?0x[0-9a-fp.+-]+)", c_text)
+    assert m, f".{field} missing in:\n{c_text}"
+    return float.fromhex(m.group(1))
+
+
+@needs_arm
+def test_cfggen_writes_position_friction_and_drift_bit_for_bit(tmp_path):
+    """The MCU build's plant is drive_sim's: coulomb_position and the friction drift
+    (drift: section, applied by sim_step on the M4 too) go in bit for bit, unequal values so
+    a swapped field fails."""
+    code, err, c_text = _cfggen(tmp_path, "drive:\n  fs_hz: 2560\n  rec_capacity: 1000\n  table_capacity: 4096\n"
+                                          "plant:\n  coulomb_position: 0.123\n  coulomb_asymmetry: -0.05\n"
+                                          "  static: 0.02\n"
+                                          "drift:\n  coulomb_step: 0.25\n  coulomb_step_time_s: 3.5\n"
+                                          "  coulomb_exp: 0.4\n  coulomb_exp_tau_s: 7.25\n"
+                                          "  viscous_ramp: -0.3\n  viscous_ramp_start_s: 1.5\n"
+                                          "  viscous_ramp_end_s: 9.75\n")
+    assert code == 0, err
+    assert _c_double(c_text, "coulomb_pos") == 0.123 and _c_double(c_text, "coulomb_asym") == -0.05
+    dc = c_text[c_text.index(".drift_coulomb"):c_text.index(".drift_viscous")]
+    dv = c_text[c_text.index(".drift_viscous"):]
+    assert (_c_double(dc, "step"), _c_double(dc, "step_time_s"), _c_double(dc, "exp"), _c_double(dc, "exp_tau_s"),
+            _c_double(dc, "ramp")) == (0.25, 3.5, 0.4, 7.25, 0.0)
+    assert (_c_double(dv, "ramp"), _c_double(dv, "ramp_start_s"), _c_double(dv, "ramp_end_s"),
+            _c_double(dv, "step"), _c_double(dv, "exp_tau_s")) == (-0.3, 1.5, 9.75, 0.0, 60.0)
+
+
+@needs_arm
+def test_cfggen_refuses_a_table_beyond_the_mcu_staging_capacity(tmp_path):
+    """drive_sim holds 8192 table samples; the M4 build's staging buffer 4096 (pil.mk
+    MCU_TABLE_MAX): a configuration asking for more is refused naming the key, nothing written."""
+    code, err, c_text = _cfggen(tmp_path, "drive:\n  fs_hz: 2560\n  rec_capacity: 1000\n  table_capacity: 4097\n")
+    assert code == 2 and c_text is None
+    assert err.startswith("cfggen: error: ") and "drive.table_capacity = 4097" in err and "at most 4096" in err
+    assert len(err.strip().splitlines()) == 1

@@ -26,8 +26,10 @@ import yaml
 
 from fftune.analysis.stats import HarmonicStats
 from fftune.host.cli import main
+from fftune.host.config import load_config
 from fftune.host.drive import BusOptions, DriveClient
 from fftune.host.odmap import DEFAULT_EDS
+from fftune.host.plan import read_drive_limits
 from fftune.host.sim import start_drive_sim
 from mcu_helpers import PIL_CONFIG, PIL_PLANT, build_pil, pil_missing_reason, pil_run_module, symbol_address
 
@@ -111,8 +113,12 @@ MULTISINE = {"exc_kind": 3, "exc_period": 512, "ms_k_min": 1, "ms_k_max": 20, "m
              "exc_inject": 1, "kfc": 0.0}
 
 
-def _session(opts, requests):
+def _session(opts, requests, limits=None):
+    """The runs' signals; with ``limits`` (a list) the preflight's :class:`DriveLimits` read
+    from the drive are appended to it."""
     with DriveClient(opts, heartbeat_ms=500, progress=False) as c:
+        if limits is not None:
+            limits.append(read_drive_limits(c, load_config(PIL_CONFIG)))
         c.enable()
         return [c.run(r).signals for r in requests]
 
@@ -124,9 +130,15 @@ SINE = {"exc_kind": 1, "exc_period": 1024, "exc_sine_cycles": 1, "exc_amplitude"
 def test_sine_and_multisine_runs_record_the_same_samples(pil):
     """A sine run (the tune's kind) records the same bits on the M4 and on drive_sim; a
     multisine run agrees within the libm tolerance."""
+    limits = []
     with pil.start() as target:
         m4, sine4 = _session(BusOptions(interface="slcan", channel=target.channel, eds=DEFAULT_EDS),
-                             [MULTISINE, SINE])
+                             [MULTISINE, SINE], limits)
+    # the M4's table holds 4096 samples (pil.mk MCU_TABLE_MAX), half the EDS's period limit:
+    # the preflight reads it from 0x2004, and its recorder capacity from 0x2020:2
+    plant = yaml.safe_load(open(PIL_PLANT))
+    assert limits[0].table_capacity == plant["drive"]["table_capacity"] == 4096
+    assert limits[0].rec_capacity == plant["drive"]["rec_capacity"]
     with start_drive_sim(PIL_PLANT) as sim:
         x86, sine86 = _session(BusOptions(host=sim.host, port=sim.port, eds=DEFAULT_EDS), [MULTISINE, SINE])
     for name, values in sine4.items():

@@ -1,12 +1,15 @@
 """Friction tracking from the repeated task (issue 26): the drive's task generator and
 statistics (through ctypes), the plant's drift, the estimator and the tracking policy."""
+import math
 import struct
 
 import numpy as np
 import pytest
 
 from fftune.analysis.errors import FftuneError
-from fftune.analysis.track import (DATA_NAMES, DESIGN_NAMES, NotIdentifiable, TaskEstimate,
+from fftune.analysis.track import (DATA_NAMES, DESIGN_NAMES, NOTE_KV_SPLIT, NOTE_VISCOUS_FOLDED, SCATTER_WINDOW,
+                                   SYS_FLOOR_KV_REL, SYS_FLOOR_REL,
+                                   NotIdentifiable, TaskEstimate, scatter_sigma,
                                    TaskStats, Tracker, TrackSettings, estimate_task,
                                    parse_task_stats)
 
@@ -330,6 +333,27 @@ def test_tracking_step_within_two_percent_after_three_tasks(tmp_path):
     assert rows[step_task]["k_fc_true"] == pytest.approx(1.3 * rows[0]["k_fc_true"], rel=1e-6)
 
 
+def test_tracking_sigma_covers_the_truth_and_is_the_size_of_the_error(tmp_path):
+    # settled tasks (from task 5) of 5 noisy seeds and the noise-free plant: the truth within
+    # 2 sigma; sigma not ~30x the error (the block jackknife was 4 mV for errors of 0.2 mV)
+    # nor below the seed-to-seed spread; the statistical part is the task-to-task scatter
+    finals, stats_ = [], []
+    for seed in (None, 1, 2, 3, 4, 5):
+        plant = TWOMASS if seed is None else plant_file(
+            str(tmp_path), name=f"n{seed}.yaml", sensor={"noise_std": 2.0e-3, "seed": seed})
+        rows, _ = run_tracking(plant, 12, k_fc=0.1157, k_v=0.002, k_a=0.0)
+        for r in rows[5:]:
+            assert abs(r["k_fc_estimate"] - r["k_fc_true"]) <= 2 * r["k_fc_sigma"], (seed, r)
+        if seed is not None:
+            finals.append(rows[-1]["k_fc_estimate"] - rows[-1]["k_fc_true"])
+            stats_.append(rows[-1]["k_fc_sigma_stat"])
+    rms = math.sqrt(np.mean(np.square(finals)))
+    sig = rows[-1]["k_fc_sigma"]
+    assert 1.0 < sig / rms < 3.5
+    spread = np.std(finals, ddof=1)
+    assert 0.3 < np.mean(stats_) / spread < 3.0
+
+
 def test_tracking_forward_only_task_stops_named():
     rows, decision = run_tracking(TWOMASS, 3, mode=2)
     assert decision.action == "stop" and decision.cause == "no_reversal"
@@ -383,3 +407,58 @@ def test_task_latches_each_repetition_while_running():
         assert np.allclose(run.design, 3 * last.design, rtol=1e-5, atol=1e-5)
         # the data of two repetitions: close (the same task, the periodic state)
         assert np.allclose(last.data[:, :4], first.data[:, :4], rtol=0.05, atol=0.5)
+
+
+def _analytic_fc_se(st, noise):
+    """sigma sqrt(w^T (Phi^T Phi)^-1 w) of K_fc = (F_+ + F_-) / 2, all four parameters fitted."""
+    from fftune.analysis.track import normal_matrix
+    A = sum(normal_matrix(d) for d in st.design)
+    w = np.array([0.5, 0.5, 0.0, 0.0])
+    return noise * math.sqrt(w @ np.linalg.solve(A, w))
+
+
+def test_sigma_is_the_analytic_standard_error_on_white_noise():
+    # unequal noise levels and a floor-free view (k_fc_sigma_stat): the sandwich equals the
+    # analytic standard error; a missing square root (1e-6 scale), a dof of the blocks
+    # instead of the samples, or dropping the residual variance would all miss by far more
+    for noise, samples in ((0.05, 3000), (0.013, 6000)):
+        ratios = []
+        for seed in range(5):
+            st = _synthetic([0.13, 0.10, 0.003, 0.006], noise=noise, seed=seed, samples=samples)
+            est = estimate_task(st)
+            ratios.append(est.k_fc_sigma_stat / _analytic_fc_se(st, noise))
+        assert 0.8 < np.mean(ratios) < 1.2, (noise, ratios)
+        # the reported sigma adds the systematic floor in quadrature
+        assert est.k_fc_sigma == pytest.approx(math.hypot(est.k_fc_sigma_stat, est.k_fc_sigma_sys))
+
+
+def test_sigma_uses_the_scatter_of_recent_estimates():
+    st = _synthetic([0.12, 0.12, 0.003, 0.006], noise=0.05, seed=3)
+    alone = estimate_task(st)
+    # three earlier estimates are too few: the sandwich stays
+    assert estimate_task(st, recent_k_fc=[0.12, 0.121, 0.119]).k_fc_sigma_stat == alone.k_fc_sigma_stat
+    rng = np.random.default_rng(7)
+    s = 2e-4
+    hist = list(0.12 + s * rng.standard_normal(9))
+    est = estimate_task(st, recent_k_fc=hist)
+    assert est.k_fc_sigma_stat == pytest.approx(scatter_sigma(hist + [est.k_fc]))
+    assert est.k_fc_sigma < alone.k_fc_sigma
+    # on average over windows of SCATTER_WINDOW estimates it is the standard deviation ...
+    wins = [0.12 + s * rng.standard_normal(SCATTER_WINDOW) for _ in range(400)]
+    assert np.mean([scatter_sigma(w) for w in wins]) == pytest.approx(s, rel=0.15)
+    # ... a linear drift does not change it, a single jump (a step of the friction) hardly
+    ramp = np.arange(SCATTER_WINDOW) * 1e-3
+    jump = np.where(np.arange(SCATTER_WINDOW) >= 6, 0.03, 0.0)
+    assert scatter_sigma(wins[0] + ramp) == pytest.approx(scatter_sigma(wins[0]), rel=1e-6)
+    assert np.mean([scatter_sigma(w + jump) for w in wins]) == pytest.approx(s, rel=0.3)
+    assert scatter_sigma([0.1, 0.2, 0.3, 0.4]) is None
+
+
+def test_held_k_v_is_named_in_the_notes():
+    st = _synthetic([0.12, 0.12, 0.003, 0.006])
+    both = estimate_task(st)
+    held = estimate_task(st, k_v_hold=0.003, hold_k_v=True)
+    assert both.notes == (NOTE_KV_SPLIT,) and held.notes == (NOTE_VISCOUS_FOLDED,)
+    # the split bias's wider floor while K_v is estimated; the narrower one with K_v held
+    assert both.k_fc_sigma_sys == pytest.approx(SYS_FLOOR_KV_REL * both.k_fc)
+    assert held.k_fc_sigma_sys == pytest.approx(SYS_FLOOR_REL * held.k_fc)

@@ -34,6 +34,8 @@ def test_demo_track_step_rows_bus_and_check(tmp_path, capsys):
     for key in ("task", "t_s", "k_fc", "k_fc_sigma", "rms_error", "k_fc_true", "k_fc_estimate", "action"):
         assert key in rows[-1]
     assert [r["task"] for r in rows] == list(range(14))
+    # K_v held (the default): every row names the drift the task cannot separate
+    assert all(r["notes"] == ["viscous_drift_folded_into_k_fc"] for r in rows)
     assert rows[1]["t_s"] == pytest.approx(2 * 3072 / 2560.0, rel=1e-5)
     step = next(r["task"] for r in rows if r["t_s"] > 13.0)
     assert step == 8   # (tasks of 1.2 s, the check after task 6 takes 3.2 s)

@@ -74,6 +74,7 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
         n = sim.get("TASK_PERIOD")
         fs = sim.get("FS")
         decision = None
+        recent = []
         for k in range(tasks):
             sim.set("KFC", tr.k_fc)
             sim.set("KV", tr.k_v)
@@ -82,7 +83,9 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
             sim.start()
             sim.run_until_idle()
             try:
-                est = estimate_task(task_stats(sim), k_v_hold=tr.k_v, hold_k_v=not track_k_v)
+                est = estimate_task(task_stats(sim), k_v_hold=tr.k_v, hold_k_v=not track_k_v,
+                                    recent_k_fc=recent)
+                recent.append(est.k_fc)
             except NotIdentifiable as exc:
                 est = exc
             decision = tr.after_task(est)
@@ -90,6 +93,8 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
             rows.append({"task": k, "t_s": (k + 1) * n / fs, "k_fc": applied,
                          "k_fc_estimate": est.k_fc if ok else None,
                          "k_fc_sigma": est.k_fc_sigma if ok else None,
+                         "k_fc_sigma_stat": est.k_fc_sigma_stat if ok else None,
+                         "notes": list(est.notes) if ok else [],
                          "rms_error": est.rms_error if ok else None,
                          "k_fc_true": sim.truth("SIM_FC_VOLT"), "action": decision.action})
             if decision.action == "stop":

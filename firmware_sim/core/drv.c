@@ -230,6 +230,7 @@ drv_status_t drv_get_u32(const drv_t *drv, drv_param_id_t id, uint32_t *value)
     case DRV_P_MS_SEED: v = drv->ms_seed; break;
     case DRV_P_MS_REALIZATION: v = drv->ms_realization; break;
     case DRV_P_TABLE_LENGTH: v = drv->table_length; break;
+    case DRV_P_TABLE_CAP: v = drv->table_capacity; break;
     case DRV_P_RUN_COMMAND: v = 0u; break;
     case DRV_P_RUN_STATE: v = drv->run.state; break;
     case DRV_P_RUN_PROGRESS: v = drv->run.progress; break;

@@ -100,23 +100,6 @@ void plant_config_defaults(plant_config_t *cfg)
     cfg->drift_viscous.exp_tau_s = 60.0;
 }
 
-double plant_drift_factor(const plant_drift_t *d, double t_s)
-{
-    double m = 1.0;
-    if (d->step != 0.0 && t_s >= d->step_time_s) {
-        m *= 1.0 + d->step;
-    }
-    if (d->ramp != 0.0 && t_s > d->ramp_start_s) {
-        double span = d->ramp_end_s - d->ramp_start_s;
-        double x = (span > 0.0 && t_s < d->ramp_end_s) ? (t_s - d->ramp_start_s) / span : 1.0;
-        m *= 1.0 + d->ramp * x;
-    }
-    if (d->exp != 0.0 && t_s > d->exp_start_s) {
-        m *= 1.0 + d->exp * (1.0 - exp(-(t_s - d->exp_start_s) / d->exp_tau_s));
-    }
-    return m;
-}
-
 static char *pc_trim(char *s)
 {
     while (*s == ' ' || *s == '\t') {

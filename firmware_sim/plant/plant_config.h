@@ -29,7 +29,8 @@ typedef struct {
     double exp, exp_start_s, exp_tau_s;
 } plant_drift_t;
 
-/* m(t) of one drift profile (1 when all changes are 0). */
+/* m(t) of one drift profile (1 when all changes are 0). Defined in sim.c (linked by the
+ * processor-in-the-loop build too, which has no plant_config.c). */
 double plant_drift_factor(const plant_drift_t *d, double t_s);
 
 typedef struct {

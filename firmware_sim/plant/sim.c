@@ -15,6 +15,11 @@ int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table
         snprintf(err, errlen, "plant: %s", msg);
         return -1;
     }
+    if (cfg->table_capacity > SIM_TABLE_STAGE_MAX) {
+        snprintf(err, errlen, "drive.table_capacity = %u: this build's table staging buffer holds at most %u "
+                 "samples (SIM_TABLE_STAGE_MAX)", (unsigned)cfg->table_capacity, (unsigned)SIM_TABLE_STAGE_MAX);
+        return -1;
+    }
     sim->storage.rec_buf = rec_buf;
     sim->storage.rec_capacity = cfg->rec_capacity;
     sim->storage.table_buf = table_buf;
@@ -110,6 +115,25 @@ drv_t *sim_drv(sim_t *sim)
 plant_t *sim_plant(sim_t *sim)
 {
     return &sim->plant;
+}
+
+/* m(t) of one drift profile (declared in plant_config.h; defined here, beside its only user,
+ * because the processor-in-the-loop build links sim.c but not the file parser plant_config.c) */
+double plant_drift_factor(const plant_drift_t *d, double t_s)
+{
+    double m = 1.0;
+    if (d->step != 0.0 && t_s >= d->step_time_s) {
+        m *= 1.0 + d->step;
+    }
+    if (d->ramp != 0.0 && t_s > d->ramp_start_s) {
+        double span = d->ramp_end_s - d->ramp_start_s;
+        double x = (span > 0.0 && t_s < d->ramp_end_s) ? (t_s - d->ramp_start_s) / span : 1.0;
+        m *= 1.0 + d->ramp * x;
+    }
+    if (d->exp != 0.0 && t_s > d->exp_start_s) {
+        m *= 1.0 + d->exp * (1.0 - exp(-(t_s - d->exp_start_s) / d->exp_tau_s));
+    }
+    return m;
 }
 
 /* Friction drift (plant_config.h, issue 26): the plant's friction follows the configured

@@ -22,6 +22,15 @@
 #include "plant.h"
 #include "plant_config.h"
 
+/* Capacity of the drive's table download staging buffer in sim_t (floats): the largest
+ * drive.table_capacity sim_init accepts. drive_sim holds the drive's maximum (DRV_TABLE_MAX);
+ * a port short of RAM builds with -DSIM_TABLE_STAGE_MAX=n (the processor-in-the-loop build:
+ * its table capacity, pil.mk MCU_TABLE_MAX; the host reads the drive's table capacity from
+ * 0x2003:2). Every object that sees sim_t must be built with the same value. */
+#ifndef SIM_TABLE_STAGE_MAX
+#define SIM_TABLE_STAGE_MAX DRV_TABLE_MAX
+#endif
+
 typedef struct {
     plant_config_t cfg;
     plant_t plant;
@@ -32,12 +41,12 @@ typedef struct {
     int drift;               /* the config has a friction drift (sim_step applies it) */
     float *owned_rec;        /* buffers allocated by sim_new (NULL with sim_init) */
     float *owned_table;
-    float table_stage[DRV_TABLE_MAX]; /* the drive's download staging buffer */
+    float table_stage[SIM_TABLE_STAGE_MAX]; /* the drive's download staging buffer */
 } sim_t;
 
 /* Caller-provided buffers: rec_buf of cfg->rec_capacity floats, table_buf of
- * cfg->table_capacity floats. Applies the config's controller values through drv_set_f32.
- * 0 on success, -1 with a message naming the key in err. */
+ * cfg->table_capacity floats (at most SIM_TABLE_STAGE_MAX). Applies the config's
+ * controller values through drv_set_f32. 0 on success, -1 with a message naming the key in err. */
 int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table_buf, char *err, size_t errlen);
 /* Heap-allocated sim (host): NULL with the message in err on failure. */
 sim_t *sim_new(const plant_config_t *cfg, char *err, size_t errlen);

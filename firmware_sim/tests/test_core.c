@@ -252,6 +252,16 @@ static void test_drv_param_validation_keeps_old_value(void)
     TH_EQ(drv_init(&d2, &bad), DRV_E_GENERAL);
     bad.table_stage_buf = tab_buf;
     TH_EQ(drv_init(&d2, &bad), DRV_E_GENERAL);
+    /* a port with a smaller table (the PIL build: 4096) reports its capacity (0x2004) and
+     * refuses a longer table download */
+    drv_storage_t small = {rec_buf, REC_CAP, tab_buf, 3000u, FS, stage_buf};
+    TH_EQ(drv_init(&d2, &small), DRV_OK);
+    uint32_t cap = 0u;
+    TH_EQ(drv_get_u32(&d2, DRV_P_TABLE_CAP, &cap), DRV_OK);
+    TH_EQ(cap, 3000u);
+    TH_EQ(drv_get_u32(&d, DRV_P_TABLE_CAP, &cap), DRV_OK);
+    TH_EQ(cap, TAB_CAP);
+    TH_ASSERT(drv_table_write(&d2, 0u, (const uint8_t *)tab_buf, 3001u * 4u) != DRV_OK);
 }
 
 /* ---------------- generator ---------------- */
