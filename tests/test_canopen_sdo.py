@@ -233,7 +233,13 @@ def test_abort_general_error_when_a_new_run_replaces_data_being_uploaded(co_node
     node.nmt.state = "OPERATIONAL"
     enable_402(node)
     configure_sine_run(node, period=256, record=1, signals=0x01)
+    # TPDO2 (run state, progress) is change-driven with an inhibit time (0x1801:3, 100 us
+    # units) and no event timer: it is sent only when its data differ from the last frame.
+    tpdo2 = []                                    # (python's receipt time, data)
+    net.subscribe(0x280 + node.id, lambda can_id, data, ts: tpdo2.append((time.monotonic(), bytes(data))))
+    inhibit_s = node.sdo[0x1801][3].raw * 100e-6
     assert run_to_done(node) == 3
+    assert wait_for(lambda: tpdo2 and tpdo2[-1][1][0] == 3, 10.0)   # (3, 256) sent
     # RPDO4 (disabled by default) mapped to the run command, as a host may configure it
     rpdo = node.rpdo[4]
     rpdo.read()
@@ -243,6 +249,12 @@ def test_abort_general_error_when_a_new_run_replaces_data_being_uploaded(co_node
     rpdo.cob_id = 0x500 + node.id
     rpdo.trans_type = 255
     rpdo.save()
+    # The new run must start after TPDO2's inhibit time has passed since that (3, 256)
+    # frame: a 256-sample run in free-run ends within a millisecond, so inside the inhibit
+    # window its states coalesce to (3, 256) again, equal to the last frame, and no TPDO2
+    # is ever sent (seen in the qemu guest: RPDO 33 ms after the frame, inhibit 50 ms).
+    # Receipt time >= send time, so waiting from receipt is long enough.
+    assert wait_for(lambda: time.monotonic() - tpdo2[-1][0] > inhibit_s, inhibit_s + 1.0)
     node.sdo.send_request(bytes([0x40, 0x21, 0x20, 0, 0, 0, 0, 0]))     # segmented upload
     assert node.sdo.read_response()[0] == 0x41
     node.sdo.send_request(bytes([0x60, 0, 0, 0, 0, 0, 0, 0]))
