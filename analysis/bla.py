@@ -299,7 +299,13 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False
     x = _as_layout("excitation", x)
     n = x.shape[2]
     spectrum = np.fft.rfft(x[:, settle_periods:, :].sum(axis=1), axis=-1)
-    power = np.mean(spectrum.real ** 2 + spectrum.imag ** 2, axis=0)[1:(n + 1) // 2]
+    k_max = (n + 1) // 2
+    if spectrum.dtype == np.complex128:
+        v = spectrum[:, 1:k_max].view(np.float64)
+        s = np.einsum("mk,mk->k", v, v)                  # sum over m of re^2, im^2
+        power = (s[0::2] + s[1::2]) / spectrum.shape[0]
+    else:                                                # (float32 records: as computed)
+        power = np.mean(spectrum.real ** 2 + spectrum.imag ** 2, axis=0)[1:k_max]
     if not np.all(np.isfinite(power)):
         raise InputError("excitation: contains NaN or inf")
     top = power.max(initial=0.0)
@@ -464,6 +470,60 @@ def _spread2(z):
     return mean, dev, _abs2_sum(dev, axis=0)
 
 
+def _in_band(band, bins):
+    """np.isin(band, bins) for a contiguous band (consecutive bins) that holds every one
+    of the sorted ``bins`` (the excited lines of their own band): an index, no search."""
+    if band.size and band[-1] - band[0] == band.size - 1 and np.size(bins) \
+            and bins[0] >= band[0] and bins[-1] <= band[-1]:
+        mask = np.zeros(band.size, dtype=bool)
+        mask[np.asarray(bins) - band[0]] = True
+        return mask
+    return np.isin(band, bins)
+
+
+def _mean0(x):
+    """Mean over axis 0 (np.mean's sum / count without its Python-level overhead)."""
+    return np.add.reduce(x, axis=0) / x.shape[0]
+
+
+def _median(a):
+    """np.median of all values (NaN if any is NaN), without np.median's Python-level
+    overhead (called for many small arrays per estimate)."""
+    a = np.asarray(a, dtype=float).reshape(-1)
+    n = a.size
+    if n == 0:
+        return np.median(a)          # nan and numpy's warning, as before
+    if np.isnan(a).any():
+        return np.float64(np.nan)
+    k = (n - 1) // 2
+    if n % 2:
+        return np.partition(a, k)[k]
+    part = np.partition(a, (k, k + 1))
+    return (part[k] + part[k + 1]) / 2.0
+
+
+def _abs2(z):
+    """|z|^2 elementwise, as re^2 + im^2 (no hypot and square root)."""
+    z = np.asarray(z)
+    return z.real ** 2 + z.imag ** 2 if np.iscomplexobj(z) else z * z
+
+
+def _spread2_inplace(z):
+    """Mean over axis 0 of a (P, K) complex128 array whose rows are contiguous, and the
+    sum over axis 0 of |z - mean|^2; z is overwritten with its deviations z - mean (no
+    temporary of z's size: the sums read its real view)."""
+    if z.strides[-1] != z.itemsize:      # (e.g. a fancy index's column-major result)
+        zc = np.ascontiguousarray(z)
+        mean, ss = _spread2_inplace(zc)
+        z[...] = zc
+        return mean, ss
+    mean = np.add.reduce(z, axis=0) / z.shape[0]
+    z -= mean
+    v = z.view(np.float64)                                # (P, 2K): re, im interleaved
+    s = np.einsum("pk,pk->k", v, v)
+    return mean, s[0::2] + s[1::2]
+
+
 def _transient(Y_exc, settle, n_periods):
     """Compare each period's output at the excited lines with the steady state.
 
@@ -478,7 +538,7 @@ def _transient(Y_exc, settle, n_periods):
     centre = Y_exc[:, n_total - max(n_periods // 2, 1):, :].mean(axis=1, keepdims=True)
     diff = Y_exc - centre
     d = _abs2_sum(diff, axis=2).mean(axis=0) / Y_exc.shape[2]          # (T+P,)
-    ref = float(np.mean(np.abs(centre) ** 2))
+    ref = float(np.mean(_abs2(centre)))
     level = d / ref if ref > 0 else np.full_like(d, np.nan)
     check = TransientCheck(level_db=to_db(level))
     if n_periods >= 3:
@@ -526,7 +586,9 @@ def classify_grid(excited_bins, n_period):
         grids: an odd number of odd bins sums to an odd bin, an even number to an even
         bin); ``note``: why there is no parity claim (None when there is).
     """
-    exc = np.unique(np.asarray(excited_bins, dtype=np.int64))
+    exc = np.asarray(excited_bins, dtype=np.int64).reshape(-1)
+    if exc.size > 1 and not np.all(exc[1:] > exc[:-1]):     # (sorted and unique: as is)
+        exc = np.unique(exc)
     band = np.arange(exc[0], exc[-1] + 1)
     keep = np.ones(band.size, bool)
     keep[exc - exc[0]] = False
@@ -568,16 +630,18 @@ def _interp_frf(freq, G, f_at):
         g_at = np.exp(np.interp(np.log(f_at), x, logmag) + 1j * np.interp(np.log(f_at), x, phase))
         return g_at, np.full(e, np.inf)
 
-    def lagrange(xs, ys, xa):
-        w = np.ones_like(xs)
-        for j in range(4):
-            for i in range(4):
-                if i != j:
-                    w[:, j] *= (xa - xs[:, i]) / (xs[:, j] - xs[:, i])
-        return np.sum(w * ys, axis=1)
+    eye4 = np.eye(4, dtype=bool)
+
+    def lagrange_weights(xs, xa):
+        # w_j = prod_{i != j} (xa - x_i) / (x_j - x_i), the factors in the order of i
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = (xa[:, None, None] - xs[:, None, :]) / (xs[:, :, None] - xs[:, None, :])
+        f[:, eye4] = 1.0
+        return np.multiply.reduce(f, axis=2)
 
     def predict(idx, xa):
-        return np.exp(lagrange(x[idx], logmag[idx], xa) + 1j * lagrange(x[idx], phase[idx], xa))
+        w = lagrange_weights(x[idx], xa)        # the same weights for |G| and the phase
+        return np.exp(np.sum(w * logmag[idx], axis=1) + 1j * np.sum(w * phase[idx], axis=1))
 
     xa = np.log(np.asarray(f_at, dtype=float))
     start = np.clip(np.searchsorted(x, xa) - 2, 0, e - 4)
@@ -685,7 +749,7 @@ def _class_stats(level, reference, nu, prefix, alpha=1e-3, tail=None, known=None
     p_line = float(tail(np.array(4.0)))
     over = int(np.sum(level > 4.0 * reference))
     need = _false_alarm_count(level.size, p_line, alpha)
-    med = float(np.median(excess))
+    med = float(_median(excess))
     strongest = bool(level.size * np.nanmin(p_lines) <= alpha)
     out.update({f"{prefix}line_median_re_noise_db": med if np.isfinite(med) else None,
                 f"{prefix}lines_over_noise_6db": over, f"{prefix}lines_needed": need,
@@ -770,7 +834,7 @@ def _quantisation_lines(q, y_mean_time, mom, *, is_exc, det_i, g_det, n, n_per, 
     sigma2 = 0.0
     if n_per >= 2:
         # white noise: a line's period-to-period variance is N sigma^2
-        sigma2 = float(np.median(mom.ss_y[:, det_i]) / (n_per - 1) / n)
+        sigma2 = float(_median(mom.ss_y[:, det_i]) / (n_per - 1) / n)
     sigma = float(np.sqrt(max(sigma2 - q ** 2 / 12.0, 0.0)))
     # The predicted output's offset within a step decides the error's symmetry (odd vs
     # even lines) and is not known to better than q: per realization, the offset whose
@@ -786,13 +850,13 @@ def _quantisation_lines(q, y_mean_time, mom, *, is_exc, det_i, g_det, n, n_per, 
             better = err < best
             best[better], shift[better] = err[better], c
         D = quantisation_error_lines(smooth + shift[:, None], q, sigma, band[det_i])
-        power = scale2 * np.mean(np.abs(D) ** 2, axis=0)
+        power = scale2 * _mean0(_abs2(D))
     else:
         power = np.zeros(det_i.size)
         offsets = np.linspace(-0.5 * q, 0.5 * q, 8, endpoint=False)
         for c in offsets:
             D = quantisation_error_lines(smooth + c, q, sigma, band[det_i])
-            power += scale2 * np.mean(np.abs(D) ** 2, axis=0) / offsets.size
+            power += scale2 * _mean0(_abs2(D)) / offsets.size
     # the error's odd and even lines differ by tens of dB (odd-symmetric error of a
     # half-wave symmetric signal): smooth each parity on its own
     local = np.empty_like(power)
@@ -842,18 +906,19 @@ def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_no
             excess[key] = np.where(np.isfinite(ex), ex, -np.inf)
 
     def cls(bins, power, noise, a, b):
-        i, j = np.searchsorted(bins, [a, b])
-        out = {"lines": int(j - i), "median_re_noise_db": None, "max_re_noise_db": None,
+        i, j = (int(v) for v in np.searchsorted(bins, (a, b)))
+        out = {"lines": j - i, "median_re_noise_db": None, "max_re_noise_db": None,
                "lines_over_noise_6db": None, "power_db": None}
         if j <= i:
             return out
-        out["power_db"] = float(10 * np.log10(max(float(np.mean(power[i:j])), 1e-300)))
+        mean = float(np.add.reduce(power[i:j]) / (j - i))
+        out["power_db"] = float(10 * np.log10(max(mean, 1e-300)))
         if noise is not None:
             ex = excess[id(bins)][i:j]
-            med, top = float(np.median(ex)), float(np.max(ex))
+            med, top = float(_median(ex)), float(ex.max())
             out.update({"median_re_noise_db": med if np.isfinite(med) else None,
                         "max_re_noise_db": top if np.isfinite(top) else None,
-                        "lines_over_noise_6db": int(np.sum(ex > 10 * np.log10(4.0)))})
+                        "lines_over_noise_6db": int(np.count_nonzero(ex > 10 * np.log10(4.0)))})
         return out
 
     bands = []
@@ -876,7 +941,7 @@ def _median_db(values_db):
     v = np.asarray(values_db, dtype=float)
     if v.size == 0:
         return None
-    med = float(np.median(np.where(np.isnan(v), -np.inf, v)))
+    med = float(_median(np.where(np.isnan(v), -np.inf, v)))
     return med if np.isfinite(med) else None
 
 
@@ -948,10 +1013,31 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
 
     lo, hi = int(band[0]), int(band[-1]) + 1      # the band is contiguous: a view, no copy
 
+    # float64 records: each realization's spectra go into the same buffers (rfft's out=:
+    # no allocation per call, the buffers stay in cache); robust_bla_spectra may
+    # overwrite them (it takes the deviations from the period mean in place)
+    # (one buffer per signal, even when r is u: each is overwritten separately)
+    signals = (u, y, r)
+    buffers = [np.empty((n_total, n // 2 + 1), np.complex128)
+               if x is not None and x.dtype == np.float64 else None for x in signals]
+
     def one_realization(m):
-        return tuple(None if x is None else
-                     np.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128, copy=False)
-                     for x in (u, y, r))
+        out = []
+        for x, buf in zip(signals, buffers):
+            if x is None:
+                out.append(None)
+            elif buf is not None and x is r and n_total - settle > 1 \
+                    and (r[m, settle + 1:] == r[m, settle]).all():
+                # a reference that repeats exactly (the designed signal): the spectra of
+                # its kept periods are the same, one FFT (the periods before are not read)
+                np.fft.rfft(r[m, settle:settle + 1], axis=-1, out=buf[settle:settle + 1])
+                buf[settle + 1:] = buf[settle]
+                out.append(buf[:, lo:hi])
+            elif buf is not None:
+                out.append(np.fft.rfft(x[m], axis=-1, out=buf)[:, lo:hi])
+            else:
+                out.append(np.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128))
+        return tuple(out)
 
     y_mean_time = None
     if y_quantisation_step:
@@ -1073,7 +1159,7 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     n_per = n_total - settle
     band = np.arange(excited[0], excited[-1] + 1)
     pos = _band_positions(bins, band)
-    is_exc = np.isin(band, excited)
+    is_exc = _in_band(band, excited)
     known_ref = R is not None if _get is None else _known_ref
     if _get is None:
         def _get(m):
@@ -1093,18 +1179,30 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
     ss_u, ss_y, ss_r = np.empty((n_real, L)), np.empty((n_real, L)), np.empty((n_real, L))
     s_yu = np.empty((n_real, L), c)
     G_per = None if known_ref else (np.empty((n_real, exc_i.size), c), np.empty((n_real, exc_i.size)))
+    # work buffers, allocated once (fresh large temporaries in every realization cost
+    # page faults comparable to the arithmetic)
+    prod = np.empty((n_per, L), c)
+    if not known_ref:
+        Ue, Ge = np.empty((n_per, exc_i.size), c), np.empty((n_per, exc_i.size), c)
     for m in range(n_real):
-        Um, Ym, Rm = _get(m)
+        Um, Ym, Rm = _get(m)        # (T + P, L) complex128, overwritten below
         Y_exc[m] = Ym[:, trans_i]
-        mU[m], dU, ss_u[m] = _spread2(Um[settle:])
-        mY[m], dY, ss_y[m] = _spread2(Ym[settle:])
-        s_yu[m] = np.einsum("pk,pk->k", dY, np.conj(dU))
-        if Rm is not None:
-            mR[m], _, ss_r[m] = _spread2(Rm[settle:])
-        else:
+        if Rm is None:
+            # per-period ratio at the excited lines (mode="clip": valid indices, no
+            # intermediate buffer)
+            np.take(Um[settle:], exc_i, axis=1, out=Ue, mode="clip")
+            np.take(Ym[settle:], exc_i, axis=1, out=Ge, mode="clip")
             with np.errstate(divide="ignore", invalid="ignore"):
-                G = Ym[settle:, exc_i] / Um[settle:, exc_i]
-            G_per[0][m], _, G_per[1][m] = _spread2(G)
+                np.divide(Ge, Ue, out=Ge)
+            G_per[0][m], G_per[1][m] = _spread2_inplace(Ge)
+        else:
+            mR[m], ss_r[m] = _spread2_inplace(Rm[settle:])
+        dU, dY = Um[settle:], Ym[settle:]
+        mU[m], ss_u[m] = _spread2_inplace(dU)        # dU, dY: now the deviations
+        mY[m], ss_y[m] = _spread2_inplace(dY)
+        np.conjugate(dU, out=prod)
+        prod *= dY
+        s_yu[m] = np.add.reduce(prod, axis=0)
     mom = LineMoments(bins=band, n_periods=n_per, U=mU, Y=mY, ss_u=ss_u, ss_y=ss_y, s_yu=s_yu,
                       R=mR if known_ref else None, ss_r=ss_r if known_ref else None)
     return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=Y_exc,
@@ -1191,7 +1289,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     for detection (stray input tones found by the line finder)."""
     band = mom.bins
     n_real, n_per = mom.U.shape[0], mom.n_periods
-    is_exc = np.isin(band, excited)
+    is_exc = _in_band(band, excited)
     is_det = ~is_exc
     if ignore_bins is not None and np.size(ignore_bins):
         is_det &= ~np.isin(band, ignore_bins)
@@ -1212,7 +1310,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     def check_power(name, power):
         # "zero" power: 120 dB or more under the median excited line (rounding noise)
         check_finite(power)
-        low = np.flatnonzero(~(power > 1e-12 * np.median(power)))
+        low = np.flatnonzero(~(power > 1e-12 * _median(power)))
         if low.size:
             raise InputError(
                 f"{name}: zero power at {low.size} excited line(s) "
@@ -1223,7 +1321,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     exc_i, det_i = np.flatnonzero(is_exc), np.flatnonzero(is_det)
     U_mean_e, Y_mean_e = mom.U[:, exc_i], mom.Y[:, exc_i]
     # sum over realizations and periods of |U_p|^2 = P |mean|^2 + sum |deviation|^2
-    u_power = np.sum(n_per * np.abs(U_mean_e) ** 2 + mom.ss_u[:, exc_i], axis=0)
+    u_power = np.sum(n_per * _abs2(U_mean_e) + mom.ss_u[:, exc_i], axis=0)
     ud, yd = mom.U[:, det_i], mom.Y[:, det_i]
     ud_ss, yd_ss, yud = mom.ss_u[:, det_i], mom.ss_y[:, det_i], mom.s_yu[:, det_i]
     if known_ref:
@@ -1243,9 +1341,9 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
             var_total = _abs2_sum((G_m - G)[:, None, :], axis=0)[0] / (n_real * (n_real - 1))
         if n_per >= 2:
             var_noise = G_ss.sum(axis=0) / (n_per * (n_per - 1)) / n_real ** 2
-        u_level = np.mean(np.abs(U_mean_e) ** 2, axis=0)
+        u_level = _mean0(_abs2(U_mean_e))
     else:
-        check_power("reference r", np.sum(np.abs(R_mean) ** 2, axis=0))
+        check_power("reference r", np.sum(_abs2(R_mean), axis=0))
         # rotate each realization by conj(R / |R|) (removes its random phase); the sums
         # of squared deviations and the cross sum do not change under the rotation
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -1256,16 +1354,16 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         with np.errstate(divide="ignore", invalid="ignore"):
             G = Y_bar / U_bar
         check_finite(G)
-        u_level = np.abs(U_bar) ** 2
+        u_level = _abs2(U_bar)
 
         def propagate(s2y, s2u, cyu):
-            return (s2y + np.abs(G) ** 2 * s2u - 2 * np.real(np.conj(G) * cyu)) / u_level
+            return (s2y + _abs2(G) * s2u - 2 * np.real(np.conj(G) * cyu)) / u_level
 
         var_total = var_noise = None
         if n_real >= 2:
             du, dy = U_m - U_bar, Y_m - Y_bar
             k = n_real * (n_real - 1)
-            var_total = propagate(np.sum(np.abs(dy) ** 2, 0) / k, np.sum(np.abs(du) ** 2, 0) / k,
+            var_total = propagate(np.sum(_abs2(dy), 0) / k, np.sum(_abs2(du), 0) / k,
                                   np.sum(dy * np.conj(du), 0) / k)
         if n_per >= 2:
             k = n_per * (n_per - 1) * n_real ** 2
@@ -1283,8 +1381,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         # the rounding of the recorded numbers is the same in every period (not in
         # var_noise) but differs between realizations (in var_total): its variance of G
         # (uniform error of +-rounding per sample: N rounding^2 / 3 per line) is added
-        u_abs2 = u_level if known_ref else np.mean(np.abs(U_mean_e) ** 2, axis=0)
-        round_var = (n * (float(y_rounding) ** 2 + np.abs(G) ** 2 * float(u_rounding) ** 2)
+        u_abs2 = u_level if known_ref else _mean0(_abs2(U_mean_e))
+        round_var = (n * (float(y_rounding) ** 2 + _abs2(G) * float(u_rounding) ** 2)
                      / 3.0 / np.maximum(u_abs2, 1e-300) / n_real)
         ref_var = var_noise + round_var
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -1322,7 +1420,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         notes.append(gridinfo["note"])
 
     # Figure 3 view (levels as squared line amplitudes, scale2)
-    output_power = scale2 * np.mean(np.abs(Y_mean_e) ** 2, axis=0)
+    output_power = scale2 * _mean0(_abs2(Y_mean_e))
     u_level = scale2 * u_level
     nl_power = None if var_nl is None else var_nl * u_level
     noise_power = None if var_noise is None else n_real * var_noise * u_level
@@ -1332,8 +1430,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     def line_levels(mean, ss, floor=0.0):
         """Level (mean over m of |period mean|^2) and noise of the period mean (plus a
         rounding floor) from the period means and sums of squared deviations."""
-        level = scale2 * np.mean(np.abs(mean) ** 2, axis=0)
-        noise = None if n_per < 2 else scale2 * ss.mean(axis=0) / (n_per * (n_per - 1)) + floor
+        level = scale2 * _mean0(_abs2(mean))
+        noise = None if n_per < 2 else scale2 * _mean0(ss) / (n_per * (n_per - 1)) + floor
         return level, noise
 
     det_power, det_noise = line_levels(yd, yd_ss, rounding_floor)
@@ -1352,11 +1450,11 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     if det_bins.size and excited.size >= 5:
         g_det, loo = _interp_frf(freq, G, det_bins * fs / n)
         e_mean = yd - g_det * ud
-        e_ss = yd_ss + np.abs(g_det) ** 2 * ud_ss - 2 * np.real(np.conj(g_det) * yud)
+        e_ss = yd_ss + _abs2(g_det) * ud_ss - 2 * np.real(np.conj(g_det) * yud)
         plant_power, plant_noise = line_levels(e_mean, np.maximum(e_ss, 0.0), rounding_floor)
         nb = np.clip(np.searchsorted(excited, det_bins), 1, excited.size - 1)
         rel = np.maximum(loo[nb - 1], loo[nb])
-        g_u = scale2 * np.mean(np.abs(g_det * ud) ** 2, axis=0)
+        g_u = scale2 * _abs2(g_det) * _mean0(_abs2(ud))
         plant_bound = rel ** 2 * g_u
         if plant_noise is not None:
             plant_expected = plant_noise + plant_bound
@@ -1465,13 +1563,13 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     summary["excitation_distorted"] = None
     if det_bins.size:
         x_det, x_noise = line_levels(xd, xd_ss)
-        x_exc = scale2 * np.mean(np.abs(xe) ** 2, axis=0)
-        rel_db = float(np.median(to_db(np.maximum(x_det, 1e-300))) - np.median(to_db(x_exc)))
+        x_exc = scale2 * _mean0(_abs2(xe))
+        rel_db = float(_median(to_db(np.maximum(x_det, 1e-300))) - _median(to_db(x_exc)))
         summary["excitation_nonexcited_re_excited_db"] = rel_db
         # the strongest tenth: an odd distortion of an odd grid leaves the even lines
         # (half of the detection lines) empty, so the median alone can miss it
         top_db = float(np.quantile(to_db(np.maximum(x_det, 1e-300)), 0.9)
-                       - np.median(to_db(x_exc)))
+                       - _median(to_db(x_exc)))
         summary["excitation_nonexcited_top_re_excited_db"] = top_db
         if x_noise is not None:
             xs = _class_stats(x_det, x_noise, nu, "x_")

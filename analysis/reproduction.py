@@ -197,15 +197,20 @@ PAPER_CLAIMS = [
 
 
 def detect_numbers(detect, level_v_rms=3.72):
-    """The Figure 3 numbers (dB): per-line medians of the detection (results.yaml's
-    ``detect`` block) at the level nearest ``level_v_rms`` (the paper's 3.72 V rms); {} without."""
+    """The Figure 3 numbers (dB) of the detection (results.yaml's ``detect`` block) at the
+    level nearest ``level_v_rms`` (the paper's 3.72 V rms); {} without.
+
+    The nonlinear and noise levels are per-line medians; odd over even is the detection's
+    one odd-re-even figure, the power ratio of the odd to the even non-excited lines
+    (``summary_db.odd_re_even_db``; the per-line median of it is no longer reported). A
+    figure the detection does not report is None (the comparison shows n/a, never drops it)."""
     if not detect or not detect.get("levels"):
         return {}
     lv = min(detect["levels"], key=lambda x: abs(x["rms_requested"] - level_v_rms))
     s = lv["summary_db"]
     return {"detect_level_v_rms": lv["rms_requested"],
             "detect_nl_re_output_db": s.get("line_median_nl_re_output_db"),
-            "detect_odd_re_even_db": s.get("line_median_odd_re_even_db"),
+            "detect_odd_re_even_db": s.get("odd_re_even_db"),
             "detect_noise_re_nl_db": s.get("line_median_noise_re_nl_db")}
 
 

@@ -828,7 +828,10 @@ def check_tune_plan(session):
 
 # The uncertainty budget after a converged search (fftune.analysis.tuning.uncertainty_budget).
 # A motor lagging the reference by more than this at K_fc* gets the viscous feed-forward
-# estimate in the loop before K_fc* is read (the lag moves the criterion's optimum).
+# estimate in the loop before K_fc* is read (the lag moves the criterion's optimum). A motor
+# that LEADS by more than this (the K_v read at K_fc = 0 was too large: brief sticking at the
+# reversals reads as viscous friction there; 0.157 V s/rad on configs/plant_paper.yaml for
+# the plant's 0.066, a lead of 8.5 deg that put K_fc* 2.5 % low) is corrected the same way.
 LAG_MIN_DEG = 1.5
 # The amplitude part: K_fc* at a second amplitude A2 (the auto choice's alternative, else 2 A,
 # else A / 2), combined by fftune.analysis.tuning.amplitude_combination with this rule.
@@ -953,7 +956,7 @@ def _budget(session, probe, outcome, by_k, amp_block):
             "applied": False, "steps": []}
     visc_part = 0.0
     k = k1
-    if lag_deg > LAG_MIN_DEG and kv > 0 and abs(kv - kv_search) > 0.1 * kv:
+    if abs(lag_deg) > LAG_MIN_DEG and kv > 0 and abs(kv - kv_search) > 0.1 * kv:
         last = None
         for i in range(2):
             p, r = _at(probe, "lag", k, kv, a1, phases, slope)
@@ -985,9 +988,10 @@ def _budget(session, probe, outcome, by_k, amp_block):
     visc["note"] = (
         (f"the viscous feed-forward K_v = {kv_search:.4g} V s/rad (read from the K_fc = 0 experiment) "
          "was in the loop during the search; " if kv_search else "")
-        + (f"the motor lagged the reference by {lag_deg:.3g} deg at K_fc*: K_fc* read again with "
-           f"K_v = {kv:.4g} V s/rad in the loop (corrected)" if visc["applied"] else
-           f"lag {lag_deg:.3g} deg at K_fc* (<= {LAG_MIN_DEG:g} deg, or no better K_v estimate): no "
+        + (f"the motor {'lagged' if lag_deg > 0 else 'led'} the reference by {abs(lag_deg):.3g} deg at "
+           f"K_fc*: K_fc* read again with K_v = {kv:.4g} V s/rad in the loop (corrected)"
+           if visc["applied"] else
+           f"lag {lag_deg:.3g} deg at K_fc* (|lag| <= {LAG_MIN_DEG:g} deg, or no better K_v estimate): no "
            "further correction" if visc_part == 0 else
            "the new K_v estimate did not reduce the lag: not applied; the shift it gave is a part "
            "of the budget"))

@@ -69,14 +69,19 @@ def test_nmt_states_seen_in_heartbeat_and_sdo_only_outside_stopped(co_node):
 
 def test_heartbeat_producer_period(co_node):
     net, node = co_node
+    # the frames' time stamps are the bus server's, not this process' (which may run late
+    # on a loaded machine): the period is judged on them, after ten periods have come
     stamps = []
-    node.nmt.add_heartbeat_callback(lambda state: stamps.append(time.monotonic()))
+    net.subscribe(0x700 + node.id, lambda can_id, data, ts: stamps.append(ts))
     node.sdo[0x1017].raw = 100
-    time.sleep(1.05)
+    assert wait_for(lambda: len(stamps) >= 11, 10.0), f"{len(stamps)} heartbeats in 10 s"
     node.sdo[0x1017].raw = 0
-    assert 9 <= len(stamps) <= 12
-    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+    gaps = sorted(b - a for a, b in zip(stamps, stamps[1:]))
+    assert gaps[len(gaps) // 2] == pytest.approx(0.1, abs=0.01)      # median period
     assert sum(gaps) / len(gaps) == pytest.approx(0.1, abs=0.02)
+    n_stopped = len(stamps)
+    time.sleep(0.5)  # not synchronisation: five periods in which no heartbeat may come
+    assert len(stamps) <= n_stopped + 1       # one may have been on its way
 
 
 class _HostHeartbeat:

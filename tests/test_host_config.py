@@ -24,8 +24,10 @@ def test_paper_config_has_the_paper_settings():
     assert d["rms_levels"][0] == pytest.approx(0.3) and d["rms_levels"][-1] == pytest.approx(5.0)
     ratios = [b / a for a, b in zip(d["rms_levels"], d["rms_levels"][1:])]
     assert max(ratios) == pytest.approx(min(ratios))          # log-spaced
-    assert q["frequencies_hz"][0] == 5.0 and q["frequencies_hz"][-1] == 300.0
-    assert len(q["frequencies_hz"]) == 60
+    # the paper's 5 Hz steps, up to 180 Hz: H_7 of it (1260 Hz) below fs/2 = 1280 Hz (the
+    # paper's 300 Hz needed its 5120 Hz; configs/paper.yaml's header)
+    assert q["frequencies_hz"][0] == 5.0 and q["frequencies_hz"][-1] == 180.0
+    assert len(q["frequencies_hz"]) == 36 and q["harmonics"] == 7
     assert (q["repeats"], q["period_samples"]) == (10, 2048)
     assert q["rms_levels"][0] == pytest.approx(0.07) and q["rms_levels"][-1] == pytest.approx(1.41)
 

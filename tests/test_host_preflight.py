@@ -86,8 +86,8 @@ def test_demo_and_paper_tune_plans_pass_against_the_simulated_drive():
     # the demo's 3 V rms multisine peaks above u_max: a note (detect reports saturation)
     notes = [c for c in plan.checks if not c.hard and c.ok is False]
     assert [c.key for c in notes] == ["detect.rms_levels[2]"]
-    preflight(load_config(os.path.join(REPO, "configs", "paper.yaml")), DriveLimits(**SIM_LIMITS),
-              steps=("tune",))
+    paper = preflight(load_config(os.path.join(REPO, "configs", "paper.yaml")), DriveLimits(**SIM_LIMITS))
+    assert [s["step"] for s in paper.steps] == ["detect", "quantify", "tune"]
 
 
 def test_the_first_level_above_u_max_is_named(tmp_path):
@@ -289,3 +289,92 @@ def test_plan_without_a_reachable_drive_says_so(capsys):
     assert main(["plan", "--config", DEMO, "-i", "socketcand", "--port", str(free_port())]) == 0
     text = capsys.readouterr().out
     assert "no drive reached" in text and "checked against the configuration only" in text
+
+
+def _shipped_configs():
+    """Every configs/*.yaml with its kind, from its top-level keys (an unknown kind fails)."""
+    import glob
+
+    out = []
+    for path in sorted(glob.glob(os.path.join(REPO, "configs", "*.yaml"))):
+        with open(path, encoding="utf-8") as fh:
+            top = set(yaml.safe_load(fh))
+        kind = ("od" if "device" in top else "plant" if "plant" in top else
+                "track" if "track" in top else "machine" if "machine" in top else
+                "experiment" if top & {"detect", "quantify", "tune"} else "unknown")
+        out.append((os.path.basename(path), kind))
+    return out
+
+
+def _plant_limits(plant_path, overrides):
+    """The limits the simulated drive of ``plant_path`` (with ``overrides``, as sim.overrides)
+    reports: fs, u_max, the recorder, the period (min of its table and the EDS range)."""
+    from fftune.host.config import od_param_high
+    from fftune.host.sim import derived_plant_text
+
+    if not os.path.isabs(plant_path):
+        plant_path = os.path.join(REPO, plant_path)
+    plant = yaml.safe_load(derived_plant_text(plant_path, overrides))
+    u_max = float(plant["controller"]["u_max"])
+    return DriveLimits(fs_hz=float(plant["drive"]["fs_hz"]), u_max_v=u_max, drive_u_max_v=u_max,
+                       rec_capacity=int(plant["drive"]["rec_capacity"]), lines_capacity=None,
+                       table_capacity=min(int(plant["drive"]["table_capacity"]),
+                                          int(od_param_high("EXC_PERIOD"))),
+                       amplitude_high=od_param_high("EXC_AMPLITUDE"), source="sim.plant")
+
+
+SHIPPED = _shipped_configs()
+
+
+def test_shipped_configs_are_all_classified():
+    kinds = dict(SHIPPED)
+    assert "unknown" not in kinds.values(), kinds
+    # the experiment configurations the docs name are among them (a rename shows here)
+    assert {n for n, k in SHIPPED if k == "experiment"} >= {"demo.yaml", "paper.yaml", "paper_setup.yaml", "pil.yaml"}
+
+
+def _check_plan(cfg, limits):
+    plan = preflight(cfg, limits) if limits is not None else preflight(cfg)
+    assert [s["step"] for s in plan.steps] == [s for s in ("detect", "quantify", "tune") if cfg[s]["enabled"]]
+    assert all(c.ok is not False for c in plan.checks if c.hard)
+    if cfg["drive"]["fs_hz"] and limits is not None:
+        assert cfg["drive"]["fs_hz"] == plan.limits.fs_hz      # the rate the plan was checked at
+
+
+@pytest.mark.parametrize("name", [n for n, k in SHIPPED if k in ("experiment", "track", "machine")])
+def test_every_shipped_config_passes_the_offline_preflight(name, capsys):
+    """`fftune plan --offline` accepts every shipped experiment configuration (configs/paper.yaml
+    once asked for harmonic 7 of 300 Hz above fs/2 = 1280 Hz), and so does the preflight
+    against the limits of the simulated drive its sim.plant describes; every axis of a machine
+    file likewise (its configuration, its plant); a track configuration loads (fftune track
+    validates it before the drive is contacted)."""
+    path = os.path.join(REPO, "configs", name)
+    kind = dict(SHIPPED)[name]
+    if kind == "track":
+        from fftune.host.track import load_track_config
+        assert load_track_config(path)["sim"]["plant"]
+        return
+    if kind == "machine":
+        # every axis: its configuration alone (as fftune run --machine checks before any
+        # drive is contacted) and against its own simulated drive (plant + plant_overrides)
+        from fftune.host.machine import load_machine, preflight_axes
+        machine = load_machine(path)
+        preflight_axes(machine)
+        assert len(machine["axes"]) >= 2
+        for ax in machine["axes"]:
+            _check_plan(ax["cfg"], _plant_limits(ax["plant"], ax["plant_overrides"]))
+        return
+    assert main(["plan", "--offline", "--config", path]) == 0
+    out = capsys.readouterr().out
+    assert "REFUSED" not in out and "--offline" in out
+    cfg = load_config(path)
+    _check_plan(cfg, _plant_limits(cfg["sim"]["plant"], cfg["sim"]["overrides"]) if cfg["sim"]["plant"] else None)
+
+
+def test_the_old_paper_quantify_range_is_refused_by_the_preflight(tmp_path):
+    """What the shipped-config test guards: 300 Hz with 7 harmonics at fs 2560 Hz."""
+    cfg = load_config(os.path.join(REPO, "configs", "paper.yaml"))
+    assert max(cfg["quantify"]["frequencies_hz"]) * cfg["quantify"]["harmonics"] < cfg["drive"]["fs_hz"] / 2
+    cfg["quantify"]["frequencies_hz"] = cfg["quantify"]["frequencies_hz"] + [185.0]
+    with pytest.raises(FftuneError, match=r"key 'quantify.harmonics': harmonic 7 of 185 Hz is at or above fs/2 = 1280 Hz"):
+        preflight(cfg, steps=("quantify",))

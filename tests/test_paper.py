@@ -149,13 +149,19 @@ def test_paper_doc_without_template_is_one_line_error(tmp_path, capsys):
 
 def test_detect_numbers_take_the_level_nearest_the_papers():
     levels = [{"rms_requested": r, "summary_db": {"line_median_nl_re_output_db": -r,
-                                                   "line_median_odd_re_even_db": 2 * r,
+                                                   "odd_re_even_db": 2 * r,
+                                                   "line_median_odd_re_even_db": 99.0,
                                                    "line_median_noise_re_nl_db": -3 * r}}
               for r in (0.3, 2.4, 3.5, 5.0)]
     n = rep.detect_numbers({"levels": levels})
     assert n == {"detect_level_v_rms": 3.5, "detect_nl_re_output_db": -3.5,
                  "detect_odd_re_even_db": 7.0, "detect_noise_re_nl_db": -10.5}
     assert rep.detect_numbers(None) == {} and rep.detect_numbers({"levels": []}) == {}
+    # a figure the detection does not report is None, and its row says n/a (not dropped)
+    gap = rep.detect_numbers({"levels": [{"rms_requested": 3.72, "summary_db": {}}]})
+    assert gap["detect_odd_re_even_db"] is None and gap["detect_level_v_rms"] == 3.72
+    row = {r["key"]: r for r in rep.compare(gap, rep.DETECT_CLAIMS)}["detect_odd_re_even_db"]
+    assert row["measured_text"] == "n/a" and not row["agrees"]
     rows = {r["key"]: r for r in rep.compare(n, rep.DETECT_CLAIMS)}
     assert rows["detect_noise_re_nl_db"]["measured_text"] == "-10.5 dB"
     assert not rows["detect_nl_re_output_db"]["agrees"] and rows["detect_nl_re_output_db"]["accepted"] == "-15 .. -5 dB"
