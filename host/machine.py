@@ -252,6 +252,8 @@ class _FigurePool:
 
     def submit(self, name, node_id, out_dir, step, obj, results):
         """Draw ``step``'s figures of axis ``name`` (``results``: copied now, the axis goes on)."""
+        import concurrent.futures
+
         if obj is None:
             return
         snapshot = copy.deepcopy({k: v for k, v in results.items() if k in ("detect", "quantify", "tune")})
@@ -260,7 +262,11 @@ class _FigurePool:
                 return
             if out_dir not in self._dirs:
                 self._dirs.append(out_dir)
-            fut = self._ex.submit(_draw_step_figures, out_dir, step, obj, snapshot)
+            try:
+                fut = self._ex.submit(_draw_step_figures, out_dir, step, obj, snapshot)
+            except Exception as exc:    # (a broken figure process: no figures, the axis goes on)
+                fut = concurrent.futures.Future()
+                fut.set_exception(exc)
             self._futures.setdefault(name, []).append((node_id, step, fut))
 
         def drawn(f):
@@ -364,7 +370,7 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
     # the figures of each axis are drawn in a separate process (its own interpreter: no GIL
     # shared with the bus threads) as soon as that axis has measured, so the figures of the
     # shorter axes overlap the longest axis' measuring
-    pool = _FigurePool(log, log_error) if figures else None
+    pool = None
     measuring = {"left": 0}
     measured = threading.Lock()
 
@@ -374,6 +380,8 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
             if measuring["left"] == 0:
                 measuring["wall_s"] = time.monotonic() - t0
     try:
+        if figures:
+            pool = _FigurePool(log, log_error)
         if hb_ms:
             hb_task = network.send_periodic(0x700 + d0["host_node_id"], [0x05], hb_ms / 1000.0)
             task = getattr(hb_task, "_task", None)
