@@ -184,6 +184,153 @@ def _axis_entry(ax, results=None, status="failed", error=None, truth=None):
     return entry
 
 
+def _figure_worker_init():
+    """The figure process: Ctrl-C is the parent's to handle (it ends this process), a low
+    priority (the bus threads of the axes still measuring come first), matplotlib loaded."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+    import matplotlib
+    matplotlib.use("Agg")
+    from fftune.analysis import plots  # noqa: F401  (imported once, before the first axis)
+
+
+def _warm():
+    """The figure process' first job: one small figure drawn (fonts and the Agg renderer
+    loaded before the first axis' figures)."""
+    import io
+
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(2, 1), layout="constrained")
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot([0, 1], [1, 0], "o-", label="warm")
+    ax.set_xlabel("x")
+    ax.legend()
+    fig.savefig(io.BytesIO(), format="png", dpi=50, bbox_inches="tight")
+    return os.getpid()
+
+
+_STEP_DATA = {"detect": "detect_levels", "quantify": "hos", "tune": "tune_data"}
+
+
+def _draw_step_figures(out_dir, step, obj, results):
+    """In the figure process: the figures of one step of an axis (``obj``: the step's analysis
+    object; ``results``: the axis' results so far); returns ``({name: (file, caption)},
+    seconds)``. Each figure is written atomically (``.tmp-NAME.png`` renamed when complete)."""
+    from fftune.host.report import make_figures
+
+    t0 = time.monotonic()
+    figs = make_figures(out_dir, results=results, **{_STEP_DATA[step]: obj})
+    return figs, time.monotonic() - t0
+
+
+class _FigurePool:
+    """One worker process (``spawn``: a fresh interpreter with its own GIL, none of the
+    parent's threads or bus sockets) drawing the axes' figures step by step, in the order
+    the steps end: an axis' detect and quantify figures are drawn while its tune step
+    measures, the shorter axes' figures while the longest axis measures. Started at once,
+    so that its imports overlap the first excitations; at a low priority (nice 10)."""
+
+    def __init__(self, log, log_error):
+        import concurrent.futures
+        import multiprocessing
+
+        self._log, self._log_error = log, log_error
+        self._futures = {}          # axis -> [(node id, step, future)]
+        self._lock = threading.Lock()
+        self._dirs = []
+        self._ended = False
+        self._ex = concurrent.futures.ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+            initializer=_figure_worker_init)
+        self._ex.submit(_warm)
+
+    def submit(self, name, node_id, out_dir, step, obj, results):
+        """Draw ``step``'s figures of axis ``name`` (``results``: copied now, the axis goes on)."""
+        import concurrent.futures
+
+        if obj is None:
+            return
+        snapshot = copy.deepcopy({k: v for k, v in results.items() if k in ("detect", "quantify", "tune")})
+        with self._lock:
+            if self._ended:         # (Ctrl-C / SIGTERM: no figures any more)
+                return
+            if out_dir not in self._dirs:
+                self._dirs.append(out_dir)
+            try:
+                fut = self._ex.submit(_draw_step_figures, out_dir, step, obj, snapshot)
+            except Exception as exc:    # (a broken figure process: no figures, the axis goes on)
+                fut = concurrent.futures.Future()
+                fut.set_exception(exc)
+            self._futures.setdefault(name, []).append((node_id, step, fut))
+
+        def drawn(f):
+            if not f.cancelled() and f.exception() is None:
+                figs, sec = f.result()
+                self._log(f"[{name}] figures of {step}: {len(figs)} drawn in {sec:.1f} s (figure process)")
+        fut.add_done_callback(drawn)
+
+    def wait(self):
+        """Wait for every axis' figures; returns ``({axis: {name: (file, caption)}}, {axis:
+        error})`` (a failure also one line ``fftune: error: axis 'NAME' (node N): figures
+        of STEP: ...``)."""
+        import concurrent.futures
+
+        figs, errors = {}, {}
+        with self._lock:
+            jobs = {k: list(v) for k, v in self._futures.items()}
+        for name, items in jobs.items():
+            figs[name] = {}
+            for nid, step, fut in items:
+                while True:
+                    try:
+                        made, _ = fut.result(timeout=0.2)   # short waits: Ctrl-C / SIGTERM reach us
+                        figs[name].update(made)
+                        break
+                    except concurrent.futures.TimeoutError:
+                        continue
+                    except Exception as exc:
+                        errors[name] = f"figures of {step}: {type(exc).__name__}: {exc}"
+                        self._log_error(f"fftune: error: axis '{name}' (node {nid}): {errors[name]}")
+                        break
+        self._ex.shutdown(wait=True)
+        return figs, errors
+
+    def terminate(self):
+        """End the figure process now (Ctrl-C, SIGTERM) and remove what it left half-written
+        (its figures are written as ``.tmp-NAME.png`` and renamed when complete)."""
+        with self._lock:
+            first, self._ended = not self._ended, True
+        procs = list((getattr(self._ex, "_processes", None) or {}).values())
+        if first:
+            self._ex.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            try:
+                p.terminate()
+            except Exception:
+                pass
+        for p in procs:
+            p.join(5.0)
+        with self._lock:
+            dirs = list(self._dirs)
+        for d in dirs:
+            try:
+                names = os.listdir(d)
+            except OSError:
+                continue
+            for n in names:
+                if n.startswith(".tmp-"):
+                    try:
+                        os.remove(os.path.join(d, n))
+                    except OSError:
+                        pass
+
+
 def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"), figures=True,
                 log=print, progress=False, log_error=None):
     """Run ``steps`` on every axis concurrently over one bus; returns the machine summary.
@@ -219,25 +366,22 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
     hb_ms = d0["heartbeat_ms"]
     hb_task = None
     cancel = threading.Event()
-    clients, entries, threads = {}, {}, []
-    # the figures are drawn once every axis has measured (or ended): drawing holds the GIL
-    # for seconds and would starve the bus threads of the axes still measuring
+    clients, entries, threads, done_res = {}, {}, [], {}
+    # the figures of each axis are drawn in a separate process (its own interpreter: no GIL
+    # shared with the bus threads) as soon as that axis has measured, so the figures of the
+    # shorter axes overlap the longest axis' measuring
+    pool = None
     measuring = {"left": 0}
-    measured = threading.Condition()
+    measured = threading.Lock()
 
     def done_measuring():
         with measured:
             measuring["left"] -= 1
             if measuring["left"] == 0:
                 measuring["wall_s"] = time.monotonic() - t0
-            measured.notify_all()
-
-    def wait_for_all_measured():
-        done_measuring()
-        with measured:
-            while measuring["left"] > 0 and not cancel.is_set():
-                measured.wait(0.5)
     try:
+        if figures:
+            pool = _FigurePool(log, log_error)
         if hb_ms:
             hb_task = network.send_periodic(0x700 + d0["host_node_id"], [0x05], hb_ms / 1000.0)
             task = getattr(hb_task, "_task", None)
@@ -269,18 +413,22 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
             def before_figures():
                 waited.append(True)
                 client.close()              # measured: this drive stopped and disabled now
-                wait_for_all_measured()
+                done_measuring()
             try:
                 # the plan against this drive's limits and the axis' limits:, before enabling
                 check_plan(client, ax["cfg"], steps)
                 os.makedirs(axis_out, exist_ok=True)
                 client.enable()
-                res = run_pipeline(client, ax["cfg"], axis_out, steps=steps, figures=figures,
+                res = run_pipeline(client, ax["cfg"], axis_out, steps=steps, figures=False,
                                    log=lambda s: log(f"[{name}] {s}"), preflight=False,
-                                   before_figures=before_figures)
+                                   before_figures=before_figures, after_step=None if pool is None else
+                                   (lambda step, results, obj: pool.submit(name, ax["node_id"], axis_out,
+                                                                           step, obj, results)))
                 res["axis"] = {"machine": machine["name"], "name": name, "node_id": ax["node_id"]}
-                from fftune.host.report import write_results
+                from fftune.host.report import write_html, write_results
                 write_results(axis_out, res)
+                write_html(axis_out, res, {})   # (again with its figures once they are drawn)
+                done_res[name] = (axis_out, res)
                 tune = res.get("tune")
                 status = "ok" if (tune is None or tune["search"]["converged"]) else "unconverged"
                 entries[name] = _axis_entry(ax, res, status, None if status == "ok" else
@@ -311,8 +459,19 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
         for th in threads:
             while th.is_alive():
                 th.join(0.2)        # short joins: Ctrl-C / SIGTERM reach the main thread
+        if pool is not None:
+            from fftune.host.report import write_html
+            figs, errors = pool.wait()          # (short waits, as above)
+            for name, err in errors.items():
+                if name in entries:
+                    entries[name]["figures_error"] = err
+            for name, (axis_out, res) in done_res.items():
+                if figs.get(name):
+                    write_html(axis_out, res, figs[name])
     except BaseException:
         cancel.set()                # every axis stops at its next SDO request ...
+        if pool is not None:
+            pool.terminate()        # ... the figure process is ended (no half-written file) ...
         for th in threads:
             th.join(10.0)
         for c in clients.values():  # ... and each drive is left stopped and disabled
@@ -320,6 +479,8 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
                 c.close()
             except BaseException:
                 pass
+        if pool is not None:
+            pool.terminate()        # (a figure job an axis submitted meanwhile)
         raise
     finally:
         if hb_task is not None:

@@ -48,7 +48,7 @@ def check_plan(drive, cfg, steps=STEPS, session=None):
 
 
 def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, preflight=True,
-                 before_figures=None, data=None):
+                 before_figures=None, data=None, after_step=None):
     """Run ``steps`` in order; returns the results dict (also written to ``out_dir``).
     ``data``: a dict that receives the analysis objects behind the figures
     (``detect_levels``, ``hos``, ``tune_data``; None for a step not run) and the figures
@@ -61,8 +61,12 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, pref
     capture is written.
 
     ``before_figures``: called (no arguments) after the experiments, before the figures are
-    drawn: a machine's axis waits there until every axis has measured, so that drawing
-    (CPU-bound, holding the GIL) does not starve the other axes' bus threads."""
+    drawn: a machine's axis stops and disables its drive there (it has measured); a machine
+    draws its axes' figures in a separate process (``figures=False`` here).
+
+    ``after_step``: called ``after_step(step, results, obj)`` after each step that ran, with
+    the analysis object behind its figures (``detect_levels``, ``hos`` or ``tune_data``): a
+    machine has the step's figures drawn while the axis' next step measures."""
     t0 = time.monotonic()
     session = ex.Session(drive, cfg, out_dir, log=log)
     if preflight:
@@ -105,6 +109,8 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, pref
             else:
                 log(f"tune: not converged after {srch['experiments']} experiments: "
                     f"{srch['stop_reason']}")
+        if after_step is not None:
+            after_step(step, results, {"detect": detect_levels, "quantify": hos, "tune": tune_data}[step])
         n_runs = session.counts["measured"] + session.counts["resumed"] - before
         results.setdefault("timing_s", {})[step] = round(time.monotonic() - t, 2)
         results.setdefault("runs", {})[step] = n_runs

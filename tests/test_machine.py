@@ -57,13 +57,24 @@ def _machine_file(d, axes, name="m.yaml", config="small.yaml"):
 
 def test_axes_tuned_concurrently_and_an_absent_node_is_one_line(machine_sim, tmp_path, capsys):
     sim, d = machine_sim
-    f = _machine_file(d, [{"name": "a", "node_id": 5}, {"name": "ghost", "node_id": 9},
+    # (the absent node's probe: a short SDO timeout, the test waits less for it)
+    f = _machine_file(d, [{"name": "a", "node_id": 5},
+                          {"name": "ghost", "node_id": 9,
+                           "overrides": {"drive": {"sdo_timeout_s": 0.3, "sdo_retries": 0}}},
                           {"name": "b", "node_id": 7}])
     out = tmp_path / "out"
     code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(out),
-                 "--no-progress", "--no-figures"])
+                 "--no-progress"])
     text = capsys.readouterr()
     assert code == 2, text.out + text.err           # an axis failed: reported, the others ran
+    # each axis' tune figure drawn by the figure process and linked from the axis' report
+    for name in ("a", "b"):
+        drawn = [ln for ln in text.out.splitlines() if ln.startswith(f"[{name}] figures of tune: ")]
+        assert len(drawn) == 1 and drawn[0].endswith("(figure process)"), text.out
+        assert (out / name / "figure7_tuning.png").stat().st_size > 1000
+        assert "<img src='figure7_tuning.png'" in (out / name / "report.html").read_text()
+        assert not [p.name for p in (out / name).iterdir() if p.name.startswith(".tmp-")]
+    assert not (out / "ghost").exists()
     ghost = [ln for ln in text.err.splitlines() if ln.startswith("fftune: error: axis 'ghost'")]
     assert len(ghost) == 1 and "(node 9): no SDO answer from node 9" in ghost[0]
     assert "nodes answering on this bus: 5, 7" in ghost[0]
@@ -137,10 +148,21 @@ def test_ctrl_c_stops_and_disables_every_axis(machine_sim, tmp_path, monkeypatch
             _thread.interrupt_main()
         return original(self, *a, **kw)
     monkeypatch.setattr(_drive.DriveClient, "run", run)
+    from fftune.host import machine as _machine
+    pools, terminate = [], _machine._FigurePool.terminate
+
+    def record(self):                       # the figure process' pid, before it is ended
+        pools.append([p.pid for p in (self._ex._processes or {}).values()])
+        terminate(self)
+    monkeypatch.setattr(_machine._FigurePool, "terminate", record)
     code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "o"),
-                 "--no-progress", "--no-figures"])
+                 "--no-progress"])
     assert code == 130
     assert sorted(set(started)) == [5, 7]
+    # the figure process (started at once, drawing nothing yet) was ended with the axes
+    assert len(pools[0]) == 1, pools
+    with pytest.raises(ProcessLookupError):
+        os.kill(pools[0][0], 0)
     monkeypatch.setattr(_drive.DriveClient, "run", original)
     for nid in (5, 7):
         with DriveClient(BusOptions(port=sim.port, node_id=nid, eds=EDS), heartbeat_ms=0) as c:

@@ -8,11 +8,13 @@ without the sweep and K_v), once free-running and once with --realtime (drive_si
 every axis at its 2560 Hz controller rate). Printed per run: each axis' K_fc* against its
 truth, the bus time (drive_sim's bus model: bits carried / bit rate) against the longest
 axis' excitation (acceptance: <= 15 %), and the machine's wall time against the longest
-axis' excitation (--realtime acceptance: <= 1.15). The wall time of --realtime is bounded
+axis' excitation (--realtime acceptance: <= 1.15), the whole wall time with every axis'
+figures and report (drawn step by step in a separate figure process while the axes
+measure) and until the last axis has measured. The wall time of --realtime is bounded
 below by the longest axis' excitation; what it adds is the SDO traffic of the four axes
-between their runs (parameters, read-back, statistics uploads) on the shared bus and the
-host's analysis between runs; it depends on the load of the machine (Python threads of 4
-axes on 2 shared cores).
+between their runs (parameters, read-back, statistics uploads) on the shared bus, the
+host's analysis between runs and the last axis' tune figure; it depends on the load of the
+machine (Python threads of 4 axes and the figure process on 2 shared cores).
 """
 import os
 import subprocess
@@ -60,7 +62,7 @@ def main():
             s = yaml.safe_load(open(os.path.join(out, "results.yaml")))
             t = s["time_budget_s"]["total"]
             print(f"{mode}: 4 axes, wall {t['wall']:.1f} s (until the last axis measured "
-                  f"{t['measure_wall']:.1f} s, the figures after it), longest axis' excitation "
+                  f"{t['measure_wall']:.1f} s), longest axis' excitation "
                   f"{t['excitation']:.1f} s (sum over axes {t['excitation_sum']:.1f} s): wall / longest "
                   f"excitation {t['wall_re_longest_excitation']:.3f}, measuring / longest excitation "
                   f"{t['measure_re_longest_excitation']:.3f} (realtime acceptance <= 1.15); bus "
