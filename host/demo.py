@@ -13,7 +13,7 @@ import time
 
 from fftune.host.commands import DEFAULT_CONFIG
 from fftune.host.config import check_output_dir, load_config
-from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
+from fftune.host.drive import DriveClient, add_bus_arguments
 from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
 
 
@@ -121,14 +121,7 @@ def _run(args, cfg, out, bitrate):
     try:
         bus = f", CAN bus model {bitrate} bit/s" if bitrate else ""
         print(f"fftune demo: drive_sim ({shown}) listening on {sim.describe()}{bus}", flush=True)
-        if sim.interface == "socketcan":
-            opts = BusOptions(interface="socketcan", channel=sim.channel, node_id=node_id, eds=d["eds"] or None)
-        else:
-            opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
-                              node_id=node_id, eds=d["eds"] or None)
-        if opts.eds is None:
-            from fftune.host.odmap import DEFAULT_EDS
-            opts.eds = DEFAULT_EDS
+        opts = sim.bus_options(node_id, d["eds"] or None)
         client = DriveClient(opts, sdo_timeout_s=d["sdo_timeout_s"], sdo_retries=d["sdo_retries"],
                              heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],
                              run_timeout_s=d["run_timeout_s"], progress=not args.no_progress)

@@ -33,6 +33,18 @@ class SimulatedDrive:
             return f"SocketCAN {self.channel}"
         return f"socketcand {self.host}:{self.port}"
 
+    def bus_options(self, node_id, eds=None):
+        """The host's :class:`~fftune.host.drive.BusOptions` to reach this drive's node
+        ``node_id`` (``eds`` None: the packaged EDS)."""
+        from fftune.host.drive import BusOptions
+        from fftune.host.odmap import DEFAULT_EDS
+
+        if self.interface == "socketcan":
+            return BusOptions(interface="socketcan", channel=self.channel, node_id=node_id,
+                              eds=eds or DEFAULT_EDS)
+        return BusOptions(interface="socketcand", channel="can0", host=self.host, port=self.port,
+                          node_id=node_id, eds=eds or DEFAULT_EDS)
+
     def stop(self, timeout_s=3.0):
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)

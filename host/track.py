@@ -627,14 +627,7 @@ def _demo_track(args):
                           channel=args.channel, bitrate=bitrate, realtime=args.realtime)
     try:
         print(f"fftune demo-track: drive_sim ({os.path.relpath(plant)}) on {sim.describe()}", flush=True)
-        if sim.interface == "socketcan":
-            opts = BusOptions(interface="socketcan", channel=sim.channel, node_id=node_id, eds=d["eds"] or None)
-        else:
-            opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
-                              node_id=node_id, eds=d["eds"] or None)
-        if opts.eds is None:
-            from fftune.host.odmap import DEFAULT_EDS
-            opts.eds = DEFAULT_EDS
+        opts = sim.bus_options(node_id, d["eds"] or None)
         with _client(cfg, opts, not args.no_progress) as client:
             client.enable()
             results = track_session(client, cfg, out, figures=not args.no_figures,
