@@ -142,6 +142,10 @@ def _config(tmp_path):
     return str(path)
 
 
+def _sigint_default():
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _fftune_run(tmp_path, port):
     # PYTHONFAULTHANDLER: a host that does not exit in time is sent SIGABRT by _communicate,
     # and the failure shows where every thread of it was (not just "not out in 20 s")
@@ -149,6 +153,9 @@ def _fftune_run(tmp_path, port):
         [sys.executable, "-m", "fftune.host.cli", "run", "--config", _config(tmp_path),
          "--out", str(tmp_path / "out"), "--port", str(port), "--no-progress", "--no-figures"],
         cwd=REPO, env=dict(os.environ, PYTHONPATH=REPO, PYTHONFAULTHANDLER="1"),
+        # a test run started as a background job of a non-interactive shell inherits SIGINT
+        # ignored, and Python then installs no Ctrl-C handler: the child gets the default
+        preexec_fn=_sigint_default,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

@@ -7,6 +7,7 @@ the drive's statistics) runs on the axes at once.
 """
 import _thread
 import os
+import signal
 import struct
 
 import pytest
@@ -155,8 +156,14 @@ def test_ctrl_c_stops_and_disables_every_axis(machine_sim, tmp_path, monkeypatch
         pools.append([p.pid for p in (self._ex._processes or {}).values()])
         terminate(self)
     monkeypatch.setattr(_machine._FigurePool, "terminate", record)
-    code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "o"),
-                 "--no-progress"])
+    # _thread.interrupt_main() does nothing while SIGINT is ignored, as it is in a test run
+    # started as a background job of a non-interactive shell: Python's own handler here
+    sigint = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "o"),
+                     "--no-progress"])
+    finally:
+        signal.signal(signal.SIGINT, sigint)
     assert code == 130
     assert sorted(set(started)) == [5, 7]
     # the figure process (started at once, drawing nothing yet) was ended with the axes
