@@ -430,9 +430,10 @@ def _stray_lines(level, found):
         # a line 6 dB under the median of its 10 nearest neighbours in the set: only lines
         # 6 dB under the set's largest level can be (the few others are not computed)
         cand = np.flatnonzero(lv < lv.max() - 6.0)
-        padded = np.pad(lv, 5, mode="reflect")
-        left = np.median(padded[cand[:, None] + np.arange(5)], axis=1)
-        right = np.median(padded[cand[:, None] + np.arange(6, 11)], axis=1)
+        padded = np.concatenate((lv[5:0:-1], lv, lv[-2:-7:-1]))     # np.pad(lv, 5, "reflect")
+        # (median of 5: the third order statistic)
+        left = np.partition(padded[cand[:, None] + np.arange(5)], 2, axis=1)[:, 2]
+        right = np.partition(padded[cand[:, None] + np.arange(6, 11)], 2, axis=1)[:, 2]
         # under BOTH sides: a line at a designed amplitude step is level with one side
         low = cand[lv[cand] < np.minimum(left, right) - 6.0]
         if 0 < low.size <= allow:
@@ -535,14 +536,15 @@ def _transient(Y_exc, settle, n_periods):
     n_total = Y_exc.shape[1]
     if Y_exc.shape[2] > 256:        # a diagnostic: 256 lines across the band are plenty
         Y_exc = Y_exc[..., np.linspace(0, Y_exc.shape[2] - 1, 256).astype(np.int64)]
-    centre = Y_exc[:, n_total - max(n_periods // 2, 1):, :].mean(axis=1, keepdims=True)
+    tail = Y_exc[:, n_total - max(n_periods // 2, 1):, :]
+    centre = np.add.reduce(tail, axis=1, keepdims=True) / tail.shape[1]
     diff = Y_exc - centre
-    d = _abs2_sum(diff, axis=2).mean(axis=0) / Y_exc.shape[2]          # (T+P,)
-    ref = float(np.mean(_abs2(centre)))
+    d = _mean0(_abs2_sum(diff, axis=2)) / Y_exc.shape[2]          # (T+P,)
+    ref = float(np.add.reduce(_abs2(centre), axis=None) / centre.size)
     level = d / ref if ref > 0 else np.full_like(d, np.nan)
     check = TransientCheck(level_db=to_db(level))
     if n_periods >= 3:
-        noise = float(np.median(level[settle + 1:]))
+        noise = float(_median(level[settle + 1:]))
         check.expected_db = to_db(np.full(d.shape, noise))
         if settle > 0:
             last_settle = level[settle - 1]
@@ -617,6 +619,39 @@ def classify_grid(excited_bins, n_period):
                     "'nonlinear', not odd or even (use a random odd multisine for that)"}
 
 
+def _unwrap(p):
+    """np.unwrap(p) of a 1-D phase (rad): the same arithmetic without its general-axis
+    overhead (called once per estimate on the excited lines)."""
+    if p.size < 2:
+        return p.copy()
+    dd = p[1:] - p[:-1]
+    ddmod = np.mod(dd + np.pi, 2 * np.pi) - np.pi
+    np.copyto(ddmod, np.pi, where=(ddmod == -np.pi) & (dd > 0))
+    correct = ddmod - dd
+    np.copyto(correct, 0.0, where=np.abs(dd) < np.pi)
+    out = p.copy()
+    out[1:] += np.cumsum(correct)
+    return out
+
+
+def _lagrange4(xs, xa, values):
+    """4-point Lagrange interpolation: ``xs`` (4, n) nodes, ``xa`` (n,) abscissae,
+    ``values`` (4, n) at the nodes; weight j = prod over i != j of (xa - x_i) / (x_j - x_i)
+    (the factors in the order of i), column by column (no reductions over an axis of 4)."""
+    d = [xa - xs[i] for i in range(4)]
+    total = None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for j in range(4):
+            w = None
+            for i in range(4):
+                if i != j:
+                    q = d[i] / (xs[j] - xs[i])
+                    w = q if w is None else w * q
+            term = w * values[j]
+            total = term if total is None else total + term
+    return total
+
+
 def _interp_frf(freq, G, f_at):
     """G at ``f_at`` from 4-point Lagrange interpolation in log f of log|G| and the
     unwrapped phase (exact for power laws such as a double integrator); and the
@@ -625,32 +660,23 @@ def _interp_frf(freq, G, f_at):
     e = freq.size
     x = np.log(freq)
     logmag = np.log(np.maximum(np.abs(G), 1e-300))
-    phase = np.unwrap(np.angle(G))
+    phase = _unwrap(np.angle(G))
     if e < 5:
         g_at = np.exp(np.interp(np.log(f_at), x, logmag) + 1j * np.interp(np.log(f_at), x, phase))
         return g_at, np.full(e, np.inf)
+    logg = logmag + 1j * phase          # one interpolation for both (the same weights)
 
-    eye4 = np.eye(4, dtype=bool)
-
-    def lagrange_weights(xs, xa):
-        # w_j = prod_{i != j} (xa - x_i) / (x_j - x_i), the factors in the order of i
-        with np.errstate(divide="ignore", invalid="ignore"):
-            f = (xa[:, None, None] - xs[:, None, :]) / (xs[:, :, None] - xs[:, None, :])
-        f[:, eye4] = 1.0
-        return np.multiply.reduce(f, axis=2)
-
-    def predict(idx, xa):
-        w = lagrange_weights(x[idx], xa)        # the same weights for |G| and the phase
-        return np.exp(np.sum(w * logmag[idx], axis=1) + 1j * np.sum(w * phase[idx], axis=1))
+    def predict(idx, xa):               # idx (4, n): the nodes of each abscissa
+        return np.exp(_lagrange4(x[idx], xa, logg[idx]))
 
     xa = np.log(np.asarray(f_at, dtype=float))
     start = np.clip(np.searchsorted(x, xa) - 2, 0, e - 4)
-    g_at = predict(start[:, None] + np.arange(4), xa)
+    g_at = predict(start + np.arange(4)[:, None], xa)
     # leave one out: window of 4 among the other e - 1 lines, centred on line i
     i = np.arange(e)
     start = np.clip(i - 2, 0, e - 5)
-    reduced = start[:, None] + np.arange(4)
-    idx = reduced + (reduced >= i[:, None])
+    reduced = start + np.arange(4)[:, None]
+    idx = reduced + (reduced >= i)
     loo = predict(idx, x)
     return g_at, np.abs(loo - G) / np.abs(G)
 
@@ -675,14 +701,22 @@ def _false_alarm_count(n_lines, p_line, alpha=1e-3):
         return None
     p = float(p_line)
     if 0.0 < p < 1.0 and n_lines * p < 300:
-        # the cdf term by term up to 1 - alpha (no array of n_lines + 1 terms)
-        pmf = (1.0 - p) ** n_lines
-        cdf, k, r = pmf, 0, p / (1.0 - p)
-        while cdf < 1.0 - alpha and k < n_lines:
-            pmf *= (n_lines - k) / (k + 1) * r
-            cdf += pmf
-            k += 1
-        return max(1, k + 1)
+        # the cdf term by term up to 1 - alpha, pmf(k + 1) = pmf(k) (n - k) / (k + 1) p / (1 - p)
+        # (cumprod and cumsum: the same sequence of products and sums as a loop; the terms
+        # past the mean + 12 sd + 40 are not reached for alpha >= 1e-30)
+        r = p / (1.0 - p)
+        stop = int(min(n_lines, n_lines * p + 12.0 * np.sqrt(n_lines * p) + 40.0))
+        k = np.arange(stop, dtype=float)
+        steps = np.empty(stop + 1)
+        steps[0] = (1.0 - p) ** n_lines
+        steps[1:] = (n_lines - k) / (k + 1) * r
+        cdf = np.cumsum(np.cumprod(steps))
+        reached = np.flatnonzero(cdf >= 1.0 - alpha)
+        if reached.size:
+            return max(1, int(reached[0]) + 1)
+        if stop == n_lines:
+            return n_lines + 1
+        # (not reached: fall back to the exact tail)
     sf = _binom_sf_counts(n_lines, p_line)
     ok = np.flatnonzero(sf <= alpha)
     return max(1, int(ok[0]) if ok.size else n_lines + 1)
@@ -702,11 +736,17 @@ def f_sf_even(x, d1, d2):
     with np.errstate(divide="ignore"):
         log1mw = np.log1p(-np.minimum(w, 1.0))
         logw = np.log(w)
-    total = np.zeros_like(w)
-    for j in range(a):
-        coef = math.lgamma(b + j) - math.lgamma(b) - math.lgamma(j + 1)
-        term = coef + b * log1mw + (j * logw if j else 0.0)
-        total += np.exp(np.where(np.isfinite(term), term, -np.inf))
+    if a == 0:
+        return np.minimum(np.zeros_like(w), 1.0)
+    # all a terms at once, (a, ...) then summed over j in order
+    j = np.arange(a, dtype=float).reshape((a,) + (1,) * w.ndim)
+    coef = np.array([math.lgamma(b + i) - math.lgamma(b) - math.lgamma(i + 1) for i in range(a)])
+    coef = coef.reshape(j.shape)
+    with np.errstate(invalid="ignore"):
+        jlogw = j * logw
+    jlogw[0] = 0.0                      # (j = 0: w^0 = 1, also where log w = -inf)
+    term = coef + b * log1mw + jlogw
+    total = np.add.accumulate(np.exp(np.where(np.isfinite(term), term, -np.inf)), axis=0)[-1]
     return np.minimum(total, 1.0)
 
 
@@ -739,18 +779,36 @@ def _class_stats(level, reference, nu, prefix, alpha=1e-3, tail=None, known=None
             return (1.0 + np.maximum(x, 0) / nu) ** (-nu)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = level / reference
-        excess = 10 * np.log10(ratio)
         if known is not None:
             thr = known_margin * known
+            tested = level > thr
             ex = np.maximum(level - thr, 0.0) / np.maximum(reference - known, 1e-300)
-            p_lines = np.where(level > thr, tail(ex), 1.0)
         else:
-            p_lines = np.where(ratio > 0, tail(np.where(ratio > 0, ratio, 0.0)), 1.0)
+            tested = ratio > 0
+            ex = ratio
+        # the smallest line probability: the tail falls with the ratio, so it is the tail
+        # at the largest finite ratio (and at inf, where f_sf_even gives NaN, ignored as
+        # np.nanmin would); untested lines have probability 1
+        ex = ex[tested]
+        finite = ex[np.isfinite(ex)]
+        candidates = [finite.max()] if finite.size else []
+        if finite.size < ex.size and np.isinf(ex).any():
+            candidates.append(np.inf)
+        p_min = np.asarray(tail(np.array(candidates, dtype=float))) if candidates else np.empty(0)
+        if ex.size < level.size:
+            p_min = np.append(p_min, 1.0)
+        # median of 10 log10(ratio): log10 keeps the order, so only the middle values
+        med = np.nan
+        if not (np.isnan(ratio).any() or (ratio < 0).any()):
+            k = (ratio.size - 1) // 2
+            mid = np.partition(ratio, (k, k + 1) if ratio.size % 2 == 0 else k)
+            med = (10 * np.log10(mid[k]) if ratio.size % 2 else
+                   (10 * np.log10(mid[k]) + 10 * np.log10(mid[k + 1])) / 2.0)
+        med = float(med)
     p_line = float(tail(np.array(4.0)))
     over = int(np.sum(level > 4.0 * reference))
     need = _false_alarm_count(level.size, p_line, alpha)
-    med = float(_median(excess))
-    strongest = bool(level.size * np.nanmin(p_lines) <= alpha)
+    strongest = bool(p_min.size and level.size * np.nanmin(p_min) <= alpha)
     out.update({f"{prefix}line_median_re_noise_db": med if np.isfinite(med) else None,
                 f"{prefix}lines_over_noise_6db": over, f"{prefix}lines_needed": need,
                 f"{prefix}lines_by_noise": float(level.size * p_line),
@@ -896,43 +954,81 @@ def _band_figures(odd_bins, odd_power, odd_noise, even_bins, even_power, even_no
     elif acc or len(bounds) == 1:
         bounds.append(edges[-1])
 
-    excess = {}
-    for key, power, noise in ((id(odd_bins), odd_power, odd_noise),
-                              (id(even_bins), even_power, even_noise),
-                              (id(det_bins), det_power, det_noise)):
-        if noise is not None:
+    six_db = 10 * np.log10(4.0)
+
+    def cls(bins, power, noise):
+        """The figures of one class of lines in every band [bounds[i], bounds[i + 1])."""
+        pos = np.searchsorted(bins, bounds)
+        lo, hi = pos[:-1], pos[1:]
+        n_lines = hi - lo
+        full = n_lines > 0
+        starts = np.minimum(lo, max(power.size - 1, 0))
+        sums = np.add.reduceat(power, starts) if power.size else np.zeros(lo.size)
+        if noise is not None and power.size:
             with np.errstate(divide="ignore", invalid="ignore"):
                 ex = 10 * np.log10(power / noise)
-            excess[key] = np.where(np.isfinite(ex), ex, -np.inf)
-
-    def cls(bins, power, noise, a, b):
-        i, j = (int(v) for v in np.searchsorted(bins, (a, b)))
-        out = {"lines": j - i, "median_re_noise_db": None, "max_re_noise_db": None,
-               "lines_over_noise_6db": None, "power_db": None}
-        if j <= i:
-            return out
-        mean = float(np.add.reduce(power[i:j]) / (j - i))
-        out["power_db"] = float(10 * np.log10(max(mean, 1e-300)))
-        if noise is not None:
-            ex = excess[id(bins)][i:j]
-            med, top = float(_median(ex)), float(ex.max())
-            out.update({"median_re_noise_db": med if np.isfinite(med) else None,
-                        "max_re_noise_db": top if np.isfinite(top) else None,
-                        "lines_over_noise_6db": int(np.count_nonzero(ex > 10 * np.log10(4.0)))})
+            ex = np.where(np.isfinite(ex), ex, -np.inf)
+            tops = np.maximum.reduceat(ex, starts)
+            overs = np.add.reduceat((ex > six_db).astype(np.int64), starts)
+        out = []
+        for k in range(lo.size):
+            entry = {"lines": int(n_lines[k]), "median_re_noise_db": None,
+                     "max_re_noise_db": None, "lines_over_noise_6db": None, "power_db": None}
+            out.append(entry)
+            if not full[k]:
+                continue
+            mean = float(sums[k] / n_lines[k])
+            entry["power_db"] = float(10 * np.log10(max(mean, 1e-300)))
+            if noise is not None:
+                med, top = float(_median(ex[lo[k]:hi[k]])), float(tops[k])
+                entry.update({"median_re_noise_db": med if np.isfinite(med) else None,
+                              "max_re_noise_db": top if np.isfinite(top) else None,
+                              "lines_over_noise_6db": int(overs[k])})
         return out
 
-    bands = []
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        entry = {"f_lo_hz": a * fs / n, "f_hi_hz": (b - 1) * fs / n}
-        if parity:
-            entry["odd"] = cls(odd_bins, odd_power, odd_noise, a, b)
-            entry["even"] = cls(even_bins, even_power, even_noise, a, b)
-            po, pe = entry["odd"]["power_db"], entry["even"]["power_db"]
+    bands = [{"f_lo_hz": a * fs / n, "f_hi_hz": (b - 1) * fs / n}
+             for a, b in zip(bounds[:-1], bounds[1:])]
+    if parity:
+        for entry, odd, even in zip(bands, cls(odd_bins, odd_power, odd_noise),
+                                    cls(even_bins, even_power, even_noise)):
+            entry["odd"], entry["even"] = odd, even
+            po, pe = odd["power_db"], even["power_db"]
             entry["odd_re_even_db"] = None if po is None or pe is None else po - pe
-        else:
-            entry["nonexcited"] = cls(det_bins, det_power, det_noise, a, b)
-        bands.append(entry)
+    else:
+        for entry, lines in zip(bands, cls(det_bins, det_power, det_noise)):
+            entry["nonexcited"] = lines
     return bands
+
+
+def _median_db_of(power):
+    """_median(to_db(power)) from the middle value(s) only (10 log10 keeps the order;
+    NaN when a value is NaN or <= 0, as to_db gives there)."""
+    p = np.asarray(power, dtype=float).reshape(-1)
+    if p.size == 0:
+        return _median(p)
+    if np.isnan(p).any() or (p <= 0).any():
+        return np.float64(np.nan)
+    k = (p.size - 1) // 2
+    if p.size % 2:
+        return to_db(np.partition(p, k)[k])
+    part = np.partition(p, (k, k + 1))
+    return (to_db(part[k]) + to_db(part[k + 1])) / 2.0
+
+
+def _quantile_db_of(power, q):
+    """np.quantile(to_db(power), q) (linear interpolation) from the two neighbouring
+    order statistics only; power > 0 and finite (else np.quantile itself)."""
+    p = np.asarray(power, dtype=float).reshape(-1)
+    if p.size == 0 or not np.isfinite(p).all() or (p <= 0).any():
+        return np.quantile(to_db(p), q)
+    pos = q * (p.size - 1)
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, p.size - 1)
+    part = np.partition(p, (lo, hi) if hi != lo else lo)
+    a, b = float(to_db(part[lo])), float(to_db(part[hi]))
+    t = pos - lo
+    # numpy's lerp: a + t (b - a), from the upper end when t >= 0.5
+    return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
 
 
 def _median_db(values_db):
@@ -1002,14 +1098,24 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     band = np.arange(excited[0], excited[-1] + 1)
     # resolution of the recorded numbers: float32 records round to 2^-24 of the value
     # (a sample of every 97th value is enough to tell float32 records; the input's largest
-    # magnitude is bounded by twice the sample's, the output's is taken exactly)
-    def rounding(x, exact):
-        sample = x.reshape(-1)[::97]
-        f32 = x.dtype == np.float32 or np.array_equal(sample, sample.astype(np.float32))
-        top = max(float(x.max()), -float(x.min())) if exact else \
-            2.0 * float(np.max(np.abs(sample)))
+    # magnitude is bounded by twice the sample's, the output's is taken exactly). Read per
+    # realization just before its FFT (its samples are then in cache, no extra pass).
+    per_real = n_total * n
+    extremes = {"u": [0.0, True], "y": [0.0, True]}     # largest |value|, float32-exact
+
+    def scan(x, m, acc, exact):
+        flat = x[m].reshape(-1)
+        sample = flat[(-m * per_real) % 97::97]       # its part of x.reshape(-1)[::97]
+        if acc[1] and x.dtype != np.float32:
+            acc[1] = np.array_equal(sample, sample.astype(np.float32))
+        if exact:
+            acc[0] = max(acc[0], float(flat.max()), -float(flat.min()))
+        elif sample.size:
+            acc[0] = max(acc[0], 2.0 * float(np.max(np.abs(sample))))
+
+    def rounding(name):
+        top, f32 = extremes[name]
         return top * (2.0 ** -24 if f32 else 2.0 ** -53)
-    y_rounding, u_rounding = rounding(y, True), rounding(u, False)
 
     lo, hi = int(band[0]), int(band[-1]) + 1      # the band is contiguous: a view, no copy
 
@@ -1022,6 +1128,8 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                if x is not None and x.dtype == np.float64 else None for x in signals]
 
     def one_realization(m):
+        scan(u, m, extremes["u"], False)
+        scan(y, m, extremes["y"], True)
         out = []
         for x, buf in zip(signals, buffers):
             if x is None:
@@ -1045,10 +1153,10 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     try:
         res = robust_bla_spectra(None, None, bins=band, n_period=n, fs=fs, settle_periods=settle,
                                  excited_bins=excited, warn_transient=False,
-                                 y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
-                                 _get=one_realization, _shape=(n_real, n_total),
+                                 y_quantisation_step=y_quantisation_step,
+                                 y_rounding=lambda: rounding("y"), _get=one_realization, _shape=(n_real, n_total),
                                  _known_ref=r is not None, _y_mean_time=y_mean_time,
-                                 _ignore_bins=strays, _u_rounding=u_rounding)
+                                 _ignore_bins=strays, _u_rounding=lambda: rounding("u"))
     except InputError as exc:
         if "non-finite" in str(exc) or "zero power" in str(exc):
             _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
@@ -1133,7 +1241,8 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
         float32 records): its floor (uniform, spread over the band) is added to the
         noise at the non-excited lines, so that the rounding of a periodic record (the
         same in every period, hence not in the noise estimate) is not taken for
-        distortion.
+        distortion. (:func:`robust_bla` passes a function, called once every
+        realization has been read.)
 
     Returns
     -------
@@ -1205,6 +1314,8 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
         s_yu[m] = np.add.reduce(prod, axis=0)
     mom = LineMoments(bins=band, n_periods=n_per, U=mU, Y=mY, ss_u=ss_u, ss_y=ss_y, s_yu=s_yu,
                       R=mR if known_ref else None, ss_r=ss_r if known_ref else None)
+    if callable(y_rounding):        # (robust_bla: known once every realization is read)
+        y_rounding, _u_rounding = y_rounding(), _u_rounding()
     return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=Y_exc,
                              G_per=G_per, warn_transient=warn_transient,
                              y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
@@ -1321,7 +1432,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     exc_i, det_i = np.flatnonzero(is_exc), np.flatnonzero(is_det)
     U_mean_e, Y_mean_e = mom.U[:, exc_i], mom.Y[:, exc_i]
     # sum over realizations and periods of |U_p|^2 = P |mean|^2 + sum |deviation|^2
-    u_power = np.sum(n_per * _abs2(U_mean_e) + mom.ss_u[:, exc_i], axis=0)
+    ue_abs2 = _abs2(U_mean_e)
+    u_power = np.sum(n_per * ue_abs2 + mom.ss_u[:, exc_i], axis=0)
     ud, yd = mom.U[:, det_i], mom.Y[:, det_i]
     ud_ss, yd_ss, yud = mom.ss_u[:, det_i], mom.ss_y[:, det_i], mom.s_yu[:, det_i]
     if known_ref:
@@ -1341,7 +1453,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
             var_total = _abs2_sum((G_m - G)[:, None, :], axis=0)[0] / (n_real * (n_real - 1))
         if n_per >= 2:
             var_noise = G_ss.sum(axis=0) / (n_per * (n_per - 1)) / n_real ** 2
-        u_level = _mean0(_abs2(U_mean_e))
+        u_level = _mean0(ue_abs2)
+        x_exc_abs2 = u_level                # the excitation's own level (known input)
     else:
         check_power("reference r", np.sum(_abs2(R_mean), axis=0))
         # rotate each realization by conj(R / |R|) (removes its random phase); the sums
@@ -1355,6 +1468,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
             G = Y_bar / U_bar
         check_finite(G)
         u_level = _abs2(U_bar)
+        x_exc_abs2 = None
 
         def propagate(s2y, s2u, cyu):
             return (s2y + _abs2(G) * s2u - 2 * np.real(np.conj(G) * cyu)) / u_level
@@ -1381,7 +1495,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         # the rounding of the recorded numbers is the same in every period (not in
         # var_noise) but differs between realizations (in var_total): its variance of G
         # (uniform error of +-rounding per sample: N rounding^2 / 3 per line) is added
-        u_abs2 = u_level if known_ref else _mean0(_abs2(U_mean_e))
+        u_abs2 = u_level
         round_var = (n * (float(y_rounding) ** 2 + _abs2(G) * float(u_rounding) ** 2)
                      / 3.0 / np.maximum(u_abs2, 1e-300) / n_real)
         ref_var = var_noise + round_var
@@ -1427,10 +1541,11 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
 
     rounding_floor = 4.0 * (2.0 * float(y_rounding)) ** 2 / 12.0 / n
 
-    def line_levels(mean, ss, floor=0.0):
+    def line_levels(mean, ss, floor=0.0, mean_abs2=None):
         """Level (mean over m of |period mean|^2) and noise of the period mean (plus a
-        rounding floor) from the period means and sums of squared deviations."""
-        level = scale2 * _mean0(_abs2(mean))
+        rounding floor) from the period means and sums of squared deviations (and the
+        mean over m of |period mean|^2 when known)."""
+        level = scale2 * (_mean0(_abs2(mean)) if mean_abs2 is None else mean_abs2)
         noise = None if n_per < 2 else scale2 * _mean0(ss) / (n_per * (n_per - 1)) + floor
         return level, noise
 
@@ -1445,7 +1560,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     # (drive output saturation, the loop) leaves nothing; a plant nonlinearity, sensor
     # quantisation or noise remain. The interpolation error (leave-one-out) is added to
     # what is expected there without plant distortion.
-    plant_power = plant_expected = plant_bound = g_det = None
+    plant_power = plant_expected = plant_bound = g_det = ud_abs2 = None
     n_output_at_noise = 0
     if det_bins.size and excited.size >= 5:
         g_det, loo = _interp_frf(freq, G, det_bins * fs / n)
@@ -1454,7 +1569,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         plant_power, plant_noise = line_levels(e_mean, np.maximum(e_ss, 0.0), rounding_floor)
         nb = np.clip(np.searchsorted(excited, det_bins), 1, excited.size - 1)
         rel = np.maximum(loo[nb - 1], loo[nb])
-        g_u = scale2 * _abs2(g_det) * _mean0(_abs2(ud))
+        ud_abs2 = _mean0(_abs2(ud))
+        g_u = scale2 * _abs2(g_det) * ud_abs2
         plant_bound = rel ** 2 * g_u
         if plant_noise is not None:
             plant_expected = plant_noise + plant_bound
@@ -1562,14 +1678,15 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
     summary["excitation_nonexcited_top_re_excited_db"] = None
     summary["excitation_distorted"] = None
     if det_bins.size:
-        x_det, x_noise = line_levels(xd, xd_ss)
-        x_exc = scale2 * _mean0(_abs2(xe))
-        rel_db = float(_median(to_db(np.maximum(x_det, 1e-300))) - _median(to_db(x_exc)))
+        x_det, x_noise = line_levels(xd, xd_ss, mean_abs2=None if known_ref else ud_abs2)
+        x_exc = scale2 * (_mean0(_abs2(xe)) if x_exc_abs2 is None else x_exc_abs2)
+        # (dB keeps the order: median and quantile from the middle values only)
+        x_exc_db = _median_db_of(x_exc)
+        rel_db = float(_median_db_of(np.maximum(x_det, 1e-300)) - x_exc_db)
         summary["excitation_nonexcited_re_excited_db"] = rel_db
         # the strongest tenth: an odd distortion of an odd grid leaves the even lines
         # (half of the detection lines) empty, so the median alone can miss it
-        top_db = float(np.quantile(to_db(np.maximum(x_det, 1e-300)), 0.9)
-                       - _median(to_db(x_exc)))
+        top_db = float(_quantile_db_of(np.maximum(x_det, 1e-300), 0.9) - x_exc_db)
         summary["excitation_nonexcited_top_re_excited_db"] = top_db
         if x_noise is not None:
             xs = _class_stats(x_det, x_noise, nu, "x_")
