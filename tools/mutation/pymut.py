@@ -34,7 +34,8 @@ WORK = ROOT / "build" / "mutation" / "py"
 MODULES = {
     # the 150-seed Monte Carlo check of the known-reference variances (the slowest test by
     # far) is left out for time; the known-reference var_nl test covers the same lines
-    "bla": ("analysis/bla.py", ["tests/test_analysis_bla_mutants.py", "tests/test_analysis_bla.py",
+    "bla": ("analysis/bla.py", ["tests/test_analysis_bla_helpers.py",
+                                "tests/test_analysis_bla_mutants.py", "tests/test_analysis_bla.py",
                                 "tests/test_analysis_bla_moments.py", "tests/test_analysis_detect.py",
                                 "--deselect=tests/test_analysis_bla.py::"
                                 "test_known_reference_variances_match_monte_carlo_spread"]),
