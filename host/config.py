@@ -299,7 +299,9 @@ def validate(raw, path="<config>"):
     _number(cfg, path, "drive.heartbeat_ms", low=0, high=16383, integer=True)
     _number(cfg, path, "drive.fs_hz", low=0, low_inclusive=False, allow_none=True)
     _number(cfg, path, "drive.sdo_timeout_s", low=0.05, high=60)
-    _number(cfg, path, "drive.sdo_retries", low=0, high=10, integer=True)
+    # attempts per SDO request (python-canopen's MAX_RETRIES): 1 = no retry; 0 would send
+    # nothing and was once raised to 1 without a word
+    _number(cfg, path, "drive.sdo_retries", low=1, high=10, integer=True)
     _number(cfg, path, "drive.run_timeout_s", low=0.1)
     if cfg["drive"]["eds"] is not None and not isinstance(cfg["drive"]["eds"], str):
         raise _err(path, "drive.eds", f"expected a file path, got {show(cfg['drive']['eds'])}")

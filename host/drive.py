@@ -296,7 +296,8 @@ class DriveClient:
     sdo_timeout_s : float
         Response timeout of one SDO request.
     sdo_retries : int
-        Attempts per SDO request (python-canopen's ``MAX_RETRIES``).
+        Attempts per SDO request (python-canopen's ``MAX_RETRIES``), >= 1: 1 sends each
+        request once.
     heartbeat_ms : int
         Producer time of the drive's heartbeat and of the host's; the drive's consumer
         watches the host with 4x this time. 0 switches both off.
@@ -320,6 +321,9 @@ class DriveClient:
                  host_node_id=0x7F, run_timeout_s=120.0, progress=True, network=None):
         import canopen
 
+        if isinstance(sdo_retries, bool) or not isinstance(sdo_retries, int) or sdo_retries < 1:
+            raise ValueError(f"sdo_retries: attempts per SDO request must be an integer >= 1, "
+                             f"got {sdo_retries!r}")
         self.opts = opts
         self.sdo_timeout_s = sdo_timeout_s
         self.sdo_retries = sdo_retries
@@ -361,7 +365,7 @@ class DriveClient:
             self.network.connect()
             self.network.notifier.add_listener(_BusErrorListener())
         self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
-        self.node.sdo.MAX_RETRIES = max(1, self.sdo_retries)
+        self.node.sdo.MAX_RETRIES = self.sdo_retries
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
         self._probe()
         self._start_heartbeats()

@@ -137,6 +137,7 @@ class Observer:
 def _config(tmp_path):
     cfg = yaml.safe_load(open(os.path.join(REPO, "configs", "demo.yaml")))
     cfg["detect"].update(rms_levels=[0.3], realizations=2, settle_periods=20)  # runs of ~9 s
+    cfg["drive"]["heartbeat_ms"] = 100          # CONSUMER_S: the drive watches 4x this
     path = tmp_path / "cleanup.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return str(path)

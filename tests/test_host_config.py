@@ -47,6 +47,8 @@ def test_demo_config_validates():
     ("quantify:\n  rms_levels: {start: 0.1, stop: 1}\n", "key 'quantify.rms_levels': expected a list"),
     ("quantify:\n  frequencies_hz: [5, -1]\n", "key 'quantify.frequencies_hz[1]': expected a number > 0"),
     ("drive:\n  node_id: 200\n", "key 'drive.node_id': expected an integer <= 127"),
+    # attempts per SDO request: 0 would send nothing (it was raised to 1 without a word)
+    ("drive:\n  sdo_retries: 0\n", "key 'drive.sdo_retries': expected an integer >= 1, got 0"),
     ("detect: [1, 2]\n", "key 'detect': expected a mapping"),
 ])
 def test_bad_config_names_file_key_and_expectation(tmp_path, text, needle):
@@ -55,6 +57,12 @@ def test_bad_config_names_file_key_and_expectation(tmp_path, text, needle):
         load_config(path)
     msg = str(exc.value)
     assert msg.startswith(path) and needle in msg
+
+
+def test_drive_client_refuses_zero_sdo_attempts():
+    from fftune.host.drive import BusOptions, DriveClient
+    with pytest.raises(ValueError, match="sdo_retries: attempts per SDO request"):
+        DriveClient(BusOptions(), sdo_retries=0)
 
 
 def test_invalid_yaml_names_the_line(tmp_path):

@@ -61,7 +61,7 @@ def test_axes_tuned_concurrently_and_an_absent_node_is_one_line(machine_sim, tmp
     # (the absent node's probe: a short SDO timeout, the test waits less for it)
     f = _machine_file(d, [{"name": "a", "node_id": 5},
                           {"name": "ghost", "node_id": 9,
-                           "overrides": {"drive": {"sdo_timeout_s": 0.3, "sdo_retries": 0}}},
+                           "overrides": {"drive": {"sdo_timeout_s": 0.3, "sdo_retries": 1}}},
                           {"name": "b", "node_id": 7}])
     out = tmp_path / "out"
     code = main(["tune", "--machine", f, "--port", str(sim.port), "--out", str(out),

@@ -355,6 +355,23 @@ static drv_status_t drv_refuse(drv_t *drv, drv_stop_reason_t reason, drv_status_
     return st;
 }
 
+/* The settle and record lengths of a run of period n: within 32 bits, something
+ * recorded, and the record fits the recorder (refused with the stop reason otherwise). */
+static drv_status_t drv_check_lengths(drv_t *drv, uint32_t n, uint32_t *settle, uint32_t *record)
+{
+    uint64_t s = (uint64_t)drv->exc_settle_periods * n;
+    uint64_t r = (uint64_t)drv->exc_record_periods * n;
+    if (r == 0u || s + r > UINT32_MAX) {
+        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
+    }
+    if (!rec_fits(&drv->rec, (uint32_t)r)) {
+        return drv_refuse(drv, DRV_STOP_NO_FIT, DRV_E_NO_FIT);
+    }
+    *settle = (uint32_t)s;
+    *record = (uint32_t)r;
+    return DRV_OK;
+}
+
 drv_status_t drv_run_start(drv_t *drv)
 {
     if (!drv->enabled || drv->fault || run_active(&drv->run)) {
@@ -389,13 +406,11 @@ drv_status_t drv_run_start(drv_t *drv)
     default:
         return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
     }
-    uint64_t settle = (uint64_t)drv->exc_settle_periods * n;
-    uint64_t record = (uint64_t)drv->exc_record_periods * n;
-    if (record == 0u || settle + record > UINT32_MAX) {
-        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
-    }
-    if (!rec_fits(&drv->rec, (uint32_t)record)) {
-        return drv_refuse(drv, DRV_STOP_NO_FIT, DRV_E_NO_FIT);
+    uint32_t settle = 0u;
+    uint32_t record = 0u;
+    drv_status_t lst = drv_check_lengths(drv, n, &settle, &record);
+    if (lst != DRV_OK) {
+        return lst;
     }
     switch (stat_check(&drv->stat, n, drv->exc_kind == DRV_EXC_SINE ? drv->exc_sine_cycles : 0u)) {
     case STAT_OK: break;
@@ -442,7 +457,7 @@ drv_status_t drv_run_start(drv_t *drv)
     drv->sat_samples = 0u;
     drv->sat_u_max = drv->ctl.u_max;
     drv->run_inject = drv->exc_inject;
-    (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);
+    (void)run_begin(&drv->run, settle, record);
     return DRV_OK;
 }
 
@@ -849,13 +864,11 @@ static drv_status_t drv_task_start(drv_t *drv)
     if (drv->exc_kind != DRV_EXC_NONE || n == 0u) {
         return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
     }
-    uint64_t settle = (uint64_t)drv->exc_settle_periods * n;
-    uint64_t record = (uint64_t)drv->exc_record_periods * n;
-    if (record == 0u || settle + record > UINT32_MAX) {
-        return drv_refuse(drv, DRV_STOP_BAD_CONFIG, DRV_E_INCOMPATIBLE);
-    }
-    if (!rec_fits(&drv->rec, (uint32_t)record)) {
-        return drv_refuse(drv, DRV_STOP_NO_FIT, DRV_E_NO_FIT);
+    uint32_t settle = 0u;
+    uint32_t record = 0u;
+    drv_status_t lst = drv_check_lengths(drv, n, &settle, &record);
+    if (lst != DRV_OK) {
+        return lst;
     }
     if (stat_check(&drv->stat, n, 0u) != STAT_OK) {
         return drv_refuse(drv, DRV_STOP_STAT_NOT_SINE, DRV_E_INCOMPATIBLE);
@@ -875,7 +888,7 @@ static drv_status_t drv_task_start(drv_t *drv)
     drv->sat_u_max = drv->ctl.u_max;
     drv->run_inject = DRV_INJECT_REFERENCE;
     drv->task.running = true;
-    (void)run_begin(&drv->run, (uint32_t)settle, (uint32_t)record);
+    (void)run_begin(&drv->run, settle, record);
     return DRV_OK;
 }
 
