@@ -1108,13 +1108,22 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         sample = flat[(-m * per_real) % 97::97]       # its part of x.reshape(-1)[::97]
         if acc[1] and x.dtype != np.float32:
             acc[1] = np.array_equal(sample, sample.astype(np.float32))
-        if exact:
-            acc[0] = max(acc[0], float(flat.max()), -float(flat.min()))
-        elif sample.size:
-            acc[0] = max(acc[0], 2.0 * float(np.max(np.abs(sample))))
+        top = (max(float(flat.max()), -float(flat.min())) if exact else
+               2.0 * float(np.max(np.abs(sample))) if sample.size else 0.0)
+        if np.isfinite(top):
+            acc[0] = max(acc[0], top)
+        else:
+            acc.append(m)           # NaN or inf (in a dropped settle period, or an error)
 
     def rounding(name):
-        top, f32 = extremes[name]
+        top, f32 = extremes[name][:2]
+        if len(extremes[name]) > 2:
+            # a non-finite value: the largest finite one (a NaN or inf in a settle period
+            # must not make every noise level NaN; one in a kept period is refused later)
+            values = y if name == "y" else u.reshape(-1)[::97]
+            values = values[np.isfinite(values)]
+            top = 0.0 if not values.size else \
+                float(np.max(np.abs(values))) * (1.0 if name == "y" else 2.0)
         return top * (2.0 ** -24 if f32 else 2.0 ** -53)
 
     lo, hi = int(band[0]), int(band[-1]) + 1      # the band is contiguous: a view, no copy

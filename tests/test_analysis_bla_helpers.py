@@ -229,3 +229,29 @@ def test_output_resolution_is_read_from_every_realization_and_period():
                 np.testing.assert_allclose(noise, floor, rtol=1e-9)
             else:
                 assert np.all(noise >= floor * (1 - 1e-9))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_bad_value_in_a_dropped_settle_period_changes_nothing(bad):
+    """Once, a NaN in a settle period (dropped) made the rounding floor NaN and with it
+    every noise level and verdict of the non-excited lines, without an error."""
+    m, p, n, fs = 3, 4, 256, 256.0
+    d = multisine_realizations(m, fs, n, f_min=2.0, f_max=60.0, seed=4)
+    rng = np.random.default_rng(4)
+    u = np.repeat(np.stack([x.period for x in d])[:, None, :], p, axis=1)
+    y = 0.5 * u + 0.2 * u ** 3 + 1e-4 * rng.standard_normal(u.shape)
+    clean = robust_bla(u, y, fs=fs, settle_periods=1, warn_transient=False)
+    for x in ("u", "y"):
+        uu, yy = u.copy(), y.copy()
+        (uu if x == "u" else yy)[1, 0, 7] = bad
+        res = robust_bla(uu, yy, fs=fs, excited_bins=d[0].excited, settle_periods=1,
+                         warn_transient=False)
+        for name in ("G", "var_noise", "nonexcited_noise_db", "plant_expected_db"):
+            np.testing.assert_allclose(getattr(res, name), getattr(clean, name), rtol=1e-12,
+                                       err_msg=f"{x}: {name}")
+        assert res.summary["nl_detected"] == clean.summary["nl_detected"] is True
+    # in a kept period it is an error naming the input
+    yy = y.copy()
+    yy[1, 2, 7] = bad
+    with pytest.raises(bla.InputError, match="output y"):
+        robust_bla(u, yy, fs=fs, settle_periods=1, warn_transient=False)
