@@ -35,8 +35,11 @@ MODULES = {
     # the 150-seed Monte Carlo check of the known-reference variances (the slowest test by
     # far) is left out for time; the known-reference var_nl test covers the same lines
     "bla": ("analysis/bla.py", ["tests/test_analysis_bla_helpers.py",
+                                "tests/test_analysis_bla_mimo.py",
                                 "tests/test_analysis_bla_mutants.py", "tests/test_analysis_bla.py",
                                 "tests/test_analysis_bla_moments.py", "tests/test_analysis_detect.py",
+                                "tests/test_analysis_anyones_data.py",
+                                "tests/test_analysis_groundtruth.py",
                                 "--deselect=tests/test_analysis_bla.py::"
                                 "test_known_reference_variances_match_monte_carlo_spread"]),
     "hosidf": ("analysis/hosidf.py", ["tests/test_analysis_hosidf_mutants.py",
