@@ -243,7 +243,9 @@ def test_a_bad_value_in_a_dropped_settle_period_changes_nothing(bad):
     clean = robust_bla(u, y, fs=fs, settle_periods=1, warn_transient=False)
     for x in ("u", "y"):
         uu, yy = u.copy(), y.copy()
-        (uu if x == "u" else yy)[1, 0, 7] = bad
+        # at a value the input's float32 sample reads (every 97th of the flat record)
+        (uu if x == "u" else yy)[1, 0, 43] = bad
+        assert (1 * p * n + 43) % 97 == 0
         res = robust_bla(uu, yy, fs=fs, excited_bins=d[0].excited, settle_periods=1,
                          warn_transient=False)
         for name in ("G", "var_noise", "nonexcited_noise_db", "plant_expected_db"):
@@ -255,3 +257,73 @@ def test_a_bad_value_in_a_dropped_settle_period_changes_nothing(bad):
     yy[1, 2, 7] = bad
     with pytest.raises(bla.InputError, match="output y"):
         robust_bla(u, yy, fs=fs, settle_periods=1, warn_transient=False)
+
+
+@pytest.mark.parametrize("sigma_re_q", [0.0, 0.03, 0.06, 0.2, 0.5, 1.5])
+def test_mean_quantisation_error_equals_the_gaussian_average(sigma_re_q):
+    """E[q round((s + n) / q)] - s for Gaussian n: the Fourier series (dithered) or the
+    plain rounding error (sigma < 0.05 q) against the expectation of the rounding itself, over offsets across two steps (exactly, from the normal cdf)."""
+    q = 2 * np.pi / 200
+    sigma = sigma_re_q * q
+    s = np.linspace(-1.3 * q, 0.9 * q, 157)
+    got = bla._mean_quantisation_error(s, q, sigma)
+    if sigma < 0.05 * q:
+        want = q * np.round(s / q) - s
+    else:
+        # exactly: q sum_j j P(round((s + n) / q) = j), from the normal cdf
+        j = np.arange(-40, 41)[:, None]
+        prob = (scipy.stats.norm.cdf((q * (j + 0.5) - s) / sigma)
+                - scipy.stats.norm.cdf((q * (j - 0.5) - s) / sigma))
+        want = q * np.sum(j * prob, axis=0) - s
+    np.testing.assert_allclose(got, want, atol=2e-4 * q)
+    # odd in s about a step's centre, periodic in q
+    np.testing.assert_allclose(bla._mean_quantisation_error(-s, q, sigma), -got, atol=1e-12 * q)
+    np.testing.assert_allclose(bla._mean_quantisation_error(s + q, q, sigma), got, atol=1e-9 * q)
+    # the lines of a periodic signal's error: the rfft of the same error at the bins
+    t = np.arange(64)
+    sig = 3.1 * q * np.sin(2 * np.pi * t / 64) + 0.2 * q
+    lines = bla.quantisation_error_lines(sig, q, sigma, np.array([1, 3, 5, 2]))
+    np.testing.assert_allclose(
+        lines, np.fft.rfft(bla._mean_quantisation_error(sig, q, sigma))[[1, 3, 5, 2]],
+        rtol=1e-12, atol=1e-15)
+
+
+def test_level_independence_note_on_its_edges():
+    flat = [{"nl_re_output_db": -20.0 + d, "excited_detected": True} for d in (0.0, 1.0, 2.5)]
+    # levels below 1 (mV or rad records): 0.1 .. 0.4 spans 12 dB
+    note = bla.level_independence_note([0.1, 0.2, 0.4], flat)
+    assert note is not None and "-20.0 .. -17.5 dB over 12 dB" in note
+    assert bla.level_independence_note([0.1, 0.19], flat[:2]) is None          # < 6 dB span
+    assert bla.level_independence_note([0.1, 0.0, 0.4], flat) is None          # a zero level
+    assert bla.level_independence_note([0.3], flat[:1]) is None                 # one level
+    moving = [dict(s, nl_re_output_db=-20.0 + 4 * i) for i, s in enumerate(flat)]
+    assert bla.level_independence_note([0.1, 0.2, 0.4], moving) is None        # a scale
+    undetected = [dict(flat[0]), dict(flat[1], excited_detected=False), dict(flat[2])]
+    assert bla.level_independence_note([0.1, 0.2, 0.4], undetected) is None
+
+
+def test_grid_classes_at_their_smallest_sizes():
+    assert bla.classify_grid(np.array([1, 5]), 64)["grid"] == "odd-odd"
+    assert bla.classify_grid(np.array([3, 7]), 64)["grid"] == "odd-odd"
+    assert bla.classify_grid(np.array([1, 3]), 64)["grid"] == "odd"
+    assert bla.classify_grid(np.array([1, 7]), 64)["grid"] == "random odd"
+    assert bla.classify_grid(np.array([5]), 64)["grid"] == "odd"
+    assert bla.classify_grid(np.array([2, 4]), 64)["grid"] == "even"
+    assert bla.classify_grid(np.array([1, 2]), 64)["grid"] == "full"
+    assert bla.classify_grid(np.array([1, 2, 4]), 64)["grid"] == "full with removed lines"
+    assert bla.classify_grid(np.array([5, 1, 5]), 64)["grid"] == "odd-odd"     # unsorted
+
+
+@pytest.mark.parametrize("n_zero, more", [(5, False), (6, True)])
+def test_zero_input_lines_are_listed_up_to_five(n_zero, more):
+    m, p, n, fs = 2, 2, 128, 128.0
+    exc = np.arange(1, 40, 2)                       # 20 lines: the median is excited
+    spec = np.zeros((m, n // 2 + 1), complex)
+    spec[:, exc] = 1.0
+    spec[:, exc[:n_zero]] = 0.0                     # given as excited, but not excited
+    u = np.repeat(np.fft.irfft(spec, n=n, axis=-1)[:, None, :], p, axis=1)
+    with pytest.raises(bla.InputError) as err:
+        robust_bla(u, 2 * u, fs=fs, excited_bins=exc, warn_transient=False)
+    msg = str(err.value)
+    assert f"zero power at {n_zero} excited line(s)" in msg
+    assert msg.count(" Hz") == 5 and (" ..." in msg) == more
