@@ -198,14 +198,16 @@ def _prepare(name, force=False):
         tail = base.stdout.strip().splitlines()[-1:] or ["(no output)"]
         raise MutationError(f"mutation: {name}: the tests fail on the unmutated code "
                             f"({' '.join(tests)}): {tail[0]}")
+    timeout = max(30.0, 5.0 * elapsed)
+    # (the config holds the test command: a selection that gained or lost files must reach
+    # the mutants, not only the edits to the files it had)
+    _write_config(config, target, timeout, tests, tree, sock)
     if tests_only:
         n = _rerun_survivors(session)
         stamp.write_text(digest)
         print(f"mutation: {name}: the tests changed: {n} survivor(s) run again, the killed "
               f"mutants kept (baseline tests {elapsed:.1f} s)", flush=True)
         return session, config, pkg_root
-    timeout = max(30.0, 5.0 * elapsed)
-    _write_config(config, target, timeout, tests, tree, sock)
     init = subprocess.run([_venv_bin("cosmic-ray"), "init", str(config), str(session)], cwd=ROOT,
                           env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     if init.returncode != 0:
