@@ -12,7 +12,8 @@ import pytest
 import scipy.io
 
 import fftune.analysis as fa
-from fftune.analysis.bla import (bla_levels, detect_excited_lines, level_verdict, robust_bla)
+from fftune.analysis.bla import (bla_levels, detect_excited_lines, f_sf_even, level_verdict,
+                                 robust_bla)
 from fftune.analysis.errors import InputError
 from fftune.analysis.hosidf import hosidf
 from fftune.analysis.multisine import multisine_realizations, random_odd_multisine
@@ -291,6 +292,13 @@ def test_a_two_period_disturbance_is_explained_in_a_note():
     res = robust_bla(u, y)
     assert res.summary["n_var_nl_negative"] > 0.8 * res.bins.size
     assert any("2N" in note and "overestimated" in note for note in res.notes)
+    # the figures in the note: the share of var_nl < 0 lines, and what noise alone gives
+    # (P(F < 1) for F(2 (M - 1), 2 M (P - 1)))
+    share = 100 * res.summary["n_var_nl_negative"] / res.bins.size
+    alone = 100 * (1 - f_sf_even(np.array(1.0), 2 * (m - 1), 2 * m * (p - 1)))
+    note = next(n for n in res.notes if "2N" in n)
+    assert note.startswith(f"{share:.0f} % of the lines have var_nl < 0 where noise alone "
+                           f"gives {alone:.0f} %")
     clean = robust_bla(u, u + 1e-4 * np.random.default_rng(0).standard_normal(u.shape))
     assert not any("2N" in note for note in clean.notes)
 

@@ -327,3 +327,29 @@ def test_zero_input_lines_are_listed_up_to_five(n_zero, more):
     msg = str(err.value)
     assert f"zero power at {n_zero} excited line(s)" in msg
     assert msg.count(" Hz") == 5 and (" ..." in msg) == more
+
+
+def test_a_transient_warns_once_and_the_floor_is_reported():
+    m, p, n, fs = 3, 5, 256, 256.0
+    d = multisine_realizations(m, fs, n, f_min=2.0, f_max=60.0, seed=9)
+    u = np.repeat(np.stack([x.period for x in d])[:, None, :], p, axis=1)
+    y = 0.5 * u + 1e-5 * np.random.default_rng(9).standard_normal(u.shape)
+    y[:, 0] += 0.3 * np.exp(-np.arange(n) / 40.0)                # decays in period 0
+    with pytest.warns(bla.TransientWarning) as rec:
+        res = robust_bla(u, y, fs=fs, excited_bins=d[0].excited)
+    assert len([w for w in rec if issubclass(w.category, bla.TransientWarning)]) == 1
+    assert res.transient.suspect
+    # the quantisation model's level is reported (dB of its mean power over the lines)
+    q = 1e-3
+    res = robust_bla(u[:, 1:], np.round(y[:, 1:] / q) * q, fs=fs, excited_bins=d[0].excited,
+                     y_quantisation_step=q)
+    floor = res.summary["quantisation_floor_db"]
+    assert floor is not None and floor == pytest.approx(
+        10 * np.log10(np.mean(10 ** (res.quantisation_db / 10))), abs=1e-9)
+    assert floor < -60.0
+
+
+def test_level_independence_note_with_two_levels():
+    two = [{"nl_re_output_db": -20.0, "excited_detected": True},
+           {"nl_re_output_db": -21.0, "excited_detected": True}]
+    assert "over 12 dB" in bla.level_independence_note([0.1, 0.4], two)
