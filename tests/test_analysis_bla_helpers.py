@@ -353,3 +353,82 @@ def test_level_independence_note_with_two_levels():
     two = [{"nl_re_output_db": -20.0, "excited_detected": True},
            {"nl_re_output_db": -21.0, "excited_detected": True}]
     assert "over 12 dB" in bla.level_independence_note([0.1, 0.4], two)
+
+
+def test_running_mean_is_the_window_mean_shrunk_at_the_ends():
+    x = np.random.default_rng(10).standard_normal(23)
+    for hw in (0, 1, 3, 8, 30):
+        want = [np.mean(x[max(i - hw, 0):i + hw + 1]) for i in range(x.size)]
+        np.testing.assert_allclose(bla._running_mean(x, hw), want, rtol=1e-12)
+
+
+def _levels(found, base=0.0, at=None):
+    level = np.full(found.max() + 5, -80.0)
+    level[found - 1] = base
+    for b, v in (at or {}).items():
+        level[b - 1] = v
+    return level
+
+
+def test_stray_lines_by_parity_grid_and_level():
+    odd = np.arange(1, 120, 2)                                   # 60 odd lines
+    # one even line among odd ones: a stray tone
+    found = np.sort(np.append(odd, 40))
+    kept, strays = bla._stray_lines(_levels(found), found)
+    np.testing.assert_array_equal(strays, [40])
+    np.testing.assert_array_equal(kept, odd)
+    # one odd line among even ones (an even grid)
+    even = np.arange(2, 122, 2)
+    found = np.sort(np.append(even, 41))
+    kept, strays = bla._stray_lines(_levels(found), found)
+    np.testing.assert_array_equal(strays, [41])
+    # a 4k+3 line among 4k+1 lines (odd-odd grid), and the other way round
+    oo = np.arange(1, 240, 4)
+    for grid, extra in ((oo, 43), (oo + 2, 41)):
+        found = np.sort(np.append(grid, extra))
+        kept, strays = bla._stray_lines(_levels(found), found)
+        np.testing.assert_array_equal(strays, [extra])
+        np.testing.assert_array_equal(kept, grid)
+    # many even lines among odd ones: a full grid, no stray
+    full = np.sort(np.concatenate([odd, np.arange(2, 40, 2)]))
+    kept, strays = bla._stray_lines(_levels(full), full)
+    assert strays.size == 0 and kept.size == full.size
+    # a line 10 dB under both sides is a stray; a designed step (one side level) is not
+    kept, strays = bla._stray_lines(_levels(odd, at={61: -10.0}), odd)
+    np.testing.assert_array_equal(strays, [61])
+    step = _levels(odd)
+    step[odd[odd > 60] - 1] = -12.0                              # the upper half 12 dB down
+    kept, strays = bla._stray_lines(step, odd)
+    assert strays.size == 0
+    # more low lines than a handful: the design, not strays
+    many = _levels(odd, at={b: -10.0 for b in odd[5:55:4]})
+    assert bla._stray_lines(many, odd)[1].size == 0
+    # fewer than 20 lines: nothing is judged
+    few = odd[:18]
+    kept, strays = bla._stray_lines(_levels(np.append(few, 40)), np.sort(np.append(few, 40)))
+    assert strays.size == 0
+
+
+@pytest.mark.parametrize("dither_re_q, low_db, high_db", [(0.02, -6.0, 0.0), (0.3, 0.0, 8.0)])
+def test_quantisation_model_matches_the_measured_error_of_a_linear_plant(dither_re_q, low_db,
+                                                                        high_db):
+    """A linear plant, its output quantised (a 200-count encoder on a 2-rad signal): what
+    the plant-referred lines hold is the quantisation error. The model (the offset fitted
+    to the samples, the dither from the measured noise) lies at that level: the measured
+    median re the model -3.5 dB with little dither (the model is the running mean doubled:
+    on the safe side), +4 .. +5 dB with 0.3 q of noise (3 seeds); a model fed the period
+    sum instead of the mean, or a dither estimate that keeps the q^2/12 of the steps in it,
+    gives +12 .. +21 dB there."""
+    m, p, n, fs = 4, 4, 1024, 1024.0
+    d = multisine_realizations(m, fs, n, k_min=1, k_max=120, seed=11, rms=1.0)
+    u = np.repeat(np.stack([x.period for x in d])[:, None, :], p, axis=1)
+    rng = np.random.default_rng(11)
+    h = np.fft.irfft(np.fft.rfft(u, axis=-1) * (0.9 / (1 + 1j * np.arange(n // 2 + 1) / 40.0)),
+                     n=n, axis=-1)
+    q = 2 * np.pi / 200
+    y = np.round((h + 0.3 * q + dither_re_q * q * rng.standard_normal(h.shape)) / q) * q
+    res = robust_bla(u, y, fs=fs, excited_bins=d[0].excited, y_quantisation_step=q,
+                     warn_transient=False)
+    med = res.summary["plant_line_median_re_quantisation_floor_db"]
+    assert med is not None and low_db < med < high_db, med
+    assert res.summary["plant_nl_detected"] is False
