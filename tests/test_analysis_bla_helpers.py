@@ -432,3 +432,18 @@ def test_quantisation_model_matches_the_measured_error_of_a_linear_plant(dither_
     med = res.summary["plant_line_median_re_quantisation_floor_db"]
     assert med is not None and low_db < med < high_db, med
     assert res.summary["plant_nl_detected"] is False
+
+
+def test_full_grid_quantisation_floor_is_the_white_model():
+    """No non-excited line (a full grid): the quantisation floor reported is the white
+    model 4 (q^2 / 12) / N at the line level."""
+    m, p, n, fs = 3, 3, 256, 256.0
+    d = multisine_realizations(m, fs, n, k_min=1, k_max=60, kind="full", seed=12)
+    u = np.repeat(np.stack([x.period for x in d])[:, None, :], p, axis=1)
+    q = 1e-3
+    y = np.round((0.5 * u + 1e-4 * np.random.default_rng(12).standard_normal(u.shape)) / q) * q
+    res = robust_bla(u, y, fs=fs, excited_bins=d[0].excited, y_quantisation_step=q,
+                     warn_transient=False)
+    assert res.nonexcited_bins.size == 0
+    assert res.summary["quantisation_floor_db"] == pytest.approx(
+        10 * np.log10(q ** 2 / (3.0 * n)), abs=1e-9)

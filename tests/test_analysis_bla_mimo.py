@@ -85,6 +85,10 @@ def test_one_block_or_one_period_says_what_is_missing():
     res = robust_bla_mimo(u, y, fs=FS, excited_bins=excited)
     assert res.var_noise is None and res.var_total is not None
     assert any("P = 1 period" in s for s in res.notes)
+    u, y, excited = _experiment(2, 1e-3, seed=6, p=2)        # the smallest complete case
+    res = robust_bla_mimo(u, y, fs=FS, excited_bins=excited)
+    assert res.var_noise is not None and res.var_total is not None and res.detected is not None
+    assert res.notes == []
 
 
 def test_settle_periods_are_dropped_and_bad_input_is_named():
