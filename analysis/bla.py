@@ -464,13 +464,6 @@ def _abs2_sum(z, axis):
     return s[..., 0::2] + s[..., 1::2]
 
 
-def _spread2(z):
-    """Mean over axis 0 of a (P, K) array, and its deviations and their sum of |.|^2."""
-    mean = np.add.reduce(z, axis=0) / z.shape[0]
-    dev = z - mean
-    return mean, dev, _abs2_sum(dev, axis=0)
-
-
 def _in_band(band, bins):
     """np.isin(band, bins) for a contiguous band (consecutive bins) that holds every one
     of the sorted ``bins`` (the excited lines of their own band): an index, no search."""
