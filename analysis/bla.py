@@ -1497,9 +1497,8 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         # the rounding of the recorded numbers is the same in every period (not in
         # var_noise) but differs between realizations (in var_total): its variance of G
         # (uniform error of +-rounding per sample: N rounding^2 / 3 per line) is added
-        u_abs2 = u_level
         round_var = (n * (float(y_rounding) ** 2 + _abs2(G) * float(u_rounding) ** 2)
-                     / 3.0 / np.maximum(u_abs2, 1e-300) / n_real)
+                     / 3.0 / np.maximum(u_level, 1e-300) / n_real)
         ref_var = var_noise + round_var
         with np.errstate(divide="ignore", invalid="ignore"):
             excited_stats = _class_stats(var_total, np.where(ref_var > 0, ref_var, np.nan),
