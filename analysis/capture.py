@@ -301,6 +301,30 @@ def read_run(path):
         f.close()
 
 
+# A signal holds at most this many samples: 64 MiB of float32 (a drive's recorder holds far
+# fewer; settle periods are not recorded in full by any fftune step). Checked, with the
+# dataset's shape, dtype and stored size, before a dataset is read: a forged file of a few kB
+# may declare gigabytes.
+MAX_CAPTURE_SAMPLES = 1 << 24
+
+
+def _check_dataset(ds, name, n_samples, file_bytes, where):
+    """Shape, dtype and size of dataset ``ds`` as declared, checked without reading it."""
+    shape = ds.shape
+    if shape is None or len(shape) != 1 or shape[0] != n_samples:
+        raise InputError(f"{where}: dataset {name} has shape {shape}, expected ({n_samples},)")
+    dt = ds.dtype
+    if dt.kind != "f" or dt.itemsize not in (4, 8):
+        raise InputError(f"{where}: dataset {name} has dtype {dt}, expected float32 (or float64)")
+    declared = n_samples * dt.itemsize
+    if ds.compression is None and ds.id.get_storage_size() < declared:
+        raise InputError(f"{where}: dataset {name} declares {declared} bytes, the file stores "
+                         f"{ds.id.get_storage_size()} of them (damaged or forged)")
+    if ds.compression is None and declared > file_bytes:
+        raise InputError(f"{where}: dataset {name} declares {declared} bytes, more than the file's "
+                         f"{file_bytes}")
+
+
 def _read_open(f, path, where):
     import h5py
 
@@ -327,15 +351,17 @@ def _read_open(f, path, where):
         meta = _validate_meta(meta, where)
         meta["format_version"] = version
         n_samples = (meta["settle_periods"] + meta["record_periods"]) * meta["n_period"]
+        if n_samples > MAX_CAPTURE_SAMPLES:
+            raise InputError(f"{where}: declares {n_samples} samples a signal ((settle_periods + "
+                             f"record_periods) x n_period), at most {MAX_CAPTURE_SAMPLES} "
+                             f"(fftune.analysis.capture.MAX_CAPTURE_SAMPLES)")
+        file_bytes = os.path.getsize(path)
         signals = {}
         for name, ds in f.items():
             if not isinstance(ds, h5py.Dataset):
                 continue
-            arr = ds[()]
-            if arr.ndim != 1 or arr.size != n_samples:
-                raise InputError(f"{where}: dataset {name} has shape {arr.shape}, expected "
-                                 f"({n_samples},)")
-            signals[name] = arr.astype(np.float32, copy=False)
+            _check_dataset(ds, name, n_samples, file_bytes, where)
+            signals[name] = ds[()].astype(np.float32, copy=False)
     if not signals:
         raise InputError(f"{where}: holds no signal dataset")
     return CaptureRun(path=path, signals=signals, meta=meta)

@@ -276,8 +276,7 @@ def validate(raw, path="<config>"):
     if not isinstance(cfg["output"], str) or not cfg["output"]:
         raise _err(path, "output", f"expected a directory path, got {show(cfg['output'])}")
     sim = cfg["sim"]
-    if sim["plant"] is not None and not isinstance(sim["plant"], str):
-        raise _err(path, "sim.plant", f"expected a file path, got {show(sim['plant'])}")
+    file_name(sim["plant"], path, "sim.plant", allow_none=True)
     if not isinstance(sim["overrides"], dict):
         raise _err(path, "sim.overrides", "expected a mapping {section: {key: number}}")
     for section, values in sim["overrides"].items():
@@ -287,26 +286,8 @@ def validate(raw, path="<config>"):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise _err(path, f"sim.overrides.{section}.{key}", f"expected a finite number, got {show(value)}")
     _number(cfg, path, "sim.bitrate", low=10_000, high=1_000_000, integer=True, allow_none=True)
-    _number(cfg, path, "limits.max_rms_v", low=0, low_inclusive=False, allow_none=True)
-    _number(cfg, path, "limits.max_amplitude_rad", low=0, low_inclusive=False, allow_none=True)
-    _number(cfg, path, "limits.max_velocity_rad_s", low=0, low_inclusive=False, allow_none=True)
-    _number(cfg, path, "drive.node_id", low=1, high=127, integer=True)
-    _number(cfg, path, "drive.host_node_id", low=1, high=127, integer=True)
-    if cfg["drive"]["host_node_id"] == cfg["drive"]["node_id"]:
-        raise _err(path, "drive.host_node_id", "must differ from drive.node_id")
-    # the drive's consumer watches the host with 4x this time, an UNSIGNED16 of ms (0x1016):
-    # above 16383 it would have to be clipped
-    _number(cfg, path, "drive.heartbeat_ms", low=0, high=16383, integer=True)
-    _number(cfg, path, "drive.fs_hz", low=0, low_inclusive=False, allow_none=True)
-    _number(cfg, path, "drive.sdo_timeout_s", low=0.05, high=60)
-    # attempts per SDO request (python-canopen's MAX_RETRIES): 1 = no retry; 0 would send
-    # nothing and was once raised to 1 without a word
-    _number(cfg, path, "drive.sdo_retries", low=1, high=10, integer=True)
-    _number(cfg, path, "drive.run_timeout_s", low=0.1)
-    if cfg["drive"]["eds"] is not None and not isinstance(cfg["drive"]["eds"], str):
-        raise _err(path, "drive.eds", f"expected a file path, got {show(cfg['drive']['eds'])}")
-    for name in cfg["drive"]["controller"]:
-        _number(cfg, path, f"drive.controller.{name}", low=0, allow_none=True)
+    validate_limits(cfg, path)
+    validate_drive(cfg, path)
 
     d = cfg["detect"]
     _bool(cfg, path, "detect.enabled")
@@ -382,6 +363,69 @@ def validate(raw, path="<config>"):
     _number(cfg, path, "tune.viscous.k_v_max", low=0, high=100, low_inclusive=False)
     _number(cfg, path, "tune.viscous.max_experiments", low=3, high=100, integer=True)
     return cfg
+
+
+# The drive's consumer watches the host with 4x the heartbeat period, an UNSIGNED16 of ms
+# (0x1016): above this it would have to be clipped.
+MAX_HEARTBEAT_MS = 0xFFFF // 4
+
+
+def validate_drive(cfg, path):
+    """The ``drive`` section of ``cfg`` checked in place (``fftune run``, every machine axis,
+    ``fftune track``: one set of rules); one FftuneError line naming the key."""
+    _number(cfg, path, "drive.node_id", low=1, high=127, integer=True)
+    _number(cfg, path, "drive.host_node_id", low=1, high=127, integer=True)
+    if cfg["drive"]["host_node_id"] == cfg["drive"]["node_id"]:
+        raise _err(path, "drive.host_node_id", "must differ from drive.node_id")
+    _number(cfg, path, "drive.heartbeat_ms", low=0, high=MAX_HEARTBEAT_MS, integer=True)
+    _number(cfg, path, "drive.fs_hz", low=0, low_inclusive=False, allow_none=True)
+    _number(cfg, path, "drive.sdo_timeout_s", low=0.05, high=60)
+    # attempts per SDO request (python-canopen's MAX_RETRIES): 1 = no retry; 0 would send
+    # nothing and was once raised to 1 without a word
+    _number(cfg, path, "drive.sdo_retries", low=1, high=10, integer=True)
+    _number(cfg, path, "drive.run_timeout_s", low=0.1)
+    file_name(cfg["drive"]["eds"], path, "drive.eds", allow_none=True)
+    if not isinstance(cfg["drive"]["controller"], dict):
+        raise _err(path, "drive.controller", f"expected a mapping, got {show(cfg['drive']['controller'])}")
+    for name in cfg["drive"]["controller"]:
+        _number(cfg, path, f"drive.controller.{name}", low=0, allow_none=True)
+    return cfg["drive"]
+
+
+def validate_limits(cfg, path):
+    """The ``limits`` section of ``cfg`` checked in place (every command that moves an axis)."""
+    _number(cfg, path, "limits.max_rms_v", low=0, low_inclusive=False, allow_none=True)
+    _number(cfg, path, "limits.max_amplitude_rad", low=0, low_inclusive=False, allow_none=True)
+    _number(cfg, path, "limits.max_velocity_rad_s", low=0, low_inclusive=False, allow_none=True)
+    return cfg["limits"]
+
+
+def file_name(value, path, key, *, allow_none=False):
+    """``value`` if it is a usable file name (a non-empty string without NUL), else one
+    FftuneError line: ``PATH: key 'KEY': expected a file name, got 5``."""
+    if value is None and allow_none:
+        return None
+    if not isinstance(value, str) or not value or "\0" in value:
+        raise _err(path, key, f"expected a file name, got {show(value)}")
+    return value
+
+
+NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_.")
+MAX_NAME_CHARS = 64
+
+
+def safe_name(value, path, key):
+    """``value`` if it can become one path component (a machine's or an axis' folder):
+    1 .. 64 letters, digits, ``-``, ``_`` and ``.``, not starting with ``.`` (no ``..``, no
+    ``/``, no hidden file); else one FftuneError line naming the key."""
+    if isinstance(value, bool) or not isinstance(value, (str, int)):
+        raise _err(path, key, f"expected a name of letters, digits, -, _ and ., got {show(value)}")
+    value = str(value)
+    if not value or len(value) > MAX_NAME_CHARS or value.startswith(".") \
+            or not set(value) <= NAME_CHARS:
+        raise _err(path, key, f"expected a name of 1 .. {MAX_NAME_CHARS} letters, digits, -, _ and . "
+                              f"(not starting with .: it becomes a folder name), got {show(value)}")
+    return value
 
 
 def od_param_high(param):
@@ -465,19 +509,46 @@ def safe_yaml_load(text, where, *, max_bytes=MAX_CONFIG_BYTES, max_depth=MAX_YAM
         raise _yaml_error(where, exc) from None
 
 
+def read_text(path, what="configuration", *, max_bytes=MAX_CONFIG_BYTES):
+    """The text of a file a user names (``what``: configuration, machine file, plant ...):
+    a regular file (a directory is refused), at most ``max_bytes``, UTF-8, without NUL
+    bytes; else one FftuneError line naming the file."""
+    if not isinstance(path, (str, os.PathLike)) or not str(path) or "\0" in str(path):
+        raise FftuneError(f"{what}: expected a file name, got {show(path)}")
+    try:
+        if os.path.isdir(path):
+            raise FftuneError(f"{path}: cannot read {what}: is a directory, expected a file")
+        size = os.path.getsize(path)
+        if size > max_bytes:
+            raise FftuneError(f"{path}: {size} bytes: a {what} holds at most {max_bytes} "
+                              f"(fftune.host.config.MAX_CONFIG_BYTES)")
+        with open(path, "rb") as fh:
+            data = fh.read(max_bytes + 1)
+    except OSError as exc:
+        raise FftuneError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    if len(data) > max_bytes:       # (a file that grew, or a device)
+        raise FftuneError(f"{path}: more than {max_bytes} bytes: a {what} holds at most {max_bytes} "
+                          f"(fftune.host.config.MAX_CONFIG_BYTES)")
+    nul = data.find(b"\0")
+    if nul >= 0:
+        raise FftuneError(f"{path}: cannot read {what}: a NUL byte at offset {nul} (not a text file)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise FftuneError(f"{path}: cannot read {what}: not UTF-8 text (byte {exc.start})") from None
+
+
+def read_yaml(path, what="configuration"):
+    """The YAML file ``path`` parsed within bounds (:func:`read_text`, then
+    :func:`safe_yaml_load`: size, depth, aliases; ``1e-3`` a number): the one loader of every
+    file a user gives (configuration, machine file, axis configuration, track configuration,
+    plant). One FftuneError line on any problem."""
+    return safe_yaml_load(read_text(path, what), str(path))
+
+
 def load_config(path):
     """Read and validate the YAML configuration file ``path``."""
-    try:
-        if os.path.getsize(path) > MAX_CONFIG_BYTES:
-            raise FftuneError(f"{path}: {os.path.getsize(path)} bytes: a configuration holds at "
-                              f"most {MAX_CONFIG_BYTES} (fftune.host.config.MAX_CONFIG_BYTES)")
-        with open(path, "r", encoding="utf-8") as fh:
-            text = fh.read(MAX_CONFIG_BYTES + 1)
-    except OSError as exc:
-        raise FftuneError(f"{path}: cannot read configuration: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise FftuneError(f"{path}: cannot read configuration: not UTF-8 text (byte {exc.start})") from None
-    raw = safe_yaml_load(text, path)
+    raw = read_yaml(path, "configuration")
     cfg = validate(raw, path)
     cfg["_source"] = os.path.abspath(path)
     return cfg

@@ -111,6 +111,9 @@ class BusOptions:
     port: int = DEFAULT_SOCKETCAND_PORT
     node_id: int = 1
     eds: str = None
+    # the bit rate of a simulated bus (drive_sim --bitrate): not a python-can option; the host
+    # shortens its SDO bursts to it (sdo_burst_frames)
+    model_bitrate: int = None
 
     @classmethod
     def from_args(cls, args, cfg_drive=None):
@@ -228,6 +231,149 @@ def _open_bus(opts, deadline_s=CONNECT_DEADLINE_S):
     return result["bus"]
 
 
+def frame_bits(n_bytes):
+    """Bit times of a classic base-format data frame with ``n_bytes`` data bytes, worst-case
+    bit stuffing, plus the interframe space (docs/track.md; REFERENCE.md section 3)."""
+    return 47 + 8 * n_bytes + (34 + 8 * n_bytes - 1) // 4
+
+
+# The host's heartbeat may wait behind at most this share of its period of SDO frames (an SDO
+# sub-block of the drive wins arbitration against it; one of the host's own waits ahead of it
+# in its transmit queue). The consumer watches with 4 periods: a heartbeat delayed by 1.5
+# periods leaves 1.5 periods for the host's own jitter.
+SDO_BURST_SHARE = 1.5
+SDO_BLKSIZE_MAX = 127
+
+
+def sdo_burst_frames(bitrate, heartbeat_ms, nodes=1):
+    """How many SDO frames may go back to back on a bus of ``bitrate`` bit/s so that the
+    host's heartbeat (period ``heartbeat_ms``) keeps its consumer fed while ``nodes`` drives
+    may transfer at once: the sub-block size of block uploads, the burst of block downloads.
+
+    Returns ``SDO_BLKSIZE_MAX`` for an unknown bit rate or no heartbeat; raises
+    FftuneError (the reason named) when not even one frame per node fits."""
+    if not bitrate or not heartbeat_ms:
+        return SDO_BLKSIZE_MAX
+    frame_s = frame_bits(8) / float(bitrate)
+    n = int(SDO_BURST_SHARE * heartbeat_ms / 1000.0 / (frame_s * max(1, nodes)))
+    if n < 1:
+        raise FftuneError(
+            f"bit rate {bitrate} bit/s with drive.heartbeat_ms {heartbeat_ms}: one SDO frame of "
+            f"each of {nodes} node(s) takes {1000 * frame_s * max(1, nodes):.1f} ms on the bus, more than "
+            f"{SDO_BURST_SHARE:g} heartbeat periods ({SDO_BURST_SHARE * heartbeat_ms:g} ms): the host's "
+            f"heartbeat (the lowest priority on the bus) could not keep the drives' consumer "
+            f"fed; raise drive.heartbeat_ms or the bit rate")
+    return min(SDO_BLKSIZE_MAX, n)
+
+
+class _SdoPacer:
+    """Paces the host's SDO requests (COB-IDs 0x600 + node) on ``network`` so that a block
+    download never queues more than ``burst`` frames ahead of the host's heartbeat in its
+    transmit queue: a token bucket of ``burst`` frames refilled at 70 % of the bus' frame
+    rate (one CAN controller queue per host, as drive_sim's bus model and a SocketCAN
+    queue have). The heartbeat itself (send_periodic) is not paced."""
+
+    RATE_SHARE = 0.7
+
+    def __init__(self, network, bitrate, burst):
+        self.interval_s = frame_bits(8) / float(bitrate) / self.RATE_SHARE
+        self.burst = float(burst)
+        self.tokens = float(burst)
+        self.t = time.monotonic()
+        self.lock = threading.Lock()
+        self.network = network
+        self._send = network.send_message
+
+        def send(can_id, data, remote=False):
+            if 0x600 < can_id <= 0x67F:
+                self.wait()
+            return self._send(can_id, data, remote)
+        network.send_message = send
+
+    def wait(self):
+        with self.lock:
+            now = time.monotonic()
+            self.tokens = min(self.burst, self.tokens + (now - self.t) / self.interval_s)
+            self.t = now
+            if self.tokens < 1.0:
+                time.sleep((1.0 - self.tokens) * self.interval_s)
+                self.t = time.monotonic()
+                self.tokens = 1.0
+            self.tokens -= 1.0
+
+
+class HostHeartbeat:
+    """The host's heartbeat on one bus: one node id, one period (CANopen heartbeat producer,
+    state 0x05 OPERATIONAL on COB-ID 0x700 + ``node_id``). Every drive the host enables has
+    its consumer (0x1016) armed for exactly this producer (:meth:`DriveClient.enable`).
+
+    :meth:`start` first listens for ``listen_periods`` periods (at least 0.1 s, at most
+    ``LISTEN_MAX_S``): a frame on the COB-ID means another producer (another fftune session
+    with the same host id, a node with that id) and is refused, naming it: its heartbeat
+    would feed the drives after this host died. (A producer slower than one frame in
+    ``LISTEN_MAX_S`` may pass unseen.)
+    """
+
+    LISTEN_MAX_S = 2.0
+
+    def __init__(self, network, node_id, period_ms, listen_periods=2.0):
+        self.network = network
+        self.node_id = int(node_id)
+        self.period_ms = int(period_ms)
+        self.listen_s = min(self.LISTEN_MAX_S, max(0.1, listen_periods * self.period_ms / 1000.0))
+        self._task = None
+
+    @property
+    def cob_id(self):
+        return 0x700 + self.node_id
+
+    @property
+    def running(self):
+        return self._task is not None
+
+    def start(self):
+        if not 1 <= self.node_id <= 127:
+            raise FftuneError(f"drive.host_node_id {self.node_id}: expected 1 .. 127")
+        if not 1 <= self.period_ms <= 0xFFFF // 4:
+            raise FftuneError(f"drive.heartbeat_ms {self.period_ms}: the host needs a heartbeat "
+                              f"(1 .. {0xFFFF // 4} ms) for a drive it enables")
+        seen = []
+
+        def heard(can_id, data, timestamp):
+            seen.append(bytes(data))
+        self.network.subscribe(self.cob_id, heard)
+        try:
+            time.sleep(self.listen_s)
+        finally:
+            self.network.unsubscribe(self.cob_id, heard)
+        if seen:
+            state = seen[-1][0] if seen[-1] else None
+            names = {0x00: "boot-up", 0x04: "STOPPED", 0x05: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
+            raise FftuneError(
+                f"another node sends heartbeats on COB-ID 0x{self.cob_id:03X} (host node id "
+                f"{self.node_id}): {len(seen)} frame(s) in {1000 * self.listen_s:.0f} ms, "
+                f"state {names.get(state, state)} (another fftune session or a node with id "
+                f"{self.node_id} on this bus?); its heartbeat would keep the drives enabled after "
+                f"this host died: set drive.host_node_id to an id free on this bus")
+        self._task = self.network.send_periodic(self.cob_id, [0x05], self.period_ms / 1000.0)
+        # A send error (the bus went away) ends the heartbeat thread quietly; the next SDO
+        # request reports the lost connection as one error line instead of a thread traceback.
+        task = getattr(self._task, "_task", None)
+        if task is not None and hasattr(task, "on_error"):
+            task.on_error = lambda exc: False
+        return self
+
+    def stop(self):
+        if self._task is not None:
+            try:
+                self._task.stop()
+            finally:
+                self._task = None
+
+    def describe(self):
+        return f"host node {self.node_id} every {self.period_ms} ms"
+
+
 class _BusErrorListener:
     """Marks receive errors of the bus (e.g. the socketcand server went away) as handled,
     so that python-can's receive thread does not die with a traceback on the terminal; it
@@ -307,6 +453,12 @@ class DriveClient:
         A network (bus) shared with other drive clients (the axes of a machine): the node
         is added to it; its owner connects it, produces the host heartbeat and
         disconnects it. Default: the client opens its own bus.
+    host_heartbeat : HostHeartbeat, optional
+        With ``network``: the owner's heartbeat producer (one per bus); the drive is
+        enabled only when its consumer is armed for it (same id and period).
+    bus_nodes : int
+        Drives that may transfer at once on this bus (a machine's axes): the SDO bursts
+        are shortened so that the host's heartbeat keeps its period (:func:`sdo_burst_frames`).
 
     Attributes
     ----------
@@ -318,7 +470,8 @@ class DriveClient:
     """
 
     def __init__(self, opts, *, sdo_timeout_s=2.0, sdo_retries=2, heartbeat_ms=100,
-                 host_node_id=0x7F, run_timeout_s=120.0, progress=True, network=None):
+                 host_node_id=0x7F, run_timeout_s=120.0, progress=True, network=None,
+                 host_heartbeat=None, bus_nodes=1):
         import canopen
 
         if isinstance(sdo_retries, bool) or not isinstance(sdo_retries, int) or sdo_retries < 1:
@@ -342,6 +495,12 @@ class DriveClient:
         self.time_account = {"runs": 0, "excitation_s": 0.0, "run_wait_s": 0.0, "transfer_s": 0.0}
         self.network = None
         self._shared_network = network
+        self._host_hb = host_heartbeat if network is not None else None
+        # the bit rate the SDO bursts are measured against: python-can's, else a simulated
+        # bus' (drive_sim --bitrate); unknown: not limited
+        self.bus_bitrate = opts.bitrate or getattr(opts, "model_bitrate", None)
+        self.bus_nodes = bus_nodes
+        self.sdo_burst = sdo_burst_frames(self.bus_bitrate, heartbeat_ms, bus_nodes)
         self.cancel = None            # a threading.Event: set, the next SDO request raises Cancelled
         try:
             self.node = canopen.BaseNode402(opts.node_id, opts.eds)
@@ -364,6 +523,8 @@ class DriveClient:
             self.network.add_node(self.node)
             self.network.connect()
             self.network.notifier.add_listener(_BusErrorListener())
+            if self.sdo_burst < SDO_BLKSIZE_MAX:
+                _SdoPacer(self.network, self.bus_bitrate, self.sdo_burst)
         self.node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout_s
         self.node.sdo.MAX_RETRIES = self.sdo_retries
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
@@ -406,22 +567,44 @@ class DriveClient:
         except Exception:
             return []
 
+    def _consumer_value(self):
+        """0x1016:1 for this host's heartbeat: host id << 16 | 4 x the period in ms."""
+        return (self.host_node_id << 16) | min(0xFFFF, 4 * self.heartbeat_ms)
+
     def _start_heartbeats(self):
         if not self.heartbeat_ms:
             return
-        period = self.heartbeat_ms / 1000.0
-        # Host heartbeat (state 0x05 operational) on 0x700 + host id (on a shared network:
-        # its owner's, one for all nodes).
+        # Host heartbeat (state 0x05 operational) on 0x700 + host id, after listening for
+        # another producer on it (on a shared network: its owner's, one for all nodes).
         if self._shared_network is None:
-            self._hb_task = self.network.send_periodic(0x700 + self.host_node_id, [0x05], period)
-        # A send error (the bus went away) ends the heartbeat thread quietly; the next SDO
-        # request reports the lost connection as one error line instead of a thread traceback.
-        task = getattr(self._hb_task, "_task", None) if self._hb_task is not None else None
-        if task is not None and hasattr(task, "on_error"):
-            task.on_error = lambda exc: False
+            try:
+                self._host_hb = HostHeartbeat(self.network, self.host_node_id, self.heartbeat_ms).start()
+            except FftuneError:
+                self.close()
+                raise
+            self._hb_task = self._host_hb
         self.write(0x1017, 0, self.heartbeat_ms)
-        consumer = (self.host_node_id << 16) | min(0xFFFF, 4 * self.heartbeat_ms)
-        self.write(0x1016, 1, consumer)
+        self.write(0x1016, 1, self._consumer_value())
+
+    def _check_watchdog(self):
+        """The rule before the power stage goes on: the drive's consumer (0x1016:1, read
+        back) is armed for the heartbeat this host sends (same node id, 4 x its period), and
+        that heartbeat is running. Else one FftuneError line; nothing is enabled."""
+        where = f"node {self.opts.node_id} not enabled"
+        if not self.heartbeat_ms:
+            raise FftuneError(f"{where}: drive.heartbeat_ms is 0 (no host heartbeat): a drive that "
+                              f"moves needs its consumer (0x1016) armed for the host's heartbeat, "
+                              f"1 .. {0xFFFF // 4} ms")
+        hb = self._host_hb
+        if hb is None or not hb.running:
+            raise FftuneError(f"{where}: this host sends no heartbeat on its bus")
+        if (hb.node_id, hb.period_ms) != (self.host_node_id, self.heartbeat_ms):
+            raise FftuneError(f"{where}: its consumer would watch host node {self.host_node_id} every "
+                              f"{self.heartbeat_ms} ms, this host sends {hb.describe()}")
+        armed = int(self.read(0x1016, 1))
+        if armed != self._consumer_value():
+            raise FftuneError(f"{where}: its heartbeat consumer 0x1016:1 reads 0x{armed:08X}, "
+                              f"not 0x{self._consumer_value():08X} ({hb.describe()}, 4 x the period)")
 
     def close(self):
         """Leave the drive safe, then disconnect: abort a transfer the host may have left
@@ -605,6 +788,7 @@ class DriveClient:
     def enable(self):
         """NMT OPERATIONAL and CiA 402 OPERATION ENABLED in the excitation-run mode."""
         node = self.node
+        self._check_watchdog()
         self._enabled = True  # from the first attempt on: close() disables again
         self._arm_abort_connection()
         # python-canopen waits 0.2 .. 0.8 s for each statusword TPDO of the state machine; a
@@ -976,6 +1160,8 @@ class DriveClient:
                 self.node.sdo.abort(0x05040000)
                 raise SdoCommunicationError("No SDO response received (end of the block upload)") from None
 
+        # sub-blocks short enough that the host's heartbeat keeps its period (sdo_burst_frames)
+        block_sizes = sorted({min(int(b), self.sdo_burst) for b in block_sizes}, reverse=True)
         for i, size in enumerate(block_sizes):
             # python-canopen takes the sub-block size from a class attribute: changed only
             # under the lock (other axes of the process upload meanwhile), then restored

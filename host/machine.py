@@ -40,6 +40,7 @@ import yaml
 
 from fftune.analysis.errors import FftuneError
 from fftune.host.atomic import write_atomic
+from fftune.host.config import show
 
 _AXIS_KEYS = {"name", "node_id", "config", "overrides", "plant", "plant_overrides"}
 _TOP_KEYS = {"machine", "output", "config", "overrides", "sim", "axes"}
@@ -71,8 +72,23 @@ def _resolve(path, machine_file):
     return path
 
 
+def _mapping(value, where, what, allow_none=True):
+    if value is None and allow_none:
+        return {}
+    if not isinstance(value, dict):
+        raise FftuneError(f"{where}: expected {what}, got {show(value)}")
+    return value
+
+
 def load_machine(path):
     """Read and validate a machine file; one FftuneError line naming file and key.
+
+    Every file it names is read by the one loader (:func:`fftune.host.config.read_yaml`:
+    size, depth, aliases, UTF-8, ``1e-3`` a number); the machine's and the axes' names become
+    folder names and are checked as such; one host heartbeat serves the bus, so every axis
+    has the same ``drive.host_node_id`` and ``drive.heartbeat_ms`` (an axis whose value
+    differs is refused, naming it: unifying it silently would change the consumer time that
+    axis' configuration asked for), and the host id is no axis' node id.
 
     Returns
     -------
@@ -81,88 +97,103 @@ def load_machine(path):
         ``name``, ``node_id``, ``cfg`` (validated configuration), ``plant``,
         ``plant_overrides``.
     """
-    from fftune.host.config import validate
+    from fftune.host.config import file_name, read_yaml, safe_name, validate
 
-    try:
-        with open(path, "r", encoding="utf-8") as fh:
-            raw = yaml.safe_load(fh)
-    except OSError as exc:
-        raise FftuneError(f"{path}: cannot read machine file: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise FftuneError(f"{path}: invalid YAML: {str(exc).splitlines()[0]}") from None
+    raw = read_yaml(path, "machine file")
     if not isinstance(raw, dict):
-        raise FftuneError(f"{path}: expected a mapping with 'axes'")
-    unknown = sorted(set(raw) - _TOP_KEYS)
+        raise FftuneError(f"{path}: expected a mapping with 'axes', got {show(raw)}")
+    unknown = sorted(str(k) for k in set(raw) - _TOP_KEYS)
     if unknown:
-        raise FftuneError(f"{path}: unknown key '{unknown[0]}' (expected {', '.join(sorted(_TOP_KEYS))})")
+        raise FftuneError(f"{path}: unknown key '{show(unknown[0], 60)}' (expected {', '.join(sorted(_TOP_KEYS))})")
     axes_raw = raw.get("axes")
     if not isinstance(axes_raw, list) or not axes_raw:
         raise FftuneError(f"{path}: key 'axes': expected a list of at least one axis")
     if len(axes_raw) > 8:
         raise FftuneError(f"{path}: key 'axes': {len(axes_raw)} axes, at most 8 on one simulated bus")
-    sim = raw.get("sim") or {}
-    if not isinstance(sim, dict) or set(sim) - {"bitrate"}:
+    sim = _mapping(raw.get("sim"), f"{path}: key 'sim'", "{bitrate: B}")
+    if set(sim) - {"bitrate"}:
         raise FftuneError(f"{path}: key 'sim': expected {{bitrate: B}}")
     bitrate = sim.get("bitrate")
+    if isinstance(bitrate, float) and bitrate.is_integer():
+        bitrate = int(bitrate)          # (1e6: a number as in every configuration)
     if bitrate is not None and (isinstance(bitrate, bool) or not isinstance(bitrate, int)
                                 or not 10_000 <= bitrate <= 1_000_000):
-        raise FftuneError(f"{path}: key 'sim.bitrate': expected 10000 .. 1000000 bit/s, got {bitrate!r}")
-    base_file = _resolve(raw.get("config") or "demo.yaml", path)
+        raise FftuneError(f"{path}: key 'sim.bitrate': expected 10000 .. 1000000 bit/s, got {show(bitrate)}")
+    name = safe_name(raw["machine"], path, "machine") if raw.get("machine") is not None else \
+        safe_name(os.path.splitext(os.path.basename(path))[0], path, "machine (from the file name)")
+    output = raw.get("output")
+    if output is not None and (not isinstance(output, str) or not output or "\0" in output):
+        raise FftuneError(f"{path}: key 'output': expected a directory name, got {show(output)}")
+    base_name = file_name(raw["config"], path, "config") if raw.get("config") is not None else "demo.yaml"
+    base_file = _resolve(base_name, path)
     try:
-        with open(base_file, "r", encoding="utf-8") as fh:
-            base_raw = yaml.safe_load(fh) or {}
-    except OSError as exc:
-        raise FftuneError(f"{path}: key 'config': {base_file}: {exc.strerror}") from None
-    common = raw.get("overrides") or {}
-    if not isinstance(common, dict):
-        raise FftuneError(f"{path}: key 'overrides': expected a mapping of configuration keys")
+        base_raw = read_yaml(base_file, "configuration") or {}
+    except FftuneError as exc:
+        raise FftuneError(f"{path}: key 'config': {exc}") from None
+    base_raw = _mapping(base_raw, f"{path}: key 'config': {base_file}", "a configuration mapping")
+    common = _mapping(raw.get("overrides"), f"{path}: key 'overrides'", "a mapping of configuration keys")
     axes, by_id, by_name = [], {}, {}
+    bus_hb = None                       # (host id, period, the axis that set them)
     for i, a in enumerate(axes_raw):
         where = f"{path}: axes[{i}]"
         if not isinstance(a, dict):
-            raise FftuneError(f"{where}: expected a mapping (name, node_id, ...)")
-        unknown = sorted(set(a) - _AXIS_KEYS)
+            raise FftuneError(f"{where}: expected a mapping (name, node_id, ...), got {show(a)}")
+        unknown = sorted(str(k) for k in set(a) - _AXIS_KEYS)
         if unknown:
-            raise FftuneError(f"{where}: unknown key '{unknown[0]}' (expected {', '.join(sorted(_AXIS_KEYS))})")
-        name = a.get("name")
-        if not isinstance(name, str) or not name or not all(c.isalnum() or c in "-_" for c in name):
-            raise FftuneError(f"{where}.name: expected a name of letters, digits, - and _, got {name!r}")
+            raise FftuneError(f"{where}: unknown key '{show(unknown[0], 60)}' (expected {', '.join(sorted(_AXIS_KEYS))})")
+        aname = a.get("name")
+        if not isinstance(aname, str) or not aname or len(aname) > 64 \
+                or not all(c.isascii() and (c.isalnum() or c in "-_") for c in aname):
+            raise FftuneError(f"{where}.name: expected a name of letters, digits, - and _, got {show(aname)}")
         nid = a.get("node_id")
         if isinstance(nid, bool) or not isinstance(nid, int) or not 1 <= nid <= 127:
-            raise FftuneError(f"{where}.node_id: expected 1 .. 127, got {nid!r}")
+            raise FftuneError(f"{where}.node_id: expected 1 .. 127, got {show(nid)}")
         if nid in by_id:
             raise FftuneError(f"{where}.node_id: {nid} is also the node id of axis '{by_id[nid]}' "
                               f"(node ids must be unique on one bus)")
-        if name in by_name:
-            raise FftuneError(f"{where}.name: '{name}' names axes[{by_name[name]}] too")
-        by_id[nid], by_name[name] = name, i
-        if a.get("config"):
-            cfile = _resolve(a["config"], path)
+        if aname in by_name:
+            raise FftuneError(f"{where}.name: '{aname}' names axes[{by_name[aname]}] too")
+        by_id[nid], by_name[aname] = aname, i
+        if a.get("config") is not None:
+            cfile = _resolve(file_name(a["config"], where, "config"), path)
             try:
-                with open(cfile, "r", encoding="utf-8") as fh:
-                    craw = yaml.safe_load(fh) or {}
-            except OSError as exc:
-                raise FftuneError(f"{where}.config: {cfile}: {exc.strerror}") from None
+                craw = read_yaml(cfile, "configuration") or {}
+            except FftuneError as exc:
+                raise FftuneError(f"{where}.config: {exc}") from None
+            craw = _mapping(craw, f"{where}.config: {cfile}", "a configuration mapping")
         else:
             craw = base_raw
-        over = a.get("overrides") or {}
-        if not isinstance(over, dict):
-            raise FftuneError(f"{where}.overrides: expected a mapping of configuration keys")
+        over = _mapping(a.get("overrides"), f"{where}.overrides", "a mapping of configuration keys")
         merged = _deep_merge(_deep_merge(craw, common, "overrides"), over, f"{where}.overrides")
-        merged.setdefault("drive", {})["node_id"] = nid
+        drive = merged.setdefault("drive", {})
+        if not isinstance(drive, dict):
+            raise FftuneError(f"{where} (configuration with overrides): key 'drive': expected a "
+                              f"mapping, got {show(drive)}")
+        drive["node_id"] = nid
         cfg = validate(merged, f"{where} (configuration with overrides)")
         cfg["_source"] = f"{os.path.abspath(path)}#axes[{i}]"
-        po = a.get("plant_overrides") or {}
-        if not isinstance(po, dict):
-            raise FftuneError(f"{where}.plant_overrides: expected {{section: {{key: number}}}}")
+        d = cfg["drive"]
+        if bus_hb is None:
+            bus_hb = (d["host_node_id"], d["heartbeat_ms"], f"axes[0] '{aname}'")
+        else:
+            for key, value, first in (("host_node_id", d["host_node_id"], bus_hb[0]),
+                                      ("heartbeat_ms", d["heartbeat_ms"], bus_hb[1])):
+                if value != first:
+                    raise FftuneError(
+                        f"{where} '{aname}': key 'drive.{key}': {value} differs from {first} of "
+                        f"{bus_hb[2]}: the host sends one heartbeat on the bus, every axis' consumer "
+                        f"watches it (set drive.{key} in the machine's overrides)")
+        po = _mapping(a.get("plant_overrides"), f"{where}.plant_overrides", "{section: {key: number}}")
         plant = None
-        if a.get("plant"):
-            plant = _resolve(a["plant"], path)
+        if a.get("plant") is not None:
+            plant = _resolve(file_name(a["plant"], where, "plant"), path)
             if not os.path.isfile(plant):
                 raise FftuneError(f"{where}.plant: {a['plant']}: no such plant file")
-        axes.append({"name": name, "node_id": nid, "cfg": cfg, "plant": plant, "plant_overrides": po})
-    name = raw.get("machine") or os.path.splitext(os.path.basename(path))[0]
-    return {"name": str(name), "output": raw.get("output") or f"out/{name}", "bitrate": bitrate,
+        axes.append({"name": aname, "node_id": nid, "cfg": cfg, "plant": plant, "plant_overrides": po})
+    if bus_hb[0] in by_id:
+        raise FftuneError(f"{path}: key 'drive.host_node_id': {bus_hb[0]} is the node id of axis "
+                          f"'{by_id[bus_hb[0]]}': the host's heartbeat needs an id of its own")
+    return {"name": name, "output": output or f"out/{name}", "bitrate": bitrate,
             "axes": axes, "file": os.path.abspath(path)}
 
 
@@ -349,7 +380,8 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
     """
     import canopen
 
-    from fftune.host.drive import BusOptions, Cancelled, DriveClient, _BusErrorListener, _open_bus
+    from fftune.host.drive import (SDO_BLKSIZE_MAX, BusOptions, Cancelled, DriveClient, HostHeartbeat,
+                                   _BusErrorListener, _open_bus, _SdoPacer, sdo_burst_frames)
     from fftune.host.odmap import DEFAULT_EDS
     from fftune.host.pipeline import check_plan, run_pipeline
 
@@ -359,10 +391,21 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
     t0 = time.monotonic()
     started = datetime.datetime.now().isoformat(timespec="seconds")
     d0 = machine["axes"][0]["cfg"]["drive"]
+    for ax in machine["axes"]:          # (load_machine refuses these; a dict built elsewhere)
+        d = ax["cfg"]["drive"]
+        if (d["host_node_id"], d["heartbeat_ms"]) != (d0["host_node_id"], d0["heartbeat_ms"]) \
+                or d0["host_node_id"] == ax["node_id"]:
+            raise FftuneError(f"axis '{ax['name']}': drive.host_node_id / drive.heartbeat_ms "
+                              f"({d['host_node_id']}, {d['heartbeat_ms']} ms) differ from the bus' "
+                              f"({d0['host_node_id']}, {d0['heartbeat_ms']} ms) or name the axis itself")
+    bitrate = bus_opts.bitrate or bus_opts.model_bitrate
+    burst = sdo_burst_frames(bitrate, d0["heartbeat_ms"], len(machine["axes"]))
     bus = _open_bus(bus_opts)
     network = canopen.Network(bus)
     network.connect()
     network.notifier.add_listener(_BusErrorListener())
+    if burst < SDO_BLKSIZE_MAX:
+        _SdoPacer(network, bitrate, burst)
     hb_ms = d0["heartbeat_ms"]
     hb_task = None
     cancel = threading.Event()
@@ -383,20 +426,20 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
         if figures:
             pool = _FigurePool(log, log_error)
         if hb_ms:
-            hb_task = network.send_periodic(0x700 + d0["host_node_id"], [0x05], hb_ms / 1000.0)
-            task = getattr(hb_task, "_task", None)
-            if task is not None and hasattr(task, "on_error"):
-                task.on_error = lambda exc: False
+            # one producer for the bus (after listening for another one on its COB-ID)
+            hb_task = HostHeartbeat(network, d0["host_node_id"], hb_ms).start()
         # connect every axis (each probes its node: one that does not answer is reported)
         for ax in machine["axes"]:
             d = ax["cfg"]["drive"]
             opts = BusOptions(interface=bus_opts.interface, channel=bus_opts.channel,
                               bitrate=bus_opts.bitrate, host=bus_opts.host, port=bus_opts.port,
-                              node_id=ax["node_id"], eds=d["eds"] or bus_opts.eds or DEFAULT_EDS)
+                              node_id=ax["node_id"], eds=d["eds"] or bus_opts.eds or DEFAULT_EDS,
+                              model_bitrate=bus_opts.model_bitrate)
             try:
                 c = DriveClient(opts, sdo_timeout_s=d["sdo_timeout_s"], sdo_retries=d["sdo_retries"],
                                 heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],
-                                run_timeout_s=d["run_timeout_s"], progress=progress, network=network)
+                                run_timeout_s=d["run_timeout_s"], progress=progress, network=network,
+                                host_heartbeat=hb_task, bus_nodes=len(machine["axes"]))
                 c.cancel = cancel
                 c.connect()
             except FftuneError as exc:
@@ -713,7 +756,7 @@ def demo_cli(args):
               f"({', '.join(str(a['node_id']) for a in machine['axes'])}) on {sim.describe()}"
               + (f", CAN bus model {bitrate} bit/s" if bitrate else ""), flush=True)
         opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
-                          node_id=machine["axes"][0]["node_id"], eds=DEFAULT_EDS)
+                          node_id=machine["axes"][0]["node_id"], eds=DEFAULT_EDS, model_bitrate=bitrate)
         summary = run_machine(machine, opts, out, figures=True, log=lambda s: print(s, flush=True),
                               progress=False)
     finally:

@@ -339,6 +339,47 @@ def _multisine_peaks(d, fs, k_min, k_max):
     return peak, vel
 
 
+def _track_checks(cfg, lim, check, amplitude_checks, kfc_check, src):
+    """``fftune track``'s part of the preflight: the task (its travel per repetition and its
+    speed against ``limits:``), the initial gains, and the odd-ratio check's sine (amplitude,
+    peak velocity, frequency and harmonics below fs/2) when it is enabled."""
+    import math
+
+    from fftune.analysis.errors import FftuneError
+
+    tc = cfg["track"]
+    task = tc["task"]
+    user = cfg["limits"]
+    check("track", "track.task.distance_rad", "travel", task["distance_rad"], user["max_amplitude_rad"],
+          "rad", "limits.max_amplitude_rad")
+    check("track", "track.task.v_max", "speed", task["v_max"], user["max_velocity_rad_s"], "rad/s",
+          "limits.max_velocity_rad_s")
+    if tc["initial"]["k_fc"] is not None:
+        kfc_check("track", "track.initial.k_fc", tc["initial"]["k_fc"])
+    c = tc["check"]
+    if not c["enabled"]:
+        return
+    amp, f = c["amplitude_rad"], c["frequency_hz"]
+    amplitude_checks("track", "track.check.amplitude_rad", "reference", None, amp, 2 * math.pi * f * amp)
+    check("track", "track.check.period_samples", "period N", c["period_samples"], lim.table_capacity,
+          "samples", "the drive's period limit 0x2001:5")
+    check("track", "track.check.periods", "recorded floats", 2 * c["periods"] * c["period_samples"],
+          lim.rec_capacity, "floats", "recorder capacity 0x2020:2, 2 signals")
+    fs = lim.fs_hz
+    if fs:
+        if f >= fs / 2:
+            raise FftuneError(f"{src}: key 'track.check.frequency_hz': {f:g} Hz is at or above fs/2 = "
+                              f"{fs / 2:g} Hz of the drive; nothing was run")
+        cycles = max(1, round(f * c["period_samples"] / fs))
+        if 2 * cycles * c["harmonics"] >= c["period_samples"]:
+            raise FftuneError(f"{src}: key 'track.check.frequency_hz': harmonic {c['harmonics']} of "
+                              f"{cycles * fs / c['period_samples']:g} Hz is at or above fs/2 = {fs / 2:g} Hz "
+                              f"of the drive; nothing was run")
+        check("track", "track.check.settle_periods", "run length",
+              (c["settle_periods"] + c["periods"]) * c["period_samples"] / fs,
+              cfg["drive"]["run_timeout_s"], "s", "drive.run_timeout_s")
+
+
 def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mode=None):
     """Check every excitation of the plan against the drive's limits and the
     configuration's ``limits:`` before anything moves.
@@ -425,10 +466,18 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
               text=None if limit is None else
               f"{value:g} V is above what the drive allows (its output limit u_max = {limit:g} V)")
 
+    # the rule of every command that moves an axis: the drive's consumer watches the host
+    hb = cfg["drive"].get("heartbeat_ms")
+    if not hb:
+        raise FftuneError(f"{src}: key 'drive.heartbeat_ms': 0 (no host heartbeat): a drive that "
+                          f"moves needs its consumer (0x1016) armed for the host's heartbeat "
+                          f"(1 .. {0xFFFF // 4} ms); nothing was run")
+    if "track" in steps:
+        _track_checks(cfg, lim, check, amplitude_checks, kfc_check, src)
     if not fs and any(cfg[s]["enabled"] for s in steps if s in ("quantify", "tune")):
         notes.append("fs not known (no drive, no drive.fs_hz): quantify's and tune's "
                      "frequencies (DFT grid, harmonics below fs/2) and run lengths not checked")
-    d = cfg["detect"]
+    d = cfg.get("detect")
     if "detect" in steps and d["enabled"]:
         n = d["period_samples"]
         if fs:
@@ -468,7 +517,7 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
             f"N = {d['period_samples']}, {d['settle_periods']} + {d['periods']} periods each"
             + (f", {runs * (d['settle_periods'] + d['periods']) * n / fs:.1f} s of excitation" if fs else ""))})
 
-    q = cfg["quantify"]
+    q = cfg.get("quantify")
     if "quantify" in steps and q["enabled"]:
         n = q["period_samples"]
         if fs:
@@ -497,7 +546,7 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
             f"x {q['repeats']} repeats), N = {n}, {q['settle_periods']} + {q['periods']} periods each"
             + (f", {runs * (q['settle_periods'] + q['periods']) * n / fs:.1f} s of excitation" if fs else ""))})
 
-    t = cfg["tune"]
+    t = cfg.get("tune")
     if "tune" in steps and t["enabled"]:
         n = t["period_samples"]
         if fs:

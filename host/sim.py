@@ -4,6 +4,7 @@
 back from its 'listening' line) and returns a :class:`SimulatedDrive` that stops it again
 (terminate, then kill) however the caller ends, including on an exception or Ctrl-C.
 """
+import math
 import os
 import re
 import select
@@ -104,6 +105,8 @@ def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_i
     drive_sim_path()  # a one-line error when it is missing
     if not os.path.exists(plant_config):
         raise FftuneError(f"plant configuration not found: {plant_config}")
+    if not os.path.isfile(plant_config):
+        raise FftuneError(f"plant configuration {plant_config}: not a file (a directory?)")
     cmd = drive_sim_command(plant_config, host, port, node_id, extra, interface=interface,
                             channel=channel, bitrate=bitrate, realtime=realtime)
     log = open(log_path, "w") if log_path else subprocess.DEVNULL
@@ -272,21 +275,21 @@ def derived_plant(base_path, overrides, out_path, where="sim.overrides"):
 def derived_plant_text(base_path, overrides, where="sim.overrides"):
     """``base_path`` with ``overrides`` applied, as drive_sim's two-level YAML subset."""
 
-    from fftune.host.config import MAX_CONFIG_BYTES, safe_yaml_load
+    from fftune.host.config import read_yaml, show
 
-    try:
-        with open(base_path, "r", encoding="utf-8") as fh:
-            plant = safe_yaml_load(fh.read(MAX_CONFIG_BYTES + 1), f"plant configuration {base_path}")
-    except OSError as exc:
-        raise FftuneError(f"plant configuration {base_path}: {exc.strerror}") from None
-    except UnicodeDecodeError:
-        raise FftuneError(f"plant configuration {base_path}: not UTF-8 text") from None
+    plant = read_yaml(base_path, "plant configuration")
     if not isinstance(plant, dict) or not all(isinstance(v, dict) for v in plant.values()):
         raise FftuneError(f"plant configuration {base_path}: expected sections of key: value")
+    if not isinstance(overrides, dict):
+        raise FftuneError(f"{where}: expected {{section: {{key: number}}}}, got {show(overrides)}")
     for section, values in overrides.items():
         if section not in plant:
-            raise FftuneError(f"{where}.{section}: no section '{section}' in {base_path}")
+            raise FftuneError(f"{where}.{show(section, 40)}: no section '{show(section, 40)}' in {base_path}")
+        if not isinstance(values, dict):
+            raise FftuneError(f"{where}.{section}: expected {{key: number}}, got {show(values)}")
         for key, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise FftuneError(f"{where}.{section}.{show(key, 40)}: expected a finite number, got {show(value)}")
             if key not in plant[section]:
                 raise FftuneError(f"{where}.{section}.{key}: no key '{key}' in section "
                                   f"'{section}' of {base_path}")

@@ -25,8 +25,10 @@ from fftune.analysis.track import (NotIdentifiable, Tracker, TrackSettings, esti
                                    parse_task_stats)
 from fftune.host.atomic import write_atomic
 from fftune.host.config import DEFAULTS as _CFG_DEFAULTS
-from fftune.host.config import _bool, _choice, _err, _merge, _number, check_output_dir
+from fftune.host.config import (_bool, _choice, _err, _merge, _number, check_output_dir, file_name,
+                                 read_yaml, validate_drive, validate_limits)
 from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
+from fftune.host.drive import frame_bits  # noqa: F401  (one definition; fftune.host.track.frame_bits)
 from fftune.host.odmap import RUN_STATES, STOP_REASONS
 
 TASK_MODES = {"back_and_forth": 1, "forward": 2}
@@ -35,6 +37,8 @@ TRACK_DEFAULTS = {
     "output": "out/track",
     "sim": copy.deepcopy(_CFG_DEFAULTS["sim"]),
     "drive": copy.deepcopy(_CFG_DEFAULTS["drive"]),
+    # the axis' motion limits (as fftune run's): the task and the odd-ratio check within them
+    "limits": copy.deepcopy(_CFG_DEFAULTS["limits"]),
     "track": {
         "tasks": 100,                 # repetitions to run (each one task run on the drive)
         # repetitions played before the recorded one in each run: 1 makes the recorded one
@@ -116,17 +120,9 @@ def validate_track_config(raw, path):
     _number(cfg, path, f"{t}.check.settle_periods", low=0, high=1000, integer=True)
     _number(cfg, path, f"{t}.check.harmonics", low=3, high=15, integer=True)
     _number(cfg, path, f"{t}.bus_bitrate", low=10000, high=1000000, integer=True)
-    d = cfg["drive"]
-    _number(cfg, path, "drive.node_id", low=1, high=127, integer=True)
-    _number(cfg, path, "drive.heartbeat_ms", low=0, high=65535, integer=True)
-    _number(cfg, path, "drive.sdo_timeout_s", low=0.01, high=60.0)
-    _number(cfg, path, "drive.sdo_retries", low=1, high=10, integer=True)
-    _number(cfg, path, "drive.run_timeout_s", low=0.1)
-    _number(cfg, path, "drive.host_node_id", low=1, high=127, integer=True)
-    if d["eds"] is not None and not isinstance(d["eds"], str):
-        raise _err(path, "drive.eds", f"expected a file name, got {d['eds']!r}")
-    if cfg["sim"]["plant"] is not None and not isinstance(cfg["sim"]["plant"], str):
-        raise _err(path, "sim.plant", f"expected a file name, got {cfg['sim']['plant']!r}")
+    validate_drive(cfg, path)           # (fftune run's rules: one host heartbeat, <= 16383 ms)
+    validate_limits(cfg, path)
+    file_name(cfg["sim"]["plant"], path, "sim.plant", allow_none=True)
     if not isinstance(cfg["sim"]["overrides"], dict):
         raise _err(path, "sim.overrides", "expected a mapping {section: {key: number}}")
     _number(cfg, path, "sim.bitrate", low=10000, high=1000000, integer=True, allow_none=True)
@@ -136,28 +132,15 @@ def validate_track_config(raw, path):
 
 
 def load_track_config(path):
-    """Read and validate a ``fftune track`` configuration (YAML)."""
-    try:
-        with open(path, "r", encoding="utf-8") as fh:
-            raw = yaml.safe_load(fh)
-    except OSError as exc:
-        raise FftuneError(f"{path}: cannot read configuration: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else path
-        raise FftuneError(f"{where}: invalid YAML: {getattr(exc, 'problem', None) or exc}") from None
+    """Read (:func:`fftune.host.config.read_yaml`, the one loader) and validate a ``fftune
+    track`` configuration (YAML)."""
+    raw = read_yaml(path, "track configuration")
     cfg = validate_track_config(raw, path)
     cfg["_source"] = os.path.abspath(path)
     return cfg
 
 
 # ---- bus traffic ------------------------------------------------------------------------
-
-def frame_bits(n_bytes):
-    """Bit times of a classic base-format data frame with n data bytes, worst-case bit
-    stuffing, plus the interframe space (docs/track.md; REFERENCE.md section 3)."""
-    return 47 + 8 * n_bytes + (34 + 8 * n_bytes - 1) // 4
-
 
 class BusCounter:
     """Counts the frames the host sends (network.send_message) and receives (all frames on
@@ -588,12 +571,23 @@ def _client(cfg, opts, progress):
                        run_timeout_s=d["run_timeout_s"], progress=progress)
 
 
+def preflight_track(cfg, client=None):
+    """The envelope of every command that moves an axis (:func:`fftune.host.plan.preflight`,
+    step ``track``): the task and the check against ``limits:`` and, with ``client``, the
+    drive's limits (fs, u_max, capacities); one FftuneError line naming the key."""
+    from fftune.host.plan import preflight, read_drive_limits
+
+    return preflight(cfg, None if client is None else read_drive_limits(client, cfg), steps=("track",))
+
+
 def _track(args):
     cfg = load_track_config(args.config)
+    preflight_track(cfg)                # (before the drive is contacted)
     opts = BusOptions.from_args(args, cfg["drive"])
     client = _client(cfg, opts, not args.no_progress)
     out = check_output_dir(args.out or cfg["output"])
     with client:
+        preflight_track(cfg, client)    # the drive's own limits, before it is enabled
         client.enable()
         results = track_session(client, cfg, out, figures=not args.no_figures,
                                 log=lambda s: print(s, flush=True))
@@ -609,6 +603,7 @@ def _demo_track(args):
     # demo-track starts its own drive on a free port: python-can's configuration plays no part
     args.interface = args.interface or "socketcand"
     cfg = load_track_config(args.config)
+    preflight_track(cfg)
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     check_bus(args.interface, args.channel, bitrate)
     out = check_output_dir(args.out or cfg["output"])
@@ -628,7 +623,9 @@ def _demo_track(args):
     try:
         print(f"fftune demo-track: drive_sim ({os.path.relpath(plant)}) on {sim.describe()}", flush=True)
         opts = sim.bus_options(node_id, d["eds"] or None)
+        opts.model_bitrate = bitrate    # (the host's SDO bursts keep its heartbeat's period)
         with _client(cfg, opts, not args.no_progress) as client:
+            preflight_track(cfg, client)
             client.enable()
             results = track_session(client, cfg, out, figures=not args.no_figures,
                                     log=lambda s: print(s, flush=True))

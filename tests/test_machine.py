@@ -135,8 +135,9 @@ def test_duplicate_node_ids_are_one_line_and_nothing_written(tmp_path, capsys):
 
 def test_ctrl_c_stops_and_disables_every_axis(machine_sim, tmp_path, monkeypatch, capsys):
     sim, d = machine_sim
-    # no heartbeats: the drives' consumer would stop them too; here only fftune's cleanup can
-    no_hb = dict(SMALL, drive={"heartbeat_ms": 0, "fs_hz": 2560.0})
+    # a slow heartbeat (consumer 16 s: a drive is never enabled without one, issue 30): the
+    # drives' consumer stops nothing within the test; here only fftune's cleanup can
+    no_hb = dict(SMALL, drive={"heartbeat_ms": 4000, "fs_hz": 2560.0})  # (consumer 16 s)
     (d / "small_no_hb.yaml").write_text(yaml.safe_dump(no_hb))
     f = _machine_file(d, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}], "m2.yaml",
                       config="small_no_hb.yaml")
@@ -337,7 +338,7 @@ def test_machine_file_overrides_common_then_per_axis(tmp_path):
 
 def test_sigterm_stops_and_disables_every_axis(machine_sim, tmp_path):
     """`kill -TERM` of a machine session (another process): exit 143, every drive stopped and
-    disabled (no heartbeats: only fftune's cleanup can). The signal is sent when a passive
+    disabled (a 16 s consumer: only fftune's cleanup can within the test). The signal is sent when a passive
     listener on the bus has seen the start command go to both nodes."""
     import signal
     import subprocess
@@ -349,7 +350,7 @@ def test_sigterm_stops_and_disables_every_axis(machine_sim, tmp_path):
     from fftune.host.odmap import PARAMS
 
     sim, d = machine_sim
-    no_hb = dict(SMALL, drive={"heartbeat_ms": 0, "fs_hz": 2560.0})
+    no_hb = dict(SMALL, drive={"heartbeat_ms": 4000, "fs_hz": 2560.0})  # (consumer 16 s)
     (d / "small_no_hb2.yaml").write_text(yaml.safe_dump(no_hb))
     f = _machine_file(d, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}], "m4.yaml",
                       config="small_no_hb2.yaml")

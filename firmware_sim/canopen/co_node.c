@@ -31,25 +31,28 @@ bool co_node_run_active(const co_node_t *n)
     return rs == DRV_RUN_SETTLING || rs == DRV_RUN_RECORDING;
 }
 
-void co_node_init(co_node_t *n, const co_cfg_t *cfg, drv_t *drv, uint32_t now_us)
+int co_node_init(co_node_t *n, const co_cfg_t *cfg, drv_t *drv, uint32_t now_us)
 {
     memset(n, 0, sizeof *n);
-    n->cfg = *cfg;
-    if (n->cfg.node_id == 0u || n->cfg.node_id > 127u) {
-        n->cfg.node_id = 1u;
+    if (cfg->node_id == 0u || cfg->node_id > 127u) {
+        /* refused, not repaired: a node that answered as node 1 would take another node's
+         * SDO requests and hide the configuration error; n stays INITIALISING and silent */
+        return CO_NODE_EINVAL;
     }
+    n->cfg = *cfg;
     n->drv = drv;
     n->now_us = now_us;
     co_od_reset_ram(n, 0x0000u, 0xFFFFu);
     co_402_init(n);
     co_nmt_boot(n);
+    return 0;
 }
 
 void co_node_rx(co_node_t *n, const co_frame_t *f)
 {
     uint16_t id = f->id;
     uint8_t node = n->cfg.node_id;
-    if (id > 0x7FFu || f->len > 8u) {
+    if (n->drv == NULL || id > 0x7FFu || f->len > 8u) { /* (drv NULL: co_node_init refused it) */
         return;
     }
     n->rx_frames++;
@@ -73,6 +76,9 @@ void co_node_rx(co_node_t *n, const co_frame_t *f)
 
 void co_node_process(co_node_t *n, uint32_t now_us)
 {
+    if (n->drv == NULL) {
+        return; /* co_node_init refused its configuration: the node does nothing */
+    }
     n->now_us = now_us;
     co_hb_process(n);
     co_sdo_process(n);

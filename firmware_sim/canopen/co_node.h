@@ -193,8 +193,13 @@ typedef struct co_node {
     uint16_t last_emcy_code;
 } co_node_t;
 
-/* Initialise (drv already initialised) and send the boot-up message; enters PRE-OPERATIONAL. */
-void co_node_init(co_node_t *n, const co_cfg_t *cfg, drv_t *drv, uint32_t now_us);
+/* co_node_init's refusal of its configuration (node id outside 1..127). */
+#define CO_NODE_EINVAL (-1)
+
+/* Initialise (drv already initialised) and send the boot-up message; enters PRE-OPERATIONAL.
+ * Returns 0, or CO_NODE_EINVAL for a node id outside 1..127: then nothing is sent, the node
+ * stays INITIALISING (co_node_rx ignores every frame but NMT) and must not be used. */
+int co_node_init(co_node_t *n, const co_cfg_t *cfg, drv_t *drv, uint32_t now_us);
 /* One received frame (any id; those not for this node are ignored). */
 void co_node_rx(co_node_t *n, const co_frame_t *f);
 /* Timers, SDO block upload progress, TPDO events, run-state monitoring. */

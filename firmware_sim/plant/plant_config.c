@@ -1,3 +1,4 @@
+#define _POSIX_C_SOURCE 200809L /* fileno, fstat: a directory is refused where a file is expected */
 /* plant_config.c - see plant_config.h. */
 #include "plant_config.h"
 
@@ -7,6 +8,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
 
 typedef enum { PC_F64, PC_U32, PC_U64 } pc_type_t;
 
@@ -169,6 +171,15 @@ int plant_config_load(const char *path, plant_config_t *out, char *err, size_t e
     FILE *f = fopen(path, "r");
     if (f == NULL) {
         snprintf(err, errlen, "%s: cannot open: %s", path, strerror(errno));
+        return -1;
+    }
+    /* a directory opens (and then reads as nothing: the built-in plant, silently) */
+    struct stat st;
+    memset(&st, 0, sizeof st);
+    if (fstat(fileno(f), &st) != 0 || !S_ISREG(st.st_mode)) {
+        snprintf(err, errlen, "%s: not a regular file%s", path,
+                 S_ISDIR(st.st_mode) ? " (a directory)" : "");
+        fclose(f);
         return -1;
     }
     plant_config_t cfg;

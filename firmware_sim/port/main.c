@@ -586,7 +586,10 @@ int main(int argc, char **argv)
         cc.reset_app = reset_hook;
         cc.app_ctx = ax;
         cc.table_capacity_bytes = ax->cfg.table_capacity * 4u;
-        co_node_init(&ax->node, &cc, sim_drv(&ax->sim), (uint32_t)app.now_us);
+        if (co_node_init(&ax->node, &cc, sim_drv(&ax->sim), (uint32_t)app.now_us) != 0) {
+            fprintf(stderr, "drive_sim: error: node id %d: expected 1..127\n", ax->node_id);
+            return 2;
+        }
         ax->ready = true;
         used += (size_t)snprintf(nodes + used, sizeof nodes - used, "%s%d", i ? "," : "", ax->node_id);
     }

@@ -1486,6 +1486,51 @@ static void test_sdo_init_clears_everything(void)
     CHECK(zero);
 }
 
+/* issue 30: a node id outside 1..127 is refused (CO_NODE_EINVAL), not replaced by 1: the
+ * node sends nothing (no boot-up) and answers no SDO request, neither as node 1 nor else. */
+static void test_node_init_refuses_a_bad_node_id(void)
+{
+    static const uint8_t bad[] = {0u, 128u, 255u};
+    for (size_t k = 0; k < sizeof bad; k++) {
+        drv_init(&g_drv, NULL);
+        co_cfg_t cfg = {0};
+        cfg.node_id = bad[k];
+        cfg.tx = tx_hook;
+        cfg.sim_get = sim_hook;
+        cfg.reset_app = reset_hook;
+        cfg.table_capacity_bytes = 32768u;
+        g_ntx = 0;
+        g_tx_budget = -1;
+        CHECK(co_node_init(&g_n, &cfg, &g_drv, 1000u) == CO_NODE_EINVAL);
+        CHECK(g_ntx == 0);
+        CHECK(g_n.nmt == CO_NMT_INITIALISING);
+        static const uint8_t up[8] = {0x40, 0x00, 0x10, 0x00, 0, 0, 0, 0};   /* upload 0x1000 */
+        rx(0x601, up, 8);
+        rx((uint16_t)(0x600u + (bad[k] & 0x7Fu)), up, 8);
+        static const uint8_t start_all[2] = {0x01, 0x00};                  /* NMT start, all */
+        rx(0x000, start_all, 2);
+        co_node_process(&g_n, 2000u);
+        CHECK(g_ntx == 0);
+        CHECK(g_n.nmt == CO_NMT_INITIALISING);
+    }
+    /* the edges of the range are accepted, with their own boot-up message */
+    static const uint8_t good[] = {1u, 127u};
+    for (size_t k = 0; k < sizeof good; k++) {
+        drv_init(&g_drv, NULL);
+        co_cfg_t cfg = {0};
+        cfg.node_id = good[k];
+        cfg.tx = tx_hook;
+        cfg.sim_get = sim_hook;
+        cfg.reset_app = reset_hook;
+        cfg.table_capacity_bytes = 32768u;
+        g_ntx = 0;
+        g_tx_budget = -1;
+        CHECK(co_node_init(&g_n, &cfg, &g_drv, 1000u) == 0);
+        CHECK(g_ntx == 1 && g_tx[0].id == 0x700u + good[k] && g_tx[0].data[0] == 0);
+    }
+    setup();
+}
+
 int main(void)
 {
     test_crc();
@@ -1515,6 +1560,7 @@ int main(void)
     test_sdo_request_replaces_or_aborts_transfer();
     test_sdo_repeat_window();
     test_sdo_init_clears_everything();
+    test_node_init_refuses_a_bad_node_id();
     printf("%d passed, %d failed\n", g_pass, g_fail);
     return g_fail ? 1 : 0;
 }
