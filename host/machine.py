@@ -184,6 +184,12 @@ def load_machine(path):
                         f"{bus_hb[2]}: the host sends one heartbeat on the bus, every axis' consumer "
                         f"watches it (set drive.{key} in the machine's overrides)")
         po = _mapping(a.get("plant_overrides"), f"{where}.plant_overrides", "{section: {key: number}}")
+        for section, values in po.items():
+            _mapping(values, f"{where}.plant_overrides.{str(section)[:40]}", "{key: number}", allow_none=False)
+            for key, value in values.items():
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                    raise FftuneError(f"{where}.plant_overrides.{str(section)[:40]}.{str(key)[:40]}: "
+                                      f"expected a finite number, got {show(value)}")
         plant = None
         if a.get("plant") is not None:
             plant = _resolve(file_name(a["plant"], where, "plant"), path)

@@ -284,12 +284,12 @@ def derived_plant_text(base_path, overrides, where="sim.overrides"):
         raise FftuneError(f"{where}: expected {{section: {{key: number}}}}, got {show(overrides)}")
     for section, values in overrides.items():
         if section not in plant:
-            raise FftuneError(f"{where}.{show(section, 40)}: no section '{show(section, 40)}' in {base_path}")
+            raise FftuneError(f"{where}.{str(section)[:40]}: no section '{str(section)[:40]}' in {base_path}")
         if not isinstance(values, dict):
             raise FftuneError(f"{where}.{section}: expected {{key: number}}, got {show(values)}")
         for key, value in values.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise FftuneError(f"{where}.{section}.{show(key, 40)}: expected a finite number, got {show(value)}")
+                raise FftuneError(f"{where}.{section}.{str(key)[:40]}: expected a finite number, got {show(value)}")
             if key not in plant[section]:
                 raise FftuneError(f"{where}.{section}.{key}: no key '{key}' in section "
                                   f"'{section}' of {base_path}")

@@ -1,0 +1,282 @@
+"""One safety envelope for every entry point (issue 30).
+
+The probes of the issue, each one a test:
+
+- every file a user gives (configuration, machine file, axis configuration, track
+  configuration, plant, capture) goes through one loader: an alias bomb, deep nesting, a
+  non-UTF-8 byte, NUL bytes, a wrong type, a directory, an oversized file: one ``fftune:
+  error:`` line naming the file and key, exit 2, nothing written, no traceback; ``1e-3`` is a
+  number through every entry point; a machine's name never leaves the output folder;
+- every command that moves an axis has the same preflight (``limits:``, the drive's limits,
+  the heartbeat) before the first motion, track's task and check included;
+- no drive is enabled without an armed consumer for the heartbeat this host sends: one host
+  id and period per bus, a host id in use by another producer refused, the SDO bursts
+  bounded by the heartbeat at low bit rates; after SIGKILL of the host in each accepted
+  configuration every axis leaves OPERATION ENABLED within its consumer time.
+
+The drive's timestamps are the bus server's (drive_sim's socketcand), not this process'.
+"""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from fftune.analysis.errors import FftuneError, InputError
+from fftune.host.cli import main
+from host_fixtures import EDS, REPO, drive_sim_missing_reason
+
+needs_drive = pytest.mark.skipif(drive_sim_missing_reason() is not None,
+                                 reason=drive_sim_missing_reason() or "")
+
+OPERATION_ENABLED = 0x0027
+STATUS_POWER_MASK = 0x006F
+TWOMASS = os.path.join(REPO, "configs", "plant_twomass.yaml")
+# a small tune step (as tests/test_machine.py): in real time each run lasts 6.4 s
+SMALL = {
+    "output": "out/unused",
+    "drive": {"heartbeat_ms": 100, "fs_hz": 2560.0},
+    "detect": {"enabled": False, "encoder_step_rad": 0.0031415926535897933}, "quantify": {"enabled": False},
+    "tune": {"frequency_hz": 0.625, "amplitude_rad": 0.5, "period_samples": 4096, "periods": 2,
+             "settle_periods": 2, "harmonics": 7, "capture": "stats",
+             "sweep": {"k_fc_max": 0.3, "points": 0}, "search": {"method": "root", "max_experiments": 8},
+             "viscous": {"enabled": False}},
+}
+
+
+def _one_error_line(capsys, *needles):
+    """stderr holds exactly one ``fftune: error:`` line, no traceback; it names every needle."""
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("fftune: error: "), err
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    return lines[0]
+
+
+def _write(path, text):
+    path.write_text(text) if isinstance(text, str) else path.write_bytes(text)
+    return str(path)
+
+
+# ---------------------------------------------------------------------------------------
+# one loader for every file a user gives
+# ---------------------------------------------------------------------------------------
+ALIAS_BOMB = ("a: &a [x, x, x, x, x, x, x, x, x]\n"
+              + "".join(f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+                        for p, c in zip("abcdefgh", "bcdefghi")))
+
+
+def _machine(tmp_path, body, name="m.yaml"):
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    return _write(tmp_path / name, body)
+
+
+MACHINE_PROBES = {
+    "alias bomb": (ALIAS_BOMB, ("more than 100000 YAML nodes",)),
+    "deep nesting": ("axes: " + "[" * 200 + "]" * 200 + "\n", ("nested deeper than 32",)),
+    "non-UTF-8 byte": (b"machine: t\naxes: []\n# \xff\n", ("not UTF-8 text (byte 22)",)),
+    "NUL bytes": (b"\0" * 64, ("a NUL byte at offset 0",)),
+    "output: 5": ("output: 5\nconfig: small.yaml\naxes: [{name: x, node_id: 3}]\n", ("key 'output'", "got 5")),
+    "config: [a, b]": ("config: [a, b]\naxes: [{name: x, node_id: 3}]\n", ("key 'config'", "got ['a', 'b']")),
+    "axes[0].plant: 5": ("config: small.yaml\naxes: [{name: x, node_id: 3, plant: 5}]\n",
+                         ("axes[0]: key 'plant': expected a file name, got 5",)),
+    "axes[0].overrides: 5": ("config: small.yaml\naxes: [{name: x, node_id: 3, overrides: 5}]\n",
+                             ("axes[0].overrides", "got 5")),
+    "plant_overrides not numbers": ("config: small.yaml\naxes: [{name: x, node_id: 3, "
+                                    "plant_overrides: {plant: 5}}]\n",
+                                    ("axes[0].plant_overrides", "got 5")),
+    "machine: ../../escaped": ("machine: ../../escaped\nconfig: small.yaml\naxes: [{name: x, node_id: 3}]\n",
+                               ("key 'machine'", "'../../escaped'")),
+    "axis name with a slash": ("config: small.yaml\naxes: [{name: ../x, node_id: 3}]\n", ("axes[0].name",)),
+    "node id of 23 digits": ("config: small.yaml\naxes: [{name: x, node_id: 12345678901234567890123}]\n",
+                             ("axes[0].node_id", "1 .. 127")),
+    "config a directory": ("config: sub\naxes: [{name: x, node_id: 3}]\n", ("key 'config'", "is a directory")),
+    "axis heartbeat differs": ("config: small.yaml\naxes: [{name: x, node_id: 3},\n"
+                               "  {name: y, node_id: 4, overrides: {drive: {heartbeat_ms: 1000}}}]\n",
+                               ("axes[1] 'y': key 'drive.heartbeat_ms': 1000 differs from 100 of axes[0] 'x'",)),
+    "axis host id differs": ("config: small.yaml\naxes: [{name: x, node_id: 3},\n"
+                             "  {name: y, node_id: 4, overrides: {drive: {host_node_id: 100}}}]\n",
+                             ("axes[1] 'y': key 'drive.host_node_id': 100 differs from 127",)),
+    "host id of an axis": ("config: small.yaml\noverrides: {drive: {host_node_id: 4}}\n"
+                           "axes: [{name: x, node_id: 3}, {name: y, node_id: 4}]\n",
+                           ("axes[1]", "key 'drive.host_node_id': must differ from drive.node_id")),
+    "heartbeat 0": ("config: small.yaml\noverrides: {drive: {heartbeat_ms: 0}}\naxes: [{name: x, node_id: 3}]\n",
+                    ("axis 'x'", "key 'drive.heartbeat_ms': 0 (no host heartbeat)")),
+}
+
+
+@pytest.mark.parametrize("probe", sorted(MACHINE_PROBES))
+def test_machine_file_probe_is_one_line_and_nothing_written(tmp_path, capsys, monkeypatch, probe):
+    body, needles = MACHINE_PROBES[probe]
+    (tmp_path / "sub").mkdir()
+    f = _machine(tmp_path, body)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+    assert main(["tune", "--machine", f, "--out", str(out), "--port", "1", "--no-progress"]) == 2
+    _one_error_line(capsys, *needles)
+    assert not out.exists() and not (tmp_path.parent / "escaped").exists()
+
+
+def test_an_oversized_axis_configuration_is_refused_unparsed(tmp_path, capsys):
+    big = tmp_path / "big.yaml"
+    big.write_text("# padding\n" * 200_000)     # 2 MB of comments: valid YAML, too large
+    f = _machine(tmp_path, "axes: [{name: x, node_id: 3, config: big.yaml}]\n")
+    assert main(["tune", "--machine", f, "--out", str(tmp_path / "o"), "--port", "1"]) == 2
+    _one_error_line(capsys, "axes[0].config", "2000000 bytes", "at most 1048576")
+
+
+def test_one_number_parsing_through_every_entry_point(tmp_path):
+    """``1e-3`` (YAML 1.2's float, a string to PyYAML's 1.1) is a number through load_config,
+    a machine file, an axis configuration and a track configuration alike."""
+    from fftune.host.config import load_config
+    from fftune.host.machine import load_machine
+    from fftune.host.track import load_track_config
+
+    cfg = dict(SMALL, tune=dict(SMALL["tune"], search={"method": "root", "xtol_v": "XTOL"}))
+    text = yaml.safe_dump(cfg).replace("XTOL", "1e-3").replace("'1e-3'", "1e-3")
+    (tmp_path / "c.yaml").write_text(text)
+    assert load_config(str(tmp_path / "c.yaml"))["tune"]["search"]["xtol_v"] == 0.001
+    f = _write(tmp_path / "m.yaml", "config: c.yaml\noverrides: {tune: {search: {k_fc_max: 2e-1}}}\n"
+                                    "axes: [{name: x, node_id: 3}, {name: y, node_id: 4, config: c.yaml,\n"
+                                    "        overrides: {tune: {search: {xtol_v: 5e-4}}}}]\n")
+    m = load_machine(f)
+    assert [a["cfg"]["tune"]["search"]["xtol_v"] for a in m["axes"]] == [0.001, 0.0005]
+    assert [a["cfg"]["tune"]["search"]["k_fc_max"] for a in m["axes"]] == [0.2, 0.2]
+    t = _write(tmp_path / "t.yaml", "track: {write_deadband_rel: 1e-3, task: {v_max: 3e0}}\n")
+    tc = load_track_config(t)
+    assert tc["track"]["write_deadband_rel"] == 0.001 and tc["track"]["task"]["v_max"] == 3.0
+
+
+@pytest.mark.parametrize("body, needles", [
+    (ALIAS_BOMB, ("more than 100000 YAML nodes",)),
+    (b"track: {tasks: 3}\n\xfe\n", ("not UTF-8 text",)),
+    ("drive: {heartbeat_ms: 65535}\n", ("key 'drive.heartbeat_ms'", "<= 16383")),
+    ("drive: {heartbeat_ms: 0}\n", ("key 'drive.heartbeat_ms': 0 (no host heartbeat)",)),
+    ("drive: {host_node_id: 1}\n", ("key 'drive.host_node_id': must differ from drive.node_id",)),
+    ("sim: {plant: 5}\n", ("key 'sim.plant': expected a file name, got 5",)),
+    ("track: {check: {enabled: true, amplitude_rad: 30}}\n",
+     ("key 'track.check.amplitude_rad'", "30 rad peak is above 8 rad (limits.max_amplitude_rad)")),
+    ("track: {check: {enabled: true, frequency_hz: 2.5, amplitude_rad: 1000}}\n",
+     ("key 'track.check.amplitude_rad'",)),
+    ("track: {check: {enabled: true, frequency_hz: 100, amplitude_rad: 2}}\n",
+     ("key 'track.check.amplitude_rad'", "peak velocity", "limits.max_velocity_rad_s")),
+    ("drive: {fs_hz: 2560}\ntrack: {check: {enabled: true, frequency_hz: 5000}}\n",
+     ("key 'track.check.frequency_hz': 5000 Hz is at or above fs/2 = 1280 Hz",)),
+    ("track: {task: {distance_rad: 1000}}\n", ("key 'track.task.distance_rad'", "limits.max_amplitude_rad")),
+    ("limits: {max_velocity_rad_s: 3}\ntrack: {task: {v_max: 4}}\n",
+     ("key 'track.task.v_max'", "4 rad/s", "above 3 rad/s")),
+])
+def test_track_probe_is_refused_before_the_drive_is_contacted(tmp_path, capsys, body, needles):
+    f = _write(tmp_path / "t.yaml", body)
+    out = tmp_path / "o"
+    assert main(["track", "--config", f, "--port", "1", "--out", str(out), "--no-progress"]) == 2
+    _one_error_line(capsys, *needles)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("what", ["directory", "nul", "heartbeat0"])
+def test_run_config_probes(tmp_path, capsys, what):
+    if what == "directory":
+        f, needles = str(tmp_path), ("is a directory",)
+    elif what == "nul":
+        f, needles = _write(tmp_path / "c.yaml", b"output: x\n\0\n"), ("a NUL byte at offset 10",)
+    else:
+        f = _write(tmp_path / "c.yaml", yaml.safe_dump(dict(SMALL, drive={"heartbeat_ms": 0})))
+        needles = ("key 'drive.heartbeat_ms': 0 (no host heartbeat)",)
+    assert main(["tune", "--config", f, "--port", "1", "--out", str(tmp_path / "o")]) == 2
+    _one_error_line(capsys, *needles)
+
+
+def test_plant_file_probes(tmp_path):
+    from fftune.host.sim import derived_plant_text, start_drive_sim
+
+    with pytest.raises(FftuneError, match="is a directory, expected a file"):
+        derived_plant_text(str(tmp_path), {})
+    with pytest.raises(FftuneError, match="more than 100000 YAML nodes"):
+        derived_plant_text(_write(tmp_path / "p.yaml", ALIAS_BOMB), {})
+    with pytest.raises(FftuneError, match=r"sim.overrides.plant.coulomb: expected a finite number, got \[1, 2\]"):
+        derived_plant_text(TWOMASS, {"plant": {"coulomb": [1, 2]}})
+    with pytest.raises(FftuneError, match="not a file"):
+        start_drive_sim(str(tmp_path))
+
+
+@needs_drive
+@pytest.mark.parametrize("option", ["--config", "--axis"])
+def test_drive_sim_refuses_a_directory_for_a_plant(tmp_path, option):
+    from fftune.host.resources import drive_sim_path
+
+    arg = str(tmp_path) if option == "--config" else f"1:{tmp_path}"
+    p = subprocess.run([drive_sim_path(), option, arg, "--port", "0"], capture_output=True, text=True,
+                       timeout=20)
+    assert p.returncode == 2
+    assert p.stderr.splitlines() == [f"drive_sim: error: {tmp_path}: not a regular file (a directory)"]
+    assert p.stdout == ""
+
+
+# ---------------------------------------------------------------------------------------
+# captures: shape, dtype and declared size before reading
+# ---------------------------------------------------------------------------------------
+def _forged_capture(path, n_period, record_periods, dtype="<f4", write=None):
+    import h5py
+
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = "fftune-capture"
+        f.attrs["format_version"] = 1
+        f.attrs["fs_hz"] = 2560.0
+        f.attrs["n_period"] = n_period
+        f.attrs["settle_periods"] = 0
+        f.attrs["record_periods"] = record_periods
+        f.attrs["experiment"] = "detect"
+        ds = f.create_dataset("plant_input", shape=(n_period * record_periods,), dtype=dtype)
+        if write is not None:
+            ds[...] = write
+    return path
+
+
+@pytest.mark.parametrize("periods, dtype, needle", [
+    (18311, "<f4", "declares 150003712 samples a signal"),      # 600 MB declared in a few kB
+    (500, "<f4", "declares 16384000 bytes, the file stores 0"),   # within the limit, not stored
+    (1, "<i4", "has dtype int32, expected float32"),
+])
+def test_a_forged_capture_is_refused_before_its_data_is_read(tmp_path, monkeypatch, periods, dtype, needle):
+    import h5py
+
+    from fftune.analysis.capture import read_run
+
+    path = _forged_capture(str(tmp_path / "c.h5"), 8192, periods, dtype)
+    assert os.path.getsize(path) < 10_000
+    read = []
+    original = h5py.Dataset.__getitem__
+    monkeypatch.setattr(h5py.Dataset, "__getitem__", lambda self, key: read.append(key) or original(self, key))
+    with pytest.raises(InputError, match=needle):
+        read_run(path)
+    assert read == []                   # refused before any dataset was read
+
+
+def test_a_true_capture_still_reads(tmp_path):
+    from fftune.analysis.capture import read_run
+
+    x = np.linspace(-1.0, 2.0, 64, dtype=np.float32)
+    path = _forged_capture(str(tmp_path / "c.h5"), 32, 2, write=x)
+    np.testing.assert_array_equal(read_run(path).signals["plant_input"], x)
+
+
+# ---------------------------------------------------------------------------------------
+# the host heartbeat at low bit rates
+# ---------------------------------------------------------------------------------------
+def test_sdo_bursts_are_bounded_by_the_heartbeat():
+    from fftune.host.drive import frame_bits, sdo_burst_frames
+
+    # 135 bits a frame (8 data bytes, worst-case stuffing): 1.5 periods of the heartbeat
+    assert frame_bits(8) == 47 + 64 + 24
+    assert sdo_burst_frames(20_000, 100) == int(0.15 / (135 / 20_000)) == 22
+    assert sdo_burst_frames(20_000, 100, nodes=4) == int(0.15 / (4 * 135 / 20_000)) == 5
+    assert sdo_burst_frames(1_000_000, 100) == 127 and sdo_burst_frames(None, 100) == 127
+    with pytest.raises(FftuneError, match="bit rate 10000 bit/s with drive.heartbeat_ms 10: one SDO frame"):
+        sdo_burst_frames(10_000, 10, nodes=2)
