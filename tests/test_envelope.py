@@ -280,3 +280,187 @@ def test_sdo_bursts_are_bounded_by_the_heartbeat():
     assert sdo_burst_frames(1_000_000, 100) == 127 and sdo_burst_frames(None, 100) == 127
     with pytest.raises(FftuneError, match="bit rate 10000 bit/s with drive.heartbeat_ms 10: one SDO frame"):
         sdo_burst_frames(10_000, 10, nodes=2)
+
+
+# ---------------------------------------------------------------------------------------
+# SIGKILL of the host in every accepted configuration: every axis leaves OPERATION ENABLED
+# within its consumer time
+# ---------------------------------------------------------------------------------------
+CONSUMER_S = 0.4            # the host's 100 ms heartbeat, watched with 4x by each drive
+BOUND_S = CONSUMER_S + 0.1  # + the statusword TPDO's inhibit time and the bus (issue 21's bound)
+
+
+class BusWatch:
+    """A passive python-canopen peer: each node's statusword TPDO (0x180 + id) and the host's
+    heartbeat (0x77F), with the bus server's time stamps."""
+
+    def __init__(self, port, nodes):
+        import canopen
+
+        from fftune.host.drive import quiet_can_loggers
+        quiet_can_loggers()
+        self.net = canopen.Network()
+        self.net.connect(interface="socketcand", channel="can0", host="127.0.0.1", port=port)
+        self.status = {n: [] for n in nodes}
+        self.host_hb = []
+        for n in nodes:
+            self.net.subscribe(0x180 + n, lambda cob, data, ts, n=n:
+                               self.status[n].append((ts, data[0] | data[1] << 8)))
+        self.net.subscribe(0x77F, lambda cob, data, ts: self.host_hb.append(ts))
+
+    def enabled(self, n):
+        return bool(self.status[n]) and self.status[n][-1][1] & STATUS_POWER_MASK == OPERATION_ENABLED
+
+    def ever_enabled(self, n):
+        return any(sw & STATUS_POWER_MASK == OPERATION_ENABLED for _, sw in self.status[n])
+
+    def wait(self, cond, timeout_s, what, proc=None):
+        deadline = time.monotonic() + timeout_s
+        while not cond():
+            if proc is not None and proc.poll() is not None:
+                pytest.fail(f"{what}: the host ended first: {proc.communicate()[1][-3000:]}")
+            assert time.monotonic() < deadline, f"{what}: not within {timeout_s:g} s"
+            time.sleep(0.01)
+
+    def off_after_host_lost(self, n, timeout_s=10.0):
+        """The delay from the host's last heartbeat to the first statusword TPDO of node n
+        that shows it left OPERATION ENABLED."""
+        self.wait(lambda: not self.enabled(n), timeout_s, f"node {n} leaving OPERATION ENABLED")
+        log = list(self.status[n])
+        last_on = max(i for i, (_, sw) in enumerate(log) if sw & STATUS_POWER_MASK == OPERATION_ENABLED)
+        t_off = log[last_on + 1][0]
+        return t_off - max(t for t in self.host_hb if t <= t_off)
+
+    def close(self):
+        self.net.disconnect()
+
+
+@pytest.fixture(scope="module")
+def two_axes(tmp_path_factory):
+    """drive_sim in real time serving nodes 5 and 7 (each run lasts seconds, as on a drive)."""
+    from fftune.host.sim import start_drive_sim
+
+    d = tmp_path_factory.mktemp("envelope")
+    (d / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    sim = start_drive_sim(TWOMASS, log_path=str(d / "drive_sim.log"), realtime=True,
+                          extra=["--axis", f"5:{TWOMASS}", "--axis", f"7:{TWOMASS}"])
+    watch = BusWatch(sim.port, (5, 7))
+    yield sim, d, watch
+    watch.close()
+    sim.stop()
+
+
+def _fftune(*args):
+    return subprocess.Popen([sys.executable, "-m", "fftune.host.cli", *args, "--no-progress"],
+                            cwd=REPO, env=dict(os.environ, PYTHONPATH=REPO),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _kill(proc):
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+
+
+@needs_drive
+def test_two_sessions_with_one_host_id_the_second_is_refused_the_first_killed_disables(two_axes, tmp_path):
+    sim, d, watch = two_axes
+    cfg = str(d / "small.yaml")
+    first = _fftune("tune", "--config", cfg, "--node-id", "5", "--port", str(sim.port),
+                    "--out", str(tmp_path / "a"), "--no-figures")
+    try:
+        watch.wait(lambda: watch.enabled(5), 60, "node 5 enabled by the first session", first)
+        second = _fftune("tune", "--config", cfg, "--node-id", "7", "--port", str(sim.port),
+                         "--out", str(tmp_path / "b"), "--no-figures")
+        out, err = second.communicate(timeout=60)
+        assert second.returncode == 2, out + err
+        assert "Traceback" not in err
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("fftune: error: another node sends heartbeats "
+                                                       "on COB-ID 0x77F (host node id 127)"), err
+        assert not watch.ever_enabled(7)            # the second session enabled nothing
+        assert not (tmp_path / "b").exists()
+        assert watch.enabled(5)
+        _kill(first)
+        delay = watch.off_after_host_lost(5)
+        assert delay <= BOUND_S, f"node 5 left OPERATION ENABLED {delay * 1000:.0f} ms after the last heartbeat"
+    finally:
+        if first.poll() is None:
+            _kill(first)
+
+
+@needs_drive
+def test_sigkill_of_a_track_session_disables_its_axis(two_axes, tmp_path):
+    sim, d, watch = two_axes
+    t = _write(tmp_path / "t.yaml", yaml.safe_dump({
+        "drive": {"heartbeat_ms": 100, "node_id": 7},
+        "track": {"tasks": 1000, "settle_repetitions": 1, "initial": {"k_fc": 0.1, "k_v": 0.002}}}))
+    proc = _fftune("track", "--config", t, "--port", str(sim.port), "--out", str(tmp_path / "o"),
+                   "--no-figures")
+    try:
+        watch.wait(lambda: watch.enabled(7), 60, "node 7 enabled by fftune track", proc)
+        time.sleep(0.3)                             # (into its first task)
+        _kill(proc)
+        delay = watch.off_after_host_lost(7)
+        assert delay <= BOUND_S, f"node 7 left OPERATION ENABLED {delay * 1000:.0f} ms after the last heartbeat"
+    finally:
+        if proc.poll() is None:
+            _kill(proc)
+
+
+@needs_drive
+def test_sigkill_of_a_machine_session_disables_every_axis(two_axes, tmp_path):
+    """The accepted machine: one heartbeat for the bus (set in the machine's overrides: an
+    axis of its own is refused above); every axis' consumer watches it."""
+    sim, d, watch = two_axes
+    f = _write(d / "m_kill.yaml", yaml.safe_dump({
+        "machine": "k", "config": "small.yaml", "overrides": {"drive": {"heartbeat_ms": 100}},
+        "axes": [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}]}))
+    proc = _fftune("tune", "--machine", f, "--port", str(sim.port), "--out", str(tmp_path / "o"),
+                   "--no-figures")
+    try:
+        watch.wait(lambda: watch.enabled(5) and watch.enabled(7), 60, "both axes enabled", proc)
+        _kill(proc)
+        for n in (5, 7):
+            delay = watch.off_after_host_lost(n)
+            assert delay <= BOUND_S, f"node {n} left OPERATION ENABLED {delay * 1000:.0f} ms after the last heartbeat"
+    finally:
+        if proc.poll() is None:
+            _kill(proc)
+
+
+@needs_drive
+def test_at_20_kbit_s_the_host_heartbeat_keeps_its_period_under_block_transfers(tmp_path):
+    """A block download (waveform, 1 kB: 147 frames of the host) and a block upload (the
+    recording, 1 kB: 147 frames of the drive) on a 20 kbit/s bus: 6.75 ms a frame, a sub-block
+    of 127 would hold the host's heartbeat 0.86 s, twice the consumer time. The host's bursts
+    are bounded (22 frames, 150 ms): no gap between its heartbeats reaches the consumer time
+    and the drive stays enabled throughout."""
+    from fftune.host.drive import BusOptions, DriveClient
+    from fftune.host.sim import start_drive_sim
+
+    sim = start_drive_sim(TWOMASS, log_path=str(tmp_path / "drive_sim.log"), realtime=True, bitrate=20_000)
+    watch = BusWatch(sim.port, (1,))
+    try:
+        opts = BusOptions(port=sim.port, eds=EDS, model_bitrate=20_000)
+        with DriveClient(opts, heartbeat_ms=100, progress=False) as c:
+            assert c.sdo_burst == 22
+            c.enable()
+            x = np.sin(np.linspace(0.0, 2 * np.pi, 256, endpoint=False)).astype(np.float32)
+            assert c.load_waveform(x) == 256
+            t0 = watch.host_hb[-1]
+            rec = c.run(dict(exc_kind=1, exc_inject=0, exc_amplitude=0.05, exc_period=256, exc_sine_cycles=3,
+                             exc_settle_periods=1, exc_record_periods=1), signals=("plant_input",))
+            assert rec.signals["plant_input"].size == 256
+            assert watch.enabled(1)
+        hb = np.array([t for t in watch.host_hb if t >= t0 - 5.0])
+        gaps = np.diff(hb)
+        assert hb.size > 10 and gaps.max() < CONSUMER_S, f"largest gap {gaps.max() * 1000:.0f} ms"
+        assert watch.ever_enabled(1)
+        # the drive never left OPERATION ENABLED while the host was in charge (its own
+        # disable at close is READY TO SWITCH ON, after the last run)
+        sws = [sw & STATUS_POWER_MASK for _, sw in watch.status[1]]
+        first_on = sws.index(OPERATION_ENABLED)
+        assert 0x0040 not in sws[first_on:], "SWITCH ON DISABLED: the consumer fired"
+    finally:
+        watch.close()
+        sim.stop()
