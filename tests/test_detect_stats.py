@@ -168,7 +168,7 @@ def test_more_lines_than_the_drive_holds_is_one_error_line(tmp_path, capsys):
     sim = start_drive_sim(os.path.join(REPO, "configs", "plant_twomass.yaml"),
                           log_path=str(tmp_path / "d.log"))
     try:
-        with DriveClient(BusOptions(port=sim.port, eds=EDS), heartbeat_ms=0, progress=False) as c:
+        with DriveClient(BusOptions(port=sim.port, eds=EDS), heartbeat_ms=250, progress=False) as c:
             c.enable()
             req = {"exc_kind": EXC_KINDS["multisine"], "exc_inject": INJECT["plant_input"],
                    "exc_amplitude": 0.3, "exc_period": 8192, "exc_settle_periods": 0,

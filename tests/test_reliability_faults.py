@@ -49,7 +49,7 @@ def recorded(tmp_path_factory):
     """A drive with one finished recording and its clean block upload."""
     drive = start_drive(tmp_path_factory.mktemp("faults"))
     try:        # (also when the set-up fails: no drive_sim left running)
-        clean = _client(drive.port)
+        clean = _client(drive.port, heartbeat_ms=250)   # (enabled: a host heartbeat, issue 30)
         clean.enable()
         rec = clean.run(RUN, signals=SIGNALS)
         data = clean.upload_recording()

@@ -156,7 +156,7 @@ def session_log(tmp_path_factory):
     t = threading.Thread(target=pump, daemon=True)
     t.start()
     try:
-        with DriveClient(BusOptions(port=drive.port, eds=EDS), heartbeat_ms=0, progress=False) as cli:
+        with DriveClient(BusOptions(port=drive.port, eds=EDS), heartbeat_ms=250, progress=False) as cli:
             cli.enable()
             cli.run(dict(exc_kind=1, exc_amplitude=0.2, exc_period=256, exc_settle_periods=0,
                          exc_record_periods=2), signals=("reference", "plant_input", "motor_angle"))
