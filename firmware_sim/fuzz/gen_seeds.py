@@ -296,6 +296,58 @@ def co_node_seeds(eds_path):
                                     + sdo(0xC0, *mux(0x2002, 0)) + sdo(0x83) + sdo(0x80, 0, 0x20, 0)
                                     + upload(0x5FFF, 0) + upload(0x1018, 9) + frame(0x601, [0x40, 0, 0x10])
                                     + frame(0x000, [0x01]) + frame(0x701, [5, 5]) + frame(0x7FF, [0] * 8))
+    seeds.update(task_seeds())
+    return seeds
+
+
+def task_params(mode=1, distance=0.05, v_max=2.0, a_max=200.0, jerk=20000.0, dwell=0.005):
+    """The task objects (0x2060:1..6) and a task run's excitation kind 0."""
+    out = write_u(0x2001, 1, 0, 1)          # excitation kind 0: a run plays the task
+    for sub, value in ((2, distance), (3, v_max), (4, a_max), (5, jerk), (6, dwell)):
+        out += write_f32(0x2060, sub, value)
+    return out + write_u(0x2060, 1, mode, 1) + upload(0x2060, 8)
+
+
+def task_seeds():
+    """Issue 30: the task objects (0x2060 .. 0x2064), 0x2004 and 0x6007 written out of range,
+    with the wrong size and at the wrong time (during a task run), around complete task runs
+    with their statistics uploaded (continuous latches included)."""
+    seeds = {}
+    run = (operational_enabled() + task_params() + write_u(0x2001, 7, 0, 4) + write_u(0x2001, 8, 2, 4)
+           + write_u(0x2020, 1, 0, 4) + start_run())
+    seeds["task_run_and_statistics"] = (run + steps(1500) + upload(0x2010, 2) + upload(0x2060, 10)
+                                        + segmented_upload(0x2062, 0, 6) + segmented_upload(0x2061, 0, 6)
+                                        + block_upload(0x2061, 0, 8 + 8 * 24, blksize=10))
+    seeds["task_forward_continuous_latches"] = (
+        operational_enabled() + task_params(mode=2) + write_u(0x2001, 7, 1, 4) + write_u(0x2001, 8, 20, 4)
+        + write_u(0x2020, 1, 0, 4) + start_run() + steps(700) + upload(0x2060, 10)
+        + segmented_upload(0x2064, 0, 6) + steps(300) + segmented_upload(0x2063, 0, 6)
+        + write_f32(0x2060, 7, 0.01) + steps(700) + block_upload(0x2063, 0, 8 + 8 * 24, blksize=4)
+        + write_u(0x2010, 1, 2, 1) + upload(0x2010, 5))
+    bad = b""
+    for sub, value in ((2, 2000.0), (2, -1.0), (2, float("nan")), (3, 1e5), (3, float("inf")), (4, -0.0),
+                       (5, 0.0), (6, 1e3), (7, 101.0), (7, float("-inf"))):
+        bad += write_f32(0x2060, sub, value) + upload(0x2060, sub)
+    bad += (write_u(0x2060, 1, 3, 1) + write_u(0x2060, 1, 1, 4) + write_u(0x2060, 8, 64, 4)
+            + write_u(0x2060, 9, 1, 4) + write_u(0x2060, 10, 0, 4) + write_u(0x2060, 11, 0, 4)
+            + sdo(0x2F, *mux(0x2060, 2), 1) + write_u(0x2004, 0, 16, 4)
+            + write_u(0x6007, 0, 4, 2) + write_u(0x6007, 0, 0xFFFF, 2) + write_u(0x6007, 0, 0, 1)
+            + upload(0x6007, 0) + upload(0x2004, 0))
+    seeds["task_objects_out_of_range"] = operational_enabled() + bad
+    # the same writes while a task run is active (refused, the run's values kept), then the
+    # host lost (no heartbeat within the consumer time: 0x6007 acts)
+    mid = (write_f32(0x2060, 2, 0.5) + write_u(0x2060, 1, 0, 1) + write_u(0x2001, 1, 1, 1)
+           + write_f32(0x2060, 7, 0.5) + write_u(0x6007, 0, 0, 2) + write_u(0x6007, 0, 1, 2))
+    seeds["task_writes_during_the_run_then_host_lost"] = (
+        write_u(0x1017, 0, 100, 2) + write_u(0x1016, 1, (0x7F << 16) | 300, 4) + heartbeat(0x7F)
+        + run + steps(200) + mid + steps(200) + heartbeat(0x7F) + wait_us(200000) + steps(100)
+        + wait_us(400000) + steps(200) + upload(0x2010, 2) + upload(0x2010, 5) + upload(0x6041, 0))
+    # degenerate tasks: fewer than 64 or more than 2^24 samples a repetition (no task: 0x2060:8 = 0)
+    seeds["task_degenerate_then_start"] = (
+        operational_enabled() + task_params(distance=1e-6, v_max=1e4, a_max=1e6, jerk=1e9, dwell=0.0)
+        + start_run() + steps(50) + upload(0x2010, 5)
+        + task_params(distance=1000.0, v_max=1e-3, a_max=1e-3, jerk=1e-3, dwell=100.0) + start_run()
+        + steps(50) + upload(0x2010, 5))
     return seeds
 
 
