@@ -86,7 +86,7 @@ def _run_on_sim(cfg, plant, out, *, progress, log, figures=True):
     """``drive_sim`` with ``plant`` on a free loopback port, the pipeline against it."""
     from fftune.host.drive import BusOptions, DriveClient
     from fftune.host.odmap import DEFAULT_EDS
-    from fftune.host.pipeline import run_pipeline
+    from fftune.host.pipeline import check_plan, run_pipeline
     from fftune.host.sim import start_drive_sim
 
     d = cfg["drive"]
@@ -99,6 +99,7 @@ def _run_on_sim(cfg, plant, out, *, progress, log, figures=True):
                              heartbeat_ms=d["heartbeat_ms"], host_node_id=d["host_node_id"],
                              run_timeout_s=d["run_timeout_s"], progress=progress)
         with client:
+            check_plan(client, cfg)          # the envelope of every moving command, before enabling
             client.enable()
             results = run_pipeline(client, cfg, out, log=log, figures=figures, data=data)
     finally:

@@ -25,9 +25,10 @@ class SimulatedDrive:
     """A running ``drive_sim``: on socketcand, ``host``/``port`` is its server; on
     SocketCAN, ``channel`` is the interface (``port`` None)."""
 
-    def __init__(self, proc, host, port, log_path, interface="socketcand", channel=None):
+    def __init__(self, proc, host, port, log_path, interface="socketcand", channel=None, bitrate=None):
         self.proc, self.host, self.port, self.log_path = proc, host, port, log_path
         self.interface, self.channel = interface, channel
+        self.bitrate = bitrate      # the bus model's bit rate (None: frames pass at once)
 
     def describe(self):
         if self.interface == "socketcan":
@@ -44,7 +45,7 @@ class SimulatedDrive:
             return BusOptions(interface="socketcan", channel=self.channel, node_id=node_id,
                               eds=eds or DEFAULT_EDS)
         return BusOptions(interface="socketcand", channel="can0", host=self.host, port=self.port,
-                          node_id=node_id, eds=eds or DEFAULT_EDS)
+                          node_id=node_id, eds=eds or DEFAULT_EDS, model_bitrate=self.bitrate)
 
     def stop(self, timeout_s=3.0):
         if self.proc.poll() is None:
@@ -136,7 +137,7 @@ def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_i
             # Keep draining stdout (and stderr) so that drive_sim never blocks on a full pipe.
             _drain(proc)
             if m.group(1):
-                return SimulatedDrive(proc, host, int(m.group(1)), log_path)
+                return SimulatedDrive(proc, host, int(m.group(1)), log_path, bitrate=bitrate)
             return SimulatedDrive(proc, None, None, log_path, interface="socketcan", channel=m.group(2))
     proc.kill()
     proc.wait()

@@ -28,7 +28,7 @@ from fftune.host.config import DEFAULTS as _CFG_DEFAULTS
 from fftune.host.config import (_bool, _choice, _err, _merge, _number, check_output_dir, file_name,
                                  read_yaml, validate_drive, validate_limits)
 from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
-from fftune.host.drive import frame_bits  # noqa: F401  (one definition; fftune.host.track.frame_bits)
+from fftune.host.drive import frame_bits  # (one definition: the bus load below, the SDO bursts)
 from fftune.host.odmap import RUN_STATES, STOP_REASONS
 
 TASK_MODES = {"back_and_forth": 1, "forward": 2}
@@ -623,7 +623,6 @@ def _demo_track(args):
     try:
         print(f"fftune demo-track: drive_sim ({os.path.relpath(plant)}) on {sim.describe()}", flush=True)
         opts = sim.bus_options(node_id, d["eds"] or None)
-        opts.model_bitrate = bitrate    # (the host's SDO bursts keep its heartbeat's period)
         with _client(cfg, opts, not args.no_progress) as client:
             preflight_track(cfg, client)
             client.enable()

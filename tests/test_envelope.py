@@ -383,6 +383,7 @@ def test_two_sessions_with_one_host_id_the_second_is_refused_the_first_killed_di
         _kill(first)
         delay = watch.off_after_host_lost(5)
         assert delay <= BOUND_S, f"node 5 left OPERATION ENABLED {delay * 1000:.0f} ms after the last heartbeat"
+        print(f"two sessions: the first killed, node 5 off {delay * 1000:.0f} ms after its last heartbeat")
     finally:
         if first.poll() is None:
             _kill(first)
@@ -402,6 +403,7 @@ def test_sigkill_of_a_track_session_disables_its_axis(two_axes, tmp_path):
         _kill(proc)
         delay = watch.off_after_host_lost(7)
         assert delay <= BOUND_S, f"node 7 left OPERATION ENABLED {delay * 1000:.0f} ms after the last heartbeat"
+        print(f"track killed: node 7 off {delay * 1000:.0f} ms after the last heartbeat")
     finally:
         if proc.poll() is None:
             _kill(proc)
@@ -423,6 +425,7 @@ def test_sigkill_of_a_machine_session_disables_every_axis(two_axes, tmp_path):
         for n in (5, 7):
             delay = watch.off_after_host_lost(n)
             assert delay <= BOUND_S, f"node {n} left OPERATION ENABLED {delay * 1000:.0f} ms after the last heartbeat"
+            print(f"machine killed: node {n} off {delay * 1000:.0f} ms after the last heartbeat")
     finally:
         if proc.poll() is None:
             _kill(proc)
@@ -455,6 +458,7 @@ def test_at_20_kbit_s_the_host_heartbeat_keeps_its_period_under_block_transfers(
         hb = np.array([t for t in watch.host_hb if t >= t0 - 5.0])
         gaps = np.diff(hb)
         assert hb.size > 10 and gaps.max() < CONSUMER_S, f"largest gap {gaps.max() * 1000:.0f} ms"
+        print(f"20 kbit/s: {hb.size} host heartbeats, largest gap {gaps.max() * 1000:.0f} ms")
         assert watch.ever_enabled(1)
         # the drive never left OPERATION ENABLED while the host was in charge (its own
         # disable at close is READY TO SWITCH ON, after the last run)
