@@ -273,7 +273,7 @@ def validate(raw, path="<config>"):
     if raw is None:
         raw = {}
     cfg = _merge(DEFAULTS, raw, path, "")
-    if not isinstance(cfg["output"], str) or not cfg["output"]:
+    if not isinstance(cfg["output"], str) or not cfg["output"] or "\0" in cfg["output"]:
         raise _err(path, "output", f"expected a directory path, got {show(cfg['output'])}")
     sim = cfg["sim"]
     file_name(sim["plant"], path, "sim.plant", allow_none=True)

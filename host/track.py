@@ -126,7 +126,7 @@ def validate_track_config(raw, path):
     if not isinstance(cfg["sim"]["overrides"], dict):
         raise _err(path, "sim.overrides", "expected a mapping {section: {key: number}}")
     _number(cfg, path, "sim.bitrate", low=10000, high=1000000, integer=True, allow_none=True)
-    if not isinstance(cfg["output"], str) or not cfg["output"]:
+    if not isinstance(cfg["output"], str) or not cfg["output"] or "\0" in cfg["output"]:
         raise _err(path, "output", f"expected a directory name, got {cfg['output']!r}")
     return cfg
 

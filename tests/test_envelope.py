@@ -468,3 +468,64 @@ def test_at_20_kbit_s_the_host_heartbeat_keeps_its_period_under_block_transfers(
     finally:
         watch.close()
         sim.stop()
+
+
+@needs_drive
+def test_enable_refuses_a_consumer_not_armed_for_this_hosts_heartbeat(two_axes):
+    """The rule at the one place a drive is enabled: a consumer armed for another host id, a
+    shared bus without the owner's heartbeat, or a heartbeat of another period: refused, one
+    line, the drive not enabled."""
+    import canopen
+
+    from fftune.host.drive import BusOptions, DriveClient, HostHeartbeat
+
+    sim, d, watch = two_axes
+    with DriveClient(BusOptions(port=sim.port, node_id=7, eds=EDS), heartbeat_ms=100, progress=False) as c:
+        c.write(0x1016, 1, (0x7E << 16) | 400)       # armed for host 126, not this host (127)
+        with pytest.raises(FftuneError, match=r"^node 7 not enabled: its heartbeat consumer 0x1016:1 reads "
+                                              r"0x007E0190, not 0x007F0190 \(host node 127 every 100 ms"):
+            c.enable()
+    net = canopen.Network()
+    net.connect(interface="socketcand", channel="can0", host="127.0.0.1", port=sim.port)
+    try:
+        c = DriveClient(BusOptions(port=sim.port, node_id=7, eds=EDS), heartbeat_ms=100, network=net,
+                        progress=False).connect()
+        with pytest.raises(FftuneError, match="^node 7 not enabled: this host sends no heartbeat on its bus$"):
+            c.enable()
+        c.close()
+        hb = HostHeartbeat(net, 0x7F, 200).start()
+        c = DriveClient(BusOptions(port=sim.port, node_id=7, eds=EDS), heartbeat_ms=100, network=net,
+                        host_heartbeat=hb, progress=False).connect()
+        with pytest.raises(FftuneError, match="its consumer would watch host node 127 every 100 ms, this host "
+                                              "sends host node 127 every 200 ms"):
+            c.enable()
+        c.close()
+        hb.stop()
+    finally:
+        net.disconnect()
+    assert not watch.enabled(7)
+    assert int.from_bytes(_sdo_read(sim.port, 7, 0x6041, 0), "little") & STATUS_POWER_MASK != OPERATION_ENABLED
+
+
+def _sdo_read(port, node, index, sub):
+    from fftune.host.drive import BusOptions, DriveClient
+
+    with DriveClient(BusOptions(port=port, node_id=node, eds=EDS), heartbeat_ms=0, progress=False) as c:
+        return c.node.sdo.upload(index, sub)
+
+
+@needs_drive
+def test_track_check_frequency_against_the_drives_fs_is_refused_before_enabling(two_axes, tmp_path, capsys):
+    """Without drive.fs_hz the check's frequency is checked against the fs read from the
+    drive, after connecting and before enabling (it failed as an SDO abort after every task,
+    results.yaml not written)."""
+    sim, d, watch = two_axes
+    t = _write(tmp_path / "t.yaml", yaml.safe_dump({
+        "drive": {"heartbeat_ms": 100, "node_id": 7},
+        "track": {"tasks": 3, "check": {"enabled": True, "frequency_hz": 5000, "amplitude_rad": 0.01}}}))
+    n_status = len(watch.status[7])
+    out = tmp_path / "o"
+    assert main(["track", "--config", t, "--port", str(sim.port), "--out", str(out), "--no-progress"]) == 2
+    _one_error_line(capsys, "key 'track.check.frequency_hz': 5000 Hz is at or above fs/2 = 1280 Hz of the drive")
+    assert not any(sw & STATUS_POWER_MASK == OPERATION_ENABLED for _, sw in watch.status[7][n_status:])
+    assert not (out / "results.yaml").exists()
