@@ -192,6 +192,7 @@ def export_captures(source, fmt, to_dir=None):
     for f in files:
         base = os.path.splitext(os.path.basename(f))[0]
         d = to_dir or os.path.dirname(os.path.abspath(f))
+        made = not os.path.isdir(d)
         os.makedirs(d, exist_ok=True)
         target = os.path.join(d, f"{base}.{fmt}")
         try:
@@ -201,5 +202,9 @@ def export_captures(source, fmt, to_dir=None):
                 _capture.export_csv(f, target)
         except FileExistsError:
             raise FftuneError(f"{target}: exists; exports are never overwritten") from None
+        except BaseException:
+            if made and not os.listdir(d):      # (a refused capture leaves no empty folder)
+                os.rmdir(d)
+            raise
         out.append(str(target))
     return out

@@ -529,3 +529,12 @@ def test_track_check_frequency_against_the_drives_fs_is_refused_before_enabling(
     _one_error_line(capsys, "key 'track.check.frequency_hz': 5000 Hz is at or above fs/2 = 1280 Hz of the drive")
     assert not any(sw & STATUS_POWER_MASK == OPERATION_ENABLED for _, sw in watch.status[7][n_status:])
     assert not (out / "results.yaml").exists()
+
+
+@pytest.mark.parametrize("command", [["export"], ["analyze", "bla"], ["analyze", "hosidf"]])
+def test_a_forged_capture_is_one_line_through_analyze_and_export(tmp_path, capsys, command):
+    path = _forged_capture(str(tmp_path / "c.h5"), 8192, 18311)
+    args = command + [path] + (["--to", str(tmp_path / "o")] if command == ["export"] else [])
+    assert main(args) == 2
+    _one_error_line(capsys, "declares 150003712 samples a signal", "at most 16777216")
+    assert not (tmp_path / "o").exists()
