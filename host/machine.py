@@ -146,6 +146,8 @@ def load_machine(path):
                 or not all(c.isascii() and (c.isalnum() or c in "-_") for c in aname):
             raise FftuneError(f"{where}.name: expected a name of letters, digits, - and _, got {show(aname)}")
         nid = a.get("node_id")
+        if isinstance(nid, float) and nid.is_integer():
+            nid = int(nid)              # (3.0 or 3e0: an integer, as in every configuration)
         if isinstance(nid, bool) or not isinstance(nid, int) or not 1 <= nid <= 127:
             raise FftuneError(f"{where}.node_id: expected 1 .. 127, got {show(nid)}")
         if nid in by_id:

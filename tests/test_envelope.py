@@ -143,11 +143,12 @@ def test_one_number_parsing_through_every_entry_point(tmp_path):
     (tmp_path / "c.yaml").write_text(text)
     assert load_config(str(tmp_path / "c.yaml"))["tune"]["search"]["xtol_v"] == 0.001
     f = _write(tmp_path / "m.yaml", "config: c.yaml\noverrides: {tune: {search: {k_fc_max: 2e-1}}}\n"
-                                    "axes: [{name: x, node_id: 3}, {name: y, node_id: 4, config: c.yaml,\n"
+                                    "axes: [{name: x, node_id: 3}, {name: y, node_id: 4e0, config: c.yaml,\n"
                                     "        overrides: {tune: {search: {xtol_v: 5e-4}}}}]\n")
     m = load_machine(f)
     assert [a["cfg"]["tune"]["search"]["xtol_v"] for a in m["axes"]] == [0.001, 0.0005]
     assert [a["cfg"]["tune"]["search"]["k_fc_max"] for a in m["axes"]] == [0.2, 0.2]
+    assert [a["node_id"] for a in m["axes"]] == [3, 4] and isinstance(m["axes"][1]["node_id"], int)
     t = _write(tmp_path / "t.yaml", "track: {write_deadband_rel: 1e-3, task: {v_max: 3e0}}\n")
     tc = load_track_config(t)
     assert tc["track"]["write_deadband_rel"] == 0.001 and tc["track"]["task"]["v_max"] == 3.0
