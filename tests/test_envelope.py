@@ -539,3 +539,31 @@ def test_a_forged_capture_is_one_line_through_analyze_and_export(tmp_path, capsy
     assert main(args) == 2
     _one_error_line(capsys, "declares 150003712 samples a signal", "at most 16777216")
     assert not (tmp_path / "o").exists()
+
+
+@needs_drive
+def test_sigkill_at_20_kbit_s_disables_the_axis(tmp_path):
+    """The lowest bit rate the tools accept for this heartbeat (20 kbit/s, 100 ms: 22-frame
+    bursts): `fftune tune -b 20000` killed while it measures; the drive leaves OPERATION
+    ENABLED within its consumer time. (The statusword TPDO waits in the drive's queue behind
+    at most one SDO burst of 22 frames, 150 ms, which the bound allows for.)"""
+    from fftune.host.sim import start_drive_sim
+
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    sim = start_drive_sim(TWOMASS, log_path=str(tmp_path / "drive_sim.log"), realtime=True, bitrate=20_000)
+    watch = BusWatch(sim.port, (1,))
+    proc = _fftune("tune", "--config", str(tmp_path / "small.yaml"), "--port", str(sim.port), "-b", "20000",
+                   "--out", str(tmp_path / "o"), "--no-figures")
+    try:
+        watch.wait(lambda: watch.enabled(1), 90, "node 1 enabled at 20 kbit/s", proc)
+        time.sleep(0.5)
+        _kill(proc)
+        delay = watch.off_after_host_lost(1)
+        assert delay <= BOUND_S + 22 * 135 / 20_000, \
+            f"node 1 left OPERATION ENABLED {delay * 1000:.0f} ms after the last heartbeat"
+        print(f"20 kbit/s, tune killed: node 1 off {delay * 1000:.0f} ms after the last heartbeat")
+    finally:
+        if proc.poll() is None:
+            _kill(proc)
+        watch.close()
+        sim.stop()
