@@ -275,17 +275,7 @@ def validate(raw, path="<config>"):
     cfg = _merge(DEFAULTS, raw, path, "")
     if not isinstance(cfg["output"], str) or not cfg["output"] or "\0" in cfg["output"]:
         raise _err(path, "output", f"expected a directory path, got {show(cfg['output'])}")
-    sim = cfg["sim"]
-    file_name(sim["plant"], path, "sim.plant", allow_none=True)
-    if not isinstance(sim["overrides"], dict):
-        raise _err(path, "sim.overrides", "expected a mapping {section: {key: number}}")
-    for section, values in sim["overrides"].items():
-        if not isinstance(values, dict):
-            raise _err(path, f"sim.overrides.{section}", "expected a mapping {key: number}")
-        for key, value in values.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise _err(path, f"sim.overrides.{section}.{key}", f"expected a finite number, got {show(value)}")
-    _number(cfg, path, "sim.bitrate", low=10_000, high=1_000_000, integer=True, allow_none=True)
+    validate_sim(cfg, path)
     validate_limits(cfg, path)
     validate_drive(cfg, path)
 
@@ -390,6 +380,25 @@ def validate_drive(cfg, path):
     for name in cfg["drive"]["controller"]:
         _number(cfg, path, f"drive.controller.{name}", low=0, allow_none=True)
     return cfg["drive"]
+
+
+def validate_sim(cfg, path):
+    """The ``sim`` section of ``cfg`` checked in place (``fftune demo``, ``fftune sim``,
+    ``fftune demo-track``): the plant file's name, ``overrides`` as {section: {key: number}},
+    the bus model's bit rate."""
+    sim = cfg["sim"]
+    file_name(sim["plant"], path, "sim.plant", allow_none=True)
+    if not isinstance(sim["overrides"], dict):
+        raise _err(path, "sim.overrides", f"expected a mapping {{section: {{key: number}}}}, got "
+                                          f"{show(sim['overrides'])}")
+    for section, values in sim["overrides"].items():
+        if not isinstance(values, dict):
+            raise _err(path, f"sim.overrides.{section}", f"expected a mapping {{key: number}}, got {show(values)}")
+        for key, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise _err(path, f"sim.overrides.{section}.{key}", f"expected a finite number, got {show(value)}")
+    _number(cfg, path, "sim.bitrate", low=10_000, high=1_000_000, integer=True, allow_none=True)
+    return sim
 
 
 def validate_limits(cfg, path):

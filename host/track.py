@@ -25,8 +25,8 @@ from fftune.analysis.track import (NotIdentifiable, Tracker, TrackSettings, esti
                                    parse_task_stats)
 from fftune.host.atomic import write_atomic
 from fftune.host.config import DEFAULTS as _CFG_DEFAULTS
-from fftune.host.config import (_bool, _choice, _err, _merge, _number, check_output_dir, file_name,
-                                 read_yaml, validate_drive, validate_limits)
+from fftune.host.config import (_bool, _choice, _err, _merge, _number, check_output_dir, read_yaml,
+                                 validate_drive, validate_limits, validate_sim)
 from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
 from fftune.host.drive import frame_bits  # (one definition: the bus load below, the SDO bursts)
 from fftune.host.odmap import RUN_STATES, STOP_REASONS
@@ -122,10 +122,7 @@ def validate_track_config(raw, path):
     _number(cfg, path, f"{t}.bus_bitrate", low=10000, high=1000000, integer=True)
     validate_drive(cfg, path)           # (fftune run's rules: one host heartbeat, <= 16383 ms)
     validate_limits(cfg, path)
-    file_name(cfg["sim"]["plant"], path, "sim.plant", allow_none=True)
-    if not isinstance(cfg["sim"]["overrides"], dict):
-        raise _err(path, "sim.overrides", "expected a mapping {section: {key: number}}")
-    _number(cfg, path, "sim.bitrate", low=10000, high=1000000, integer=True, allow_none=True)
+    validate_sim(cfg, path)
     if not isinstance(cfg["output"], str) or not cfg["output"] or "\0" in cfg["output"]:
         raise _err(path, "output", f"expected a directory name, got {cfg['output']!r}")
     return cfg

@@ -161,6 +161,8 @@ def test_one_number_parsing_through_every_entry_point(tmp_path):
     ("drive: {heartbeat_ms: 0}\n", ("key 'drive.heartbeat_ms': 0 (no host heartbeat)",)),
     ("drive: {host_node_id: 1}\n", ("key 'drive.host_node_id': must differ from drive.node_id",)),
     ("sim: {plant: 5}\n", ("key 'sim.plant': expected a file name, got 5",)),
+    ("sim: {overrides: {plant: 5}}\n", ("key 'sim.overrides.plant': expected a mapping {key: number}, got 5",)),
+    ("sim: {overrides: {plant: {coulomb: [1]}}}\n", ("key 'sim.overrides.plant.coulomb': expected a finite number",)),
     ("track: {check: {enabled: true, amplitude_rad: 30}}\n",
      ("key 'track.check.amplitude_rad'", "30 rad peak is above 8 rad (limits.max_amplitude_rad)")),
     ("track: {check: {enabled: true, frequency_hz: 2.5, amplitude_rad: 1000}}\n",
