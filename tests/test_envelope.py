@@ -453,12 +453,11 @@ def test_at_20_kbit_s_the_host_heartbeat_keeps_its_period_under_block_transfers(
             c.enable()
             x = np.sin(np.linspace(0.0, 2 * np.pi, 256, endpoint=False)).astype(np.float32)
             assert c.load_waveform(x) == 256
-            t0 = watch.host_hb[-1]
             rec = c.run(dict(exc_kind=1, exc_inject=0, exc_amplitude=0.05, exc_period=256, exc_sine_cycles=3,
                              exc_settle_periods=1, exc_record_periods=1), signals=("plant_input",))
             assert rec.signals["plant_input"].size == 256
             assert watch.enabled(1)
-        hb = np.array([t for t in watch.host_hb if t >= t0 - 5.0])
+        hb = np.array(watch.host_hb)        # the whole session: enable, download, run, upload
         gaps = np.diff(hb)
         assert hb.size > 10 and gaps.max() < CONSUMER_S, f"largest gap {gaps.max() * 1000:.0f} ms"
         print(f"20 kbit/s: {hb.size} host heartbeats, largest gap {gaps.max() * 1000:.0f} ms")
