@@ -61,7 +61,8 @@ import numpy as np
 
 from fftune.analysis.errors import InputError
 
-__all__ = ["TERMS", "TERM_INFO", "Experiment", "harmonic_lines", "motion_regressors",
+__all__ = ["TERMS", "TERM_INFO", "Experiment", "harmonic_lines", "motion_regressors", "process_sensitivity",
+           "gauss_newton_step",
            "estimate_terms", "odd_even_ratios", "FeedForwardModelTune"]
 
 TERMS = ("coulomb", "asymmetry", "viscous", "position")
@@ -229,6 +230,44 @@ def odd_even_ratios(Y, odd=(3, 5, 7), even=(2, 4, 6)):
             float(np.sqrt(np.mean(np.abs(Y[list(even)]) ** 2)) / y1))
 
 
+def process_sensitivity(inertia, viscous, controller, omega_rad_s, orders):
+    """PS(k w) = 1 / (Z + C) from the drive output to the angle at the harmonics ``orders``:
+    Z = J' s^2 + b' s the fitted rigid body (per V), C = Kp + Kd s / (tau_d s + 1) the
+    controller (``controller``: dict kp, kd, tau_d)."""
+    s = 1j * omega_rad_s * np.asarray(orders, dtype=float)
+    C = controller["kp"] + controller["kd"] * s / (controller.get("tau_d", 0.0) * s + 1.0)
+    return 1.0 / (inertia * s ** 2 + viscous * s + C)
+
+
+def gauss_newton_step(Y, reference_mean_rad, gains_terms, inertia, viscous, controller, omega_rad_s,
+                      orders=(2, 3, 4, 5, 6, 7)):
+    """The change of the gains that would cancel what one experiment's output lines still
+    show: the feed-forward enters at the plant input, so at harmonic k the angle moves by
+    PS(k w) Phi_i(k) d_i (Phi_i the lines of gain i's regressor along the motion); the least
+    squares over the harmonics ``orders`` (and the mean, where the reference's mean is known:
+    PS(0) = 1 / Kp) give d. Returns {gain: d} with the gains in ``gains_terms`` (the viscous
+    term acts on the fundamental only, where the linear response also sits: not in it)."""
+    Y = np.asarray(Y, dtype=complex)
+    if Y.ndim == 2:
+        Y = Y.mean(axis=0)
+    kmax = max(orders)
+    regs = motion_regressors(float(Y[0].real), complex(Y[1]), 1, kmax)
+    cols = [g for g in gains_terms if g != "kv"]
+    if not cols:
+        return {}
+    ps = process_sensitivity(inertia, viscous, controller, omega_rad_s, orders)
+    A = np.array([ps * regs[g][list(orders)] for g in cols]).T
+    b = Y[list(orders)]
+    Ar, br = np.vstack([A.real, A.imag]), np.concatenate([b.real, b.imag])
+    if reference_mean_rad is not None:
+        ps0 = 1.0 / controller["kp"]
+        Ar = np.vstack([Ar, [ps0 * regs[g][0].real for g in cols]])
+        br = np.concatenate([br, [Y[0].real - reference_mean_rad]])
+    d, *_ = np.linalg.lstsq(Ar, br, rcond=None)
+    # Y = PS (FF - F): d is the excess of the gains over the friction
+    return dict(zip(cols, (float(x) for x in d)))
+
+
 @dataclass
 class Experiment:
     """One closed-loop sine experiment the tune asks for."""
@@ -238,6 +277,7 @@ class Experiment:
     gains: dict              # drive alias -> value (kfc, kfa, kv, kps, kpc)
     estimate: dict = field(default=None)   # what it told (estimate_terms' dict)
     ratios: tuple = field(default=None)    # (odd, even) at this experiment
+    lines: tuple = field(default=None)     # (Y lines, reference mean or None) told
 
 
 class FeedForwardModelTune:
@@ -265,10 +305,15 @@ class FeedForwardModelTune:
         A sigma above this share of the Coulomb scale ends the tune unconverged.
     k_fc_max, k_v_max : float
         Upper limits of the gains asked for.
+    controller : dict or None
+        kp, kd, tau_d of the drive's position controller: with it, the Gauss-Newton step of
+        :func:`gauss_newton_step` at the half-amplitude experiment (at the final gains: what
+        its harmonics still ask to change) is a part of each term's sigma (``linearisation``).
     """
 
     def __init__(self, terms, *, omega_rad_s, amplitude_rad, verify_amplitude_rad=None, n_fit=5,
-                 rtol=0.05, max_experiments=6, max_sigma_re_coulomb=0.1, k_fc_max=100.0, k_v_max=100.0):
+                 rtol=0.05, max_experiments=6, max_sigma_re_coulomb=0.1, k_fc_max=100.0, k_v_max=100.0,
+                 controller=None):
         terms = list(terms)
         bad = [t for t in terms if t not in TERMS]
         if not terms or bad or len(set(terms)) != len(terms):
@@ -291,6 +336,9 @@ class FeedForwardModelTune:
         self.max_experiments = int(max_experiments)
         self.max_sigma = float(max_sigma_re_coulomb)
         self.limits = dict(GAIN_LIMITS, kfc=(0.0, float(k_fc_max)), kv=(0.0, float(k_v_max)))
+        if controller is not None and not (controller.get("kp", 0) > 0):
+            raise InputError("FeedForwardModelTune: controller needs kp > 0")
+        self.controller = controller
         self.experiments = []
         self._pending = None
         self._stop = None          # (cause, text) of a failed experiment
@@ -312,9 +360,10 @@ class FeedForwardModelTune:
                 return None
         return self._pending
 
-    def tell(self, experiment, U, Y):
+    def tell(self, experiment, U, Y, reference_mean_rad=None):
         """Lines k = 0 .. K (K >= max(n_fit, 7)) of the plant input and the motor angle of
-        ``experiment``: (K + 1,) means or (P, K + 1) per period."""
+        ``experiment``: (K + 1,) means or (P, K + 1) per period; the reference's mean (the
+        set-point) if known (the Gauss-Newton check then uses the mean too)."""
         if experiment is not self._pending:
             raise InputError("FeedForwardModelTune.tell: not the experiment asked for")
         U = np.asarray(U, dtype=complex)
@@ -323,6 +372,7 @@ class FeedForwardModelTune:
             raise InputError(f"FeedForwardModelTune.tell: {U.shape[-1]} lines, 8 (k = 0 .. 7) needed")
         experiment.estimate = estimate_terms(U, Y, omega_rad_s=self.omega, terms=self.terms, n_fit=self.n_fit)
         experiment.ratios = odd_even_ratios(Y)
+        experiment.lines = (Y, reference_mean_rad)
         self.experiments.append(experiment)
         self._pending = None
         if self._next() is None:
@@ -434,6 +484,16 @@ class FeedForwardModelTune:
         res["gains"] = gains
         res["inertia_v_s2_per_rad"] = v["inertia"]
         scale = self._scale(final.estimate)
+        verifier = ver[-1] if ver else (amp[-1] if amp else final)
+        gn = {}
+        if self.controller is not None:
+            aliases = [a for t in self.terms for a in TERM_INFO[t][2]]
+            # at the half-amplitude experiment (the final gains, a wide sweep: a small
+            # verification amplitude cannot tell the position term from the Coulomb level)
+            chk = amp[-1] if amp else final
+            gn = gauss_newton_step(chk.lines[0], chk.lines[1], aliases, v["inertia"], v["kv"],
+                                   self.controller, self.omega)
+        res["gauss_newton_step"] = gn or None
         worst = None
         for term in self.terms:
             unit, obj, aliases = TERM_INFO[term]
@@ -443,15 +503,18 @@ class FeedForwardModelTune:
                 n_ps, n_pc = noise["kps"], noise["kpc"]
                 s_noise = math.hypot(ps * n_ps, pc * n_pc) / value if value > 0 else math.hypot(n_ps, n_pc)
                 s_amp = abs(math.hypot(v2["kps"], v2["kpc"]) - value) if v2 else math.nan
+                s_gn = math.hypot(gn["kps"], gn["kpc"]) if gn else math.nan
                 extra = {"sine_v": ps, "cosine_v": pc, "phase_deg": math.degrees(math.atan2(pc, ps))}
             else:
                 a = aliases[0]
                 value, s_noise = v[a], noise[a]
                 s_amp = abs(v2[a] - value) if v2 else math.nan
+                s_gn = abs(gn[a]) if a in gn else math.nan
                 extra = {}
-            sigma = math.hypot(s_noise, s_amp) if math.isfinite(s_amp) else s_noise
+            parts = {"noise": s_noise, "amplitude": s_amp, "linearisation": s_gn}
+            sigma = math.sqrt(sum(x * x for x in parts.values() if math.isfinite(x)))
             res["terms"][term] = {"value": value, "sigma": sigma, "unit": unit, "object": obj,
-                                  "parts": {"noise": s_noise, "amplitude": s_amp}, **extra}
+                                  "parts": parts, **extra}
             if term != "viscous" and sigma > self.max_sigma * scale and (worst is None or sigma > worst[1]):
                 worst = (term, sigma)
         if "coulomb" in res["terms"]:
@@ -462,7 +525,6 @@ class FeedForwardModelTune:
                 res["terms"]["coulomb"]["fc_plus_v"] = c["value"] + a["value"]
                 res["terms"]["coulomb"]["fc_minus_v"] = c["value"] - a["value"]
                 res["terms"]["coulomb"]["fc_plus_minus_sigma_v"] = s
-        verifier = ver[-1] if ver else (amp[-1] if amp else final)
         res["odd_ratio_at_optimum"], res["even_ratio_at_optimum"] = verifier.ratios
         res["verification"] = {"tag": verifier.tag, "amplitude_rad": verifier.amplitude_rad,
                                "gains": dict(verifier.gains)}

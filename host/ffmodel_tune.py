@@ -56,10 +56,17 @@ def run_model_tune(session):
     if verify is None and c["amplitude_rad"] != "auto" and float(c["amplitude_rad"]) < 0.5 * amplitude:
         verify = float(c["amplitude_rad"])      # the configured (smaller) amplitude verifies
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
+    ctl = session.controller
+    if ctl.get("kp") is None:
+        try:
+            ctl = dict(ctl, **{k: session.drive.get(k) for k in ("kp", "kd", "tau_d")})
+        except (AttributeError, FftuneError):
+            pass
+    controller = {k: float(ctl.get(k) or 0.0) for k in ("kp", "kd", "tau_d")} if ctl.get("kp") else None
     tuner = _ffmodel.FeedForwardModelTune(
         c["terms"], omega_rad_s=omega, amplitude_rad=amplitude, verify_amplitude_rad=verify,
         n_fit=c["model"]["n_fit"], rtol=c["model"]["rtol"], max_experiments=c["model"]["max_experiments"],
-        k_fc_max=max(k_hi, 1e-3), k_v_max=c["viscous"]["k_v_max"])
+        k_fc_max=max(k_hi, 1e-3), k_v_max=c["viscous"]["k_v_max"], controller=controller)
     stats_request = {"harmonics": N_LINES, "signals": ["motor_angle", "plant_input"],
                      "power": ["plant_input", "motor_angle", "error"]}
     session.tune_experiments = 0
@@ -84,6 +91,7 @@ def run_model_tune(session):
             U = np.concatenate([[st.power_mean["plant_input"]], 2.0 / n * st.mean["plant_input"][:N_LINES]])
             Y = np.concatenate([[st.power_mean["motor_angle"]], 2.0 / n * st.mean["motor_angle"][:N_LINES]])
             rms[exp.index] = st.rms("error")
+            r_mean = st.power_mean["motor_angle"] + st.power_mean["error"]
             if u_max:
                 u_rms_re_max = st.rms("plant_input") / u_max
         else:
@@ -91,6 +99,7 @@ def run_model_tune(session):
             U = _ffmodel.harmonic_lines(s["plant_input"], n, cycles, N_LINES)
             Y = _ffmodel.harmonic_lines(s["motor_angle"], n, cycles, N_LINES)
             rms[exp.index] = float(np.sqrt(np.mean(s["error"] ** 2)))
+            r_mean = float(np.mean(s["reference"])) if "reference" in s else None
             sat = _saturation_fraction(s["plant_input"], u_max)
         h1 = float(abs(np.mean(np.atleast_2d(Y)[:, 1]))) / exp.amplitude_rad
         check = _tuning.check_experiment(h1, saturated_fraction=sat, u_rms_re_max=u_rms_re_max,
@@ -99,7 +108,7 @@ def run_model_tune(session):
         if check["cause"] is not None:
             tuner.fail(exp, check["cause"], check["text"])
         else:
-            tuner.tell(exp, U, Y)
+            tuner.tell(exp, U, Y, reference_mean_rad=r_mean)
     try:   # the extra gains back to 0: the other steps' requests set K_fc and K_v only
         session.drive.set_parameters({"kfa": 0.0, "kps": 0.0, "kpc": 0.0})
     except (AttributeError, FftuneError):
@@ -135,6 +144,8 @@ def _results(session, tuner, captures, rms, amplitude):
             "converged": converged, "stop_reason": r["reason"], "cause": r["cause"],
             "gains": None if r["gains"] is None else {k: _f(v) for k, v in r["gains"].items()},
             "inertia_v_s2_per_rad": _f(r["inertia_v_s2_per_rad"]),
+            "gauss_newton_step_at_verification": None if not r.get("gauss_newton_step") else
+            {k: _f(v) for k, v in r["gauss_newton_step"].items()},
             "verification": r["verification"],
             "experiments": [dict(cap, odd_ratio=_f(it["odd_ratio"]), even_ratio=_f(it["even_ratio"]),
                                  rms_error_rad=_f(rms.get(i)),

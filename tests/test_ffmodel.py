@@ -214,3 +214,44 @@ def test_replay_from_recorded_lines_gives_the_same_result():
         fm.FeedForwardModelTune.replay(bad, **kw)
     with pytest.raises(InputError, match="asks for more"):
         fm.FeedForwardModelTune.replay(loop.runs[:2], **kw)
+
+
+def test_gauss_newton_step_recovers_a_known_mismatch():
+    """Y_k = PS(k w) sum_i d_i Phi_i(k) for harmonics >= 2 and the mean (PS(0) = 1 / Kp),
+    built from an independent PS (the loop's transfer written out) and the regressors'
+    lines computed here by direct summation."""
+    ctl = {"kp": 2.5, "kd": 0.07, "tau_d": 0.003}
+    J, b = 0.0063, 0.041
+    y0, y1 = 0.9, 2.2 * np.exp(0.7j)
+    n = 4096
+    t = np.arange(n) / n * 2 * np.pi
+    y = y0 + (y1 * np.exp(1j * t)).real
+    sg = np.sign((1j * y1 * np.exp(1j * t)).real)
+    d = {"kfc": 0.013, "kfa": -0.004, "kps": 0.006, "kpc": -0.009}
+    mis = d["kfc"] * sg + d["kfa"] * np.abs(sg) + sg * (d["kps"] * np.sin(y) + d["kpc"] * np.cos(y))
+    M = np.fft.rfft(mis) / n
+    Y = np.zeros(8, complex)
+    for k in range(2, 8):
+        s = 1j * W * k
+        ps = 1.0 / (J * s * s + b * s + ctl["kp"] + ctl["kd"] * s / (ctl["tau_d"] * s + 1))
+        Y[k] = ps * 2 * M[k]
+    Y[1] = y1
+    Y[0] = y0
+    r0 = y0 - M[0].real / ctl["kp"]      # the mean: Y_0 - r0 = PS(0) M_0 = M_0 / Kp
+    step = fm.gauss_newton_step(Y, r0, ["kfc", "kfa", "kps", "kpc", "kv"], J, b, ctl, W)
+    assert set(step) == {"kfc", "kfa", "kps", "kpc"}
+    for k, v in d.items():
+        assert step[k] == pytest.approx(v, rel=0.05, abs=3e-4), k
+    # without the reference's mean the asymmetry (a mean only) is not in the step's data
+    step2 = fm.gauss_newton_step(Y, None, ["kfc"], J, b, ctl, W)
+    assert step2["kfc"] == pytest.approx(d["kfc"], rel=0.1)
+
+
+def test_linearisation_part_with_the_controller():
+    loop = SyntheticLoop(truth=dict(TRUTH, kps=0.0, kpc=0.0))
+    tuner, _ = run_tune(loop, terms=["coulomb", "asymmetry"], amplitude_rad=1.0,
+                        controller={"kp": 2.0, "kd": 0.05, "tau_d": 0.002})
+    parts = tuner.result["terms"]["coulomb"]["parts"]
+    assert math.isfinite(parts["linearisation"]) and tuner.result["gauss_newton_step"] is not None
+    with pytest.raises(InputError, match="kp"):
+        fm.FeedForwardModelTune(["coulomb"], omega_rad_s=W, amplitude_rad=1.0, controller={"kp": 0.0})
