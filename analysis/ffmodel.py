@@ -305,6 +305,11 @@ class FeedForwardModelTune:
         A sigma above this share of the Coulomb scale ends the tune unconverged.
     k_fc_max, k_v_max : float
         Upper limits of the gains asked for.
+    odd_max : float
+        Odd level (rms of |H_3,5,7| / |H_1|) above which an identification experiment at the
+        estimate says the model does not hold at its amplitude (stick-slip, Stribeck): the
+        next one is at twice the amplitude, up to ``amplitude_max_rad`` (default 8 x the
+        first).
     controller : dict or None
         kp, kd, tau_d of the drive's position controller: with it, the Gauss-Newton step of
         :func:`gauss_newton_step` at the half-amplitude experiment (at the final gains: what
@@ -313,7 +318,7 @@ class FeedForwardModelTune:
 
     def __init__(self, terms, *, omega_rad_s, amplitude_rad, verify_amplitude_rad=None, n_fit=5,
                  rtol=0.05, max_experiments=6, max_sigma_re_coulomb=0.1, k_fc_max=100.0, k_v_max=100.0,
-                 controller=None):
+                 controller=None, odd_max=0.01, amplitude_max_rad=None):
         terms = list(terms)
         bad = [t for t in terms if t not in TERMS]
         if not terms or bad or len(set(terms)) != len(terms):
@@ -329,6 +334,8 @@ class FeedForwardModelTune:
         self.omega = float(omega_rad_s)
         self.amplitude = float(amplitude_rad)
         self.amplitude2 = 0.5 * self.amplitude
+        self.odd_max = float(odd_max)
+        self.amplitude_max = float(amplitude_max_rad) if amplitude_max_rad is not None else 8.0 * self.amplitude
         va = verify_amplitude_rad
         self.verify_amplitude = None if va is None or abs(va - self.amplitude2) <= 1e-9 * va else float(va)
         self.n_fit = int(n_fit)
@@ -374,8 +381,8 @@ class FeedForwardModelTune:
         experiment.ratios = odd_even_ratios(Y)
         experiment.lines = (Y, reference_mean_rad)
         self.experiments.append(experiment)
-        self._pending = None
-        if self._next() is None:
+        self._pending = self._next()      # decided once (the decision may double the amplitude)
+        if self._pending is None:
             self._finish()
 
     def fail(self, experiment, cause, text):
@@ -444,10 +451,19 @@ class FeedForwardModelTune:
         has_amp = any(e.tag == "amplitude" for e in self.experiments)
         has_ver = any(e.tag == "verify" for e in self.experiments)
         if not has_amp:
+            room = self.max_experiments - n - 1 - (self.verify_amplitude is not None)
+            # with the feed-forward at the estimate the odd harmonics should be gone while the
+            # motor slides; more than odd_max of them: stick-slip or a Stribeck curve the model
+            # does not have at this amplitude: twice the amplitude (the estimate carried on)
+            if len(ident) >= 2 and last.ratios[0] > self.odd_max and room > 1 and \
+                    2 * self.amplitude <= self.amplitude_max:
+                self.amplitude *= 2
+                self.amplitude2 = 0.5 * self.amplitude
+                return Experiment(n, "identify", self.amplitude, g_next)
+            same = [e for e in ident if e.amplitude_rad == self.amplitude]
             step = max(abs(g_next[k] - last.gains[k]) for k in GAINS)
             converged = len(ident) >= 2 and step <= self.rtol * self._scale(last.estimate)
-            room = self.max_experiments - n - 1 - (self.verify_amplitude is not None)
-            if not converged and room > 0:
+            if not same or (not converged and room > 0):
                 return Experiment(n, "identify", self.amplitude, g_next)
             return Experiment(n, "amplitude", self.amplitude2, g_next)
         if self.verify_amplitude is not None and not has_ver:
@@ -528,7 +544,13 @@ class FeedForwardModelTune:
         res["odd_ratio_at_optimum"], res["even_ratio_at_optimum"] = verifier.ratios
         res["verification"] = {"tag": verifier.tag, "amplitude_rad": verifier.amplitude_rad,
                                "gains": dict(verifier.gains)}
-        if worst is not None:
+        if final.ratios[0] > self.odd_max and len(ident) >= 2:
+            res["reason"] = (f"the odd harmonics at the estimate are {100 * final.ratios[0]:.2g} % of the "
+                             f"fundamental at {final.amplitude_rad:g} rad (more than {100 * self.odd_max:g} %): "
+                             f"the friction is not the modelled one there (stick-slip, a Stribeck curve); "
+                             f"raise tune.model.amplitude_rad or tune.amplitude_max_rad")
+            res["cause"] = "model"
+        elif worst is not None:
             res["reason"] = (f"cannot tell the {worst[0]} term better than +-{100 * worst[1] / scale:.3g} % of "
                              f"the Coulomb level (more than {100 * self.max_sigma:g} %)")
             res["cause"] = "uncertain"

@@ -66,7 +66,8 @@ def run_model_tune(session):
     tuner = _ffmodel.FeedForwardModelTune(
         c["terms"], omega_rad_s=omega, amplitude_rad=amplitude, verify_amplitude_rad=verify,
         n_fit=c["model"]["n_fit"], rtol=c["model"]["rtol"], max_experiments=c["model"]["max_experiments"],
-        k_fc_max=max(k_hi, 1e-3), k_v_max=c["viscous"]["k_v_max"], controller=controller)
+        k_fc_max=max(k_hi, 1e-3), k_v_max=c["viscous"]["k_v_max"], controller=controller,
+        amplitude_max_rad=max(amplitude, c["amplitude_max_rad"]))
     stats_request = {"harmonics": N_LINES, "signals": ["motor_angle", "plant_input"],
                      "power": ["plant_input", "motor_angle", "error"]}
     session.tune_experiments = 0

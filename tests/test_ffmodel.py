@@ -255,3 +255,31 @@ def test_linearisation_part_with_the_controller():
     assert math.isfinite(parts["linearisation"]) and tuner.result["gauss_newton_step"] is not None
     with pytest.raises(InputError, match="kp"):
         fm.FeedForwardModelTune(["coulomb"], omega_rad_s=W, amplitude_rad=1.0, controller={"kp": 0.0})
+
+
+class StickyLoop(SyntheticLoop):
+    """Below 1.5 rad the motion carries a 3rd harmonic of 4 % (stick-slip the model lacks)."""
+
+    def measure(self, exp):
+        U, Y = super().measure(exp)
+        if exp.amplitude_rad < 1.5:
+            Y = Y.copy()
+            Y[:, 3] += 0.04 * abs(Y[0, 1])
+        return U, Y
+
+
+def test_odd_harmonics_at_the_estimate_double_the_amplitude():
+    truth = dict(TRUTH, kfa=0.0, kps=0.0, kpc=0.0)
+    tuner, asked = run_tune(StickyLoop(truth=truth), terms=["coulomb"], amplitude_rad=1.0)
+    amps = [e.amplitude_rad for e in asked]
+    assert amps[:3] == [1.0, 1.0, 2.0] and asked[-1].tag == "amplitude" and amps[-1] == 1.0
+    assert tuner.result["experiments"] == len(asked) <= 6
+    # the half-amplitude experiment (1 rad) still shows them: its estimate moves, and that
+    # part of sigma refuses the result
+    assert not tuner.result["converged"] and tuner.result["cause"] == "uncertain"
+    assert tuner.result["terms"]["coulomb"]["parts"]["amplitude"] > 0.1 * truth["kfc"]
+    # no room to double: refused for the odd harmonics at the estimate, named
+    tuner2, asked2 = run_tune(StickyLoop(truth=truth), terms=["coulomb"], amplitude_rad=1.0, amplitude_max_rad=1.0)
+    assert {e.amplitude_rad for e in asked2} == {1.0, 0.5}
+    r2 = tuner2.result
+    assert not r2["converged"] and r2["cause"] == "model" and "raise tune.model.amplitude_rad" in r2["reason"]
