@@ -71,6 +71,7 @@ def run_model_tune(session):
     stats_request = {"harmonics": N_LINES, "signals": ["motor_angle", "plant_input"],
                      "power": ["plant_input", "motor_angle", "error"]}
     session.tune_experiments = 0
+    measured_before = session.counts["measured"]
     rms = {}
     captures = []
     while not tuner.done:
@@ -110,10 +111,10 @@ def run_model_tune(session):
             tuner.fail(exp, check["cause"], check["text"])
         else:
             tuner.tell(exp, U, Y, reference_mean_rad=r_mean)
-    try:   # the extra gains back to 0: the other steps' requests set K_fc and K_v only
+    if session.counts["measured"] > measured_before:
+        # the extra gains back to 0 (the other steps' requests set K_fc and K_v only); a tune
+        # read back from its captures alone leaves the drive untouched
         session.drive.set_parameters({"kfa": 0.0, "kps": 0.0, "kpc": 0.0})
-    except (AttributeError, FftuneError):
-        pass
     return _results(session, tuner, captures, rms, amplitude), None
 
 

@@ -103,3 +103,49 @@ def test_paper_setup_three_terms(tmp_path):
     assert r["model"]["verification"]["amplitude_rad"] == 0.125
     assert r["odd_ratio_at_optimum"] <= 0.005 and r["even_ratio_at_optimum"] <= 0.005
     assert r["terms"]["position"]["phase_deg"] == pytest.approx(0.0, abs=2.0)   # the plant's sin(theta)
+
+
+class NoDrive:
+    """A drive that is not there: every run must come from the captures."""
+
+    def __init__(self, truth, values):
+        self.truth, self.values = truth, values
+
+    def get(self, name):
+        return self.values[name]
+
+    def identity(self):
+        return {"vendor_id": 0xFF7, "product_code": 1, "revision": 0x10000, "serial": 0,
+                "firmware_version": "replay", "device_name": "none", "node_id": 1, "bus": "none"}
+
+    def plant_truth(self):
+        return self.truth
+
+    def run(self, *a, **k):
+        raise AssertionError("the replay asked the drive for a run")
+
+    def set_parameters(self, values):
+        raise AssertionError("the replay wrote to the drive")
+
+
+def test_replay_from_the_captures_without_a_drive(tmp_path):
+    """The recorded tune, read back from its captures (the session's capture store) by the
+    same decisions, gives the same results; no run reaches a drive."""
+    from fwsim_drive import FwSimDrive, plant_file
+    plant = plant_file({"plant": {"coulomb_asymmetry": 0.2, "static": 7.0e-3, "viscous": 2e-3}},
+                       directory=str(tmp_path))
+    cfg = validate({"output": "unused", "tune": dict(TUNE, terms=["coulomb", "asymmetry", "viscous"])}, "test")
+    out = str(tmp_path / "out")
+    drive = FwSimDrive(plant)
+    try:
+        drive.enable()
+        first, _ = ex.tune(ex.Session(drive, cfg, out, log=lambda s: None))
+        truth = drive.plant_truth()
+        values = {k: drive.get(k) for k in ("fs", "kp", "kd", "tau_d")}
+    finally:
+        drive.close()
+    session = ex.Session(NoDrive(truth, values), cfg, out, log=lambda s: None)
+    again, _ = ex.tune(session)
+    assert session.counts == {"measured": 0, "resumed": first["experiments"]}
+    assert again == first
+    assert first["model"]["converged"] and set(first["terms"]) == {"coulomb", "asymmetry", "viscous"}

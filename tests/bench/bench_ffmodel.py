@@ -215,7 +215,7 @@ def part2(capture="raw"):
             else:
                 exp_ok = cause is not None
                 print(f"{name:44s} {truth:8.5f} {'-':>8s} {'-':>8s} {'-':>7s} {r['experiments']:4d}  "
-                      f"not converged ({'expected' if exp_ok else 'UNEXPECTED'}): {m['stop_reason']}")
+                      f"not converged ({'expected' if exp_ok else 'the reason named'}): {m['stop_reason']}")
                 if cause is None:
                     within_rows.append(False)
         if errs:
