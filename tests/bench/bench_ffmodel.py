@@ -47,7 +47,9 @@ def truth_of(plant_path):
 
 
 def _config(plant_path, tune_over, capture="raw"):
-    cfg = bench_tune.tune_config(dict(tune_over, capture=capture))
+    model = tune_over.get("model", {})
+    cfg = bench_tune.tune_config({k: v for k, v in dict(tune_over, capture=capture).items() if k != "model"})
+    cfg["tune"]["model"].update(model)
     with open(plant_path) as fh:
         ctl = yaml.safe_load(fh)["controller"]
     cfg["drive"]["controller"].update({k: ctl[k] for k in ("kp", "kd", "tau_d", "u_max")})
