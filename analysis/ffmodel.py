@@ -160,7 +160,7 @@ def _design(U, Y, omega_rad_s, terms, n_fit, cycles):
     return Ar, br, names
 
 
-def estimate_terms(U, Y, *, omega_rad_s, terms, n_fit=5, cycles=1):
+def estimate_terms(U, Y, *, omega_rad_s, terms, n_fit=5, cycles=1, line_var=None, n_periods=None):
     """Friction terms, inertia and viscous term from the lines of one experiment.
 
     Parameters
@@ -175,6 +175,11 @@ def estimate_terms(U, Y, *, omega_rad_s, terms, n_fit=5, cycles=1):
         (the viscous term is the rigid body's damping).
     n_fit : int
         Highest harmonic in the fit (K >= n_fit).
+    line_var : array_like or None
+        With mean lines only (a drive's statistics): the period-to-period variance
+        E|X_p - X|^2 of the plant input's lines k = 0 .. K, and ``n_periods`` P; the noise is
+        then propagated from it instead of taken from the fit's residual (which also holds
+        the model's misfit).
 
     Returns
     -------
@@ -202,6 +207,13 @@ def estimate_terms(U, Y, *, omega_rad_s, terms, n_fit=5, cycles=1):
     cov = float(res @ res) / dof * np.linalg.pinv(A.T @ A)
     noise = np.sqrt(np.maximum(np.diag(cov), 0.0))
     P = U.shape[0]
+    if P == 1 and line_var is not None and n_periods and n_periods >= 2:
+        v = np.asarray(line_var, dtype=float)[:n_fit + 1] / n_periods
+        v = np.where(np.isfinite(v), v, np.nanmax(v[1:]) if np.any(np.isfinite(v[1:])) else 0.0)
+        w = np.concatenate([v, v[1:]]) / 2.0           # re and im of k >= 1 each half
+        w[0] = v[0]
+        Ainv = np.linalg.pinv(A)
+        noise = np.sqrt(np.maximum(np.einsum("ij,j,ij->i", Ainv, w, Ainv), 0.0))
     if P >= 2:
         per = []
         for p in range(P):
@@ -367,17 +379,19 @@ class FeedForwardModelTune:
                 return None
         return self._pending
 
-    def tell(self, experiment, U, Y, reference_mean_rad=None):
+    def tell(self, experiment, U, Y, reference_mean_rad=None, line_var=None, n_periods=None):
         """Lines k = 0 .. K (K >= max(n_fit, 7)) of the plant input and the motor angle of
         ``experiment``: (K + 1,) means or (P, K + 1) per period; the reference's mean (the
-        set-point) if known (the Gauss-Newton check then uses the mean too)."""
+        set-point) if known (the Gauss-Newton check then uses the mean too); with mean lines,
+        the plant input's line variances over ``n_periods`` periods (:func:`estimate_terms`)."""
         if experiment is not self._pending:
             raise InputError("FeedForwardModelTune.tell: not the experiment asked for")
         U = np.asarray(U, dtype=complex)
         Y = np.asarray(Y, dtype=complex)
         if U.shape[-1] < 8:
             raise InputError(f"FeedForwardModelTune.tell: {U.shape[-1]} lines, 8 (k = 0 .. 7) needed")
-        experiment.estimate = estimate_terms(U, Y, omega_rad_s=self.omega, terms=self.terms, n_fit=self.n_fit)
+        experiment.estimate = estimate_terms(U, Y, omega_rad_s=self.omega, terms=self.terms, n_fit=self.n_fit,
+                                             line_var=line_var, n_periods=n_periods)
         experiment.ratios = odd_even_ratios(Y)
         experiment.lines = (Y, reference_mean_rad)
         self.experiments.append(experiment)

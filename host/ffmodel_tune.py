@@ -94,6 +94,10 @@ def run_model_tune(session):
             Y = np.concatenate([[st.power_mean["motor_angle"]], 2.0 / n * st.mean["motor_angle"][:N_LINES]])
             rms[exp.index] = st.rms("error")
             r_mean = st.power_mean["motor_angle"] + st.power_mean["error"]
+            # period-to-period variance of the plant input's lines (the mean's: unknown, that
+            # of the fundamental stands in), scaled as the lines
+            var_u = (2.0 / n) ** 2 * np.asarray(st.var["plant_input"][:N_LINES], dtype=float)
+            line_var, n_periods = np.concatenate([[var_u[0] / 4.0], var_u]), st.periods
             if u_max:
                 u_rms_re_max = st.rms("plant_input") / u_max
         else:
@@ -102,6 +106,7 @@ def run_model_tune(session):
             Y = _ffmodel.harmonic_lines(s["motor_angle"], n, cycles, N_LINES)
             rms[exp.index] = float(np.sqrt(np.mean(s["error"] ** 2)))
             r_mean = float(np.mean(s["reference"])) if "reference" in s else None
+            line_var = n_periods = None
             sat = _saturation_fraction(s["plant_input"], u_max)
         h1 = float(abs(np.mean(np.atleast_2d(Y)[:, 1]))) / exp.amplitude_rad
         check = _tuning.check_experiment(h1, saturated_fraction=sat, u_rms_re_max=u_rms_re_max,
@@ -110,7 +115,7 @@ def run_model_tune(session):
         if check["cause"] is not None:
             tuner.fail(exp, check["cause"], check["text"])
         else:
-            tuner.tell(exp, U, Y, reference_mean_rad=r_mean)
+            tuner.tell(exp, U, Y, reference_mean_rad=r_mean, line_var=line_var, n_periods=n_periods)
     if session.counts["measured"] > measured_before:
         # the extra gains back to 0 (the other steps' requests set K_fc and K_v only); a tune
         # read back from its captures alone leaves the drive untouched

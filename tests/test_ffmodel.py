@@ -283,3 +283,21 @@ def test_odd_harmonics_at_the_estimate_double_the_amplitude():
     assert {e.amplitude_rad for e in asked2} == {1.0, 0.5}
     r2 = tuner2.result
     assert not r2["converged"] and r2["cause"] == "model" and "raise tune.model.amplitude_rad" in r2["reason"]
+
+
+def test_noise_from_line_variances_matches_the_per_period_spread():
+    """Mean lines with their period-to-period variance (a drive's statistics) give about the
+    noise the per-period estimates show on the same data."""
+    rng = np.random.default_rng(11)
+    u, y = plant_input(0.1, 1.1 * np.exp(0.2j), periods=40, noise=0.03, rng=rng)
+    U, Y = fm.harmonic_lines(u, N, 1, 8), fm.harmonic_lines(y, N, 1, 8)
+    per = fm.estimate_terms(U, Y, omega_rad_s=W, terms=["coulomb", "asymmetry"])
+    var = np.sum(np.abs(U - U.mean(axis=0)) ** 2, axis=0) / (U.shape[0] - 1)
+    var[0] = np.var(U[:, 0].real, ddof=1)
+    prop = fm.estimate_terms(U.mean(axis=0), Y.mean(axis=0), omega_rad_s=W, terms=["coulomb", "asymmetry"],
+                             line_var=var, n_periods=U.shape[0])
+    for k in ("kfc", "kfa", "kv"):
+        assert prop["noise"][k] == pytest.approx(per["noise"][k], rel=0.5), k
+    # the residual's standard error (no variances told) is another number
+    res = fm.estimate_terms(U.mean(axis=0), Y.mean(axis=0), omega_rad_s=W, terms=["coulomb", "asymmetry"])
+    assert res["noise"]["kfc"] != prop["noise"]["kfc"]
