@@ -16,7 +16,7 @@ pytestmark = pytest.mark.skipif(drive_sim_missing_reason() is not None,
                                 reason=drive_sim_missing_reason() or "")
 
 
-def test_model_tune_over_canopen(tmp_path):
+def test_model_tune_over_canopen(tmp_path, capsys):
     from fftune.host.sim import derived_plant
     plant = derived_plant(os.path.join(REPO, "configs", "plant_twomass.yaml"),
                           {"plant": {"coulomb_asymmetry": 0.25, "static": 7.3e-3, "viscous": 2e-3}},
@@ -34,6 +34,8 @@ def test_model_tune_over_canopen(tmp_path):
         assert code == 0
     finally:
         drive.stop()
+    text = capsys.readouterr().out
+    assert "feed-forward terms (tune.method model): converged" in text and "asymmetry (0x2000:9)" in text
     t = yaml.safe_load(open(out / "results.yaml"))["tune"]
     assert t["method"] == "model" and t["model"]["converged"], t["model"]["stop_reason"]
     fc, a = 5.785e-3 / 0.05, 0.25 * 5.785e-3 / 0.05
