@@ -151,7 +151,7 @@ def _results(session, tuner, captures, rms, amplitude):
             "converged": converged, "stop_reason": r["reason"], "cause": r["cause"],
             "gains": None if r["gains"] is None else {k: _f(v) for k, v in r["gains"].items()},
             "inertia_v_s2_per_rad": _f(r["inertia_v_s2_per_rad"]),
-            "gauss_newton_step_at_verification": None if not r.get("gauss_newton_step") else
+            "gauss_newton_step_at_half_amplitude": None if not r.get("gauss_newton_step") else
             {k: _f(v) for k, v in r["gauss_newton_step"].items()},
             "verification": r["verification"],
             "experiments": [dict(cap, odd_ratio=_f(it["odd_ratio"]), even_ratio=_f(it["even_ratio"]),
