@@ -2,7 +2,6 @@
 the model-based tune on the firmware core + plant through ctypes (tests/fwsim_drive.py: the
 same C controller, feed-forward terms and plant as drive_sim), and its configuration keys.
 The slow matrix is tests/bench/bench_ffmodel.py."""
-import math
 import os
 
 import pytest
