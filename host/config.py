@@ -109,6 +109,12 @@ DEFAULTS = {
         "sweep": {"k_fc_max": 1.0, "points": 11},
         "search": {"method": "root", "max_experiments": 8, "k_fc_max": None, "xtol_v": None},
         "viscous": {"enabled": True, "k_v_max": 1.0, "max_experiments": 8},
+        # search (the root search, default) | sweep (the same with the paper's sweep of
+        # tune.sweep) | model (every term of tune.terms at once: fftune.analysis.ffmodel)
+        "method": "search",
+        "terms": ["coulomb"],          # model: coulomb, asymmetry, viscous, position
+        "model": {"amplitude_rad": "auto", "verify_amplitude_rad": None, "max_experiments": 6,
+                  "n_fit": 5, "rtol": 0.05},
     },
 }
 
@@ -352,6 +358,7 @@ def validate(raw, path="<config>"):
     _bool(cfg, path, "tune.viscous.enabled")
     _number(cfg, path, "tune.viscous.k_v_max", low=0, high=100, low_inclusive=False)
     _number(cfg, path, "tune.viscous.max_experiments", low=3, high=100, integer=True)
+    _tune_model_keys(cfg, path, amp_high)
     return cfg
 
 
@@ -435,6 +442,28 @@ def safe_name(value, path, key):
         raise _err(path, key, f"expected a name of 1 .. {MAX_NAME_CHARS} letters, digits, -, _ and . "
                               f"(not starting with .: it becomes a folder name), got {show(value)}")
     return value
+
+
+def _tune_model_keys(cfg, path, amp_high):
+    """tune.method, tune.terms and tune.model (issue 35)."""
+    from fftune.analysis.ffmodel import TERMS
+    t = cfg["tune"]
+    _choice(cfg, path, "tune.method", ("search", "sweep", "model"))
+    terms = t["terms"]
+    if not isinstance(terms, list) or not terms or any(not isinstance(x, str) or x not in TERMS for x in terms) \
+            or len(set(terms)) != len(terms):
+        raise _err(path, "tune.terms", f"expected a non-empty list without repeats of {', '.join(TERMS)}, "
+                                       f"got {show(terms)}")
+    if t["method"] != "model" and terms != ["coulomb"]:
+        raise _err(path, "tune.terms", f"terms other than [coulomb] need tune.method: model "
+                                       f"(tune.method is {t['method']})")
+    if t["model"]["amplitude_rad"] != "auto":
+        _number(cfg, path, "tune.model.amplitude_rad", low=0, low_inclusive=False, high=amp_high)
+    _number(cfg, path, "tune.model.verify_amplitude_rad", low=0, low_inclusive=False, high=amp_high,
+            allow_none=True)
+    _number(cfg, path, "tune.model.max_experiments", low=3, high=100, integer=True)
+    _number(cfg, path, "tune.model.n_fit", low=3, high=7, integer=True)
+    _number(cfg, path, "tune.model.rtol", low=0, low_inclusive=False, high=1)
 
 
 def od_param_high(param):

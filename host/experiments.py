@@ -1071,6 +1071,9 @@ def tune(session):
         error (for the paper's Figures 7 and 9).
     """
     c = session.cfg["tune"]
+    if c.get("method") == "model":       # every term at once (issue 35): fftune.analysis.ffmodel
+        from fftune.host.ffmodel_tune import run_model_tune
+        return run_model_tune(session)
     check_tune_plan(session)
     probe = _TuneProbe(session)
     session.tune_experiments = 0

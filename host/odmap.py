@@ -103,7 +103,8 @@ def profile_objects(path=OD_YAML):
             continue
         out.append((obj["index"], None, obj["name"]))
         for sub in obj.get("sub", []):
-            out.append((obj["index"], sub["sub"], f"{obj['name']}.{sub['name']}"))
+            if sub.get("profile") != "optional":     # e.g. 0x2000:9-11 (tune.method model only)
+                out.append((obj["index"], sub["sub"], f"{obj['name']}.{sub['name']}"))
     return out
 
 

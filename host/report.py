@@ -164,6 +164,19 @@ def key_numbers(results):
     """The headline numbers (label, text) of a results dict."""
     rows = []
     t = results.get("tune")
+    if t and t.get("method") == "model":       # every term at once (docs/method.md section 5)
+        m = t["model"]
+        rows.append(("feed-forward terms (tune.method model)", "converged" if m["converged"]
+                     else f"not converged: {m['stop_reason']}"))
+        for name, term in t["terms"].items():
+            rows.append((f"{name} ({term['object']})", f"{_fmt(term['value'], ' ' + term['unit'])} +- "
+                                                      f"{_fmt(term['sigma'], ' ' + term['unit'])}"))
+        rows += [("closed-loop experiments", t["experiments"]),
+                 ("odd / even level at the verifying experiment (re |H_1|)",
+                  f"{_fmt(t['odd_ratio_at_optimum'], level=True)} / {_fmt(t['even_ratio_at_optimum'], level=True)}"),
+                 ("true Coulomb friction (simulation)", _fmt(t["true_coulomb_v"], " V")),
+                 ("Coulomb term vs truth", _fmt(t["k_fc_star_error_re_truth"], pct=True))]
+        t = None
     if t:
         rows += [
             ("K_fc* (automated search)", _fmt(t["k_fc_star"], " V") if t["search"]["converged"]

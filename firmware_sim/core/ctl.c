@@ -1,7 +1,9 @@
-/* ctl.c - PD + Coulomb/viscous feed-forward, see ctl.h. */
+/* ctl.c - PD + friction feed-forward (Coulomb, asymmetry, position, viscous), see ctl.h. */
 #include "ctl.h"
 
 #include <math.h>
+
+#include "gen.h" /* gen_sincos_index: the level table's sin / cos without libm */
 
 static ctl_status_t ctl_check_nonneg(float v)
 {
@@ -12,6 +14,19 @@ static ctl_status_t ctl_check_nonneg(float v)
         return CTL_E_RANGE_LOW;
     }
     return CTL_OK;
+}
+
+/* The level table of ctl_ff_level from K_fc, K_ps, K_pc (off the control path). */
+static void ctl_update_ff(ctl_t *ctl)
+{
+    const float quarter = (float)(1.5707963267948966 / CTL_FF_N);
+    const float step = (float)(6.283185307179586 / CTL_FF_N);
+    for (uint32_t k = 0u; k < CTL_FF_N; k++) {
+        float s, c;
+        gen_sincos_index(k, CTL_FF_N, quarter, &s, &c);
+        ctl->ff_table[k][0] = ctl->kfc + ctl->kps * s + ctl->kpc * c;
+        ctl->ff_table[k][1] = (ctl->kps * c - ctl->kpc * s) * step;
+    }
 }
 
 static void ctl_update_derived(ctl_t *ctl)
@@ -40,6 +55,10 @@ ctl_status_t ctl_init(ctl_t *ctl, float fs_hz)
     ctl->kv = 0.0f;
     ctl->fc_smooth = 0.0f;
     ctl->u_max = 0.0f;
+    ctl->kfa = 0.0f;
+    ctl->kps = 0.0f;
+    ctl->kpc = 0.0f;
+    ctl_update_ff(ctl);
     ctl->ts = 1.0f / fs_hz;
     ctl_update_derived(ctl);
     ctl_reset(ctl);
@@ -70,8 +89,37 @@ void ctl_reset(ctl_t *ctl)
 CTL_SETTER(ctl_set_kp, kp)
 CTL_SETTER(ctl_set_kd, kd)
 CTL_SETTER(ctl_set_tau_d, tau_d)
-CTL_SETTER(ctl_set_kfc, kfc)
 CTL_SETTER(ctl_set_kv, kv)
 CTL_SETTER(ctl_set_fc_smooth, fc_smooth)
 CTL_SETTER(ctl_set_u_max, u_max)
 
+
+/* K_fc and the position gains: the level table follows. */
+ctl_status_t ctl_set_kfc(ctl_t *ctl, float v)
+{
+    ctl_status_t st = ctl_check_nonneg(v);
+    if (st != CTL_OK) {
+        return st;
+    }
+    ctl->kfc = v;
+    ctl_update_ff(ctl);
+    return CTL_OK;
+}
+
+/* The signed gains: any finite value (drv checks the od.yaml limits). */
+#define CTL_SETTER_SIGNED(fn, field, table)  \
+    ctl_status_t fn(ctl_t *ctl, float v)     \
+    {                                        \
+        if (!isfinite(v)) {                  \
+            return CTL_E_NOT_FINITE;         \
+        }                                    \
+        ctl->field = v;                      \
+        if (table) {                         \
+            ctl_update_ff(ctl);              \
+        }                                    \
+        return CTL_OK;                       \
+    }
+
+CTL_SETTER_SIGNED(ctl_set_kfa, kfa, false)
+CTL_SETTER_SIGNED(ctl_set_kps, kps, true)
+CTL_SETTER_SIGNED(ctl_set_kpc, kpc, true)

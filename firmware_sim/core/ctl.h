@@ -1,9 +1,22 @@
 /*
  * ctl.h - the position controller of the drive (deployable, float32, no OS call).
  *
- *   u = Kp e + D + K_fc sgn(v_r) + K_v v_r + u_add,  saturated to +-u_max
+ *   u = Kp e + D + FF + u_add,  saturated to +-u_max
+ *   FF = sgn(v_r) (K_fc + K_ps sin(theta_r) + K_pc cos(theta_r)) + K_fa |sgn(v_r)| + K_v v_r
  *
- * e = theta_r - theta_1 [rad], v_r the reference velocity [rad/s] (from the generator),
+ * e = theta_r - theta_1 [rad], theta_r the reference angle, v_r the reference velocity
+ * [rad/s] (from the generator). The friction feed-forward (issue 35): the Coulomb level K_fc
+ * (the mean of the two directions' levels Fc+ and Fc-), its direction asymmetry
+ * K_fa = (Fc+ - Fc-) / 2 (FF = Fc+ moving forward, -Fc- moving back), the first harmonic of
+ * the level's variation over one revolution as sine and cosine gains K_ps, K_pc of the
+ * reference angle (linear in the gains: a Gauss-Newton step is exact in them and no phase
+ * wraps; amplitude sqrt(K_ps^2 + K_pc^2)), and viscous K_v.
+ * The angle-dependent level K_fc + K_ps sin + K_pc cos is tabulated by the setters over one
+ * revolution (CTL_FF_N entries with their slopes) and read per step by a first-order
+ * interpolation (ctl_ff_level): no sin/cos, no libm in the step, about a dozen instructions;
+ * error < (2 pi / CTL_FF_N)^2 / 2 = 1.2e-3 of sqrt(K_ps^2 + K_pc^2). A setter running while
+ * the control interrupt reads the table may give that one step a mix of old and new entries
+ * (a value between the two levels).
  * D the first-order filtered derivative Kd s / (tau_d s + 1) e, discretised with
  * BACKWARD EULER: D[n] = tau/(tau+T) D[n-1] + Kd/(tau+T) (e[n] - e[n-1]).
  * Why not Tustin: Tustin puts the filter pole at -(T - 2 tau)/(T + 2 tau), which is
@@ -20,6 +33,8 @@
 
 #include <stdbool.h>
 #include <stdint.h>
+
+#define CTL_FF_N 128u /* entries of the level table over one revolution (a power of two) */
 
 typedef enum {
     CTL_OK = 0,
@@ -41,6 +56,11 @@ typedef struct {
     float d_state;
     float u_unsat; /* last output before saturation: the drive faults when it is not finite */
     bool primed; /* e_prev valid (no derivative kick on the first step) */
+    /* the friction feed-forward's signed gains [V] and the level table (ctl_ff_level) */
+    float kfa, kps, kpc;
+    /* per entry k: [0] K_fc + K_ps sin(2 pi k / N) + K_pc cos(2 pi k / N), [1] its change
+     * per entry (K_ps cos - K_pc sin) 2 pi / N; interleaved: one address for both loads */
+    float ff_table[CTL_FF_N][2];
 } ctl_t;
 
 /* fs_hz must be finite and > 0. Gains start at 0, u_max at 0: set them. */
@@ -70,17 +90,38 @@ static inline float ctl_ff_sign(const ctl_t *ctl, float v_ref)
     return 0.0f;
 }
 
-/* One step: error e [rad], reference velocity [rad/s], u_add [V] added before saturation
+/* The Coulomb level at the reference angle theta_r [rad] (|theta_r| < 1e6: the target
+ * INTEGER32 urad plus the excitation): entry k = trunc(x) mod N of x = theta_r N / (2 pi),
+ * moved along its slope by x - trunc(x) in (-1, 1). Branch-free. */
+static inline float ctl_ff_level(const ctl_t *ctl, float theta_r)
+{
+    float x = theta_r * (float)(CTL_FF_N / 6.283185307179586);
+    int32_t i = (int32_t)x;
+    uint32_t k = (uint32_t)i & (CTL_FF_N - 1u);
+    return ctl->ff_table[k][0] + (x - (float)i) * ctl->ff_table[k][1];
+}
+
+/* The friction feed-forward FF (above) at reference velocity v_ref [rad/s] and angle
+ * theta_r [rad]. */
+static inline float ctl_ff(const ctl_t *ctl, float v_ref, float theta_r)
+{
+    float sg = ctl_ff_sign(ctl, v_ref);
+    float mag = (sg < 0.0f) ? -sg : sg; /* |sgn| without a libm call */
+    return sg * ctl_ff_level(ctl, theta_r) + ctl->kfa * mag + ctl->kv * v_ref;
+}
+
+/* One step: error e [rad], reference velocity [rad/s], reference angle theta_r [rad] (the
+ * position feed-forward's), u_add [V] added before saturation
  * (disturbance injection). Returns the saturated plant input [V]. A NaN passes the
  * saturation (comparisons with NaN are false) and an overflow is clamped to +-u_max, so the
  * caller checks u_unsat (drv_step: not finite -> fault, output 0). */
-static inline float ctl_step(ctl_t *ctl, float e, float v_ref, float u_add)
+static inline float ctl_step(ctl_t *ctl, float e, float v_ref, float theta_r, float u_add)
 {
     float de = ctl->primed ? (e - ctl->e_prev) : 0.0f;
     ctl->e_prev = e;
     ctl->primed = true;
     ctl->d_state = ctl->d_pole * ctl->d_state + ctl->d_gain * de;
-    float u = ctl->kp * e + ctl->d_state + ctl->kfc * ctl_ff_sign(ctl, v_ref) + ctl->kv * v_ref + u_add;
+    float u = ctl->kp * e + ctl->d_state + ctl_ff(ctl, v_ref, theta_r) + u_add;
     ctl->u_unsat = u;
     if (u > ctl->u_max) {
         u = ctl->u_max;
@@ -97,5 +138,10 @@ ctl_status_t ctl_set_kfc(ctl_t *ctl, float kfc_v);
 ctl_status_t ctl_set_kv(ctl_t *ctl, float kv_vs_per_rad);
 ctl_status_t ctl_set_fc_smooth(ctl_t *ctl, float width_rad_s);
 ctl_status_t ctl_set_u_max(ctl_t *ctl, float u_max_v);
+/* Signed gains (any finite value; drv checks the od.yaml limits): asymmetry K_fa [V],
+ * position sine / cosine K_ps, K_pc [V]. */
+ctl_status_t ctl_set_kfa(ctl_t *ctl, float kfa_v);
+ctl_status_t ctl_set_kps(ctl_t *ctl, float kps_v);
+ctl_status_t ctl_set_kpc(ctl_t *ctl, float kpc_v);
 
 #endif /* CTL_H */

@@ -137,6 +137,9 @@ drv_status_t drv_get_f32(const drv_t *drv, drv_param_id_t id, float *value)
     case DRV_P_KFC: v = drv->ctl.kfc; break;
     case DRV_P_KV: v = drv->ctl.kv; break;
     case DRV_P_FC_SMOOTH: v = drv->ctl.fc_smooth; break;
+    case DRV_P_KFA: v = drv->ctl.kfa; break;
+    case DRV_P_KPS: v = drv->ctl.kps; break;
+    case DRV_P_KPC: v = drv->ctl.kpc; break;
     case DRV_P_U_MAX: v = drv->ctl.u_max; break;
     case DRV_P_FS: v = drv->fs_hz; break;
     case DRV_P_EXC_AMPLITUDE: v = drv->exc_amplitude; break;
@@ -200,6 +203,9 @@ drv_status_t drv_set_f32(drv_t *drv, drv_param_id_t id, float value)
     case DRV_P_KFC: return drv_from_ctl(ctl_set_kfc(&drv->ctl, value));
     case DRV_P_KV: return drv_from_ctl(ctl_set_kv(&drv->ctl, value));
     case DRV_P_FC_SMOOTH: return drv_from_ctl(ctl_set_fc_smooth(&drv->ctl, value));
+    case DRV_P_KFA: return drv_from_ctl(ctl_set_kfa(&drv->ctl, value));
+    case DRV_P_KPS: return drv_from_ctl(ctl_set_kps(&drv->ctl, value));
+    case DRV_P_KPC: return drv_from_ctl(ctl_set_kpc(&drv->ctl, value));
     case DRV_P_U_MAX: return drv_from_ctl(ctl_set_u_max(&drv->ctl, value));
     case DRV_P_EXC_AMPLITUDE: drv->exc_amplitude = value; return DRV_OK;
     case DRV_P_EXC_OFFSET: drv->exc_offset = value; return DRV_OK;
@@ -568,7 +574,7 @@ float drv_step(drv_t *drv, const drv_meas_t *meas)
     float e = ref - motor;
     float u = 0.0f;
     if (drv->enabled && !drv->fault) {
-        u = ctl_step(&drv->ctl, e, v_ref, u_add);
+        u = ctl_step(&drv->ctl, e, v_ref, ref, u_add);
         /* the last line of defence: whatever the inputs, a non-finite sum (NaN passes the
          * saturation, an overflow would be clamped to +-u_max) never reaches the plant */
         if (!isfinite(drv->ctl.u_unsat)) {

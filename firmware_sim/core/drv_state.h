@@ -17,7 +17,6 @@
 #include "task.h"
 
 typedef struct {
-    ctl_t ctl;
     gen_t gen;
     run_t run;
     rec_t rec;
@@ -54,6 +53,9 @@ typedef struct {
     uint32_t sat_samples;    /* of them with |u| >= sat_u_max */
     float sat_u_max;         /* u_max latched at run start (the count's threshold) */
     task_t task;             /* the repeated task and its statistics (task.h, issue 26) */
+    /* the controller last as well: its feed-forward level table (1 kB, ctl.h) would push
+     * the fields above beyond the short offsets; the step addresses ctl from one base */
+    ctl_t ctl;
 } drv_t;
 
 #endif /* DRV_STATE_H */

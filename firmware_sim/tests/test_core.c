@@ -52,7 +52,7 @@ static void test_ctl_law_pd_filtered_derivative(void)
         double de = n == 0 ? 0.0 : e - e_prev;
         D = tau / (tau + T) * D + 0.2 / (tau + T) * de;
         double u_ref = 3.0 * e + D;
-        float u = ctl_step(&c, (float)e, 0.0f, 0.0f);
+        float u = ctl_step(&c, (float)e, 0.0f, 0.0f, 0.0f);
         TH_NEAR(u, u_ref, 1e-4 * (1.0 + fabs(u_ref)));
         e_prev = e;
     }
@@ -60,8 +60,8 @@ static void test_ctl_law_pd_filtered_derivative(void)
     ctl_reset(&c);
     TH_EQ(ctl_set_tau_d(&c, 0.0f), CTL_OK);
     TH_EQ(ctl_set_kp(&c, 0.0f), CTL_OK);
-    (void)ctl_step(&c, 1.0f, 0.0f, 0.0f);
-    float u = ctl_step(&c, 1.5f, 0.0f, 0.0f);
+    (void)ctl_step(&c, 1.0f, 0.0f, 0.0f, 0.0f);
+    float u = ctl_step(&c, 1.5f, 0.0f, 0.0f, 0.0f);
     TH_NEAR(u, 0.2 * 0.5 * FS, 1e-3);
 }
 
@@ -72,10 +72,10 @@ static void test_ctl_feedforward_and_saturation(void)
     TH_EQ(ctl_set_kfc(&c, 0.5f), CTL_OK);
     TH_EQ(ctl_set_kv(&c, 0.1f), CTL_OK);
     TH_EQ(ctl_set_u_max(&c, 2.0f), CTL_OK);
-    TH_NEAR(ctl_step(&c, 0.0f, 3.0f, 0.0f), 0.5 + 0.3, 1e-6);
-    TH_NEAR(ctl_step(&c, 0.0f, -3.0f, 0.0f), -0.5 - 0.3, 1e-6);
-    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, 0.0f), 0.0, 0.0); /* sign(0) = 0 */
-    TH_NEAR(ctl_step(&c, 0.0f, 1e-30f, 0.0f), 0.5, 1e-6); /* pure sign */
+    TH_NEAR(ctl_step(&c, 0.0f, 3.0f, 0.0f, 0.0f), 0.5 + 0.3, 1e-6);
+    TH_NEAR(ctl_step(&c, 0.0f, -3.0f, 0.0f, 0.0f), -0.5 - 0.3, 1e-6);
+    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, 0.0f, 0.0f), 0.0, 0.0); /* sign(0) = 0 */
+    TH_NEAR(ctl_step(&c, 0.0f, 1e-30f, 0.0f, 0.0f), 0.5, 1e-6); /* pure sign */
     TH_NEAR(ctl_ff_sign(&c, -1e-30f), -1.0, 0.0);
     /* smoothing width 2 rad/s: clamp(v / 2, -1, 1) */
     TH_EQ(ctl_set_fc_smooth(&c, 2.0f), CTL_OK);
@@ -83,13 +83,13 @@ static void test_ctl_feedforward_and_saturation(void)
     TH_NEAR(ctl_ff_sign(&c, -5.0f), -1.0, 0.0);
     /* saturation both ways, u_add added before it */
     TH_EQ(ctl_set_kp(&c, 100.0f), CTL_OK);
-    TH_NEAR(ctl_step(&c, 1.0f, 0.0f, 0.0f), 2.0, 0.0);
-    TH_NEAR(ctl_step(&c, -1.0f, 0.0f, 0.0f), -2.0, 0.0);
+    TH_NEAR(ctl_step(&c, 1.0f, 0.0f, 0.0f, 0.0f), 2.0, 0.0);
+    TH_NEAR(ctl_step(&c, -1.0f, 0.0f, 0.0f, 0.0f), -2.0, 0.0);
     TH_EQ(ctl_set_kp(&c, 0.0f), CTL_OK);
     TH_EQ(ctl_set_kfc(&c, 0.0f), CTL_OK);
     TH_EQ(ctl_set_kv(&c, 0.0f), CTL_OK);
-    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, 1.25f), 1.25, 0.0);
-    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, -7.0f), -2.0, 0.0);
+    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, 0.0f, 1.25f), 1.25, 0.0);
+    TH_NEAR(ctl_step(&c, 0.0f, 0.0f, 0.0f, -7.0f), -2.0, 0.0);
 }
 
 static void test_ctl_setters_reject_and_keep(void)
@@ -111,6 +111,74 @@ static void test_ctl_setters_reject_and_keep(void)
     TH_EQ(ctl_init(&c, NAN), CTL_E_NOT_FINITE);
 }
 
+/* The friction feed-forward of several terms (issue 35): Coulomb, asymmetry, position
+ * (sine and cosine of the reference angle), viscous, against the formula in double over
+ * angles of both signs and several revolutions, both directions and a smoothed sign. */
+static void test_ctl_friction_ff_terms(void)
+{
+    ctl_t c;
+    TH_EQ(ctl_init(&c, FS), CTL_OK);
+    TH_EQ(ctl_set_u_max(&c, 100.0f), CTL_OK);
+    const double kfc = 0.53, kfa = -0.11, kps = 0.21, kpc = -0.073, kv = 0.31;
+    TH_EQ(ctl_set_kfc(&c, (float)kfc), CTL_OK);
+    TH_EQ(ctl_set_kfa(&c, (float)kfa), CTL_OK);
+    TH_EQ(ctl_set_kps(&c, (float)kps), CTL_OK);
+    TH_EQ(ctl_set_kpc(&c, (float)kpc), CTL_OK);
+    TH_EQ(ctl_set_kv(&c, (float)kv), CTL_OK);
+    const double amp = sqrt(kps * kps + kpc * kpc);
+    const double tol = 0.5 * pow(2.0 * M_PI / CTL_FF_N, 2) * amp + 2e-6; /* the header's bound */
+    double worst = 0.0;
+    for (int n = 0; n < 2000; n++) {
+        double th = -21.0 + 0.02113 * n; /* -21 .. +21 rad, not on the table's grid */
+        for (int dir = -1; dir <= 1; dir += 2) {
+            double v = dir * (0.7 + 0.001 * n);
+            double expect = dir * (kfc + kps * sin(th) + kpc * cos(th)) + kfa + kv * v;
+            double got = ctl_ff(&c, (float)v, (float)th);
+            TH_NEAR(got, expect, tol);
+            worst = fmax(worst, fabs(got - expect));
+        }
+    }
+    TH_ASSERT(worst > 1e-7); /* the interpolation is not exact: the bound is the one tested */
+    /* moving forward the level is Fc+ = K_fc + K_fa, back -Fc- = -(K_fc - K_fa) (at theta 0:
+     * sin 0, cos 1) */
+    TH_NEAR(ctl_ff(&c, 1e-3f, 0.0f), kfc + kpc + kfa + kv * 1e-3, 1e-6);
+    TH_NEAR(ctl_ff(&c, -1e-3f, 0.0f), -(kfc + kpc - kfa) - kv * 1e-3, 1e-6);
+    /* at rest (v_r = 0, sgn 0) no Coulomb, asymmetry or position term */
+    TH_NEAR(ctl_ff(&c, 0.0f, 1.3f), 0.0, 0.0);
+    /* smoothed sign: width 2 rad/s, v = -0.5: sgn = -0.25, |sgn| = 0.25 */
+    TH_EQ(ctl_set_fc_smooth(&c, 2.0f), CTL_OK);
+    double th = 2.4;
+    double expect = -0.25 * (kfc + kps * sin(th) + kpc * cos(th)) + 0.25 * kfa - 0.5 * kv;
+    TH_NEAR(ctl_ff(&c, -0.5f, (float)th), expect, tol);
+    /* through ctl_step: FF added to the PD part (kp 0, kd 0 here) */
+    TH_NEAR(ctl_step(&c, 0.0f, -0.5f, (float)th, 0.0f), expect, tol);
+    /* the table follows K_fc alone as well */
+    TH_EQ(ctl_set_fc_smooth(&c, 0.0f), CTL_OK);
+    TH_EQ(ctl_set_kfc(&c, 0.2f), CTL_OK);
+    TH_NEAR(ctl_ff(&c, 1.0f, -1.1f), 0.2 + kps * sin(-1.1) + kpc * cos(-1.1) + kfa + kv, tol);
+}
+
+/* The signed gains accept negative values, refuse NaN / inf and keep everything (the level
+ * table included) on a refusal. */
+static void test_ctl_signed_setters(void)
+{
+    ctl_t c;
+    TH_EQ(ctl_init(&c, FS), CTL_OK);
+    ctl_status_t (*setters[])(ctl_t *, float) = {ctl_set_kfa, ctl_set_kps, ctl_set_kpc};
+    for (size_t i = 0; i < sizeof setters / sizeof setters[0]; i++) {
+        TH_EQ(setters[i](&c, -2.5f), CTL_OK);
+        TH_EQ(setters[i](&c, 1.5f), CTL_OK);
+        ctl_t before = c;
+        TH_EQ(setters[i](&c, NAN), CTL_E_NOT_FINITE);
+        TH_EQ(setters[i](&c, INFINITY), CTL_E_NOT_FINITE);
+        TH_EQ(setters[i](&c, -INFINITY), CTL_E_NOT_FINITE);
+        TH_ASSERT(memcmp(&before, &c, sizeof c) == 0);
+    }
+    TH_NEAR(c.kfa, 1.5, 0.0);
+    TH_NEAR(c.kps, 1.5, 0.0);
+    TH_NEAR(c.kpc, 1.5, 0.0);
+}
+
 /* ctl.h's promises after ctl_init (all gains 0, u_max 0, tau_d 0) and at its edges: a
  * small fs, a smoothing width below 1 rad/s, a denormal width (pure sign) and the reset
  * that forgets the last error (found missing by mutation testing: docs/testing.md). */
@@ -119,24 +187,24 @@ static void test_ctl_init_defaults_reset_and_edges(void)
     ctl_t c;
     TH_EQ(ctl_init(&c, 0.5f), CTL_OK); /* any fs > 0 */
     TH_EQ(ctl_init(&c, FS), CTL_OK);
-    TH_NEAR(ctl_step(&c, 0.3f, 0.7f, 1.0f), 0.0, 0.0); /* u_max 0: no output at all */
+    TH_NEAR(ctl_step(&c, 0.3f, 0.7f, 0.0f, 1.0f), 0.0, 0.0); /* u_max 0: no output at all */
     TH_EQ(ctl_set_u_max(&c, 100.0f), CTL_OK);
-    TH_NEAR(ctl_step(&c, 0.3f, 0.7f, 0.0f), 0.0, 0.0); /* kp, kd, kfc, kv all 0 */
-    TH_NEAR(ctl_step(&c, -0.4f, -0.2f, 0.0f), 0.0, 0.0);
+    TH_NEAR(ctl_step(&c, 0.3f, 0.7f, 0.0f, 0.0f), 0.0, 0.0); /* kp, kd, kfc, kv all 0 */
+    TH_NEAR(ctl_step(&c, -0.4f, -0.2f, 0.0f, 0.0f), 0.0, 0.0);
     /* kd alone: tau_d starts at 0, the plain backward difference kd (e[n] - e[n-1]) / T */
     TH_EQ(ctl_init(&c, FS), CTL_OK);
     TH_EQ(ctl_set_u_max(&c, 1000.0f), CTL_OK);
     TH_EQ(ctl_set_kd(&c, 0.01f), CTL_OK);
-    (void)ctl_step(&c, 0.0f, 0.0f, 0.0f);
-    TH_NEAR(ctl_step(&c, 0.1f, 0.0f, 0.0f), 0.01 * 0.1 * FS, 1e-4);
+    (void)ctl_step(&c, 0.0f, 0.0f, 0.0f, 0.0f);
+    TH_NEAR(ctl_step(&c, 0.1f, 0.0f, 0.0f, 0.0f), 0.01 * 0.1 * FS, 1e-4);
     /* reset: the next step has no derivative kick from the error before the reset */
     TH_EQ(ctl_set_kp(&c, 2.0f), CTL_OK);
-    (void)ctl_step(&c, 0.5f, 0.0f, 0.0f);
+    (void)ctl_step(&c, 0.5f, 0.0f, 0.0f, 0.0f);
     TH_NEAR(c.u_unsat, 2.0 * 0.5 + 0.01 * (0.5 - 0.1) * FS, 1e-3); /* last output, unsaturated */
     ctl_reset(&c);
     TH_NEAR(c.u_unsat, 0.0, 0.0); /* no last output after a reset */
-    TH_NEAR(ctl_step(&c, 0.5f, 0.0f, 0.0f), 1.0, 1e-6);
-    TH_NEAR(ctl_step(&c, 0.5f, 0.0f, 0.0f), 1.0, 1e-6);
+    TH_NEAR(ctl_step(&c, 0.5f, 0.0f, 0.0f, 0.0f), 1.0, 1e-6);
+    TH_NEAR(ctl_step(&c, 0.5f, 0.0f, 0.0f, 0.0f), 1.0, 1e-6);
     /* smoothing width 0.5 rad/s (below 1): clamp(v / 0.5, -1, 1) */
     TH_EQ(ctl_set_fc_smooth(&c, 0.5f), CTL_OK);
     TH_NEAR(ctl_ff_sign(&c, 0.25f), 0.5, 1e-7);
@@ -1683,12 +1751,72 @@ static void test_stat_header_names_the_runs_masks(void)
     TH_ASSERT(memcmp(got, want, size) == 0);
 }
 
+/* The feed-forward gains as drive parameters (od.yaml 0x2000:9-11): od.yaml's limits
+ * (+-100 V), NaN / inf refused with the old value kept, settable during a run like K_fc, and
+ * in the output of a sine run: u at a step equals the formula at that step's reference. */
+static void test_drv_friction_ff_params(void)
+{
+    drv_t d = make_drv(REC_CAP);
+    const drv_param_id_t ids[] = {DRV_P_KFA, DRV_P_KPS, DRV_P_KPC};
+    for (size_t i = 0; i < sizeof ids / sizeof ids[0]; i++) {
+        float v = 1.0f;
+        TH_EQ(drv_get_f32(&d, ids[i], &v), DRV_OK);
+        TH_NEAR(v, 0.0, 0.0); /* od.yaml default */
+        TH_EQ(drv_set_f32(&d, ids[i], -0.37f), DRV_OK);
+        TH_EQ(drv_set_f32(&d, ids[i], 100.5f), DRV_E_RANGE_HIGH);
+        TH_EQ(drv_set_f32(&d, ids[i], -100.5f), DRV_E_RANGE_LOW);
+        TH_EQ(drv_set_f32(&d, ids[i], NAN), DRV_E_NOT_FINITE);
+        TH_EQ(drv_set_f32(&d, ids[i], INFINITY), DRV_E_NOT_FINITE);
+        TH_EQ(drv_get_f32(&d, ids[i], &v), DRV_OK);
+        TH_NEAR(v, -0.37, 1e-7);
+        TH_EQ(drv_set_u32(&d, ids[i], 1u), DRV_E_LENGTH); /* REAL32 */
+    }
+    /* a sine run with every term: u = Kp e + FF(v_r, theta_r) (kd 0) at each step */
+    const float kp = 0.8f, kfc = 0.3f, kfa = 0.05f, kps = -0.12f, kpc = 0.04f, kv = 0.02f;
+    TH_EQ(drv_set_f32(&d, DRV_P_KD, 0.0f), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KP, kp), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KFC, kfc), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KFA, kfa), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KPS, kps), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KPC, kpc), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_KV, kv), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_U_MAX, 50.0f), DRV_OK);
+    drv_enable(&d, true);
+    TH_EQ(drv_set_target(&d, 0.7f), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_KIND, DRV_EXC_SINE), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_PERIOD, 256u), DRV_OK);
+    TH_EQ(drv_set_f32(&d, DRV_P_EXC_AMPLITUDE, 3.0f), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_SETTLE_PERIODS, 0u), DRV_OK);
+    TH_EQ(drv_set_u32(&d, DRV_P_EXC_RECORD_PERIODS, 1u), DRV_OK);
+    TH_EQ(drv_run_start(&d), DRV_OK);
+    const double w = 2.0 * M_PI * FS / 256.0, tol = 0.5 * pow(2.0 * M_PI / CTL_FF_N, 2) * 0.13 + 2e-5;
+    int moving = 0;
+    for (int n = 0; n < 256; n++) {
+        drv_meas_t m = {0.7f + 0.01f * (float)(n % 7), 0.0f};
+        float u = drv_step(&d, &m);
+        double ref = 0.7 + 3.0 * sin(w * n / FS), v = 3.0 * w * cos(w * n / FS);
+        double sg = v > 0.0 ? 1.0 : (v < 0.0 ? -1.0 : 0.0);
+        double ff = sg * (kfc + kps * sin(ref) + kpc * cos(ref)) + kfa * fabs(sg) + kv * v;
+        if (fabs(v) > 1.0) { /* at a reversal the float generator's sign may differ */
+            TH_NEAR(u, kp * (ref - m.motor_angle_rad) + ff, tol + 1e-5 * fabs(v));
+            moving++;
+        }
+        if (n == 100) {
+            TH_EQ(drv_set_f32(&d, DRV_P_KPS, kps), DRV_OK); /* settable while running */
+        }
+    }
+    TH_ASSERT(moving > 200);
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
     TH_RUN(test_ctl_feedforward_and_saturation);
     TH_RUN(test_ctl_setters_reject_and_keep);
     TH_RUN(test_ctl_init_defaults_reset_and_edges);
+    TH_RUN(test_ctl_friction_ff_terms);
+    TH_RUN(test_ctl_signed_setters);
+    TH_RUN(test_drv_friction_ff_params);
     TH_RUN(test_drv_defaults_from_od);
     TH_RUN(test_drv_param_validation_keeps_old_value);
     TH_RUN(test_sine_exactly_periodic);

@@ -5,7 +5,8 @@
  * runs this under qemu-system-arm and converts; the x86 figure beside it is callgrind's
  * count of the same workload (firmware_sim/tests/bench_fw.c instr).
  *
- * Workloads (as bench_fw instr): drv_step alone (controller + generator + recorder of 3
+ * Workloads (as bench_fw instr): drv_step alone (controller with every feed-forward term
+ * on: Coulomb, asymmetry, position, viscous + generator + recorder of 3
  * signals, no plant) with a 64- and a 1024-sample table and with the sine generator,
  * counted over the loop bench_drive_steps (so the loop's call and feedback are included,
  * as in bench_fw's "benchmark loop" figure); the sine with the harmonic statistics on
@@ -119,6 +120,9 @@ static void bench_drive(const char *what, uint32_t table_len)
     drv_enable(drvp, true);
     (void)drv_set_f32(drvp, DRV_P_KFC, 0.1f);
     (void)drv_set_f32(drvp, DRV_P_KV, 0.01f);
+    (void)drv_set_f32(drvp, DRV_P_KFA, 0.02f); /* every feed-forward term on (issue 35) */
+    (void)drv_set_f32(drvp, DRV_P_KPS, 0.03f);
+    (void)drv_set_f32(drvp, DRV_P_KPC, -0.01f);
     (void)drv_set_u32(drvp, DRV_P_REC_SIGNALS, 0x07u);
     (void)drv_set_f32(drvp, DRV_P_EXC_AMPLITUDE, 0.5f);
     uint32_t period = table_len ? table_len : 2048u;
@@ -167,6 +171,9 @@ static void bench_drive_stats(void)
     drv_enable(drvp, true);
     (void)drv_set_f32(drvp, DRV_P_KFC, 0.1f);
     (void)drv_set_f32(drvp, DRV_P_KV, 0.01f);
+    (void)drv_set_f32(drvp, DRV_P_KFA, 0.02f); /* every feed-forward term on (issue 35) */
+    (void)drv_set_f32(drvp, DRV_P_KPS, 0.03f);
+    (void)drv_set_f32(drvp, DRV_P_KPC, -0.01f);
     (void)drv_set_u32(drvp, DRV_P_REC_SIGNALS, 0x07u);
     (void)drv_set_f32(drvp, DRV_P_EXC_AMPLITUDE, 0.5f);
     (void)drv_set_u32(drvp, DRV_P_EXC_KIND, DRV_EXC_SINE);
