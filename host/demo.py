@@ -14,6 +14,7 @@ import time
 from fftune.host.commands import DEFAULT_CONFIG
 from fftune.host.config import check_output_dir, load_config
 from fftune.host.drive import DriveClient, add_bus_arguments
+from fftune.host.fmu import is_fmu_plant, overrides_note
 from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
 
 
@@ -110,7 +111,9 @@ def _run(args, cfg, out, bitrate):
     d = cfg["drive"]
     plant = resolve_plant(cfg, args.plant)
     shown = os.path.relpath(plant)
-    if cfg["sim"]["overrides"]:
+    if cfg["sim"]["overrides"] and is_fmu_plant(plant):
+        print(f"fftune demo: {overrides_note(plant, f'{args.config}: key sim.overrides')}", flush=True)
+    elif cfg["sim"]["overrides"]:
         plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
                               where=f"{args.config}: key 'sim.overrides'")
         shown += " with sim.overrides -> " + os.path.relpath(plant)
