@@ -416,3 +416,20 @@ def test_a_machine_axis_takes_an_fmu_plant(tmp_path):
         sim.stop()
     assert truths[1]["sim_fc_volt"] == pytest.approx(5.785e-3 / 0.05, rel=1e-6)   # the built-in plant
     assert truths[2]["sim_fc_volt"] == pytest.approx(0.104, rel=1e-6)            # the FMU's truth:
+
+
+def test_builds_with_the_built_in_plant_only_refuse_an_fmu_plant_file(tmp_path):
+    """libfwsim (the C tests' and benches' simulation, no FMU loader) names the reason;
+    a truth: section without fmu: is refused (the built-in plant's truth is its parameters)."""
+    sys.path.insert(0, os.path.join(REPO, "firmware_sim", "tests"))
+    from fwsim import FwSim
+
+    from fftune.host.fmu import drive_sim_plant
+
+    view = drive_sim_plant(plant_file(tmp_path))
+    with pytest.raises(ValueError, match=r"names an FMU plant \(section fmu\): drive_sim co-simulates it"):
+        FwSim(view)
+    builtin = tmp_path / "builtin_truth.yaml"
+    builtin.write_text("plant:\n  coulomb: 5.0e-3\n  static: 6.0e-3\ntruth:\n  kfc_v: 0.1\n")
+    with pytest.raises(ValueError, match=r"builtin_truth.yaml:4: section 'truth' is for an FMU plant"):
+        FwSim(str(builtin))

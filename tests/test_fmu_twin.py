@@ -30,6 +30,12 @@ pytestmark = pytest.mark.skipif(not os.path.exists(TWIN_FMU),
                                 reason=f"{TWIN_FMU} not built (make -C firmware_sim fmu)")
 
 
+@pytest.fixture(autouse=True)
+def _fmu_cache(tmp_path_factory, monkeypatch):
+    """FMUs unpack into a per-session cache (not the user's ~/.cache)."""
+    monkeypatch.setenv("FFTUNE_FMU_CACHE", str(tmp_path_factory.getbasetemp() / "fmu-cache"))
+
+
 def _inputs(kind, n, seed=3):
     t = np.arange(n) / FS
     if kind == "sine":          # 0.2 V peak at 2 Hz: sticks near each reversal (Fs = 0.1157 V)

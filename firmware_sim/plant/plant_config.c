@@ -287,7 +287,9 @@ int plant_config_load(const char *path, plant_config_t *out, char *err, size_t e
     }
     fclose(f);
     if (rc != 0) {
-        snprintf(err, errlen, "%s:%d: %s", path, lineno, msg);
+        snprintf(err, errlen, "%s:%d: %s%s", path, lineno, msg,
+                 cfg.fmu ? " (a plant file naming an FMU goes to fftune sim|demo --plant FILE, which hands drive_sim "
+                           "its checked view: docs/fmu.md)" : "");
         return -1;
     }
     if (cfg.drift_coulomb.ramp_end_s < cfg.drift_coulomb.ramp_start_s ||
