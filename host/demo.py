@@ -111,11 +111,11 @@ def _run(args, cfg, out, bitrate):
     d = cfg["drive"]
     plant = resolve_plant(cfg, args.plant)
     shown = os.path.relpath(plant)
+    where = f"{args.config}: key 'sim.overrides'"
     if cfg["sim"]["overrides"] and is_fmu_plant(plant):
-        print(f"fftune demo: {overrides_note(plant, f'{args.config}: key sim.overrides')}", flush=True)
+        print(f"fftune demo: {overrides_note(plant, where)}", flush=True)
     elif cfg["sim"]["overrides"]:
-        plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
-                              where=f"{args.config}: key 'sim.overrides'")
+        plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"), where=where)
         shown += " with sim.overrides -> " + os.path.relpath(plant)
     node_id = args.node_id if args.node_id is not None else d["node_id"]
     sim = start_drive_sim(plant, host=args.host, port=args.port, node_id=node_id,
