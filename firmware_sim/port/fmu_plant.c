@@ -9,6 +9,8 @@
 #include <errno.h>
 #include <math.h>
 #include <stdarg.h>
+#include <stdbool.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -44,6 +46,25 @@ typedef fmi2Status fmi2SetIntegerTYPE(fmi2Component, const fmi2ValueReference[],
 typedef fmi2Status fmi2SetBooleanTYPE(fmi2Component, const fmi2ValueReference[], size_t, const fmi2Boolean[]);
 typedef fmi2Status fmi2DoStepTYPE(fmi2Component, fmi2Real, fmi2Real, fmi2Boolean);
 
+/* ---- the part of the FMI 3.0 standard used here (fmi3PlatformTypes.h, fmi3FunctionTypes.h);
+ * fmi3Status has fmi2Status' first five values */
+typedef void *fmi3Instance;
+typedef void *fmi3InstanceEnvironment;
+typedef uint32_t fmi3ValueReference;
+typedef void fmi3LogMessageCallback(fmi3InstanceEnvironment, int, const char *, const char *);
+typedef const char *fmi3GetVersionTYPE(void);
+typedef fmi3Instance fmi3InstantiateCoSimulationTYPE(const char *, const char *, const char *, bool, bool, bool, bool,
+                                                     const fmi3ValueReference[], size_t, fmi3InstanceEnvironment,
+                                                     fmi3LogMessageCallback *, void *);
+typedef void fmi3FreeInstanceTYPE(fmi3Instance);
+typedef int fmi3EnterInitializationModeTYPE(fmi3Instance, bool, double, double, bool, double);
+typedef int fmi3ModeTYPE(fmi3Instance);
+typedef int fmi3SetFloat64TYPE(fmi3Instance, const fmi3ValueReference[], size_t, const double[], size_t);
+typedef int fmi3GetFloat64TYPE(fmi3Instance, const fmi3ValueReference[], size_t, double[], size_t);
+typedef int fmi3SetInt32TYPE(fmi3Instance, const fmi3ValueReference[], size_t, const int32_t[], size_t);
+typedef int fmi3SetBooleanTYPE(fmi3Instance, const fmi3ValueReference[], size_t, const bool[], size_t);
+typedef int fmi3DoStepTYPE(fmi3Instance, double, double, bool, bool *, bool *, bool *, double *);
+
 struct fmup {
     fmup_cfg_t cfg;
     double dt;
@@ -59,6 +80,18 @@ struct fmup {
     fmi2SetIntegerTYPE *set_integer;
     fmi2SetBooleanTYPE *set_boolean;
     fmi2DoStepTYPE *do_step;
+    /* FMI 3.0 (cfg.fmi_version 3) */
+    fmi3GetVersionTYPE *get_version3;
+    fmi3InstantiateCoSimulationTYPE *instantiate3;
+    fmi3FreeInstanceTYPE *free_instance3;
+    fmi3EnterInitializationModeTYPE *enter_init3;
+    fmi3ModeTYPE *exit_init3, *terminate3;
+    fmi3SetFloat64TYPE *set_float64;
+    fmi3GetFloat64TYPE *get_float64;
+    fmi3SetInt32TYPE *set_int32;
+    fmi3SetBooleanTYPE *set_boolean3;
+    fmi3DoStepTYPE *do_step3;
+    char resource_path[FMUP_STR + 16]; /* FMI 3.0: unzipdir/resources/ */
     fmi2CallbackFunctions cb;
     fmi2Component c;
     int ok;                 /* the instance answered every call so far (fmi2Terminate allowed) */
@@ -323,9 +356,9 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
             return -1;
         }
     }
-    if (c->fmi_version != 2) {
-        snprintf(err, errlen, "%s: FMU %s: FMI version %d: drive_sim co-simulates FMI 2.0 (docs/fmu.md)", c->source,
-                 c->path, c->fmi_version);
+    if (c->fmi_version != 2 && c->fmi_version != 3) {
+        snprintf(err, errlen, "%s: FMU %s: FMI version %d: drive_sim co-simulates FMI 2.0 and 3.0 (docs/fmu.md)",
+                 c->source, c->path, c->fmi_version);
         free(c);
         return -1;
     }
@@ -376,12 +409,27 @@ static void fmup_fail(fmup_t *f, char *err, size_t errlen, const char *fmt, ...)
     }
 }
 
+/* the FMU's folder of this platform's binary: FMI 2.0 "linux64", FMI 3.0 "<arch>-linux" */
+static const char *fmup_binary_dir(const fmup_cfg_t *c)
+{
+    if (c->fmi_version == 2) {
+        return "binaries/linux64";
+    }
+#if defined(__aarch64__)
+    return "binaries/aarch64-linux";
+#else
+    return "binaries/x86_64-linux";
+#endif
+}
+
+static const char *fmup_version_of(const fmup_t *f);
+
 static void *fmup_sym(fmup_t *f, const char *name, char *err, size_t errlen)
 {
     void *p = dlsym(f->lib, name);
     if (p == NULL) {
-        fmup_fail(f, err, errlen, "binaries/linux64/%s.so has no function %s (not an FMI 2.0 co-simulation "
-                  "binary)", f->cfg.model_identifier, name);
+        fmup_fail(f, err, errlen, "%s/%s.so has no function %s (not an FMI %s co-simulation binary)",
+                  fmup_binary_dir(&f->cfg), f->cfg.model_identifier, name, fmup_version_of(f));
     }
     return p;
 }
@@ -395,64 +443,121 @@ static void *fmup_sym(fmup_t *f, const char *name, char *err, size_t errlen)
         memcpy(&f->field, &sym_, sizeof f->field);                \
     } while (0)
 
+static const char *fmup_version_of(const fmup_t *f)
+{
+    return f->cfg.fmi_version == 3 ? "3.0" : "2.0";
+}
+
 static int fmup_bind(fmup_t *f, char *err, size_t errlen)
 {
-    FMUP_BIND(get_version, "fmi2GetVersion");
-    FMUP_BIND(get_types_platform, "fmi2GetTypesPlatform");
-    FMUP_BIND(instantiate, "fmi2Instantiate");
-    FMUP_BIND(free_instance, "fmi2FreeInstance");
-    FMUP_BIND(setup_experiment, "fmi2SetupExperiment");
-    FMUP_BIND(enter_init, "fmi2EnterInitializationMode");
-    FMUP_BIND(exit_init, "fmi2ExitInitializationMode");
-    FMUP_BIND(terminate, "fmi2Terminate");
-    FMUP_BIND(set_real, "fmi2SetReal");
-    FMUP_BIND(get_real, "fmi2GetReal");
-    FMUP_BIND(set_integer, "fmi2SetInteger");
-    FMUP_BIND(set_boolean, "fmi2SetBoolean");
-    FMUP_BIND(do_step, "fmi2DoStep");
-    const char *v = f->get_version();
-    if (v == NULL || strncmp(v, "2.", 2) != 0) {
-        fmup_fail(f, err, errlen, "fmi2GetVersion() = '%s': not FMI 2.0", v ? v : "(null)");
-        return -1;
+    const char *v;
+    if (f->cfg.fmi_version == 3) {
+        FMUP_BIND(get_version3, "fmi3GetVersion");
+        FMUP_BIND(instantiate3, "fmi3InstantiateCoSimulation");
+        FMUP_BIND(free_instance3, "fmi3FreeInstance");
+        FMUP_BIND(enter_init3, "fmi3EnterInitializationMode");
+        FMUP_BIND(exit_init3, "fmi3ExitInitializationMode");
+        FMUP_BIND(terminate3, "fmi3Terminate");
+        FMUP_BIND(set_float64, "fmi3SetFloat64");
+        FMUP_BIND(get_float64, "fmi3GetFloat64");
+        FMUP_BIND(set_int32, "fmi3SetInt32");
+        FMUP_BIND(set_boolean3, "fmi3SetBoolean");
+        FMUP_BIND(do_step3, "fmi3DoStep");
+        v = f->get_version3();
+    } else {
+        FMUP_BIND(get_version, "fmi2GetVersion");
+        FMUP_BIND(get_types_platform, "fmi2GetTypesPlatform");
+        FMUP_BIND(instantiate, "fmi2Instantiate");
+        FMUP_BIND(free_instance, "fmi2FreeInstance");
+        FMUP_BIND(setup_experiment, "fmi2SetupExperiment");
+        FMUP_BIND(enter_init, "fmi2EnterInitializationMode");
+        FMUP_BIND(exit_init, "fmi2ExitInitializationMode");
+        FMUP_BIND(terminate, "fmi2Terminate");
+        FMUP_BIND(set_real, "fmi2SetReal");
+        FMUP_BIND(get_real, "fmi2GetReal");
+        FMUP_BIND(set_integer, "fmi2SetInteger");
+        FMUP_BIND(set_boolean, "fmi2SetBoolean");
+        FMUP_BIND(do_step, "fmi2DoStep");
+        v = f->get_version();
+        const char *tp = f->get_types_platform();
+        if (tp == NULL || strcmp(tp, "default") != 0) {
+            fmup_fail(f, err, errlen, "fmi2GetTypesPlatform() = '%s': drive_sim uses the standard's \"default\"",
+                      tp ? tp : "(null)");
+            return -1;
+        }
     }
-    const char *tp = f->get_types_platform();
-    if (tp == NULL || strcmp(tp, "default") != 0) {
-        fmup_fail(f, err, errlen, "fmi2GetTypesPlatform() = '%s': drive_sim uses the standard's \"default\"",
-                  tp ? tp : "(null)");
+    if (v == NULL || v[0] != (f->cfg.fmi_version == 3 ? '3' : '2') || v[1] != '.') {
+        fmup_fail(f, err, errlen, "fmi%dGetVersion() = '%s': not FMI %s", f->cfg.fmi_version, v ? v : "(null)",
+                  fmup_version_of(f));
         return -1;
     }
     return 0;
 }
 
-static const char *fmup_status_name(fmup_t *f, fmi2Status s)
+/* "fmi2Error" / "fmi3Error" ...; notes a fatal status (no further call then) */
+static const char *fmup_status_name(fmup_t *f, int s)
 {
-    f->fatal |= s == fmi2Fatal;
-    static const char *const n[] = {"fmi2OK", "fmi2Warning", "fmi2Discard", "fmi2Error", "fmi2Fatal", "fmi2Pending"};
-    return (unsigned)s < 6u ? n[s] : "an unknown status";
+    static const char *const n2[] = {"fmi2OK", "fmi2Warning", "fmi2Discard", "fmi2Error", "fmi2Fatal", "fmi2Pending"};
+    static const char *const n3[] = {"fmi3OK", "fmi3Warning", "fmi3Discard", "fmi3Error", "fmi3Fatal", "?"};
+    f->fatal |= s == (int)fmi2Fatal;
+    if ((unsigned)s >= 6u) {
+        return "an unknown status";
+    }
+    return f->cfg.fmi_version == 3 ? n3[s] : n2[s];
 }
 
 static void fmup_free_instance(fmup_t *f)
 {
     if (f->c != NULL && !f->fatal) {
-        if (f->ok) {
-            (void)f->terminate(f->c);
+        if (f->cfg.fmi_version == 3) {
+            if (f->ok) {
+                (void)f->terminate3(f->c);
+            }
+            f->free_instance3(f->c);
+        } else {
+            if (f->ok) {
+                (void)f->terminate(f->c);
+            }
+            f->free_instance(f->c);
         }
-        f->free_instance(f->c);
     }
     f->c = NULL;
     f->ok = 0;
     f->fatal = 0;
 }
 
+/* fmi2SetReal / fmi3SetFloat64 of one variable */
+static int fmup_set_f64(fmup_t *f, unsigned vr, double v)
+{
+    if (f->cfg.fmi_version == 3) {
+        fmi3ValueReference r = vr;
+        return f->set_float64(f->c, &r, 1, &v, 1);
+    }
+    fmi2ValueReference r = vr;
+    return (int)f->set_real(f->c, &r, 1, &v);
+}
+
+static const char *fmup_fn(const fmup_t *f, const char *fmi2_name, const char *fmi3_name)
+{
+    return f->cfg.fmi_version == 3 ? fmi3_name : fmi2_name;
+}
+
 /* read the angles into y1, y2 (0, or -1 with the failure recorded) */
 static int fmup_read(fmup_t *f, char *err, size_t errlen)
 {
-    fmi2ValueReference vr[2] = {f->cfg.output_vr, f->cfg.has_load_output ? f->cfg.load_output_vr : f->cfg.output_vr};
-    fmi2Real y[2] = {NAN, NAN};
-    fmi2Status s = f->get_real(f->c, vr, 2, y);
-    if (s > fmi2Warning) {
-        fmup_fail(f, err, errlen, "fmi2GetReal of output '%s' at t = %.9g s returned %s", f->cfg.output, f->t,
-                  fmup_status_name(f, s));
+    unsigned vr[2] = {f->cfg.output_vr, f->cfg.has_load_output ? f->cfg.load_output_vr : f->cfg.output_vr};
+    double y[2] = {NAN, NAN};
+    int s;
+    if (f->cfg.fmi_version == 3) {
+        fmi3ValueReference r[2] = {vr[0], vr[1]};
+        s = f->get_float64(f->c, r, 2, y, 2);
+    } else {
+        fmi2ValueReference r[2] = {vr[0], vr[1]};
+        s = (int)f->get_real(f->c, r, 2, y);
+    }
+    if (s > (int)fmi2Warning) {
+        fmup_fail(f, err, errlen, "%s of output '%s' at t = %.9g s returned %s", fmup_fn(f, "fmi2GetReal", "fmi3GetFloat64"),
+                  f->cfg.output, f->t, fmup_status_name(f, s));
         return -1;
     }
     if (!isfinite(y[0]) || !isfinite(y[1])) {
@@ -465,57 +570,83 @@ static int fmup_read(fmup_t *f, char *err, size_t errlen)
     return 0;
 }
 
+static void fmup_log3(fmi3InstanceEnvironment env, int status, const char *category, const char *message)
+{
+    fmup_logger(env, "fftune", (fmi2Status)status, category, "%s", message ? message : "");
+}
+
 /* a new instance at t = 0 with the start values, initialised (0, or -1) */
 static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
 {
+    int s;
     fmup_free_instance(f);
     f->log[0] = '\0';
     f->t = 0.0;
-    f->c = f->instantiate("fftune", fmi2CoSimulation, f->cfg.guid, f->resource_uri, &f->cb, 0, 0);
+    if (f->cfg.fmi_version == 3) {
+        f->c = f->instantiate3("fftune", f->cfg.guid, f->resource_path, false, false, false, false, NULL, 0, f,
+                               fmup_log3, NULL);
+    } else {
+        f->c = f->instantiate("fftune", fmi2CoSimulation, f->cfg.guid, f->resource_uri, &f->cb, 0, 0);
+    }
     f->ok = f->c != NULL;
     if (f->c == NULL) {
-        fmup_fail(f, err, errlen, "fmi2Instantiate (co-simulation, GUID %s) returned NULL", f->cfg.guid);
+        fmup_fail(f, err, errlen, "%s (co-simulation, %s %s) returned NULL",
+                  fmup_fn(f, "fmi2Instantiate", "fmi3InstantiateCoSimulation"),
+                  fmup_fn(f, "GUID", "instantiation token"), f->cfg.guid);
         return -1;
     }
-    fmi2Status s = f->setup_experiment(f->c, 0, 0.0, 0.0, 0, 0.0);
-    if (s > fmi2Warning) {
-        fmup_fail(f, err, errlen, "fmi2SetupExperiment returned %s", fmup_status_name(f, s));
-        return -1;
+    if (f->cfg.fmi_version == 2) {
+        s = (int)f->setup_experiment(f->c, 0, 0.0, 0.0, 0, 0.0);
+        if (s > (int)fmi2Warning) {
+            fmup_fail(f, err, errlen, "fmi2SetupExperiment returned %s", fmup_status_name(f, s));
+            return -1;
+        }
     }
     for (int i = 0; i < f->cfg.n_params; i++) {
         const fmup_param_t *p = &f->cfg.param[i];
-        fmi2ValueReference vr = p->vr;
         if (p->type == FMUP_REAL) {
-            fmi2Real v = p->value;
-            s = f->set_real(f->c, &vr, 1, &v);
-        } else if (p->type == FMUP_INTEGER) {
-            fmi2Integer v = (fmi2Integer)p->value;
-            s = f->set_integer(f->c, &vr, 1, &v);
+            s = fmup_set_f64(f, p->vr, p->value);
+        } else if (f->cfg.fmi_version == 3) {
+            fmi3ValueReference vr = p->vr;
+            if (p->type == FMUP_INTEGER) {
+                int32_t v = (int32_t)p->value;
+                s = f->set_int32(f->c, &vr, 1, &v, 1);
+            } else {
+                bool v = p->value != 0.0;
+                s = f->set_boolean3(f->c, &vr, 1, &v, 1);
+            }
         } else {
-            fmi2Boolean v = p->value != 0.0;
-            s = f->set_boolean(f->c, &vr, 1, &v);
+            fmi2ValueReference vr = p->vr;
+            if (p->type == FMUP_INTEGER) {
+                fmi2Integer v = (fmi2Integer)p->value;
+                s = (int)f->set_integer(f->c, &vr, 1, &v);
+            } else {
+                fmi2Boolean v = p->value != 0.0;
+                s = (int)f->set_boolean(f->c, &vr, 1, &v);
+            }
         }
-        if (s > fmi2Warning) {
+        if (s > (int)fmi2Warning) {
             fmup_fail(f, err, errlen, "setting parameter '%s' = %g (fmu.parameters) returned %s", p->name, p->value,
                       fmup_status_name(f, s));
             return -1;
         }
     }
-    fmi2ValueReference uvr = f->cfg.input_vr;
-    fmi2Real u0 = 0.0;
-    s = f->set_real(f->c, &uvr, 1, &u0);
-    if (s > fmi2Warning) {
-        fmup_fail(f, err, errlen, "fmi2SetReal of input '%s' returned %s", f->cfg.input, fmup_status_name(f, s));
+    s = fmup_set_f64(f, f->cfg.input_vr, 0.0);
+    if (s > (int)fmi2Warning) {
+        fmup_fail(f, err, errlen, "%s of input '%s' returned %s", fmup_fn(f, "fmi2SetReal", "fmi3SetFloat64"),
+                  f->cfg.input, fmup_status_name(f, s));
         return -1;
     }
-    s = f->enter_init(f->c);
-    if (s > fmi2Warning) {
-        fmup_fail(f, err, errlen, "fmi2EnterInitializationMode returned %s", fmup_status_name(f, s));
+    s = f->cfg.fmi_version == 3 ? f->enter_init3(f->c, false, 0.0, 0.0, false, 0.0) : (int)f->enter_init(f->c);
+    if (s > (int)fmi2Warning) {
+        fmup_fail(f, err, errlen, "fmi%dEnterInitializationMode returned %s", f->cfg.fmi_version,
+                  fmup_status_name(f, s));
         return -1;
     }
-    s = f->exit_init(f->c);
-    if (s > fmi2Warning) {
-        fmup_fail(f, err, errlen, "fmi2ExitInitializationMode returned %s", fmup_status_name(f, s));
+    s = f->cfg.fmi_version == 3 ? f->exit_init3(f->c) : (int)f->exit_init(f->c);
+    if (s > (int)fmi2Warning) {
+        fmup_fail(f, err, errlen, "fmi%dExitInitializationMode returned %s", f->cfg.fmi_version,
+                  fmup_status_name(f, s));
         return -1;
     }
     return fmup_read(f, err, errlen);
@@ -523,18 +654,27 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
 
 static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
 {
-    fmi2ValueReference vr = f->cfg.input_vr;
-    fmi2Real v = u;
-    fmi2Status s = f->set_real(f->c, &vr, 1, &v);
-    if (s > fmi2Warning) {
-        fmup_fail(f, err, errlen, "fmi2SetReal of input '%s' = %g at t = %.9g s returned %s", f->cfg.input, u, f->t,
-                  fmup_status_name(f, s));
+    int s = fmup_set_f64(f, f->cfg.input_vr, u);
+    if (s > (int)fmi2Warning) {
+        fmup_fail(f, err, errlen, "%s of input '%s' = %g at t = %.9g s returned %s",
+                  fmup_fn(f, "fmi2SetReal", "fmi3SetFloat64"), f->cfg.input, u, f->t, fmup_status_name(f, s));
         return -1;
     }
-    s = f->do_step(f->c, f->t, dt, 1);
-    if (s > fmi2Warning) {
-        fmup_fail(f, err, errlen, "fmi2DoStep(t = %.9g s, h = %.9g s) with input '%s' = %g returned %s", f->t, dt,
-                  f->cfg.input, u, fmup_status_name(f, s));
+    if (f->cfg.fmi_version == 3) {
+        bool event = false, terminate = false, early = false;
+        double last = f->t;
+        s = f->do_step3(f->c, f->t, dt, true, &event, &terminate, &early, &last);
+        if (s <= (int)fmi2Warning && (terminate || early)) {
+            fmup_fail(f, err, errlen, "fmi3DoStep(t = %.9g s, h = %.9g s) with input '%s' = %g: the FMU %s", f->t, dt,
+                      f->cfg.input, u, terminate ? "asked to terminate the simulation" : "returned early");
+            return -1;
+        }
+    } else {
+        s = (int)f->do_step(f->c, f->t, dt, 1);
+    }
+    if (s > (int)fmi2Warning) {
+        fmup_fail(f, err, errlen, "fmi%dDoStep(t = %.9g s, h = %.9g s) with input '%s' = %g returned %s",
+                  f->cfg.fmi_version, f->t, dt, f->cfg.input, u, fmup_status_name(f, s));
         return -1;
     }
     f->t += dt;
@@ -594,11 +734,12 @@ fmup_t *fmup_open(const fmup_cfg_t *cfg, double dt_s, char *err, size_t errlen)
     f->ext.angles = fmup_ext_angles;
     fmup_uri(f);
     char so[2 * FMUP_STR + 32];
-    snprintf(so, sizeof so, "%s/binaries/linux64/%s.so", cfg->unzipdir, cfg->model_identifier);
+    snprintf(f->resource_path, sizeof f->resource_path, "%s/resources/", cfg->unzipdir);
+    snprintf(so, sizeof so, "%s/%s/%s.so", cfg->unzipdir, fmup_binary_dir(cfg), cfg->model_identifier);
     f->lib = dlopen(so, RTLD_NOW | RTLD_LOCAL);
     if (f->lib == NULL) {
         const char *why = dlerror();
-        fmup_fail(f, err, errlen, "cannot load binaries/linux64/%s.so: %s", cfg->model_identifier,
+        fmup_fail(f, err, errlen, "cannot load %s/%s.so: %s", fmup_binary_dir(cfg), cfg->model_identifier,
                   why ? why : "dlopen failed");
         free(f);
         return NULL;
