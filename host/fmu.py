@@ -142,20 +142,29 @@ def _unpack(plant, fmu, root):
     return dest
 
 
-def _check_binary(plant, fmu, unzipdir, mid):
-    rel = f"binaries/linux64/{mid}.so"
-    so = os.path.join(unzipdir, "binaries", "linux64", mid + ".so")
+def _binary_dir(version):
+    """The FMU's folder of this platform's binary: FMI 2.0 linux64, FMI 3.0 <arch>-linux."""
+    if version == 2:
+        return "linux64"
+    arch = {"amd64": "x86_64", "arm64": "aarch64"}.get(platform.machine().lower(), platform.machine().lower())
+    return f"{arch}-linux"
+
+
+def _check_binary(plant, fmu, unzipdir, mid, version=2):
+    bdir_name = _binary_dir(version)
+    rel = f"binaries/{bdir_name}/{mid}.so"
+    so = os.path.join(unzipdir, "binaries", bdir_name, mid + ".so")
     if not os.path.isfile(so):
         bdir = os.path.join(unzipdir, "binaries")
         have = sorted(os.listdir(bdir)) if os.path.isdir(bdir) else []
-        if "linux64" in have:
-            raise FftuneError(f"{plant}: FMU {fmu}: no {rel} (model identifier {mid}); binaries/linux64 holds "
-                              f"{', '.join(sorted(os.listdir(os.path.join(bdir, 'linux64')))) or 'nothing'}")
+        if bdir_name in have:
+            raise FftuneError(f"{plant}: FMU {fmu}: no {rel} (model identifier {mid}); binaries/{bdir_name} holds "
+                              f"{', '.join(sorted(os.listdir(os.path.join(bdir, bdir_name)))) or 'nothing'}")
         if os.path.isdir(os.path.join(unzipdir, "sources")):
             hint = " (a source FMU: build its binary first, e.g. with fmpy.build.build_platform_binary)"
         else:
             hint = ""
-        raise FftuneError(f"{plant}: FMU {fmu}: no binary for this platform (linux64, {rel}); the FMU has "
+        raise FftuneError(f"{plant}: FMU {fmu}: no binary for this platform ({bdir_name}, {rel}); the FMU has "
                           f"{', '.join(have) if have else 'no binaries'}{hint}")
     with open(so, "rb") as fh:
         head = fh.read(20)
@@ -186,6 +195,8 @@ def _variable(plant, fmu, md, key, name, causalities, types=("Real",)):
                                f"needed: {' or '.join(causalities)}")
     if v.type not in types:
         raise _err(plant, key, f"variable {name!r} of FMU {fmu} is of type {v.type}; needed: {'/'.join(types)}")
+    if getattr(v, "dimensions", None):
+        raise _err(plant, key, f"variable {name!r} of FMU {fmu} is an array; needed: a scalar")
     return v
 
 
@@ -237,19 +248,21 @@ def drive_sim_text(plant, cache=None):
     except Exception as exc:  # FMPy raises plain Exceptions (XML, schema, version) pylint: disable=broad-except
         msg = " ".join(str(exc).split()) or type(exc).__name__
         raise FftuneError(f"{plant}: FMU {shown}: modelDescription.xml: {msg}") from None
-    if md.fmiVersion != "2.0":
-        raise FftuneError(f"{plant}: FMU {shown}: FMI {md.fmiVersion}: drive_sim co-simulates FMI 2.0 FMUs "
-                          f"(co-simulation; docs/fmu.md)")
+    if md.fmiVersion not in ("2.0", "3.0"):
+        raise FftuneError(f"{plant}: FMU {shown}: FMI {md.fmiVersion}: drive_sim co-simulates FMI 2.0 and 3.0 "
+                          f"FMUs (co-simulation; docs/fmu.md)")
     if md.coSimulation is None:
-        raise FftuneError(f"{plant}: FMU {shown}: model exchange only: drive_sim co-simulates FMI 2.0 "
+        raise FftuneError(f"{plant}: FMU {shown}: model exchange only: drive_sim co-simulates FMI 2.0 / 3.0 "
                           f"co-simulation FMUs (export the model for co-simulation; docs/fmu.md)")
+    version = int(md.fmiVersion[0])
     mid = md.coSimulation.modelIdentifier
-    _check_binary(plant, shown, unzipdir, mid)
-    vin = _variable(plant, shown, md, "fmu.input", f["input"], ("input",))
-    vout = _variable(plant, shown, md, "fmu.output", f["output"], ("output",))
+    _check_binary(plant, shown, unzipdir, mid, version)
+    real = ("Real",) if version == 2 else ("Float64",)
+    vin = _variable(plant, shown, md, "fmu.input", f["input"], ("input",), real)
+    vout = _variable(plant, shown, md, "fmu.output", f["output"], ("output",), real)
     vload = None
     if f.get("load_output") is not None:
-        vload = _variable(plant, shown, md, "fmu.load_output", f["load_output"], ("output",))
+        vload = _variable(plant, shown, md, "fmu.load_output", f["load_output"], ("output",), real)
     params = f.get("parameters") or {}
     if not isinstance(params, dict):
         raise _err(plant, "fmu.parameters", f"expected {{variable: value}}, got {params!r}")
@@ -258,7 +271,8 @@ def drive_sim_text(plant, cache=None):
     plist = []
     for name, value in params.items():
         key = f"fmu.parameters.{name}"
-        v = _variable(plant, shown, md, key, str(name), ("parameter", "input"), ("Real", "Integer", "Boolean"))
+        v = _variable(plant, shown, md, key, str(name), ("parameter", "input"),
+                      ("Real", "Integer", "Boolean") if version == 2 else ("Float64", "Int32", "Boolean"))
         if v.variability == "constant" or v.initial == "calculated":
             raise _err(plant, key, f"variable {name!r} of FMU {shown} cannot be set "
                                    f"(variability {v.variability}, initial {v.initial})")
@@ -268,9 +282,10 @@ def drive_sim_text(plant, cache=None):
             value = float(value)
         elif isinstance(value, bool) or not isinstance(value, (int, float)):
             raise _err(plant, key, f"expected a number, got {value!r}")
-        elif v.type == "Integer" and value != int(value):
+        elif v.type in ("Integer", "Int32") and value != int(value):
             raise _err(plant, key, f"variable {name!r} is Integer: expected a whole number, got {value!r}")
-        plist.append((str(name), v.valueReference, v.type.lower(), float(value)))
+        kind = {"Real": "real", "Float64": "real", "Integer": "integer", "Int32": "integer"}.get(v.type, "boolean")
+        plist.append((str(name), v.valueReference, kind, float(value)))
     sensor = _numbers(plant, "sensor", data.get("sensor"), SENSOR_KEYS)
     truth = _numbers(plant, "truth", data.get("truth"), TRUTH_KEYS)
     lines = [f"# drive_sim's view of {plant} (written by fftune: docs/fmu.md)"]
@@ -283,7 +298,7 @@ def drive_sim_text(plant, cache=None):
     lines += ["fmu:",
               f"  source: {_c_string(plant, 'plant file', str(plant))}",
               f"  path: {_c_string(plant, 'fmu.path', str(shown))}",
-              "  fmi_version: 2",
+              f"  fmi_version: {version}",
               f"  unzipdir: {_c_string(plant, 'unpack folder', unzipdir)}",
               f"  model_identifier: {_c_string(plant, 'model identifier', mid)}",
               f"  guid: {_c_string(plant, 'GUID', md.guid or '')}",

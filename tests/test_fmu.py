@@ -433,3 +433,132 @@ def test_builds_with_the_built_in_plant_only_refuse_an_fmu_plant_file(tmp_path):
     builtin.write_text("plant:\n  coulomb: 5.0e-3\n  static: 6.0e-3\ntruth:\n  kfc_v: 0.1\n")
     with pytest.raises(ValueError, match=r"builtin_truth.yaml:4: section 'truth' is for an FMU plant"):
         FwSim(str(builtin))
+
+
+# ---- FMI 3.0: an FMU made from FMPy's own template (fmpy.template.create_fmu) ----
+
+FMI3_STEP = r"""
+    Model *m = (Model *)instance;
+    const int sub = 10;
+    double hs = communicationStepSize / sub;
+    for (int s = 0; s < sub; s++) {
+        double x[4] = {m->theta1, m->omega1, m->theta2, m->omega2}, k[4][4], y[4];
+        for (int st = 0; st < 4; st++) {
+            const double *z = st == 0 ? x : y;
+            double g = m->Fc + (m->Fs - m->Fc) * exp(-(z[1] / m->vs) * (z[1] / m->vs));
+            double f = g * tanh(z[1] / m->v_eps) + m->b * z[1];
+            double spring = m->k * (z[0] - z[2]) + m->c * (z[1] - z[3]);
+            k[st][0] = z[1];
+            k[st][1] = (m->km * m->u - spring - f) / m->j1;
+            k[st][2] = z[3];
+            k[st][3] = spring / m->j2;
+            double a = st == 2 ? hs : 0.5 * hs;
+            for (int i = 0; i < 4; i++) y[i] = x[i] + a * k[st][i];
+        }
+        m->theta1 += hs / 6 * (k[0][0] + 2 * k[1][0] + 2 * k[2][0] + k[3][0]);
+        m->omega1 += hs / 6 * (k[0][1] + 2 * k[1][1] + 2 * k[2][1] + k[3][1]);
+        m->theta2 += hs / 6 * (k[0][2] + 2 * k[1][2] + 2 * k[2][2] + k[3][2]);
+        m->omega2 += hs / 6 * (k[0][3] + 2 * k[1][3] + 2 * k[2][3] + k[3][3]);
+    }
+    m->time = currentCommunicationPoint + communicationStepSize;
+    *eventHandlingNeeded = fmi3False;
+    *terminateSimulation = fmi3False;
+    *earlyReturn = fmi3False;
+    *lastSuccessfulTime = m->time;
+    UNUSED(noSetFMUStatePriorToCurrentPoint);
+    return fmi3OK;
+}
+"""
+FMI3_PARAMS = {"j1": 1.0e-4, "j2": 2.0e-4, "k": 0.5, "c": 2.0e-4, "km": 0.05, "Fc": 6.0e-3, "Fs": 9.0e-3,
+               "vs": 0.2, "v_eps": 0.01, "b": 1.2e-4}
+
+
+@pytest.fixture(scope="module")
+def fmi3_fmu(tmp_path_factory):
+    """An FMI 3.0 co-simulation FMU from FMPy's template (create_fmu), its fmi3DoStep filled
+    in with a two-mass plant (Stribeck + tanh Coulomb + viscous friction), built by
+    fmpy.build.build_platform_binary."""
+    from fmpy.build import build_platform_binary
+    from fmpy.model_description import CoSimulation, ModelDescription, ModelVariable, Unknown
+    from fmpy.template import create_fmu
+    from fmpy.util import create_zip_archive
+
+    md = ModelDescription()
+    md.fmiVersion, md.modelName, md.instantiationToken = "3.0", "stribeck3", "{3f0c8c1e-0000-4000-8000-fftune000003}"
+    md.description, md.generationTool = "two-mass plant, Stribeck + tanh friction (test)", "fftune tests"
+    md.generationDateAndTime = "2026-01-01T00:00:00Z"
+    md.coSimulation = CoSimulation(modelIdentifier="stribeck3")
+    names = [("time", "independent", "continuous", None), ("u", "input", "continuous", "0")]
+    names += [(n, "output" if n == "theta1" else "local", "continuous", None)
+              for n in ("theta1", "omega1", "theta2", "omega2")]
+    names += [(n, "parameter", "fixed", repr(v)) for n, v in FMI3_PARAMS.items()]
+    for vr, (name, causality, variability, start) in enumerate(names):
+        v = ModelVariable(name=name, valueReference=vr, type="Float64", causality=causality,
+                          variability=variability, start=start, description=name)
+        if causality == "local":
+            v.initial = None
+        md.modelVariables.append(v)
+        if causality == "output":
+            md.outputs.append(Unknown(variable=v))
+            md.initialUnknowns.append(Unknown(variable=v))
+    d = tmp_path_factory.mktemp("fmi3")
+    src_fmu = d / "template.fmu"
+    create_fmu(md, str(src_fmu))
+    unz = d / "unzipped"
+    with zipfile.ZipFile(src_fmu) as z:
+        z.extractall(unz)
+    c = (unz / "sources" / "model.c").read_text()
+    i = c.index("fmi3Status fmi3DoStep(")
+    body = c.index("{", i)
+    end = c.index("return fmi3OK;\n}", body) + len("return fmi3OK;\n}")
+    c = c[:body + 1] + FMI3_STEP + c[end:]
+    c = c.replace("#include <string.h>", "#include <string.h>\n#include <stdlib.h>\n#include <math.h>", 1)
+    (unz / "sources" / "model.c").write_text(c)
+    (d / "cmake").mkdir()
+    path = os.environ["PATH"]
+    os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + path   # pip's cmake
+    try:
+        build_platform_binary(str(unz), build_dir=str(d / "cmake"))
+    finally:
+        os.environ["PATH"] = path
+    fmu = d / "stribeck3.fmu"
+    create_zip_archive(str(fmu), str(unz))
+    return str(fmu)
+
+
+def test_an_fmi3_fmu_from_fmpys_template_runs_as_fmpy_runs_it(fmi3_fmu, tmp_path):
+    from fmpy import simulate_fmu
+
+    from fftune.host.drive import BusOptions, DriveClient
+    from fftune.host.fmu import drive_sim_text
+    from fftune.host.sim import start_drive_sim
+
+    data = {"fmu": {"path": fmi3_fmu, "input": "u", "output": "theta1", "parameters": {"Fc": 6.5e-3}},
+            "sensor": {"counts_per_rev": 0}, "truth": {"kfc_v": 0.13}, "controller": {"kp": 0.0, "kd": 0.0}}
+    plant = tmp_path / "fmi3.yaml"
+    plant.write_text(yaml.safe_dump(data))
+    text, _ = drive_sim_text(str(plant))
+    assert "fmi_version: 3" in text and 'guid: "{3f0c8c1e-0000-4000-8000-fftune000003}"' in text
+    n = 1024
+    req = {"exc_kind": 3, "exc_inject": 1, "exc_amplitude": 0.45, "exc_offset": -0.05, "exc_period": n,
+           "ms_k_min": 1, "ms_k_max": 150, "ms_group": 0, "ms_seed": 4, "ms_realization": 0,
+           "exc_settle_periods": 0, "exc_record_periods": 1}
+    sim = start_drive_sim(str(plant), log_path=str(tmp_path / "drive_sim.log"))
+    try:
+        with DriveClient(BusOptions(port=sim.port, host=sim.host, eds=EDS), progress=False) as d:
+            assert d.plant_truth()["sim_fc_volt"] == pytest.approx(0.13, rel=1e-6)
+            d.enable()
+            rec = d.run(req, signals=("plant_input", "motor_angle"))
+    finally:
+        sim.stop()
+    u = np.asarray(rec.signals["plant_input"], dtype=np.float64)
+    y = np.asarray(rec.signals["motor_angle"], dtype=np.float64)
+    dt = 1.0 / float(np.float32(FS))
+    t = np.arange(n + 1) * dt
+    sig = np.zeros(n + 1, dtype=[("time", np.float64), ("u", np.float64)])
+    sig["time"], sig["u"][:n], sig["u"][n] = t, u, u[-1]
+    res = simulate_fmu(fmi3_fmu, fmi_type="CoSimulation", start_values={"Fc": 6.5e-3}, input=sig,
+                       step_size=dt, output_interval=dt, stop_time=t[-1], output=["theta1"])
+    ref = np.asarray(res["theta1"])[:n]
+    assert np.max(np.abs(ref)) > 0.05
+    assert np.max(np.abs(y - ref)) <= 2.0 ** -23 * np.max(np.abs(ref))
