@@ -1,5 +1,5 @@
 /*
- * fmu_plant.h - an FMI 2.0 co-simulation FMU as drive_sim's plant (HOST ONLY, docs/fmu.md).
+ * fmu_plant.h - an FMI 2.0 / 3.0 co-simulation FMU as drive_sim's plant (HOST ONLY, docs/fmu.md).
  *
  * The host (fftune, host/sim.py prepare_plant) unpacks the FMU, checks its
  * modelDescription.xml with FMPy and writes drive_sim a plant file whose `fmu:` section names
@@ -8,10 +8,11 @@
  *   fmu:
  *     source: "configs/plant_lugre_fmu.yaml"   the user's plant file (messages)
  *     path: "build/fmu/lugre.fmu"              the FMU (messages)
- *     fmi_version: 2
+ *     fmi_version: 2                           2 or 3
  *     unzipdir: "/root/.cache/fftune/fmu/..."  the unpacked FMU
  *     model_identifier: "fftune_lugre"         binaries/linux64/<model_identifier>.so
- *     guid: "{...}"
+ *                                              (FMI 3.0: binaries/x86_64-linux/)
+ *     guid: "{...}"                            (FMI 3.0: the instantiation token)
  *     input: "u"                               the drive's output [V] (Real, causality input)
  *     input_vr: 0
  *     output: "theta1"                         the motor encoder [rad] (Real, output)
@@ -19,11 +20,11 @@
  *     load_output: "theta2"                    optional: the load encoder (else = output)
  *     load_output_vr: 3
  *     p0_name: "Fc"                            start values, p0 .. p31: name, value
- *     p0_vr: 7                                 reference, type (real, integer, boolean)
+ *     p0_vr: 7                                 reference, type (real, integer, boolean: FMI 3.0 Float64, Int32, Boolean)
  *     p0_type: "real"
  *     p0_value: 0.0058
  *
- * fmup_open loads the library, instantiates (fmi2Instantiate, CS), sets the start values,
+ * fmup_open loads the library, instantiates (fmi2Instantiate / fmi3InstantiateCoSimulation), sets the start values,
  * initialises (SetupExperiment at t = 0, Enter/ExitInitializationMode) and reads the output;
  * fmup_trial also takes one step of dt with u = 0 on a throw-away instance first, so an FMU
  * that cannot step fails before the drive exists. Every failure is one message naming the
