@@ -3,9 +3,9 @@
 A plant file with an ``fmu:`` section::
 
     fmu:
-      path: models/stage.fmu        # FMI 2.0 co-simulation; relative: beside the plant file,
+      path: models/stage.fmu        # FMI 2.0 or 3.0 co-simulation; relative: beside the plant file,
                                     # else from the working directory
-      input: u                      # Real, causality input: the drive's output [V]
+      input: u                      # Real (FMI 3.0: Float64), causality input: the drive's output [V]
       output: theta1                # Real, causality output: what the encoder reads [rad]
       load_output: theta2           # optional: the load encoder (default: output)
       parameters: {Fc: 0.0058}      # optional: start values set at instantiation
