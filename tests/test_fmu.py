@@ -215,8 +215,9 @@ def _small_demo_config(tmp_path):
         cfg = yaml.safe_load(fh)
     cfg["detect"].update(rms_levels=[1.0], realizations=2)
     cfg["quantify"].update(frequencies_hz=[2.5], rms_levels=[0.35], repeats=2, period_samples=1024)
+    cfg["tune"].update(frequency_hz=1.25, period_samples=2048, settle_periods=1)
     cfg["tune"]["viscous"]["enabled"] = False
-    cfg["tune"]["sweep"]["points"] = 4
+    cfg["tune"]["sweep"]["points"] = 3
     path = tmp_path / "small.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return str(path)
