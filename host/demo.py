@@ -11,6 +11,7 @@ import os
 import shutil
 import time
 
+from fftune.analysis.errors import FftuneError
 from fftune.host.commands import DEFAULT_CONFIG
 from fftune.host.config import check_output_dir, load_config
 from fftune.host.drive import DriveClient, add_bus_arguments
@@ -132,5 +133,10 @@ def _run(args, cfg, out, bitrate):
             check_plan(client, cfg)          # the drive's limits, before it is enabled
             client.enable()
             return run_pipeline(client, cfg, out, log=lambda s: print(s, flush=True))
+    except FftuneError as exc:
+        said = sim.reported_error()          # the simulator's own reason (an FMU plant's failed step)
+        if said:
+            raise FftuneError(f"{exc}; drive_sim: {said}") from None
+        raise
     finally:
         sim.stop()

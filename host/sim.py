@@ -45,6 +45,17 @@ class SimulatedDrive:
         return BusOptions(interface="socketcand", channel="can0", host=self.host, port=self.port,
                           node_id=node_id, eds=eds or DEFAULT_EDS)
 
+    def reported_error(self):
+        """drive_sim's last 'drive_sim: error: ...' message in its log (e.g. an FMU plant's
+        step that failed mid-run, docs/fmu.md), or None (also without a log file)."""
+        if not self.log_path:
+            return None
+        try:
+            with open(self.log_path, "r", encoding="utf-8", errors="replace") as fh:
+                return _drive_sim_error(fh.read())
+        except OSError:
+            return None
+
     def stop(self, timeout_s=3.0):
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)

@@ -352,24 +352,19 @@ def test_a_step_that_fails_is_one_line_before_the_drive_exists(fmpy_built_fmu, t
     assert "fmi2DoStep(t = 0 s" in line and "returned fmi2Error" in line and "on purpose" in line
 
 
-def test_a_step_that_fails_mid_run_disables_the_drive(fmpy_built_fmu, tmp_path):
-    from fftune.host.drive import BusOptions, DriveClient
-    from fftune.host.sim import start_drive_sim
-
+def test_a_step_that_fails_mid_run_disables_the_drive(fmpy_built_fmu, tmp_path, capsys):
+    """The trial step passes; the FMU fails at t = 0.5 s in the demo's first run: the drive is
+    disabled at once, the run stops, and the one error line carries drive_sim's reason."""
     plant = _tanh_plant(tmp_path, fmpy_built_fmu, fail_at_s=0.5)
-    log = tmp_path / "drive_sim.log"
-    sim = start_drive_sim(plant, log_path=str(log))
-    try:
-        with DriveClient(BusOptions(port=sim.port, host=sim.host, eds=EDS), progress=False) as d:
-            d.enable()
-            req = {"exc_kind": 1, "exc_inject": 0, "exc_amplitude": 0.2, "exc_offset": 0.0, "exc_period": 1024,
-                   "exc_sine_cycles": 1, "exc_settle_periods": 1, "exc_record_periods": 1}
-            with pytest.raises(FftuneError):
-                d.run(req, signals=("motor_angle",))
-    finally:
-        sim.stop()
-    text = log.read_text()
-    assert "drive_sim: error: " in text and "on purpose" in text and "the drive is disabled" in text
+    out = tmp_path / "out"
+    code = main(["demo", "--config", _small_demo_config(tmp_path), "--plant", plant, "--out", str(out),
+                 "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    line = err[0]
+    assert line.startswith("fftune: error: run stopped by the drive") and "; drive_sim: " in line
+    assert plant in line and "fmi2DoStep(t = 0.5" in line and "on purpose" in line
+    assert "the drive is disabled" in line
 
 
 # ---- plant file keys, machine axes, overrides ----
