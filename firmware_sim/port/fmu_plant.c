@@ -654,6 +654,12 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
 
 static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
 {
+    if (f->c == NULL || !f->ok) {
+        if (err != NULL) {
+            snprintf(err, errlen, "%s", f->err); /* (the restart or an earlier call failed: said there) */
+        }
+        return -1;
+    }
     int s = fmup_set_f64(f, f->cfg.input_vr, u);
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "%s of input '%s' = %g at t = %.9g s returned %s",

@@ -502,7 +502,7 @@ static void loop_realtime(app_t *app)
 int main(int argc, char **argv)
 {
     static app_t app;
-    char err[512];
+    char err[2048];
     if (parse_args(&app.o, argc, argv) != 0) {
         return 2;
     }
