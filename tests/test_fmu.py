@@ -558,3 +558,32 @@ def test_an_fmi3_fmu_from_fmpys_template_runs_as_fmpy_runs_it(fmi3_fmu, tmp_path
     ref = np.asarray(res["theta1"])[:n]
     assert np.max(np.abs(ref)) > 0.05
     assert np.max(np.abs(y - ref)) <= 2.0 ** -23 * np.max(np.abs(ref))
+
+
+def test_an_nmt_reset_node_starts_the_fmu_again(tmp_path):
+    """After a run the open-loop plant is displaced; NMT reset node re-instantiates the FMU,
+    so the same run again gives the first run's samples (without it, it would start from the
+    displaced state)."""
+    import time
+
+    from fftune.host.drive import BusOptions, DriveClient
+    from fftune.host.sim import start_drive_sim
+
+    plant = plant_file(tmp_path)
+    req = {"exc_kind": 1, "exc_inject": 1, "exc_amplitude": 0.3, "exc_offset": 0.05, "exc_period": 1024,
+           "exc_sine_cycles": 2, "exc_settle_periods": 0, "exc_record_periods": 1}
+    sim = start_drive_sim(plant, log_path=str(tmp_path / "drive_sim.log"))
+    try:
+        with DriveClient(BusOptions(port=sim.port, host=sim.host, eds=EDS), progress=False, heartbeat_ms=0) as d:
+            d.enable()
+            first = np.asarray(d.run(req, signals=("motor_angle",)).signals["motor_angle"])
+            again = np.asarray(d.run(req, signals=("motor_angle",)).signals["motor_angle"])
+            d.node.nmt.state = "RESET"
+            time.sleep(0.3)
+            d.enable()
+            reset = np.asarray(d.run(req, signals=("motor_angle",)).signals["motor_angle"])
+    finally:
+        sim.stop()
+    assert np.max(np.abs(first)) > 0.05 and abs(first[-1]) > 0.01      # it moved and stayed displaced
+    assert np.max(np.abs(again - first)) > 1e-3                           # no reset: another start
+    np.testing.assert_array_equal(reset, first)
