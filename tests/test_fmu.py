@@ -587,3 +587,36 @@ def test_an_nmt_reset_node_starts_the_fmu_again(tmp_path):
     assert np.max(np.abs(first)) > 0.05 and abs(first[-1]) > 0.01      # it moved and stayed displaced
     assert np.max(np.abs(again - first)) > 1e-3                           # no reset: another start
     np.testing.assert_array_equal(reset, first)
+
+
+def test_drive_sim_reading_an_fmu_section_names_what_is_wrong(tmp_path):
+    """drive_sim reads the view fftune writes; a user's plant file given to it directly, a
+    view with a key missing or a value of the wrong kind is one line naming file and key."""
+    import subprocess
+
+    from fftune.host.fmu import drive_sim_plant
+    from fftune.host.resources import drive_sim_path
+
+    def drive_sim_error(path):
+        r = subprocess.run([drive_sim_path(), "--config", str(path), "--port", "0"], capture_output=True,
+                           text=True, timeout=20)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("drive_sim: error: "), r.stderr
+        return lines[0]
+
+    user = plant_file(tmp_path)
+    line = drive_sim_error(user)
+    assert user in line and "goes to fftune sim|demo --plant FILE" in line
+    view = open(drive_sim_plant(user)).read()
+    no_guid = tmp_path / "no_guid.yaml"
+    no_guid.write_text("\n".join(ln for ln in view.splitlines() if not ln.startswith("  guid:")) + "\n")
+    assert "fmu.guid missing" in drive_sim_error(no_guid)
+    bad_vr = tmp_path / "bad_vr.yaml"
+    bad_vr.write_text(view.replace("  output_vr: 1\n", "  output_vr: -1\n"))
+    line = drive_sim_error(bad_vr)
+    assert "bad_vr.yaml:" in line and "'-1' is not an unsigned 32-bit integer" in line
+    wrong_guid = tmp_path / "wrong_guid.yaml"
+    wrong_guid.write_text(view.replace('  guid: "{', '  guid: "{0'))
+    line = drive_sim_error(wrong_guid)
+    assert "fmi2Instantiate (co-simulation, GUID {0" in line and "returned NULL" in line
+    assert "does not match the FMU's" in line           # the FMU's own log message

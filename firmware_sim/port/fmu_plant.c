@@ -329,7 +329,8 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
     }
     fclose(f);
     if (rc != 0) {
-        snprintf(err, errlen, "%s:%d: %s", path, lineno, msg);
+        snprintf(err, errlen, "%s:%d: %s (a plant file naming an FMU goes to fftune sim|demo --plant FILE, "
+                 "which hands drive_sim its checked view: docs/fmu.md)", path, lineno, msg);
         free(c);
         return -1;
     }
