@@ -11,9 +11,11 @@ import os
 import shutil
 import time
 
+from fftune.analysis.errors import FftuneError
 from fftune.host.commands import DEFAULT_CONFIG
 from fftune.host.config import check_output_dir, load_config
 from fftune.host.drive import DriveClient, add_bus_arguments
+from fftune.host.fmu import is_fmu_plant, overrides_note
 from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
 
 
@@ -110,9 +112,11 @@ def _run(args, cfg, out, bitrate):
     d = cfg["drive"]
     plant = resolve_plant(cfg, args.plant)
     shown = os.path.relpath(plant)
-    if cfg["sim"]["overrides"]:
-        plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
-                              where=f"{args.config}: key 'sim.overrides'")
+    where = f"{args.config}: key 'sim.overrides'"
+    if cfg["sim"]["overrides"] and is_fmu_plant(plant):
+        print(f"fftune demo: {overrides_note(plant, where)}", flush=True)
+    elif cfg["sim"]["overrides"]:
+        plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"), where=where)
         shown += " with sim.overrides -> " + os.path.relpath(plant)
     node_id = args.node_id if args.node_id is not None else d["node_id"]
     sim = start_drive_sim(plant, host=args.host, port=args.port, node_id=node_id,
@@ -129,5 +133,10 @@ def _run(args, cfg, out, bitrate):
             check_plan(client, cfg)          # the drive's limits, before it is enabled
             client.enable()
             return run_pipeline(client, cfg, out, log=lambda s: print(s, flush=True))
+    except FftuneError as exc:
+        said = sim.reported_error()          # the simulator's own reason (an FMU plant's failed step)
+        if said:
+            raise FftuneError(f"{exc}; drive_sim: {said}") from None
+        raise
     finally:
         sim.stop()

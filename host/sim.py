@@ -47,6 +47,17 @@ class SimulatedDrive:
         return BusOptions(interface="socketcand", channel="can0", host=self.host, port=self.port,
                           node_id=node_id, eds=eds or DEFAULT_EDS, model_bitrate=self.bitrate)
 
+    def reported_error(self):
+        """drive_sim's last 'drive_sim: error: ...' message in its log (e.g. an FMU plant's
+        step that failed mid-run, docs/fmu.md), or None (also without a log file)."""
+        if not self.log_path:
+            return None
+        try:
+            with open(self.log_path, "r", encoding="utf-8", errors="replace") as fh:
+                return _drive_sim_error(fh.read())
+        except OSError:
+            return None
+
     def stop(self, timeout_s=3.0):
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
@@ -88,10 +99,19 @@ def _bus_spec(interface, host, port, channel):
 
 def drive_sim_command(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_id=1, extra=(),
                       interface="socketcand", channel=None, bitrate=None, realtime=False):
-    """drive_sim's command line (see firmware_sim/port/main.c)."""
+    """drive_sim's command line (see firmware_sim/port/main.c). A plant file naming an FMU
+    (``--config`` or an ``--axis ID:FILE`` in ``extra``) is checked and replaced by drive_sim's
+    view of it (:func:`fftune.host.fmu.drive_sim_plant`)."""
+    from fftune.host.fmu import drive_sim_plant
+
     check_bus(interface, channel, bitrate)
-    cmd = [drive_sim_path(), "--can", _bus_spec(interface, host, port, channel), "--config", plant_config,
-           "--node-id", str(node_id)]
+    extra = list(extra)
+    for i in range(len(extra) - 1):
+        if extra[i] == "--axis" and ":" in extra[i + 1]:
+            nid, path = extra[i + 1].split(":", 1)
+            extra[i + 1] = f"{nid}:{drive_sim_plant(path)}"
+    cmd = [drive_sim_path(), "--can", _bus_spec(interface, host, port, channel), "--config",
+           drive_sim_plant(plant_config), "--node-id", str(node_id)]
     if bitrate is not None:
         cmd += ["--bitrate", str(bitrate)]
     if realtime:
@@ -125,6 +145,9 @@ def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_i
             elif log_path:
                 with open(log_path, encoding="utf-8", errors="replace") as fh:
                     seen.append(fh.read())
+            said = _drive_sim_error("".join(seen))
+            if said:  # drive_sim's own one-line reason (a plant file, an FMU): that line alone
+                raise FftuneError(f"drive_sim: {said}")
             raise FftuneError(f"drive_sim exited with code {proc.returncode} before listening: "
                               f"{' '.join(cmd)}: {' '.join(''.join(seen).split())[-300:]}")
         ready, _, _ = select.select([proc.stdout], [], [], 0.1)
@@ -143,6 +166,15 @@ def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_i
     proc.wait()
     raise FftuneError(f"drive_sim printed no 'listening' line within {startup_timeout_s:g} s: "
                       f"{' '.join(cmd)}")
+
+
+def _drive_sim_error(text):
+    """The message of drive_sim's last 'drive_sim: error: ...' line in ``text`` (or None)."""
+    found = None
+    for line in text.splitlines():
+        if line.startswith("drive_sim: error: "):
+            found = line[len("drive_sim: error: "):].strip()
+    return found
 
 
 def _drain(proc):
@@ -253,8 +285,12 @@ def _run(args):
     _bus_from_python_can(args)
     check_bus(args.interface, args.channel, bitrate)
     if cfg["sim"]["overrides"]:
-        plant = _plant_path(derived_plant_text(plant, cfg["sim"]["overrides"],
-                                               where=f"{args.config}: key 'sim.overrides'"))
+        from fftune.host.fmu import is_fmu_plant, overrides_note
+        where = f"{args.config}: key 'sim.overrides'"
+        if is_fmu_plant(plant):
+            print(f"fftune sim: {overrides_note(plant, where)}", file=sys.stderr)
+        else:
+            plant = _plant_path(derived_plant_text(plant, cfg["sim"]["overrides"], where=where))
     cmd = drive_sim_command(plant, args.host, args.port, node_id,
                             interface=args.interface, channel=args.channel, bitrate=bitrate,
                             realtime=args.realtime)
@@ -277,6 +313,11 @@ def derived_plant_text(base_path, overrides, where="sim.overrides"):
     """``base_path`` with ``overrides`` applied, as drive_sim's two-level YAML subset."""
 
     from fftune.host.config import read_yaml, show
+    from fftune.host.fmu import is_fmu_plant
+
+    if overrides and is_fmu_plant(base_path):
+        raise FftuneError(f"{where}: the plant {base_path} is an FMU: overrides of the built-in plant do not "
+                          f"apply to it (set its values in fmu.parameters; docs/fmu.md)")
 
     plant = read_yaml(base_path, "plant configuration")
     if not isinstance(plant, dict) or not all(isinstance(v, dict) for v in plant.values()):

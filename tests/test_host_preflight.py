@@ -299,7 +299,7 @@ def _shipped_configs():
     for path in sorted(glob.glob(os.path.join(REPO, "configs", "*.yaml"))):
         with open(path, encoding="utf-8") as fh:
             top = set(yaml.safe_load(fh))
-        kind = ("od" if "device" in top else "plant" if "plant" in top else
+        kind = ("od" if "device" in top else "plant" if top & {"plant", "fmu"} else
                 "track" if "track" in top else "machine" if "machine" in top else
                 "experiment" if top & {"detect", "quantify", "tune"} else "unknown")
         out.append((os.path.basename(path), kind))

@@ -430,8 +430,13 @@ static double plant_quantise(const plant_t *pl, double th)
 
 void plant_measure(plant_t *pl, double *th1_meas, double *th2_meas)
 {
-    double m1 = plant_quantise(pl, pl->x[0]);
-    double m2 = plant_quantise(pl, pl->x[2]);
+    plant_measure_angles(pl, pl->x[0], pl->x[2], th1_meas, th2_meas);
+}
+
+void plant_measure_angles(plant_t *pl, double th1, double th2, double *th1_meas, double *th2_meas)
+{
+    double m1 = plant_quantise(pl, th1);
+    double m2 = plant_quantise(pl, th2);
     if (pl->p.noise_std > 0.0) {
         m1 += pl->p.noise_std * plant_gauss(pl);
         m2 += pl->p.noise_std * plant_gauss(pl);

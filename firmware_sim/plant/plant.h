@@ -87,6 +87,9 @@ int plant_mode(const plant_t *pl);
 void plant_advance(plant_t *pl, double u, double dt);
 /* Measured angles (quantised + noise); advances the noise generator. */
 void plant_measure(plant_t *pl, double *th1_meas, double *th2_meas);
+/* The same sensor (quantisation, noise) applied to angles th1, th2 [rad] from elsewhere (an
+ * FMU plant, plant/sim.h sim_plant_ext_t); advances the noise generator as plant_measure. */
+void plant_measure_angles(plant_t *pl, double th1, double th2, double *th1_meas, double *th2_meas);
 /* Net non-friction torque on the motor [N m]. */
 double plant_net_torque(const plant_t *pl, double u);
 

@@ -66,6 +66,9 @@ static const pc_key_t PC_KEYS[] = {
     PC_F("drift", "viscous_exp", drift_viscous.exp, -0.9, 10.0),
     PC_F("drift", "viscous_exp_start_s", drift_viscous.exp_start_s, 0.0, 1e9),
     PC_F("drift", "viscous_exp_tau_s", drift_viscous.exp_tau_s, 1e-3, 1e9),
+    PC_F("truth", "kfc_v", truth_kfc_v, 0.0, 1e6),
+    PC_F("truth", "kv_v", truth_kv_v, 0.0, 1e6),
+    PC_F("truth", "ks_v", truth_ks_v, 0.0, 1e6),
 };
 #define PC_NKEYS (sizeof PC_KEYS / sizeof PC_KEYS[0])
 
@@ -100,6 +103,9 @@ void plant_config_defaults(plant_config_t *cfg)
     cfg->plant.seed = 1u;
     cfg->drift_coulomb.exp_tau_s = 60.0;
     cfg->drift_viscous.exp_tau_s = 60.0;
+    cfg->truth_kfc_v = NAN;
+    cfg->truth_kv_v = NAN;
+    cfg->truth_ks_v = NAN;
 }
 
 static char *pc_trim(char *s)
@@ -187,7 +193,7 @@ int plant_config_load(const char *path, plant_config_t *out, char *err, size_t e
     unsigned char seen[PC_NKEYS];
     memset(seen, 0, sizeof seen);
     char line[512], section[64] = "", msg[256];
-    int lineno = 0, rc = 0;
+    int lineno = 0, rc = 0, truth_line = 0;
     while (fgets(line, sizeof line, f) != NULL) {
         lineno++;
         if (strchr(line, '\n') == NULL && !feof(f)) {
@@ -229,12 +235,26 @@ int plant_config_load(const char *path, plant_config_t *out, char *err, size_t e
                 rc = -1;
                 break;
             }
+            if (strcmp(name, "fmu") == 0) {
+                /* an FMU plant: the section's keys are port/fmu_plant.c's (drive_sim) */
+                if (cfg.fmu) {
+                    snprintf(msg, sizeof msg, "duplicate section 'fmu'");
+                    rc = -1;
+                    break;
+                }
+                cfg.fmu = 1;
+                snprintf(section, sizeof section, "%s", name);
+                continue;
+            }
+            if (strcmp(name, "truth") == 0 && truth_line == 0) {
+                truth_line = lineno;
+            }
             int known = 0;
             for (size_t i = 0; i < PC_NKEYS; i++) {
                 known |= strcmp(PC_KEYS[i].section, name) == 0;
             }
             if (!known) {
-                snprintf(msg, sizeof msg, "unknown section '%s' (drive, controller, plant, sensor, drift)", name);
+                snprintf(msg, sizeof msg, "unknown section '%s' (drive, controller, plant, sensor, drift, fmu, truth)", name);
                 rc = -1;
                 break;
             }
@@ -245,6 +265,9 @@ int plant_config_load(const char *path, plant_config_t *out, char *err, size_t e
             snprintf(msg, sizeof msg, "key '%s' outside a section", name);
             rc = -1;
             break;
+        }
+        if (strcmp(section, "fmu") == 0) {
+            continue; /* read by port/fmu_plant.c */
         }
         if (*value == '\0') {
             snprintf(msg, sizeof msg, "%s.%s: missing value (only two levels are supported)", section, name);
@@ -275,13 +298,20 @@ int plant_config_load(const char *path, plant_config_t *out, char *err, size_t e
     }
     fclose(f);
     if (rc != 0) {
-        snprintf(err, errlen, "%s:%d: %s", path, lineno, msg);
+        snprintf(err, errlen, "%s:%d: %s%s", path, lineno, msg,
+                 cfg.fmu ? " (a plant file naming an FMU goes to fftune sim|demo --plant FILE, which hands drive_sim "
+                           "its checked view: docs/fmu.md)" : "");
         return -1;
     }
     if (cfg.drift_coulomb.ramp_end_s < cfg.drift_coulomb.ramp_start_s ||
         cfg.drift_viscous.ramp_end_s < cfg.drift_viscous.ramp_start_s) {
         snprintf(err, errlen, "%s: drift: a ramp's end (%s_ramp_end_s) before its start", path,
                  cfg.drift_coulomb.ramp_end_s < cfg.drift_coulomb.ramp_start_s ? "coulomb" : "viscous");
+        return -1;
+    }
+    if (truth_line != 0 && !cfg.fmu) {
+        snprintf(err, errlen, "%s:%d: section 'truth' is for an FMU plant (section fmu); the built-in "
+                 "plant's truth is its own parameters", path, truth_line);
         return -1;
     }
     if (plant_check_params(&cfg.plant, msg, sizeof msg) != 0) {

@@ -44,6 +44,12 @@ typedef struct {
     plant_params_t plant;
     /* drift: (coulomb_*, viscous_*) */
     plant_drift_t drift_coulomb, drift_viscous;
+    /* fmu: the file names an FMU plant (docs/fmu.md): its keys are read by drive_sim's
+     * port/fmu_plant.c, not here; sim_init refuses such a config without the FMU attached */
+    int fmu;
+    /* truth: (FMU plants only) what a report compares K_fc*, K_v, the static level with [V];
+     * NaN = not given */
+    double truth_kfc_v, truth_kv_v, truth_ks_v;
 } plant_config_t;
 
 void plant_config_defaults(plant_config_t *cfg);

@@ -6,11 +6,35 @@
 #include <stdlib.h>
 #include <string.h>
 
+/* the measured angles: of the built-in plant, or the external plant's through its sensor */
+static void sim_measure(sim_t *sim, double *m1, double *m2)
+{
+    if (sim->ext != NULL) {
+        double th1, th2;
+        sim->ext->angles(sim->ext->ctx, &th1, &th2);
+        plant_measure_angles(&sim->plant, th1, th2, m1, m2);
+    } else {
+        plant_measure(&sim->plant, m1, m2);
+    }
+}
+
 int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table_buf, char *err, size_t errlen)
+{
+    return sim_init_ext(sim, cfg, NULL, rec_buf, table_buf, err, errlen);
+}
+
+int sim_init_ext(sim_t *sim, const plant_config_t *cfg, const sim_plant_ext_t *ext, float *rec_buf,
+                 float *table_buf, char *err, size_t errlen)
 {
     char msg[200];
     memset(sim, 0, sizeof *sim);
+    if (cfg->fmu && ext == NULL) {
+        snprintf(err, errlen, "the configuration names an FMU plant (section fmu): drive_sim co-simulates it "
+                 "(fftune sim|demo --plant FILE, docs/fmu.md); this build has the built-in plant only");
+        return -1;
+    }
     sim->cfg = *cfg;
+    sim->ext = ext;
     if (plant_init(&sim->plant, &cfg->plant, msg, sizeof msg) != 0) {
         snprintf(err, errlen, "plant: %s", msg);
         return -1;
@@ -54,7 +78,7 @@ int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table
                  cfg->drift_viscous.ramp != 0.0 || cfg->drift_viscous.exp != 0.0;
     /* prime the drive with the first measurement so that enabling holds the true position */
     double m1, m2;
-    plant_measure(&sim->plant, &m1, &m2);
+    sim_measure(sim, &m1, &m2);
     drv_meas_t meas = {(float)m1, (float)m2};
     (void)drv_step(&sim->drv, &meas);
     return 0;
@@ -156,6 +180,25 @@ static void sim_drift(sim_t *sim)
 
 float sim_step(sim_t *sim)
 {
+    if (sim->ext != NULL) {
+        double m1, m2;
+        sim_measure(sim, &m1, &m2);
+        drv_meas_t meas = {(float)m1, (float)m2};
+        if (sim->ext_failed) {
+            drv_enable(&sim->drv, false); /* a failed plant holds; the drive stays off */
+        }
+        float u = drv_step(&sim->drv, &meas);
+        if (!sim->ext_failed) {
+            if (sim->ext->advance(sim->ext->ctx, (double)u, sim->dt) != 0) {
+                sim->ext_failed = 1;
+                drv_enable(&sim->drv, false);
+            } else {
+                sim->plant.t += sim->dt;
+            }
+        }
+        sim->steps++;
+        return u;
+    }
     if (sim->drift) {
         sim_drift(sim);
     }
@@ -196,6 +239,21 @@ drv_status_t sim_get_f32(const sim_t *sim, drv_param_id_t id, float *value)
 {
     const plant_params_t *p = &sim->plant.p;
     double v;
+    if (sim->ext != NULL) {
+        switch (id) {
+        case DRV_P_SIM_FC_VOLT: v = sim->cfg.truth_kfc_v; break;
+        case DRV_P_SIM_FV_VOLT: v = sim->cfg.truth_kv_v; break;
+        case DRV_P_SIM_FS_VOLT: v = sim->cfg.truth_ks_v; break;
+        case DRV_P_SIM_NOISE_STD: v = p->noise_std; break;
+        case DRV_P_SIM_FC_TORQUE: v = NAN; break;
+        default: return DRV_E_NO_PARAM;
+        }
+        if (value == NULL) {
+            return DRV_E_GENERAL;
+        }
+        *value = (float)v;
+        return DRV_OK;
+    }
     switch (id) {
     case DRV_P_SIM_FC_VOLT: v = p->coulomb / p->km; break;
     case DRV_P_SIM_FV_VOLT: v = p->viscous / p->km; break;

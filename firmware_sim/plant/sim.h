@@ -31,9 +31,23 @@
 #define SIM_TABLE_STAGE_MAX DRV_TABLE_MAX
 #endif
 
+/* An external plant (drive_sim's FMU plant, port/fmu_plant.h) in place of the built-in
+ * two-mass model: sim_step reads its angles through the built-in plant's sensor
+ * (quantisation, noise: plant_measure_angles), steps the drive, then advances it by 1/fs
+ * with the drive's output held. advance returns 0, or -1 on a failure (the owner keeps the
+ * message): the sim then latches ext_failed, disables the drive and holds the plant until
+ * sim_init starts it again (the owner restarts its plant before that). */
+typedef struct {
+    void *ctx;
+    int (*advance)(void *ctx, double u_volt, double dt_s);
+    void (*angles)(void *ctx, double *motor_rad, double *load_rad);
+} sim_plant_ext_t;
+
 typedef struct {
     plant_config_t cfg;
-    plant_t plant;
+    plant_t plant;          /* the built-in plant (with ext: its sensor only) */
+    const sim_plant_ext_t *ext; /* NULL: the built-in plant */
+    int ext_failed;         /* ext's advance failed: drive disabled, plant held */
     drv_t drv;
     drv_storage_t storage;
     double dt;               /* 1/fs */
@@ -48,6 +62,10 @@ typedef struct {
  * cfg->table_capacity floats (at most SIM_TABLE_STAGE_MAX). Applies the config's
  * controller values through drv_set_f32. 0 on success, -1 with a message naming the key in err. */
 int sim_init(sim_t *sim, const plant_config_t *cfg, float *rec_buf, float *table_buf, char *err, size_t errlen);
+/* sim_init with an external plant (ext NULL: as sim_init). A config naming an FMU plant
+ * (cfg->fmu) needs one: sim_init refuses it. ext must outlive the sim. */
+int sim_init_ext(sim_t *sim, const plant_config_t *cfg, const sim_plant_ext_t *ext, float *rec_buf,
+                 float *table_buf, char *err, size_t errlen);
 /* Heap-allocated sim (host): NULL with the message in err on failure. */
 sim_t *sim_new(const plant_config_t *cfg, char *err, size_t errlen);
 sim_t *sim_new_from_file(const char *path, char *err, size_t errlen);
@@ -67,7 +85,8 @@ uint64_t sim_run_until_idle(sim_t *sim, uint64_t max_steps);
 
 /* The simulated plant's truth for the sim_only ids of configs/od.yaml (DRV_P_SIM_*):
  * Coulomb / viscous / static friction expressed as input voltage (torque / km), so they
- * compare with K_fc and K_v directly; noise std [rad]; Coulomb torque [N m].
+ * compare with K_fc and K_v directly; noise std [rad]; Coulomb torque [N m]. With an external
+ * plant: the config's truth: section (NaN where not given; the Coulomb torque NaN).
  * DRV_E_NO_PARAM for any other id (those are the drive's: drv_get_f32). */
 drv_status_t sim_get_f32(const sim_t *sim, drv_param_id_t id, float *value);
 

@@ -46,6 +46,7 @@
 
 #include "cbus.h"
 #include "co_node.h"
+#include "fmu_plant.h"
 #include "plant_config.h"
 #include "scd.h"
 #include "sim.h"
@@ -87,6 +88,7 @@ typedef struct {
     const char *config;
     plant_config_t cfg;
     sim_t sim;
+    fmup_t *fmu;           /* the FMU plant (docs/fmu.md), NULL: the built-in plant */
     float *rec_buf;
     float *table_buf;
     co_node_t node;
@@ -291,8 +293,12 @@ static void reset_hook(void *ctx)
 {
     /* NMT reset node: the drive and the plant start again from the configuration */
     axis_t *ax = ctx;
-    char err[256];
-    if (sim_init(&ax->sim, &ax->cfg, ax->rec_buf, ax->table_buf, err, sizeof err) != 0) {
+    char err[1024];
+    if (ax->fmu != NULL && fmup_restart(ax->fmu, err, sizeof err) != 0) {
+        fprintf(stderr, "drive_sim: reset node %d: %s\n", ax->node_id, err);
+    }
+    if (sim_init_ext(&ax->sim, &ax->cfg, ax->fmu ? fmup_ext(ax->fmu) : NULL, ax->rec_buf, ax->table_buf, err,
+                     sizeof err) != 0) {
         fprintf(stderr, "drive_sim: reset node %d: %s\n", ax->node_id, err);
     }
 }
@@ -496,7 +502,7 @@ static void loop_realtime(app_t *app)
 int main(int argc, char **argv)
 {
     static app_t app;
-    char err[512];
+    char err[2048];
     if (parse_args(&app.o, argc, argv) != 0) {
         return 2;
     }
@@ -523,7 +529,13 @@ int main(int argc, char **argv)
             fprintf(stderr, "drive_sim: error: out of memory (recorder of %u floats)\n", (unsigned)ax->cfg.rec_capacity);
             return 2;
         }
-        if (sim_init(&ax->sim, &ax->cfg, ax->rec_buf, ax->table_buf, err, sizeof err) != 0) {
+        if (ax->cfg.fmu && (ax->fmu = fmup_open_file(ax->config, 1.0 / (double)(float)ax->cfg.fs_hz, err,
+                                                     sizeof err)) == NULL) {
+            fprintf(stderr, "drive_sim: error: %s\n", err); /* (the file and FMU named in err) */
+            return 2;
+        }
+        if (sim_init_ext(&ax->sim, &ax->cfg, ax->fmu ? fmup_ext(ax->fmu) : NULL, ax->rec_buf, ax->table_buf, err,
+                         sizeof err) != 0) {
             fprintf(stderr, "drive_sim: error: %s: %s\n", ax->config ? ax->config : "built-in config", err);
             return 2;
         }
@@ -640,6 +652,9 @@ int main(int argc, char **argv)
     }
     if (app.scd) {
         scd_close(app.scd);
+    }
+    for (int i = 0; i < app.n_axes; i++) {
+        fmup_close(app.ax[i].fmu);
     }
     return 0;
 }
