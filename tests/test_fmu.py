@@ -580,6 +580,7 @@ def test_an_nmt_reset_node_starts_the_fmu_again(tmp_path):
             again = np.asarray(d.run(req, signals=("motor_angle",)).signals["motor_angle"])
             d.node.nmt.state = "RESET"
             time.sleep(0.3)
+            d.write(0x1016, 1, (127 << 16) | 1000)   # the reset cleared the consumer: re-arm it
             d.enable()
             reset = np.asarray(d.run(req, signals=("motor_angle",)).signals["motor_angle"])
     finally:
