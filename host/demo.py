@@ -100,8 +100,23 @@ def run(args):
     if previous is not None:
         print(f"fftune demo: the earlier {os.path.relpath(out)} is kept as {os.path.relpath(previous)}")
     print("\n".join(summary_lines(results, out)))
+    print(_clock_note(results, args.realtime))
     print(f"fftune demo: done in {time.monotonic() - t0:.1f} s; open {os.path.relpath(out)}/report.html")
     return 0
+
+
+def _clock_note(results, realtime):
+    """What the time budget's columns are: excitation on the drive's (simulated) clock,
+    the rest on the host's wall clock."""
+    total = (results.get("time_budget_s") or {}).get("total") or {}
+    exc = total.get("excitation")
+    if exc is None:
+        return "  (no time budget)"
+    if realtime:
+        return (f"  (excitation: the drive's clock, here real time (--realtime); bus, host and "
+                f"wall: the host's clock)")
+    return (f"  (excitation: simulated time; drive_sim free-runs faster than real time, a real "
+            f"drive needs the {exc:.0f} s of excitation plus the bus time; bus, host, wall: real time)")
 
 
 def _run(args, cfg, out, bitrate):
