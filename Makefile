@@ -23,7 +23,7 @@ help:
 	@echo "make pil          the drive for an STM32F405 (Cortex-M4F, qemu netduinoplus2) with configs/pil.yaml's plant, with sizes"
 	@echo "make pil-run      pil + start it in qemu-system-arm; prints its SLCAN channel (socket://127.0.0.1:PORT)"
 	@echo "make mutation     mutation testing (C harness + cosmic-ray), scores per module; long, resumable"
-	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils, valgrind, octave, chromium"
+	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils, valgrind, octave (+ control), chromium"
 	@echo "make clean"
 
 setup: $(STAMP) firmware
@@ -127,7 +127,7 @@ system-deps:
 	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
 	    python3-venv gcc make gcc-arm-none-eabi libnewlib-arm-none-eabi \
 	    qemu-system-x86 qemu-system-arm linux-image-amd64 busybox-static cpio kmod \
-	    can-utils clang llvm libclang-rt-14-dev valgrind octave chromium >/dev/null
+	    can-utils clang llvm libclang-rt-14-dev valgrind octave octave-control chromium >/dev/null
 
 clean:
 	@$(MAKE) --no-print-directory -C firmware_sim clean
