@@ -84,6 +84,12 @@ def run(args):
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     cfg["sim"]["bitrate"] = bitrate  # the steps' default capture follows it (Session.capture_mode)
     check_bus(args.interface, args.channel, bitrate)  # before anything is moved or written
+    if args.interface == "socketcan":
+        from fftune.analysis.errors import FftuneError
+        from fftune.host.socketcan_check import socketcan_problem
+        problem = socketcan_problem(args.channel)
+        if problem:
+            raise FftuneError(f"-i socketcan -c {args.channel}: {problem}")
     preflight(cfg)                                    # what the configuration alone tells
     out = check_output_dir(args.out or cfg["output"], create=False)
     previous = _set_aside_previous(out)
