@@ -129,7 +129,8 @@ def loop_comparison(results):
         i = min(range(len(sw["k_fc"])), key=lambda j: abs(sw["k_fc"][j] - t["k_fc_star"]))
         rows.append({"what": "the sweep's point nearest K_fc*", "k_fc_v": sw["k_fc"][i], "k_v": 0.0,
                      "rms_error_rad": sw["rms_error_rad"][i], "ratio": sw["ratio"][i]})
-    if e.get("sweep_min") is not None:
+    same_as_run = (not sw and e.get("sweep_min_at_k_fc") == ver and e.get("sweep_min") == e.get("k_fc_star"))
+    if e.get("sweep_min") is not None and not same_as_run:
         rows.append({"what": "the sweep's smallest rms error" if sw else
                      "the search's smallest rms error",
                      "k_fc_v": e.get("sweep_min_at_k_fc"),
@@ -280,8 +281,9 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
                  tune_data["p_rms"])]
         if tune_data.get("p_kv") is not None:
             recs.append((rows.get("recommended: K_fc* and K_v*"), tune_data["p_kv"]))
-        if not results.get("tune") or any(r is None for r, _ in recs):
+        if not results.get("tune") or recs[0][0] is None or recs[1][0] is None:
             return made
+        recs = [(r, p) for r, p in recs if r is not None]   # (the smallest: the run itself)
         if any(not p["record"].signals for _, p in recs):
             # capture: stats uploads no samples; the time response needs raw (capture: both)
             return made
