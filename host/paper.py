@@ -342,15 +342,16 @@ def paper_figures(out, results, data, sim_data, numbers):
         i = [x["rms_requested"] for x in results["detect"]["levels"]].index(lv["rms_requested"])
         made["figure3_output_spectrum_paper_level"] = save_figure(out, "figure3_output_spectrum_paper_level", plots.figure3(
             levels.results[i], title=f"Output spectrum at {lv['rms_requested']:g} V rms (the paper's level)",
-            unit="rad"), f"Figure 3 (the paper's level, {lv['rms_requested']:g} V rms): BLA output, "
-            f"nonlinear and noise levels, non-excited odd and even lines.")
+            unit="rad"), f"Output spectrum at the paper's level, {lv['rms_requested']:g} V rms (the "
+            f"paper's Figure 3): BLA output, nonlinear and noise levels, non-excited odd and even lines.")
     std = sim_data.get("tune_data")
     if std is not None:
         made["figure7_simulation"] = save_figure(out, "figure7_simulation", plots.figure7(
             std["k_sweep"], std["H_sweep"], std["ratio_sweep"], k_star=std["k_star"],
             title="Simulation (idealised model): odd HOSIDFs vs K_fc"),
-            f"Figure 7 (simulation, configs/plant_paper_sim.yaml): |H_3|, |H_5|, |H_7|, their "
-            f"unwrapped phases and the odd-harmonic ratio vs K_fc; H_3 turns by "
+            f"Odd HOSIDFs vs K_fc on the idealised simulation model (the paper's Figure 7): "
+            f"|H_3|, |H_5|, |H_7|, their unwrapped phases and the odd-harmonic ratio vs K_fc "
+            f"(configs/plant_paper_sim.yaml); H_3 turns by "
             f"{_num(numbers.get('h3_phase_turn_deg'), '.0f')} deg, H_5 by "
             f"{_num(numbers.get('h5_phase_turn_deg'), '.0f')} deg across K_fc* = {std['k_star']:.4g} V "
             f"(the paper: 180 deg).")
@@ -358,8 +359,9 @@ def paper_figures(out, results, data, sim_data, numbers):
     if td is not None:
         made["figure8_setup_sweep"] = save_figure(out, "figure8_setup_sweep", plots.figure8(
             td["k_sweep"], td["H_sweep"], td.get("H_std_sweep"), k_star=td["k_star"]),
-            f"Figure 8 (the simulated set-up II, configs/plant_paper.yaml): odd HOSIDFs, unwrapped "
-            f"phases, odd and even levels re H_1 vs K_fc (mean over the recorded periods, "
+            f"Odd and even HOSIDF levels vs K_fc on the simulated set-up II (the paper's Figure 8): "
+            f"odd HOSIDFs, unwrapped phases, odd and even levels re H_1 vs K_fc "
+            f"(configs/plant_paper.yaml; mean over the recorded periods, "
             f"dots: their standard deviation); odd {100 * numbers['odd_ratio_at_0']:.3g} % at K_fc = 0 -> "
             f"{100 * numbers['odd_ratio_at_star']:.3g} % at K_fc* = {numbers['kfc_star_v']:.4g} V, even "
             f"{100 * numbers['even_ratio_at_0']:.3g} % -> {100 * numbers['even_ratio_at_star']:.3g} % "
