@@ -566,7 +566,9 @@ def write_machine(out, summary):
             f"{tot['excitation']:.1f} s (all axes {tot['excitation_sum']:.1f} s in sequence); "
             f"bus {tot['bus']:.2f} s; wall / longest excitation "
             f"{tot['wall_re_longest_excitation'] if tot['wall_re_longest_excitation'] is not None else 'n/a'}.</p>"
-            f"<pre>{html.escape(yaml.safe_dump(summary, sort_keys=False, width=100))}</pre></body></html>")
+            "<p>What to set on each axis: its report (the link), first line.</p>"
+            f"<details><summary>All results (results.yaml)</summary>"
+            f"<pre>{html.escape(yaml.safe_dump(summary, sort_keys=False, width=100))}</pre></details></body></html>")
     write_atomic(os.path.join(out, "report.html"), page)
 
 
