@@ -720,7 +720,11 @@ def drift_plots(rows, out_dir):
     date; the time axis spans the dates (a single analysis: a day around it), the title
     names the axis from its results (:func:`_names_for`). Returns the files written."""
     written = []
-    for (machine, axis), rs in sorted(_groups(rows).items()):
+    groups = sorted(_groups(rows).items())
+    names = [rs[-1].get("_display") or f"{m} / {a}" for (m, a), rs in groups]
+    for ((machine, axis), rs), name in zip(groups, names):
+        if names.count(name) > 1:     # one drive in several folders: say which plot is which
+            rs = [dict(r, _display=f"{name} [{machine}/{axis}]") for r in rs]
         fig = drift_figure(rs, machine, axis)
         path = os.path.join(out_dir, f"drift_{_safe(machine)}_{_safe(axis)}.png")
         fig.savefig(path + ".tmp.png", dpi=90)
