@@ -117,12 +117,19 @@ def loop_comparison(results):
     if not t:
         return []
     s, e = t["search"], t["rms_error_rad"]
-    kv_search = s.get("k_v_in_search") or 0.0
+    # the K_v the search's runs had in the loop: the evaluation's own (k_v), else the one
+    # read at K_fc = 0 (search.budget.viscous; search.k_v_in_search is the corrected value a
+    # lag re-read used, not the runs')
+    kv_search = (((s.get("budget") or {}).get("viscous") or {}).get("k_v_in_search")
+                 or s.get("k_v_in_search") or 0.0)
+
+    def kv_at(k):
+        ev = [x for x in s.get("evaluations") or [] if x.get("k_fc") == k and "k_v" in x]
+        return ev[0]["k_v"] if ev else (kv_search if k else 0.0)
     rows = [{"what": "no feed-forward", "k_fc_v": 0.0, "k_v": 0.0,
              "rms_error_rad": e.get("k_fc_0"), "ratio": t.get("ratio_at_zero")}]
     ver = s.get("verification_k_fc")
-    rows.append({"what": "the search's run nearest K_fc*", "k_fc_v": ver,
-                 "k_v": kv_search if ver else 0.0,
+    rows.append({"what": "the search's run nearest K_fc*", "k_fc_v": ver, "k_v": kv_at(ver),
                  "rms_error_rad": e.get("k_fc_star"), "ratio": t.get("ratio_at_k_fc_star")})
     sw = t.get("sweep")
     if sw and sw.get("k_fc") and sw.get("rms_error_rad") and t.get("k_fc_star") is not None:
@@ -134,7 +141,7 @@ def loop_comparison(results):
         rows.append({"what": "the sweep's smallest rms error" if sw else
                      "the search's smallest rms error",
                      "k_fc_v": e.get("sweep_min_at_k_fc"),
-                     "k_v": 0.0 if sw else (kv_search if e.get("sweep_min_at_k_fc") else 0.0),
+                     "k_v": 0.0 if sw else kv_at(e.get("sweep_min_at_k_fc")),
                      "rms_error_rad": e.get("sweep_min"), "ratio": None})
     v = t.get("viscous")
     if v:

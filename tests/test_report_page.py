@@ -50,10 +50,12 @@ def page(tmp_path_factory):
         return orig(fs, reference, outputs, errors, title, rms_in_legend)
     mp = pytest.MonkeyPatch()
     mp.setattr(plots, "figure9", spy)
+    data = {}
     try:
-        results = run_pipeline(drive, cfg, str(out), log=lambda s: None)
+        results = run_pipeline(drive, cfg, str(out), log=lambda s: None, data=data)
     finally:
         mp.undo()
+    labels["tune_data"] = data["tune_data"]
     return out, results, labels
 
 
@@ -90,7 +92,10 @@ def test_like_for_like_rows_say_what_was_in_the_loop(page):
     # the sweep ran at K_v = 0, the search with its own K_v, the recommendation with K_v*
     assert by["the sweep's smallest rms error"]["k_v"] == 0.0
     assert by["the sweep's point nearest K_fc*"]["k_v"] == 0.0
-    assert by["the search's run nearest K_fc*"]["k_v"] == (t["search"]["k_v_in_search"] or 0.0)
+    # the K_v the verification run really had (the probe's record), not a later correction
+    p_star = labels["tune_data"]["p_star"]
+    assert by["the search's run nearest K_fc*"]["k_v"] == pytest.approx(p_star["kv"], rel=1e-6)
+    assert by["the search's run nearest K_fc*"]["k_fc_v"] == pytest.approx(p_star["kfc"], rel=1e-6)
     assert by["recommended: K_fc* and K_v*"]["k_v"] == t["viscous"]["k_v_star"]
     near = by["the sweep's point nearest K_fc*"]
     k = np.asarray(t["sweep"]["k_fc"])
