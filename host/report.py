@@ -388,7 +388,7 @@ def detail_rows(results):
         rows += [
             ("sigma_total(K_fc*) parts", ", ".join(f"{k} {sigma_text(v)}" for k, v in
                                                    (s.get("sigma_parts_v") or {}).items()) or "-"),
-            ("K_v in the loop during the search", gain_text(s.get("k_v_in_search") or 0.0, "V s/rad")),
+            ("K_v in the loop during the search", _search_kv_text(s)),
             ("tune amplitude, frequency", f"{t['amplitude_rad']:.3g} rad, {t['frequency_hz']:g} Hz"),
         ]
     d = results.get("detect")
@@ -404,6 +404,15 @@ def detail_rows(results):
             rows.append(("highest level: odd re even (power ratio)",
                          _fmt(top.get("odd_re_even_db"), " dB")))
     return rows
+
+
+def _search_kv_text(s):
+    runs = ((s.get("budget") or {}).get("viscous") or {}).get("k_v_in_search")
+    final = s.get("k_v_in_search") or 0.0
+    if runs is None or runs == final:
+        return gain_text(final, "V s/rad")
+    return (f"{gain_text(runs, 'V s/rad')} (read at K_fc = 0); K_fc* read again with "
+            f"{gain_text(final, 'V s/rad')} (the motor's lag corrected)")
 
 
 def comparison_table(results):
