@@ -261,3 +261,16 @@ def test_error_spectrum_amplitude_at_harmonics():
     assert ydb[0] == pytest.approx(20 * np.log10(0.02), abs=1e-6)
     assert ydb[2] == pytest.approx(20 * np.log10(0.005), abs=1e-6)
     assert ydb[1] < -200
+
+
+def test_terminal_summary_is_short_and_the_budget_names_its_clocks(page):
+    from fftune.host.demo import _clock_note
+
+    _, results, _ = page
+    # make demo's terminal: 2 setup lines, drive_sim, 3 steps, these, 5 budget lines, the
+    # clock note and "done" stay under 30 lines
+    assert len(report.key_numbers(results)) <= 14
+    sim = _clock_note({"time_budget_s": {"total": {"excitation": 292.8}}}, realtime=False)
+    assert "simulated time" in sim and "293 s of excitation" in sim and "wall: real time" in sim
+    real = _clock_note({"time_budget_s": {"total": {"excitation": 292.8}}}, realtime=True)
+    assert "real time (--realtime)" in real and "simulated" not in real
