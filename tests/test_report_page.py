@@ -150,7 +150,8 @@ def _page_height(html_path, width=1280):
         "</body>", "<script>window.addEventListener('load',()=>document.body.setAttribute("
                    "'data-h',document.documentElement.scrollHeight))</script></body>"))
     try:
-        out = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu",
+        out = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                              f"--user-data-dir={html_path.parent / 'chromium-profile'}",
                               f"--window-size={width},900", "--virtual-time-budget=5000",
                               "--dump-dom", probe.as_uri()],
                              capture_output=True, text=True, timeout=120).stdout
