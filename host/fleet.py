@@ -257,8 +257,6 @@ def _names_for(folder):
     YYYY-MM); ``display`` names the axis for a person (the results' axis block, else the
     drive's identity: device name, serial, node). A damaged results.yaml axis block raises
     FftuneError naming the key (the task makes it the row's reason)."""
-    import yaml
-
     machine, axis, out_dir = _folder_names(folder)
     node_id, truth, display = None, None, None
     res_path = os.path.join(out_dir, "results.yaml")

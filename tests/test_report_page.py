@@ -3,7 +3,6 @@ in V and N m, with sigma), like-for-like rows (each with the feed-forward in the
 number per quantity (table, figure legends, results.yaml), the raw results collapsed, the
 page height in headless Chromium, and the legend rule (no legend over an axes) for every
 figure of fftune.analysis.plots."""
-import os
 import re
 import shutil
 import subprocess
