@@ -1,4 +1,9 @@
-"""Results of a session: ``results.yaml``, the paper's figures (PNG) and an HTML report."""
+"""Results of a session: ``results.yaml``, the figures (PNG) and ``report.html``, a decision
+page: what to set first (:func:`recommendation`), then the loop with and without the
+feed-forward compared like with like (:func:`loop_comparison`), the key numbers, the figures
+titled by what they show; every number through one formatter (:func:`gain_text`,
+:func:`sigma_text`, :func:`rms_text`) so that the table, the legends, the terminal and
+results.yaml's ``recommendation`` show one value per quantity."""
 import datetime
 import html
 import os
