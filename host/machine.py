@@ -559,6 +559,8 @@ def write_machine(out, summary):
             f"<h1>fftune machine {html.escape(summary['machine'])}</h1>"
             f"<p>{html.escape(summary['started'])} .. {html.escape(summary['finished'])}; "
             f"{len(summary['axes'])} axes tuned concurrently on one bus.</p>"
+            "<p><b>What to set:</b> each axis' K_fc* below on object 0x2000:04 of its node; its "
+            "K_v and the loop with and without the feed-forward: the axis' report (the link).</p>"
             "<table><tr><th>axis</th><th>node</th><th>status</th><th>K_fc*</th><th>sigma</th>"
             "<th>true (sim)</th><th>error re truth</th><th>excitation</th><th>verdict / error</th></tr>"
             + "".join(rows) + "</table>"
@@ -566,7 +568,6 @@ def write_machine(out, summary):
             f"{tot['excitation']:.1f} s (all axes {tot['excitation_sum']:.1f} s in sequence); "
             f"bus {tot['bus']:.2f} s; wall / longest excitation "
             f"{tot['wall_re_longest_excitation'] if tot['wall_re_longest_excitation'] is not None else 'n/a'}.</p>"
-            "<p>What to set on each axis: its report (the link), first line.</p>"
             f"<details><summary>All results (results.yaml)</summary>"
             f"<pre>{html.escape(yaml.safe_dump(summary, sort_keys=False, width=100))}</pre></details></body></html>")
     write_atomic(os.path.join(out, "report.html"), page)
