@@ -535,6 +535,7 @@ def machine_summary(machine, axes, wall_s, started, bus_model=None, measure_wall
 
 def write_machine(out, summary):
     """``<out>/results.yaml`` (the summary) and ``<out>/report.html`` (one page)."""
+    from fftune.host.report import _object_of
     write_atomic(os.path.join(out, "results.yaml"),
                  yaml.safe_dump(summary, sort_keys=False, default_flow_style=None, width=100))
 
@@ -559,7 +560,7 @@ def write_machine(out, summary):
             f"<h1>fftune machine {html.escape(summary['machine'])}</h1>"
             f"<p>{html.escape(summary['started'])} .. {html.escape(summary['finished'])}; "
             f"{len(summary['axes'])} axes tuned concurrently on one bus.</p>"
-            "<p><b>What to set:</b> each axis' K_fc* below on object 0x2000:04 of its node; its "
+            f"<p><b>What to set:</b> each axis' K_fc* below on object {_object_of('kfc')[0]} of its node; its "
             "K_v and the loop with and without the feed-forward: the axis' report (the link).</p>"
             "<table><tr><th>axis</th><th>node</th><th>status</th><th>K_fc*</th><th>sigma</th>"
             "<th>true (sim)</th><th>error re truth</th><th>excitation</th><th>verdict / error</th></tr>"
