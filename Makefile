@@ -15,7 +15,7 @@ help:
 	@echo "make setup        venv (.venv) with pinned deps + firmware_sim build (other targets do it)"
 	@echo "make demo         the main job on the simulated drive (writes out/demo/)"
 	@echo "make demo-machine a simulated 4-axis machine on one 1 Mbit/s bus, every axis tuned at once (out/machine_demo/)"
-	@echo "make paper        the paper's results reproduced side by side (out/paper/, docs/paper-reproduction.md)"
+	@echo "make paper        the paper's results reproduced side by side (out/paper/: report.html, paper-reproduction.md)"
 	@echo "make demo-track   K_fc tracked from the repeated task on a drifting simulated plant (writes out/demo-track/)"
 	@echo "make test         every test, C and Python (parallel: TEST_WORKERS=auto; prints its wall time)"
 	@echo "make bench        benchmarks, printing their figures"
@@ -23,20 +23,28 @@ help:
 	@echo "make pil          the drive for an STM32F405 (Cortex-M4F, qemu netduinoplus2) with configs/pil.yaml's plant, with sizes"
 	@echo "make pil-run      pil + start it in qemu-system-arm; prints its SLCAN channel (socket://127.0.0.1:PORT)"
 	@echo "make mutation     mutation testing (C harness + cosmic-ray), scores per module; long, resumable"
-	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils, valgrind, octave"
+	@echo "make system-deps  (root) optional Debian packages: qemu, kernel, arm gcc, clang, can-utils, valgrind, octave (+ control), chromium"
 	@echo "make clean"
 
 setup: $(STAMP) firmware
 
+# A first run prints one line for the venv and one for the C build; their full output goes
+# to build/setup-pip.log and build/firmware.log, printed only when they fail.
 $(STAMP): pyproject.toml requirements.lock
 	@$(PYTHON) -c 'import ensurepip, venv' 2>/dev/null || { echo "make setup: python3 venv support missing: apt-get install python3-venv" >&2; exit 1; }
-	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install -q --disable-pip-version-check -r requirements.lock
-	$(VENV)/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+	@mkdir -p build; log=build/setup-pip.log; start=$$(date +%s); \
+	if { $(PYTHON) -m venv $(VENV) && \
+	     $(VENV)/bin/python -m pip install -q --disable-pip-version-check -r requirements.lock && \
+	     $(VENV)/bin/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e . ; } >$$log 2>&1; then \
+	    echo "make setup: .venv with the pinned dependencies in $$(( $$(date +%s) - start )) s (log: $$log)"; \
+	else rc=$$?; cat $$log >&2; echo "make setup: pip failed with status $$rc (output above, kept in $$log)" >&2; exit $$rc; fi
 	@touch $@
 
 firmware: $(STAMP)
-	@$(FW) all
+	@mkdir -p build; log=build/firmware.log; start=$$(date +%s); \
+	if $(FW) all >$$log 2>&1; then \
+	    [ -s $$log ] && echo "make setup: firmware_sim built, $$(grep -c -- '-o ' $$log) targets in $$(( $$(date +%s) - start )) s (log: $$log)"; true; \
+	else rc=$$?; cat $$log >&2; echo "make setup: the firmware_sim build failed with status $$rc (output above, kept in $$log)" >&2; exit $$rc; fi
 
 demo: setup
 	@$(VENV)/bin/fftune demo
@@ -44,10 +52,12 @@ demo: setup
 demo-machine: setup
 	@$(VENV)/bin/fftune demo --machine configs/machine_demo.yaml
 
-# The paper's results beside the measured ones: out/paper/reproduction.json, figures, report,
-# and docs/paper-reproduction.md rewritten from its template (docs/paper-reproduction.md).
+# The paper's results beside the measured ones: out/paper/reproduction.json, figures, report
+# and out/paper/paper-reproduction.md (the docs page's table, from its template; the tracked
+# docs/paper-reproduction.md is only written on purpose: `fftune paper --doc docs/...`).
 paper: setup
-	@$(VENV)/bin/fftune paper --no-progress --doc docs/paper-reproduction.md
+	@$(VENV)/bin/fftune paper --no-progress --doc out/paper/paper-reproduction.md \
+	    --template docs/paper-reproduction.template.md
 
 # friction tracking from the repeated task on a drifting simulated plant (docs/track.md)
 demo-track: setup
@@ -117,7 +127,7 @@ system-deps:
 	DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
 	    python3-venv gcc make gcc-arm-none-eabi libnewlib-arm-none-eabi \
 	    qemu-system-x86 qemu-system-arm linux-image-amd64 busybox-static cpio kmod \
-	    can-utils clang llvm libclang-rt-14-dev valgrind octave >/dev/null
+	    can-utils clang llvm libclang-rt-14-dev valgrind octave octave-control chromium >/dev/null
 
 clean:
 	@$(MAKE) --no-print-directory -C firmware_sim clean

@@ -188,7 +188,10 @@ class BLAResult:
         control.FrequencyResponseData
             ``control.frd(G, 2 pi freq)``: G_BLA at the excited lines, frequencies in
             rad/s (python-control's unit). python-control is optional (``pip install
-            control``), imported here only.
+            control``), imported here only. Its FRD has no field for an estimate's
+            variance: ``var_total`` and ``var_noise`` (arrays over the same lines, or None)
+            ride along as attributes of the returned object (FRD arithmetic drops them;
+            :mod:`fftune.analysis.frf_export` writes them for MATLAB).
 
         Raises
         ------
@@ -200,7 +203,9 @@ class BLAResult:
         except ImportError:
             raise ImportError("BLAResult.to_frd needs python-control, which is not installed "
                               "(pip install control)") from None
-        return control.frd(np.asarray(self.G, dtype=complex), 2 * np.pi * np.asarray(self.freq))
+        frd = control.frd(np.asarray(self.G, dtype=complex), 2 * np.pi * np.asarray(self.freq))
+        frd.var_total, frd.var_noise = self.var_total, self.var_noise
+        return frd
 
     @property
     def odd_freq(self):

@@ -7,7 +7,10 @@ from the suffix, PNG by default) and returns the path.
 * :func:`plot_output_spectrum` -- Figure 3: output spectrum with BLA output, nonlinear
   and noise levels, odd and even detection lines.
 * :func:`plot_bla_levels` -- Figure 4: BLA vs frequency and excitation level.
-  :func:`plot_bla` -- one BLA with its standard deviations.
+  :func:`plot_bla` -- one BLA with its standard deviations (and confidence band).
+* :func:`figure_error_spectrum` -- tracking-error spectra (the loop without / with
+  feed-forward).
+* :func:`legend_outside_data` -- the rule every figure keeps: no legend over an axes.
 * :func:`plot_hosidf_amplitude` -- Figure 5: HOSIDFs vs amplitude with std.
   :func:`plot_hosidf_harmonics` -- one experiment's |H_k| and phases.
 * :func:`plot_tuning` -- Figure 7: |H_3|, |H_5|, |H_7|, unwrapped phases and ratio (%) vs K_fc.
@@ -23,6 +26,7 @@ from matplotlib.figure import Figure
 from fftune.analysis.errors import InputError
 
 __all__ = ["figure3", "figure4", "figure5", "figure7", "figure8", "figure9", "figure_bla",
+           "figure_error_spectrum", "legend_outside_data",
            "figure_hosidf_harmonics", "plot_output_spectrum", "plot_bla", "plot_bla_levels",
            "plot_hosidf_amplitude", "plot_hosidf_harmonics", "plot_tuning",
            "plot_time_response"]
@@ -43,6 +47,32 @@ def _save(fig, path):
     atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=110), overwrite=True,
                  suffix="." + fmt)
     return path
+
+
+def _legend_outside(ax, **kw):
+    """The legend of ``ax`` to the right of its data area (never over the data): anchored
+    at the axes' top-right corner, outside it; the constrained layout makes room."""
+    kw.setdefault("fontsize", 7)
+    return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, **kw)
+
+
+def legend_outside_data(fig):
+    """The legends of ``fig`` that overlap an axes' data area (display boxes after a draw):
+    a list of (axes title or index, legend) pairs, empty when every legend is outside.
+    The report's rule: a legend never covers data (tests check every figure with it)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    bad = []
+    legends = [(ax, ax.get_legend()) for ax in fig.axes] + [(None, lg) for lg in fig.legends]
+    for owner, lg in legends:
+        if lg is None:
+            continue
+        box = lg.get_window_extent(renderer)
+        for i, ax in enumerate(fig.axes):
+            a = ax.get_window_extent(renderer)
+            if box.x0 < a.x1 - 0.5 and box.x1 > a.x0 + 0.5 and box.y0 < a.y1 - 0.5 and box.y1 > a.y0 + 0.5:
+                bad.append((ax.get_title() or i, lg))
+    return bad
 
 
 def _plain_log_axis(ax, axis="x"):
@@ -107,7 +137,7 @@ def figure3(result, title=None, unit="unit"):
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel(f"amplitude (dB re 1 {unit})")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
+    _legend_outside(ax)
     ax.set_title(title or "Output spectrum: BLA, nonlinear and noise levels")
     return fig
 
@@ -117,13 +147,34 @@ def plot_output_spectrum(result, path, title=None, unit="unit"):
     return _save(figure3(result, title, unit), path)
 
 
-def figure_bla(result, title=None, g_unit="y/u"):
+def figure_bla(result, title=None, g_unit="y/u", band_p=None):
     """One BLA: magnitude with its total and noise standard deviations, phase.
 
     ``g_unit``: the BLA's unit, output per input (e.g. "rad/V"); the magnitude axis is
-    in dB re 1 ``g_unit``."""
+    in dB re 1 ``g_unit``. ``band_p`` (e.g. 0.95): also the confidence band of |G| and of
+    the phase at that probability, shaded: a circle of radius r = sqrt(s2_BLA ln(1 / (1 -
+    p))) around G (the estimate's error taken circular complex normal with variance
+    s2_BLA = ``var_total``: P(|error| > r) = exp(-r^2 / s2_BLA) = 1 - p)."""
     fig, (ax_m, ax_p) = _figure(rows=2, height=3.0)
-    ax_m.plot(result.freq, _db20(result.G), "k", label="G_BLA")
+    G = np.asarray(result.G)
+    phase = np.degrees(np.unwrap(np.angle(G)))
+    if band_p is not None:
+        if not 0.0 < band_p < 1.0:
+            raise InputError(f"figure_bla: band_p must be in (0, 1), got {band_p!r}")
+        if result.var_total is None:
+            raise InputError("figure_bla: a confidence band needs the BLA's variance (var_total): "
+                             "at least two realizations")
+        r = np.sqrt(np.asarray(result.var_total, dtype=float) * np.log(1.0 / (1.0 - band_p)))
+        mag = np.abs(G)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lo = np.where(mag > r, 20 * np.log10(np.maximum(mag - r, 1e-300)), np.nan)
+            dphi = np.degrees(np.where(mag > r, np.arcsin(np.minimum(r / mag, 1.0)), np.pi))
+        ax_m.fill_between(result.freq, np.where(np.isfinite(lo), lo, np.nanmin(_db20(G)) - 40.0),
+                          _db20(mag + r), color="tab:blue", alpha=0.25, lw=0,
+                          label=f"{100 * band_p:g} % confidence band")
+        ax_p.fill_between(result.freq, phase - dphi, phase + dphi, color="tab:blue", alpha=0.25,
+                          lw=0, label=f"{100 * band_p:g} % confidence band")
+    ax_m.plot(result.freq, _db20(G), "k", label="G_BLA")
     if result.var_total is not None:
         ax_m.plot(result.freq, _db10(result.var_total), "tab:red", lw=0.8,
                   label="std total (s2_BLA)")
@@ -131,9 +182,11 @@ def figure_bla(result, title=None, g_unit="y/u"):
         ax_m.plot(result.freq, _db10(result.var_noise), "tab:green", lw=0.8,
                   label="std noise (s2_BLA,n)")
     ax_m.set_ylabel(f"|G| (dB re 1 {g_unit})")
-    ax_m.legend(fontsize=7)
-    ax_p.plot(result.freq, np.degrees(np.unwrap(np.angle(result.G))), "k")
+    _legend_outside(ax_m)
+    ax_p.plot(result.freq, phase, "k", label="G_BLA")
     ax_p.set_ylabel("phase (deg)")
+    if band_p is not None:
+        _legend_outside(ax_p)
     for ax in (ax_m, ax_p):
         _plain_log_axis(ax)
         ax.grid(True, which="both", alpha=0.3)
@@ -142,9 +195,61 @@ def figure_bla(result, title=None, g_unit="y/u"):
     return fig
 
 
-def plot_bla(result, path, title=None, g_unit="y/u"):
+def figure_error_spectrum(fs, errors, title=None, unit="rad", f0=None, n_harmonics=25):
+    """Amplitude spectra of tracking errors (one line each), e.g. the loop without and
+    with the feed-forward.
+
+    Parameters
+    ----------
+    fs : float
+        Sample rate (Hz).
+    errors : dict of str -> array_like (n,)
+        Label -> tracking error record (whole periods of the excitation: the spectrum is
+        the record's DFT, no window; amplitude 2 |X_k| / n of a sine at line k).
+    unit : str
+        Unit of the error (dB re 1 ``unit`` amplitude).
+    f0 : float, optional
+        The excitation's frequency (Hz): only its harmonics 1 .. ``n_harmonics`` are drawn
+        (markers; the periodic part of the error), else every line up to fs/2.
+    """
+    fig, (ax,) = _figure(height=3.2)
+    n0 = None
+    floor = None
+    for label, e in errors.items():
+        e = np.asarray(e, dtype=float).reshape(-1)
+        if n0 is None:
+            n0 = e.size
+        if e.size != n0 or e.size < 4:
+            raise InputError(f"figure_error_spectrum: error {label!r} has {e.size} samples, "
+                             f"expected {n0} (at least 4)")
+        X = np.fft.rfft(e - e.mean())
+        f = np.arange(X.size) * float(fs) / e.size
+        amp = 2.0 * np.abs(X) / e.size
+        if f0 is not None:
+            k = np.rint(np.arange(1, n_harmonics + 1) * f0 * e.size / float(fs)).astype(int)
+            k = k[(k > 0) & (k < X.size)]
+            f, amp = f[k], amp[k]
+            style = dict(marker="o", ms=3, ls="none")
+        else:
+            f, amp = f[1:], amp[1:]
+            style = dict(lw=0.8)
+        db = _db20(np.maximum(amp, 1e-15))
+        floor = db.max() - 120.0 if floor is None else max(floor, db.max() - 120.0)
+        ax.plot(f, db, label=label, **style)
+    if floor is not None:
+        ax.set_ylim(bottom=floor)
+    _plain_log_axis(ax)
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel(f"tracking error amplitude (dB re 1 {unit})")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=7)
+    ax.set_title(title or "Tracking-error spectrum")
+    return fig
+
+
+def plot_bla(result, path, title=None, g_unit="y/u", band_p=None):
     """:func:`figure_bla` written to ``path``."""
-    return _save(figure_bla(result, title, g_unit), path)
+    return _save(figure_bla(result, title, g_unit, band_p), path)
 
 
 def figure4(levels, title=None, g_unit="unit/unit", level_unit="unit"):
@@ -172,7 +277,7 @@ def figure4(levels, title=None, g_unit="unit/unit", level_unit="unit"):
     for ax in (ax_m, ax_p):
         _plain_log_axis(ax)
         ax.grid(True, which="both", alpha=0.3)
-    ax_m.legend(fontsize=6, ncol=2)
+    _legend_outside(ax_m, fontsize=6, title="excitation", title_fontsize=6)
     ax_m.set_title(title or "BLA vs frequency and excitation level")
     return fig
 
@@ -241,7 +346,8 @@ def figure5(result, harmonics=(1, 3, 5, 7), frequency_index=None, title=None, un
             ax.grid(True, which="both", alpha=0.3)
             if c == 0:
                 ax.set_ylabel(f"|H_k| (dB re 1 {h_unit})")
-                ax.legend(fontsize=7, title="odd" if r == 0 else "even", title_fontsize=7)
+            if c == ncol - 1:
+                _legend_outside(ax, title="odd" if r == 0 else "even", title_fontsize=7)
             if r == rows - 1:
                 ax.set_xlabel(f"sine amplitude ({unit} rms)")
             if r == 0:
@@ -269,7 +375,7 @@ def figure_hosidf_harmonics(result, title=None):
     if np.all(np.isfinite(std)):
         ax_m.plot(k, _db20(std / ref), "k_", ms=14, label="std")
     ax_m.set_ylabel("dB re |H_1|")
-    ax_m.legend(fontsize=7)
+    _legend_outside(ax_m)
     ax_p.plot(k, np.degrees(np.angle(H)), "o")
     ax_p.set_ylabel("phase (deg)")
     ax_p.set_xlabel("harmonic k")
@@ -342,7 +448,7 @@ def figure7(k_fc, H, ratio=None, *, k_star=None, harmonics=(3, 5, 7), H_std=None
         if k_star is not None:
             ax.axvline(k_star, color="tab:red", lw=0.8, ls="--",
                        label=f"K_fc* = {k_star:.4g} V" if ax is ax_r else None)
-        ax.legend(fontsize=7, ncol=2 if ax is ax_m and H_std is not None else 1)
+        _legend_outside(ax)
     ax_m.set_title(title or "Odd HOSIDFs vs Coulomb feed forward K_fc")
     return fig
 
@@ -365,7 +471,7 @@ def plot_tuning(k_fc, H, path, ratio=None, *, k_star=None, harmonics=(3, 5, 7), 
                          title=title), path)
 
 
-def figure9(fs, reference, outputs, errors=None, title=None):
+def figure9(fs, reference, outputs, errors=None, title=None, rms_in_legend=True):
     """Figure 9: time responses and tracking errors for several K_fc.
 
     Parameters
@@ -377,6 +483,9 @@ def figure9(fs, reference, outputs, errors=None, title=None):
         Label (e.g. "K_fc = 0.1157") -> measured output.
     errors : dict of str -> array_like (n,), optional
         Measured tracking errors with the same labels; reference - output if omitted.
+    rms_in_legend : bool
+        Append each error's rms over the record to its label (off when the labels carry
+        the caller's own figure, so that one quantity shows one number).
     """
     reference = np.asarray(reference, dtype=float).reshape(-1)
     t = np.arange(reference.size) / float(fs)
@@ -390,18 +499,23 @@ def figure9(fs, reference, outputs, errors=None, title=None):
         err = reference - y if errors is None else np.asarray(errors[label], dtype=float)
         if err.shape != t.shape:
             raise InputError(f"figure9: error {label!r} has {err.size} samples, expected {t.size}")
-        ax_y.plot(t, y, lw=1, label=label)
-        ax_e.plot(t, err, lw=1, label=f"{label} (rms {np.sqrt(np.mean(err ** 2)):.3g} rad)")
+        line, = ax_y.plot(t, y, lw=1, label=f"{label} (rms error {np.sqrt(np.mean(err ** 2)):.3g} rad)"
+                          if rms_in_legend else label)
+        ax_e.plot(t, err, lw=1, color=line.get_color())
     ax_y.set_ylabel("motor angle (rad)")
     ax_e.set_ylabel("tracking error (rad)")
     ax_e.set_xlabel("time (s)")
     for ax in (ax_y, ax_e):
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7)
+    # one legend for both panels (the same lines), under the error panel: long labels
+    # (the feed-forward in the loop) take the page's width, not the plots'
+    handles, labels = ax_y.get_legend_handles_labels()
+    ax_e.legend(handles, labels, loc="upper left", bbox_to_anchor=(0.0, -0.25),
+                borderaxespad=0.0, fontsize=7)
     ax_y.set_title(title or "Closed-loop response for several K_fc")
     return fig
 
 
-def plot_time_response(fs, reference, outputs, path, errors=None, title=None):
+def plot_time_response(fs, reference, outputs, path, errors=None, title=None, rms_in_legend=True):
     """:func:`figure9` written to ``path``."""
-    return _save(figure9(fs, reference, outputs, errors, title), path)
+    return _save(figure9(fs, reference, outputs, errors, title, rms_in_legend), path)

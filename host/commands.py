@@ -73,6 +73,9 @@ def add_parser(sub):
     p.add_argument("captures", help="a capture file or a directory of them")
     p.add_argument("--format", choices=("mat", "csv"), default="mat")
     p.add_argument("--to", default=None, help="output directory (default: beside the captures)")
+    p.add_argument("--bla", action="store_true",
+                   help="instead: the detect step's BLA with its variances, one .mat per level "
+                        "(MATLAB frd/idfrd and FdiTools layouts; docs/capture-format.md)")
     p.set_defaults(func=_export)
 
 
@@ -185,7 +188,13 @@ def _import_canlog(args):
 
 def _export(args):
     from fftune.host.captures import export_captures
-    files = export_captures(args.captures, args.format, args.to)
+    if args.bla:
+        from fftune.host.bla_export import export_bla
+        if args.format != "mat":
+            raise FftuneError("--bla writes .mat only (--format mat)")
+        files = export_bla(args.captures, args.to)
+    else:
+        files = export_captures(args.captures, args.format, args.to)
     for f in files:
         print(f)
     return 0

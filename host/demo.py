@@ -86,6 +86,12 @@ def run(args):
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     cfg["sim"]["bitrate"] = bitrate  # the steps' default capture follows it (Session.capture_mode)
     check_bus(args.interface, args.channel, bitrate)  # before anything is moved or written
+    if args.interface == "socketcan":
+        from fftune.analysis.errors import FftuneError
+        from fftune.host.socketcan_check import socketcan_problem
+        problem = socketcan_problem(args.channel)
+        if problem:
+            raise FftuneError(f"-i socketcan -c {args.channel}: {problem}")
     preflight(cfg)                                    # what the configuration alone tells
     out = check_output_dir(args.out or cfg["output"], create=False)
     previous = _set_aside_previous(out)
@@ -102,8 +108,23 @@ def run(args):
     if previous is not None:
         print(f"fftune demo: the earlier {os.path.relpath(out)} is kept as {os.path.relpath(previous)}")
     print("\n".join(summary_lines(results, out)))
+    print(_clock_note(results, args.realtime))
     print(f"fftune demo: done in {time.monotonic() - t0:.1f} s; open {os.path.relpath(out)}/report.html")
     return 0
+
+
+def _clock_note(results, realtime):
+    """What the time budget's columns are: excitation on the drive's (simulated) clock,
+    the rest on the host's wall clock."""
+    total = (results.get("time_budget_s") or {}).get("total") or {}
+    exc = total.get("excitation")
+    if exc is None:
+        return "  (no time budget)"
+    if realtime:
+        return (f"  (excitation: the drive's clock, here real time (--realtime); bus, host and "
+                f"wall: the host's clock)")
+    return (f"  (excitation: simulated time; drive_sim free-runs faster than real time, a real "
+            f"drive needs the {exc:.0f} s of excitation plus the bus time; bus, host, wall: real time)")
 
 
 def _run(args, cfg, out, bitrate):

@@ -203,6 +203,11 @@ def _open_bus(opts, deadline_s=CONNECT_DEADLINE_S):
 
     quiet_can_loggers()
     t0 = time.monotonic()
+    if opts.interface == "socketcan":
+        from fftune.host.socketcan_check import socketcan_problem
+        problem = socketcan_problem(opts.channel)
+        if problem:
+            raise FftuneError(f"cannot open CAN bus: {opts.describe()}: {problem}")
     if opts.interface == "socketcand":
         # python-can's client retries a refused connection for 10 s; find out first.
         try:

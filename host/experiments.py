@@ -1250,7 +1250,7 @@ def tune(session):
             "experiments": n_search,
             "amplitude_probes": n_amplitude_probes,
             "relative_to_sweep_optimum": _f(k_star / k_sweep_opt - 1) if k_sweep_opt else None,
-            "evaluations": [{"k_fc": _f(p["kfc"]), "ratio": _f(p["ratio"]),
+            "evaluations": [{"k_fc": _f(p["kfc"]), "k_v": _f(p["kv"]), "ratio": _f(p["ratio"]),
                              "ratio_std": _f(probe.search_point(p).ratio_std) if math.isfinite(p["ratio"])
                              else None, **_check_block(p)}
                             for _, p in pts],

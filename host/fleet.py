@@ -6,8 +6,11 @@ task: the very experiment code of a live session (:mod:`fftune.host.experiments`
 maps the pure functions of :mod:`fftune.analysis` over the runs) analyses its runs again,
 served from the files instead of a drive. The tasks return rows (one per axis and date:
 BLA levels, HOSIDF, K_fc*, the tune objective, or the reason the files could not be
-analysed); the rows become one table (Parquet by default, CSV as an option) and a drift
-plot per axis (K_fc* and the odd ratio over time, with 1-sigma bars).
+analysed); the rows become one table (Parquet and CSV by default), a drift plot per axis
+(K_fc* and the odd ratio over time, with 1-sigma bars) and a summary page (report.html).
+Items go to the scheduler in batches, a few per worker; a ``--scheduler`` is probed with a
+bounded connect and handshake first; every row passes one type check (a damaged input is
+a row with its reason, never a crash of the run).
 
 Scheduling is Dask's (``dask.delayed``): by default its local multiprocessing scheduler
 (no server), with ``--scheduler tcp://HOST:PORT`` a ``dask.distributed`` cluster; the
@@ -26,6 +29,9 @@ import tempfile
 from fftune.analysis.errors import FftuneError
 
 CANLOG_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".db")
+RESULTS_MAX_BYTES = 4 << 20          # a results.yaml is some 10 kB; a bigger one is not read
+RESULTS_MAX_NODES = 1_000_000
+CONNECT_TIMEOUT_S = 10.0             # --scheduler: connect, handshake, first worker
 STEPS = ("detect", "quantify", "tune")
 
 # The table's columns and their types (pyarrow names); every row has all of them.
@@ -245,38 +251,101 @@ def _run_steps(session, steps, row):
 
 
 def _names_for(folder):
-    """(machine, axis, node_id, truth, out_dir) of a captures folder: from its results.yaml
-    (an axis of a machine run names both), else the folder names: <machine>/<axis>/captures
-    or <machine>/<axis>/<date>/captures (a folder name starting YYYY-MM)."""
-    import yaml
+    """(machine, axis, node_id, truth, out_dir, display) of a captures folder: machine and
+    axis from its results.yaml (an axis of a machine run names both), else the folder names:
+    <machine>/<axis>/captures or <machine>/<axis>/<date>/captures (a folder name starting
+    YYYY-MM); ``display`` names the axis for a person (the results' axis block, else the
+    drive's identity: device name, serial, node). A damaged results.yaml axis block raises
+    FftuneError naming the key (the task makes it the row's reason)."""
+    machine, axis, out_dir = _folder_names(folder)
+    node_id, truth, display = None, None, None
+    res_path = os.path.join(out_dir, "results.yaml")
+    if os.path.exists(res_path):
+        res = _read_results(res_path)
+        ax = res.get("axis")
+        if ax is not None and not isinstance(ax, dict):
+            raise FftuneError(f"{res_path}: key 'axis': expected a mapping, got {type(ax).__name__}")
+        ax = ax or {}
+        for key in ("name", "machine"):
+            v = ax.get(key)
+            if v is not None and (not isinstance(v, str) or not v.strip() or len(v) > 200):
+                raise FftuneError(f"{res_path}: key 'axis.{key}': expected a name (text of 1 to 200 "
+                                  f"characters), got {_short(v)}")
+        axis = ax.get("name", axis)
+        machine = ax.get("machine", machine)
+        node_id = _node_id(ax.get("node_id"), f"{res_path}: key 'axis.node_id'")
+        drive = res.get("drive") if isinstance(res.get("drive"), dict) else {}
+        truth = drive.get("plant_truth") if isinstance(drive.get("plant_truth"), dict) else None
+        ident = drive.get("identity") if isinstance(drive.get("identity"), dict) else {}
+        if ax.get("name") is not None:
+            display = f"{machine} / {axis}"
+        elif ident.get("device_name"):
+            serial = ident.get("serial")
+            nid = ident.get("node_id")
+            display = (f"{str(ident['device_name'])[:80]}"
+                       + (f" serial {serial}" if isinstance(serial, int) and serial else "")
+                       + (f", node {nid}" if isinstance(nid, int) and not isinstance(nid, bool) else ""))
+        if node_id is None and ident.get("node_id") is not None:
+            try:
+                node_id = _node_id(ident.get("node_id"), f"{res_path}: key 'drive.identity.node_id'")
+            except FftuneError:
+                pass
+    return machine, axis, node_id, truth, out_dir, display or f"{machine} / {axis}"
 
+
+def _folder_names(folder):
+    """(machine, axis, out_dir) of a captures folder from the folder names alone."""
     out_dir = os.path.dirname(folder) if os.path.basename(folder) == "captures" else folder
     parts = os.path.abspath(out_dir).split(os.sep)
     if re.match(r"\d{4}-\d\d", parts[-1]) and len(parts) >= 3:
         parts = parts[:-1]          # <machine>/<axis>/<date>/captures
-    axis, machine = parts[-1], parts[-2]
-    node_id, truth = None, None
-    res_path = os.path.join(out_dir, "results.yaml")
-    if os.path.exists(res_path):
-        try:
-            with open(res_path, "r", encoding="utf-8") as fh:
-                res = yaml.safe_load(fh) or {}
-            ax = res.get("axis") or {}
-            axis = ax.get("name", axis)
-            machine = ax.get("machine", machine)
-            node_id = ax.get("node_id")
-            truth = (res.get("drive") or {}).get("plant_truth")
-        except (OSError, yaml.YAMLError, AttributeError):
-            pass
-    return machine, axis, node_id, truth, out_dir
+    return parts[-2], parts[-1], out_dir
+
+
+def _short(v):
+    text = repr(v)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _node_id(v, where):
+    """A CANopen node id (1..127) or None; FftuneError naming ``where`` otherwise."""
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 127:
+        raise FftuneError(f"{where}: expected a node id 1..127, got {_short(v)}")
+    return v
+
+
+def _read_results(path):
+    """results.yaml as a dict through the project's one safe loader (size, depth, aliases);
+    FftuneError naming the file when it is not one."""
+    from fftune.host.config import safe_yaml_load
+
+    if os.path.getsize(path) > RESULTS_MAX_BYTES:
+        raise FftuneError(f"{path}: {os.path.getsize(path)} bytes, more than a results.yaml "
+                          f"holds ({RESULTS_MAX_BYTES})")
+    try:
+        with open(path, "r", encoding="utf-8") as fh:
+            text = fh.read(RESULTS_MAX_BYTES + 1)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FftuneError(f"{path}: not readable as UTF-8 text ({type(exc).__name__})") from None
+    res = safe_yaml_load(text, path, max_bytes=RESULTS_MAX_BYTES, max_nodes=RESULTS_MAX_NODES)
+    if res is None:
+        return {}
+    if not isinstance(res, dict):
+        raise FftuneError(f"{path}: expected a mapping at the top level, got {type(res).__name__}")
+    return res
 
 
 def analyse_captures(folder):
     """Rows (a list of one) for the capture folder ``folder``; never raises."""
     row = _empty_row(folder, "captures")
     try:
-        machine, axis, node_id, truth, out_dir = _names_for(folder)
+        machine, axis, _ = _folder_names(folder)
+        row.update(machine=machine, axis=axis)
+        machine, axis, node_id, truth, out_dir, display = _names_for(folder)
         row.update(machine=machine, axis=axis, node_id=node_id)
+        row["_display"] = display
         files = _capture_files(folder)
         meta, problems = _first_meta(files)
         if meta is None:
@@ -284,7 +353,7 @@ def analyse_captures(folder):
             return [row]
         ident = meta.get("metadata", {}).get("identity") or {}
         if row["node_id"] is None and ident.get("node_id") is not None:
-            row["node_id"] = int(ident["node_id"])
+            row["node_id"] = _node_id(ident["node_id"], "the captures' metadata.identity.node_id")
         row["date"] = meta.get("started_at") or None
         cfg = dict(meta.get("metadata", {}).get("config") or {})
         if not cfg:
@@ -406,7 +475,134 @@ def analyse_item(item, config_path=None, eds=None):
 # the graph, the table, the plots
 # ---------------------------------------------------------------------------------------
 def _sort_key(row):
-    return (row["machine"] or "", row["axis"] or "", row["date"] or "", row["source"], row["node_id"] or 0)
+    return (str(row.get("machine") or ""), str(row.get("axis") or ""), str(row.get("date") or ""),
+            str(row.get("source") or ""), row["node_id"] if isinstance(row.get("node_id"), int) else 0)
+
+
+_INT64 = (-(1 << 63), (1 << 63) - 1)
+
+
+def _value_ok(v, t):
+    if v is None:
+        return True
+    if t == "string":
+        return isinstance(v, str)
+    if t == "bool":
+        return isinstance(v, bool)
+    if t == "int64":
+        return isinstance(v, int) and not isinstance(v, bool) and _INT64[0] <= v <= _INT64[1]
+    if t == "double":
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+    if t == "list<double>":
+        return isinstance(v, list) and all(x is None or (isinstance(x, (int, float)) and not isinstance(x, bool))
+                                           for x in v)
+    return False
+
+
+def checked_row(row):
+    """``row`` with every column of :data:`COLUMNS` of its type: a value that is not (from a
+    damaged input) is dropped (None) and named in the row's reason, the row an error. The one
+    place every row passes before the table (never a crash of the whole run)."""
+    out = {name: row.get(name) for name, _ in COLUMNS}
+    for k in ("_display",):
+        if k in row:
+            out[k] = row[k]
+    bad = []
+    for name, t in COLUMNS:
+        if not _value_ok(out[name], t):
+            bad.append(f"column {name}: {_short(out[name])} is not {t}")
+            out[name] = None
+    if bad:
+        if not isinstance(out.get("source"), str):
+            out["source"] = _short(row.get("source"))
+        out["status"] = "error"
+        out["reason"] = "; ".join(([out["reason"]] if isinstance(out.get("reason"), str) and out["reason"] else [])
+                                  + bad)
+    return out
+
+
+def analyse_batch(items, config_path=None, eds=None):
+    """One task of the graph: the rows of several items (:func:`analyse_item` each): a
+    task per capture directory is too small for a distributed scheduler (its overhead per
+    task and per result outweighs the analysis), a batch per worker slot is not."""
+    return [r for it in items for r in analyse_item(it, config_path, eds)]
+
+
+def batches(items, n_slots, per_slot=2):
+    """``items`` in about ``n_slots * per_slot`` batches of consecutive items, in order
+    (a few per worker: the work spreads, a slow batch does not hold the others)."""
+    n = max(1, min(len(items), int(n_slots) * per_slot))
+    size = -(-len(items) // n) if items else 1
+    return [items[i:i + size] for i in range(0, len(items), size)]
+
+
+def _check_scheduler_address(scheduler):
+    """(host, port) of ``tcp://HOST:PORT``; FftuneError naming it otherwise."""
+    m = re.fullmatch(r"tcp://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})", scheduler or "")
+    if not m or not 1 <= int(m.group(2)) <= 65535:
+        raise FftuneError(f"--scheduler {scheduler}: expected tcp://HOST:PORT (port 1..65535)")
+    return m.group(1).strip("[]"), int(m.group(2))
+
+
+def probe_scheduler(scheduler, timeout_s=CONNECT_TIMEOUT_S):
+    """Connect to ``tcp://HOST:PORT`` and read the first frame header of its handshake
+    (a Dask scheduler sends its handshake as soon as it accepts), each step within
+    ``timeout_s``: FftuneError with the cause for a refused or silent port or a server that
+    does not speak Dask's protocol (a frame of implausible size), before the Dask client
+    (whose connect can wait without bound on a silent port) is made."""
+    import socket
+    import struct
+
+    host, port = _check_scheduler_address(scheduler)
+    where = f"--scheduler {scheduler}"
+    try:
+        sock = socket.create_connection((host, port), timeout=timeout_s)
+    except socket.timeout:
+        raise FftuneError(f"{where}: no connection within {timeout_s:g} s") from None
+    except OSError as exc:
+        raise FftuneError(f"{where}: cannot connect ({exc.strerror or exc})") from None
+    try:
+        sock.settimeout(timeout_s)
+        head = b""
+        try:
+            while len(head) < 8:
+                chunk = sock.recv(8 - len(head))
+                if not chunk:
+                    raise FftuneError(f"{where}: the server closed the connection without a Dask "
+                                      f"handshake (not a Dask scheduler?)")
+                head += chunk
+        except socket.timeout:
+            raise FftuneError(f"{where}: connected, but no Dask handshake within {timeout_s:g} s "
+                              f"(not a Dask scheduler, or a busy one)") from None
+        (n,) = struct.unpack("<Q", head)
+        if not 0 < n <= 1 << 20:
+            raise FftuneError(f"{where}: the server's first bytes {head!r} are no Dask handshake "
+                              f"(not a Dask scheduler)")
+    except OSError as exc:
+        raise FftuneError(f"{where}: connection failed ({exc.strerror or exc})") from None
+    finally:
+        sock.close()
+
+
+def _distributed_client(scheduler, timeout_s=CONNECT_TIMEOUT_S):
+    """A dask.distributed Client on ``scheduler`` with a worker, or one FftuneError line."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise FftuneError("--scheduler tcp://...: needs dask.distributed (pip install distributed)") from None
+    probe_scheduler(scheduler, timeout_s)
+    try:
+        client = Client(scheduler, timeout=timeout_s, set_as_default=False)
+    except Exception as exc:     # connect/handshake failures come as several types
+        raise FftuneError(f"--scheduler {scheduler}: cannot connect ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
+    try:
+        client.wait_for_workers(1, timeout=timeout_s)
+    except Exception:
+        client.close()
+        raise FftuneError(f"--scheduler {scheduler}: the scheduler has no worker (none joined "
+                          f"within {timeout_s:g} s)") from None
+    return client
 
 
 def run_graph(items, *, scheduler=None, workers=None, config_path=None, eds=None):
@@ -414,35 +610,34 @@ def run_graph(items, *, scheduler=None, workers=None, config_path=None, eds=None
 
     ``scheduler``: None = Dask's local multiprocessing scheduler (``workers`` processes,
     default one per core), 'sync' = in this process (debugging), ``tcp://HOST:PORT`` = a
-    dask.distributed scheduler (its workers need the same files at the same paths).
+    dask.distributed scheduler (its workers need the same files at the same paths). The
+    items go in batches, a few per worker (:func:`batches`). Every row passes
+    :func:`checked_row`.
     """
     try:
         import dask
     except ImportError:
         raise FftuneError("fftune fleet needs dask (pip install 'fftune[fleet]'; make setup installs it)") from None
-    tasks = [dask.delayed(analyse_item, pure=True)(it, config_path, eds,
-                                                  dask_key_name=f"analyse-{i}")
-             for i, it in enumerate(items)]
+
+    def graph(n_slots):
+        return [dask.delayed(analyse_batch, pure=True)(b, config_path, eds, dask_key_name=f"analyse-{i}")
+                for i, b in enumerate(batches(items, n_slots))]
     if scheduler and scheduler.startswith("tcp://"):
+        client = _distributed_client(scheduler)
         try:
-            from distributed import Client
-        except ImportError:
-            raise FftuneError("--scheduler tcp://...: needs dask.distributed (pip install distributed)") from None
-        try:
-            client = Client(scheduler, timeout=10, set_as_default=False)
-        except (OSError, TimeoutError) as exc:
-            raise FftuneError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
-        try:
-            results = client.gather(client.compute(tasks))
+            n_slots = sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values()) or 1
+            results = client.gather(client.compute(graph(n_slots)))
         finally:
             client.close()
     elif scheduler in (None, "processes"):
-        results = dask.compute(*tasks, scheduler="processes", num_workers=workers)
+        n = workers or os.cpu_count() or 1
+        results = dask.compute(*graph(n), scheduler="processes", num_workers=n)
     elif scheduler in ("sync", "synchronous", "threads"):
-        results = dask.compute(*tasks, scheduler=scheduler if scheduler != "sync" else "synchronous")
+        results = dask.compute(*graph(workers or 1),
+                               scheduler=scheduler if scheduler != "sync" else "synchronous")
     else:
         raise FftuneError(f"--scheduler {scheduler}: expected tcp://HOST:PORT, processes, threads or sync")
-    rows = [r for rows in results for r in rows]
+    rows = [checked_row(r) for rows in results for r in rows]
     return sorted(rows, key=_sort_key)
 
 
@@ -498,44 +693,130 @@ def _safe(name):
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name))
 
 
-def drift_plots(rows, out_dir):
-    """One PNG per axis (machine, axis) with analysed K_fc*: K_fc* with its 1-sigma bar and
-    the odd ratio at 0 and at K_fc* over the date. Returns the files written."""
-    from matplotlib.figure import Figure      # no pyplot: no global figure state
+def _date(text):
+    try:
+        t = datetime.datetime.fromisoformat(str(text).replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    return t if t.tzinfo is None else t.astimezone(datetime.timezone.utc).replace(tzinfo=None)
 
+
+def _groups(rows):
+    """{(machine, axis): rows with a K_fc* and a date, by date}."""
     groups = {}
     for r in rows:
-        if r["status"] != "error" and r["k_fc_star"] is not None and r["date"]:
+        if r["status"] != "error" and r["k_fc_star"] is not None and r["date"] and _date(r["date"]):
             groups.setdefault((r["machine"] or "", r["axis"] or ""), []).append(r)
+    for rs in groups.values():
+        rs.sort(key=lambda r: _date(r["date"]))
+    return groups
+
+
+def drift_plots(rows, out_dir):
+    """One PNG per axis (machine, axis) with analysed K_fc*: K_fc* with its 1-sigma bar (and
+    the simulated truth, drawn where known) and the odd ratio at 0 and at K_fc* over the
+    date; the time axis spans the dates (a single analysis: a day around it), the title
+    names the axis from its results (:func:`_names_for`). Returns the files written."""
     written = []
-    for (machine, axis), rs in sorted(groups.items()):
-        rs.sort(key=lambda r: r["date"])
-        t = [datetime.datetime.fromisoformat(r["date"]) for r in rs]
-        fig = Figure(figsize=(7, 5))
-        a1, a2 = fig.subplots(2, 1, sharex=True)
-        a1.errorbar(t, [r["k_fc_star"] for r in rs], yerr=[r["k_fc_sigma"] or 0.0 for r in rs],
-                    fmt="o-", capsize=4, label="K_fc* (1 sigma)")
-        truths = [r["k_fc_true"] for r in rs]
-        if any(v is not None for v in truths):
-            a1.plot(t, [math.nan if v is None else v for v in truths], "k--", label="true Coulomb level (sim)")
-        a1.set_ylabel("K_fc* [V]")
-        a1.legend(loc="best", fontsize=8)
-        a1.set_title(f"{machine} / {axis}: drift over {len(rs)} analyses")
-        for key, fmt, label in (("ratio_at_zero", "s-", "odd ratio at K_fc = 0"),
-                                ("ratio_at_k_fc_star", "o-", "odd ratio at K_fc* (verification run)")):
-            a2.errorbar(t, [r[key] if r[key] is not None else math.nan for r in rs],
-                        yerr=[r[key + "_std"] or 0.0 for r in rs], fmt=fmt, capsize=4,
-                        label=label + " (1 sigma)")
-        a2.set_yscale("log")
-        a2.set_ylabel("odd-harmonic ratio")
-        a2.set_xlabel("date (first run)")
-        a2.legend(loc="best", fontsize=8)
-        fig.autofmt_xdate()
+    groups = sorted(_groups(rows).items())
+    names = [rs[-1].get("_display") or f"{m} / {a}" for (m, a), rs in groups]
+    for ((machine, axis), rs), name in zip(groups, names):
+        if names.count(name) > 1:     # one drive in several folders: say which plot is which
+            rs = [dict(r, _display=f"{name} [{machine}/{axis}]") for r in rs]
+        fig = drift_figure(rs, machine, axis)
         path = os.path.join(out_dir, f"drift_{_safe(machine)}_{_safe(axis)}.png")
         fig.savefig(path + ".tmp.png", dpi=90)
         os.replace(path + ".tmp.png", path)
         written.append(path)
     return written
+
+
+def drift_figure(rs, machine, axis):
+    """The drift plot of one axis' rows (with K_fc* and a date, sorted by date): a Figure."""
+    import matplotlib.dates as mdates
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure      # no pyplot: no global figure state
+
+    t = [_date(r["date"]) for r in rs]
+    fig = Figure(figsize=(8, 5), layout="constrained")
+    FigureCanvasAgg(fig)
+    a1, a2 = fig.subplots(2, 1, sharex=True)
+    a1.errorbar(t, [r["k_fc_star"] for r in rs], yerr=[r["k_fc_sigma"] or 0.0 for r in rs],
+                fmt="o-", capsize=4, label="K_fc* (1 sigma)")
+    truths = [r["k_fc_true"] for r in rs]
+    if any(v is not None for v in truths):
+        a1.plot(t, [math.nan if v is None else v for v in truths], "kx--", ms=7,
+                label="true Coulomb level (simulation)")
+    a1.set_ylabel("K_fc* [V]")
+    a1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8)
+    name = rs[-1].get("_display") or f"{machine} / {axis}"
+    a1.set_title(f"K_fc* and the odd-harmonic ratio over time: {name} "
+                 f"({len(rs)} analys{'is' if len(rs) == 1 else 'es'})", fontsize=10)
+    for key, fmt, label in (("ratio_at_zero", "s-", "odd ratio at K_fc = 0"),
+                            ("ratio_at_k_fc_star", "o-", "odd ratio at K_fc* (verification run)")):
+        vals = [r[key] if r[key] is not None and r[key] > 0 else math.nan for r in rs]
+        a2.errorbar(t, vals, yerr=[r[key + "_std"] or 0.0 for r in rs], fmt=fmt, capsize=4,
+                    label=label + " (1 sigma)")
+    if any(r["ratio_at_zero"] or r["ratio_at_k_fc_star"] for r in rs):
+        a2.set_yscale("log")
+    a2.set_ylabel("odd-harmonic ratio")
+    a2.set_xlabel("date of the first run (UTC)")
+    a2.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8)
+    span = max(t) - min(t)
+    pad = datetime.timedelta(hours=12) if span < datetime.timedelta(hours=1) else span * 0.08
+    a2.set_xlim(min(t) - pad, max(t) + pad)
+    loc = mdates.AutoDateLocator(minticks=3, maxticks=8)
+    a2.xaxis.set_major_locator(loc)
+    a2.xaxis.set_major_formatter(mdates.ConciseDateFormatter(loc))
+    for ax in (a1, a2):
+        ax.grid(True, alpha=0.3)
+    return fig
+
+
+def write_summary_html(rows, out_dir, tables, plots, items):
+    """``<out_dir>/report.html``: the fleet at a glance (counts, one line per axis and date
+    with K_fc* +- sigma, the truth where known, the odd ratios, the reason of a row not
+    analysed), the drift plots, links to the tables."""
+    import html as _html
+
+    from fftune.host.atomic import write_atomic
+    from fftune.host.report import _CSS, gain_text, sigma_text
+
+    def pct(v):
+        return "-" if v is None else f"{100 * v:.3g} %"
+    n = {k: sum(r["status"] == k for r in rows) for k in ("ok", "partial", "error")}
+    parts = ["<!DOCTYPE html><html><head><meta charset='utf-8'><title>fftune fleet</title>",
+             f"<style>{_CSS}</style></head><body><h1>fftune fleet</h1>",
+             f"<p class='meta'>{_html.escape(datetime.datetime.now().isoformat(timespec='seconds'))}"
+             f" &mdash; {len(items)} items, {len(rows)} rows: {n['ok']} ok, {n['partial']} partial, "
+             f"{n['error']} not analysed; tables: "
+             + ", ".join(f"<a href='{_html.escape(os.path.basename(t))}'>{_html.escape(os.path.basename(t))}</a>"
+                         for t in tables) + "</p>",
+             "<h2>K_fc* per axis and date</h2><table><tr><th>axis</th><th>node</th><th>date</th>"
+             "<th>status</th><th>K_fc* (1 sigma)</th><th>true (simulation)</th>"
+             "<th>odd ratio at 0 -> at K_fc*</th><th>reason / source</th></tr>"]
+    for r in rows:
+        name = r.get("_display") or f"{r['machine'] or '?'} / {r['axis'] or '?'}"
+        kfc = (f"{gain_text(r['k_fc_star'])} +- {sigma_text(r['k_fc_sigma'])}"
+               if r["k_fc_star"] is not None else ("not converged: " + (r["tune_stop_reason"] or "")
+                                                   if r["k_fc_converged"] is False else "-"))
+        parts.append("<tr>" + "".join(f"<td>{_html.escape(str(x))}</td>" for x in (
+            name, r["node_id"] if r["node_id"] is not None else "-", r["date"] or "-", r["status"],
+            kfc, gain_text(r["k_fc_true"]) if r["k_fc_true"] is not None else "-",
+            f"{pct(r['ratio_at_zero'])} -> {pct(r['ratio_at_k_fc_star'])}",
+            (r["reason"] + " " if r["reason"] else "") + f"({r['source']})")) + "</tr>")
+    parts.append("</table>")
+    if plots:
+        parts.append("<h2>Drift per axis</h2><div class='figs'>")
+        for p in plots:
+            f = os.path.basename(p)
+            parts.append(f"<figure><a href='{_html.escape(f)}'><img src='{_html.escape(f)}' "
+                         f"alt='{_html.escape(f)}'></a></figure>")
+        parts.append("</div>")
+    parts.append("</body></html>")
+    path = os.path.join(out_dir, "report.html")
+    write_atomic(path, "\n".join(parts))
+    return path
 
 
 # ---------------------------------------------------------------------------------------
@@ -549,7 +830,9 @@ def add_parser(sub):
                                    "plot per axis.")
     p.add_argument("paths", nargs="+", help="capture directories, folders of them, CAN logs")
     p.add_argument("--out", default="out/fleet", help="output directory (default out/fleet)")
-    p.add_argument("--format", choices=("parquet", "csv"), default="parquet", help="table format")
+    p.add_argument("--format", choices=("both", "parquet", "csv"), default="both",
+                   help="table format (default both: fleet.parquet and fleet.csv, list columns "
+                        "as JSON text)")
     p.add_argument("--scheduler", default=None,
                    help="tcp://HOST:PORT of a dask.distributed scheduler (default: Dask's local "
                         "multiprocessing scheduler; 'threads' or 'sync' also accepted)")
@@ -568,6 +851,8 @@ def _run(args):
     if args.scheduler and not args.scheduler.startswith("tcp://") and \
             args.scheduler not in ("processes", "threads", "sync", "synchronous"):
         raise FftuneError(f"--scheduler {args.scheduler}: expected tcp://HOST:PORT, processes, threads or sync")
+    if args.scheduler and args.scheduler.startswith("tcp://"):
+        _check_scheduler_address(args.scheduler)
     items, bad = discover(args.paths)
     for path, reason in bad:
         print(f"fftune fleet: {path}: {reason} (skipped)", file=sys.stderr)
@@ -576,14 +861,17 @@ def _run(args):
     out = check_output_dir(args.out)
     rows = run_graph(items, scheduler=args.scheduler, workers=args.workers,
                      config_path=args.config, eds=args.eds)
-    table = os.path.join(out, f"fleet.{args.format}")
-    write_table(rows, table, args.format)
+    tables = []
+    for fmt in (("parquet", "csv") if args.format == "both" else (args.format,)):
+        tables.append(write_table(rows, os.path.join(out, f"fleet.{fmt}"), fmt))
     plots = [] if args.no_figures else drift_plots(rows, out)
+    page = write_summary_html(rows, out, tables, plots, items)
     n_ok = sum(r["status"] == "ok" for r in rows)
     print(f"fftune fleet: {len(items)} items, {len(rows)} rows ({n_ok} ok, "
           f"{sum(r['status'] == 'partial' for r in rows)} partial, "
-          f"{sum(r['status'] == 'error' for r in rows)} not analysed) -> {os.path.relpath(table)}"
-          + (f", {len(plots)} drift plots" if plots else ""))
+          f"{sum(r['status'] == 'error' for r in rows)} not analysed) -> "
+          + ", ".join(os.path.relpath(t) for t in tables)
+          + (f", {len(plots)} drift plots" if plots else "") + f"; open {os.path.relpath(page)}")
     for r in rows:
         if r["status"] != "ok":
             print(f"  {r['status']}: {r['source']}: {r['reason']}")

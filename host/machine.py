@@ -586,6 +586,7 @@ def machine_summary(machine, axes, wall_s, started, bus_model=None, measure_wall
 
 def write_machine(out, summary):
     """``<out>/results.yaml`` (the summary) and ``<out>/report.html`` (one page)."""
+    from fftune.host.report import _object_of
     write_atomic(os.path.join(out, "results.yaml"),
                  yaml.safe_dump(summary, sort_keys=False, default_flow_style=None, width=100))
 
@@ -610,6 +611,8 @@ def write_machine(out, summary):
             f"<h1>fftune machine {html.escape(summary['machine'])}</h1>"
             f"<p>{html.escape(summary['started'])} .. {html.escape(summary['finished'])}; "
             f"{len(summary['axes'])} axes tuned concurrently on one bus.</p>"
+            f"<p><b>What to set:</b> each axis' K_fc* below on object {_object_of('kfc')[0]} of its node; its "
+            "K_v and the loop with and without the feed-forward: the axis' report (the link).</p>"
             "<table><tr><th>axis</th><th>node</th><th>status</th><th>K_fc*</th><th>sigma</th>"
             "<th>true (sim)</th><th>error re truth</th><th>excitation</th><th>verdict / error</th></tr>"
             + "".join(rows) + "</table>"
@@ -617,7 +620,8 @@ def write_machine(out, summary):
             f"{tot['excitation']:.1f} s (all axes {tot['excitation_sum']:.1f} s in sequence); "
             f"bus {tot['bus']:.2f} s; wall / longest excitation "
             f"{tot['wall_re_longest_excitation'] if tot['wall_re_longest_excitation'] is not None else 'n/a'}.</p>"
-            f"<pre>{html.escape(yaml.safe_dump(summary, sort_keys=False, width=100))}</pre></body></html>")
+            f"<details><summary>All results (results.yaml)</summary>"
+            f"<pre>{html.escape(yaml.safe_dump(summary, sort_keys=False, width=100))}</pre></details></body></html>")
     write_atomic(os.path.join(out, "report.html"), page)
 
 

@@ -1,4 +1,9 @@
-"""Results of a session: ``results.yaml``, the paper's figures (PNG) and an HTML report."""
+"""Results of a session: ``results.yaml``, the figures (PNG) and ``report.html``, a decision
+page: what to set first (:func:`recommendation`), then the loop with and without the
+feed-forward compared like with like (:func:`loop_comparison`), the key numbers, the figures
+titled by what they show; every number through one formatter (:func:`gain_text`,
+:func:`sigma_text`, :func:`rms_text`) so that the table, the legends, the terminal and
+results.yaml's ``recommendation`` show one value per quantity."""
 import datetime
 import html
 import os
@@ -9,7 +14,12 @@ from fftune.host.atomic import write_atomic
 
 
 def write_results(out_dir, results):
-    """``results.yaml`` (atomic)."""
+    """``results.yaml`` (atomic), with the ``recommendation`` block (:func:`recommendation`)
+    added to ``results`` when the tune step ran: the values the report and the terminal
+    show, rounded as they show them."""
+    rec = recommendation(results)
+    if rec is not None:
+        results["recommendation"] = rec
     path = os.path.join(out_dir, "results.yaml")
     write_atomic(path, yaml.safe_dump(results, sort_keys=False, default_flow_style=None, width=100))
     return path
@@ -17,6 +27,138 @@ def write_results(out_dir, results):
 
 def _db(v):
     return "n/a" if v is None else f"{v:+.1f} dB"
+
+
+# ---------------------------------------------------------------------------------------
+# one number per quantity: every value the report, the figures' legends, the terminal and
+# results.yaml's recommendation block show goes through these (4 significant digits for a
+# gain, 2 for its sigma, 4 for an rms error)
+# ---------------------------------------------------------------------------------------
+def round_sig(x, digits=4):
+    """``x`` rounded to ``digits`` significant digits (None stays None)."""
+    if x is None:
+        return None
+    return float(f"{float(x):.{digits}g}")
+
+
+def gain_text(x, unit="V"):
+    """A gain as shown everywhere: 4 significant digits and its unit ("0.1156 V")."""
+    return "n/a" if x is None else f"{round_sig(x):g} {unit}".rstrip()
+
+
+def sigma_text(x, unit="V"):
+    return "n/a" if x is None else f"{round_sig(x, 2):g} {unit}"
+
+
+def rms_text(x):
+    return "n/a" if x is None else f"{round_sig(x):g} rad"
+
+
+def _object_of(alias):
+    """("0x2000:04", EDS name) of the drive parameter ``alias`` (configs/od.yaml)."""
+    from fftune.host.odmap import PARAMS
+    e = PARAMS[alias]
+    return f"0x{e.index:04X}:{e.subindex:02X}", e.eds_name
+
+
+def torque_constant(results):
+    """The torque per input volt (N m/V) when the drive tells it (the simulated plant's
+    truth: Coulomb friction in N m over the same in V), else None."""
+    truth = (results.get("drive") or {}).get("plant_truth") or {}
+    fc_v, fc_nm = truth.get("sim_fc_volt"), truth.get("sim_fc_torque")
+    if fc_v and fc_nm and fc_v > 0 and fc_nm > 0:
+        return fc_nm / fc_v
+    return None
+
+
+def recommendation(results):
+    """What to set on the drive, from the tune step: a dict (results.yaml's
+    ``recommendation``; numbers rounded as every output shows them) or None without a tune
+    step. Keys: ``set`` (bool: a K_fc to set), ``text`` (the sentence), ``k_fc_v``,
+    ``sigma_v`` (1 sigma_total), ``k_fc_object``, ``k_v_v_s_per_rad``, ``k_v_object``,
+    ``node_id``, ``torque_constant_n_m_per_v`` and ``k_fc_n_m`` / ``k_v_n_m_s_per_rad``
+    when the drive tells its torque constant (simulation)."""
+    t = results.get("tune")
+    if not t:
+        return None
+    node = ((results.get("drive") or {}).get("identity") or {}).get("node_id")
+    on = f" of node {node}" if node is not None else ""
+    if not t["search"].get("converged") or t.get("k_fc_star") is None:
+        best = t.get("k_fc_best_measured")
+        return {"set": False, "node_id": node,
+                "text": f"Nothing to set: the search for K_fc* did not converge "
+                        f"({t['search'].get('stop_reason')})"
+                        + (f"; the best measured K_fc, {gain_text(best)}, is no recommendation"
+                           if best is not None else "") + "."}
+    kfc, sig = round_sig(t["k_fc_star"]), round_sig(t["search"].get("sigma_v"), 2)
+    obj_fc, _ = _object_of("kfc")
+    obj_kv, _ = _object_of("kv")
+    kv = round_sig((t.get("viscous") or {}).get("k_v_star"))
+    km = torque_constant(results)
+    rec = {"set": True, "node_id": node, "k_fc_v": kfc, "sigma_v": sig, "k_fc_object": obj_fc,
+           "k_v_v_s_per_rad": kv, "k_v_object": obj_kv if kv is not None else None}
+    nm = ""
+    if km is not None:
+        rec.update(torque_constant_n_m_per_v=round_sig(km), k_fc_n_m=round_sig(kfc * km),
+                   k_v_n_m_s_per_rad=round_sig(kv * km) if kv is not None else None)
+        nm = f" = {round_sig(1e3 * kfc * km):g} mN m at the drive's {round_sig(km):g} N m/V"
+    text = (f"Set K_fc = {gain_text(kfc)}{nm} (1 sigma {sigma_text(sig)}) on object {obj_fc}{on}")
+    if kv is not None:
+        text += (f" and K_v = {gain_text(kv, 'V s/rad')}"
+                 + (f" (= {round_sig(1e3 * kv * km):g} mN m s/rad)" if km is not None else "")
+                 + f" on object {obj_kv}")
+    else:
+        text += " (K_v not tuned: tune.viscous.enabled false)"
+    rec["text"] = text + "."
+    return rec
+
+
+def loop_comparison(results):
+    """The rms tracking errors and odd-harmonic ratios of the tune step, each row with the
+    feed-forward that was in the loop: a list of dicts (``what``, ``k_fc_v``, ``k_v``,
+    ``rms_error_rad``, ``ratio``; None where not measured). Rows measured with the same K_v
+    compare like with like; the table says which K_v each had."""
+    t = results.get("tune")
+    if not t:
+        return []
+    s, e = t["search"], t["rms_error_rad"]
+    # the K_v the search's runs had in the loop: the evaluation's own (k_v), else the one
+    # read at K_fc = 0 (search.budget.viscous; search.k_v_in_search is the corrected value a
+    # lag re-read used, not the runs')
+    kv_search = (((s.get("budget") or {}).get("viscous") or {}).get("k_v_in_search")
+                 or s.get("k_v_in_search") or 0.0)
+
+    def kv_at(k):
+        ev = [x for x in s.get("evaluations") or [] if x.get("k_fc") == k and "k_v" in x]
+        return ev[0]["k_v"] if ev else (kv_search if k else 0.0)
+    rows = [{"what": "no feed-forward", "k_fc_v": 0.0, "k_v": 0.0,
+             "rms_error_rad": e.get("k_fc_0"), "ratio": t.get("ratio_at_zero")}]
+    ver = s.get("verification_k_fc")
+    rows.append({"what": "the search's run nearest K_fc*", "k_fc_v": ver, "k_v": kv_at(ver),
+                 "rms_error_rad": e.get("k_fc_star"), "ratio": t.get("ratio_at_k_fc_star")})
+    sw = t.get("sweep")
+    if sw and sw.get("k_fc") and sw.get("rms_error_rad") and t.get("k_fc_star") is not None:
+        i = min(range(len(sw["k_fc"])), key=lambda j: abs(sw["k_fc"][j] - t["k_fc_star"]))
+        rows.append({"what": "the sweep's point nearest K_fc*", "k_fc_v": sw["k_fc"][i], "k_v": 0.0,
+                     "rms_error_rad": sw["rms_error_rad"][i], "ratio": sw["ratio"][i]})
+    same_as_run = (not sw and e.get("sweep_min_at_k_fc") == ver and e.get("sweep_min") == e.get("k_fc_star"))
+    if e.get("sweep_min") is not None and not same_as_run:
+        rows.append({"what": "the sweep's smallest rms error" if sw else
+                     "the search's smallest rms error",
+                     "k_fc_v": e.get("sweep_min_at_k_fc"),
+                     "k_v": 0.0 if sw else kv_at(e.get("sweep_min_at_k_fc")),
+                     "rms_error_rad": e.get("sweep_min"), "ratio": None})
+    v = t.get("viscous")
+    if v:
+        rows.append({"what": "recommended: K_fc* and K_v*", "k_fc_v": t.get("k_fc_star"),
+                     "k_v": v.get("k_v_star"), "rms_error_rad": v.get("rms_error_rad"), "ratio": None})
+    return rows
+
+
+def loop_label(row):
+    """A row of :func:`loop_comparison` as a legend or table label: what, K_fc, K_v."""
+    return (f"{row['what']} (K_fc = {gain_text(row['k_fc_v'])}, "
+            f"K_v = {gain_text(row['k_v'], 'V s/rad')})")
 
 
 def figure_conclusions(results, detect_levels=None, tune_data=None):
@@ -56,13 +198,20 @@ def figure_conclusions(results, detect_levels=None, tune_data=None):
                               f"points around K_fc* = {ks:.4g} V (the paper: 180 deg); ratio "
                               f"{100 * (t['ratio_at_zero'] or float('inf')):.3g} % at K_fc = 0, "
                               f"{100 * t['ratio_at_k_fc_star']:.3g} % at K_fc*")
-        e = t["rms_error_rad"]
-        where = "above" if (e["sweep_min_at_k_fc"] or 0) > ks else "not above"
-        out["figure9"] = (f"rms error {e['k_fc_0']:.3g} rad at K_fc = 0, {e['k_fc_star']:.3g} rad at "
-                          f"K_fc*, smallest {e['sweep_min']:.3g} rad at K_fc = {e['sweep_min_at_k_fc']:.4g} V "
-                          f"({where} K_fc*)"
-                          + (f"; with K_v* {e['k_fc_star_k_v_star']:.3g} rad"
-                             if e.get("k_fc_star_k_v_star") is not None else ""))
+        rows = {r["what"]: r for r in loop_comparison(results)}
+        r0, rs = rows["no feed-forward"], rows["the search's run nearest K_fc*"]
+        text = (f"rms error {rms_text(r0['rms_error_rad'])} without feed-forward, "
+                f"{rms_text(rs['rms_error_rad'])} at K_fc* (K_v = {gain_text(rs['k_v'], 'V s/rad')})")
+        rmin = rows.get("the sweep's smallest rms error")
+        near = rows.get("the sweep's point nearest K_fc*")
+        if rmin and near:
+            text += (f"; with K_v = 0 (like for like) the sweep's smallest is "
+                     f"{rms_text(rmin['rms_error_rad'])} at K_fc = {gain_text(rmin['k_fc_v'])}, "
+                     f"{rms_text(near['rms_error_rad'])} at its point nearest K_fc*")
+        rec = rows.get("recommended: K_fc* and K_v*")
+        if rec:
+            text += f"; {rms_text(rec['rms_error_rad'])} with the recommended K_fc* and K_v*"
+        out["figure9"] = text
     return out
 
 
@@ -76,9 +225,11 @@ def save_figure(out_dir, name, fig, caption):
 
 
 def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=None):
-    """The paper's Figures 3 (lowest and highest level), 4, 5, 7 and 9 as PNG files via
-    :mod:`fftune.analysis.plots`, each caption ending with a conclusion computed from the
-    data (:func:`figure_conclusions`).
+    """The paper's Figures 3 (lowest and highest level), 4, 5, 7 and 9 and the loop plots
+    (the measured BLA with its confidence band; the tracking-error spectrum without and with
+    the feed-forward) as PNG files via :mod:`fftune.analysis.plots`, each caption "what it
+    shows (the paper's Figure N): details" ending with a conclusion computed from the data
+    (:func:`figure_conclusions`).
 
     Returns ``{figure name: (file name, caption)}`` for the figures the data allow.
     """
@@ -87,6 +238,7 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
     from fftune.analysis import plots
 
     made = {}
+    results = results or {}
     concl = figure_conclusions(results, detect_levels, tune_data)
 
     def save(name, fig, caption, key=None):
@@ -97,7 +249,7 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
 
     if detect_levels is not None:
         unit_in = "V"
-        d = (results or {}).get("detect") or {}
+        d = results.get("detect") or {}
         if d.get("inject") == "reference":
             unit_in = "rad"
         for tag, i in (("lowest", 0), ("highest", -1)):
@@ -106,37 +258,67 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
             save(f"figure3_output_spectrum_{tag}",
                  plots.figure3(res, title=f"Output spectrum at the {tag} level "
                                           f"({rms:.3g} {unit_in} rms)", unit="rad"),
-                 f"Figure 3 ({tag} level): output spectrum of the multisine experiment: BLA "
-                 f"output, nonlinear and noise levels, non-excited odd and even lines and the "
+                 f"Output spectrum at the {tag} level (the paper's Figure 3): BLA output, "
+                 f"nonlinear and noise levels, non-excited odd and even lines and the "
                  f"plant-referred level there.", key=f"figure3_{tag}")
         save("figure4_bla_vs_level", plots.figure4(detect_levels, g_unit=f"rad/{unit_in}",
                                                    level_unit=unit_in),
-             "Figure 4: BLA as a function of frequency and excitation level.")
+             "BLA at each excitation level (the paper's Figure 4): magnitude and phase.")
+        top = detect_levels.results[-1]
+        if top.var_total is not None:
+            rms = detect_levels.rms[-1]
+            made["bla_confidence"] = save_figure(out_dir, "bla_confidence", plots.figure_bla(
+                top, title=f"Measured BLA at {rms:.3g} {unit_in} rms with its 95 % confidence band",
+                g_unit=f"rad/{unit_in}", band_p=0.95),
+                f"Measured loop element (BLA) with its confidence band: G_BLA at the highest "
+                f"level ({rms:.3g} {unit_in} rms), the 95 % band from its total variance "
+                f"(noise and nonlinear distortion over the realizations), and the two standard "
+                f"deviations.")
     if hos is not None:
-        q_in = "V" if ((results or {}).get("quantify") or {}).get("inject") == "plant_input" else "rad"
+        q_in = "V" if (results.get("quantify") or {}).get("inject") == "plant_input" else "rad"
         save("figure5_hosidf_vs_amplitude", plots.figure5(hos, unit=q_in, h_unit=f"rad/{q_in}"),
-             "Figure 5: odd and even HOSIDFs vs amplitude at every measured frequency (mean and "
-             "standard deviation over repeats).")
+             "Higher-order sinusoidal input describing functions vs amplitude (the paper's "
+             "Figure 5): odd and even HOSIDFs at every measured frequency (mean and standard "
+             "deviation over repeats).")
     if tune_data is not None:
         save("figure7_tuning", plots.figure7(tune_data["k_sweep"], tune_data["H_sweep"],
-                                             tune_data["ratio_sweep"], k_star=tune_data["k_star"]),
-             "Figure 7: odd HOSIDFs (magnitude, phase) and the odd-harmonic ratio vs K_fc.")
-        fs, n = tune_data["fs"], tune_data["n"]
-        recs = [("K_fc = 0", tune_data["p0"]), (f"K_fc* = {tune_data['p_star']['kfc']:.4g} V", tune_data["p_star"]),
-                (f"min rms error, K_fc = {tune_data['p_rms']['kfc']:.4g} V", tune_data["p_rms"])]
+                                             tune_data["ratio_sweep"], k_star=tune_data["k_star"],
+                                             title="Odd HOSIDFs and the odd-harmonic ratio vs K_fc"),
+             "Odd HOSIDFs and the tuning objective vs the Coulomb feed-forward K_fc (the "
+             "paper's Figure 7): magnitude, unwrapped phase, odd-harmonic ratio.")
+        rows = {r["what"]: r for r in loop_comparison(results)}
+        recs = [(rows.get("no feed-forward"), tune_data["p0"]),
+                (rows.get("the search's run nearest K_fc*"), tune_data["p_star"]),
+                (rows.get("the sweep's smallest rms error") or rows.get("the search's smallest rms error"),
+                 tune_data["p_rms"])]
         if tune_data.get("p_kv") is not None:
-            p = tune_data["p_kv"]
-            recs.append((f"K_fc* and K_v* = {p['kv']:.4g} V s/rad", p))
+            recs.append((rows.get("recommended: K_fc* and K_v*"), tune_data["p_kv"]))
+        if not results.get("tune") or recs[0][0] is None or recs[1][0] is None:
+            return made
+        recs = [(r, p) for r, p in recs if r is not None]   # (the smallest: the run itself)
         if any(not p["record"].signals for _, p in recs):
             # capture: stats uploads no samples; the time response needs raw (capture: both)
             return made
+        labels = [f"{loop_label(r)}: rms {rms_text(r['rms_error_rad'])}" for r, _ in recs]
+        fs = tune_data["fs"]
         save("figure9_time_response", plots.figure9(
             fs, tune_data["p0"]["record"].signals["reference"],
-            {label: p["record"].signals["motor_angle"] for label, p in recs},
-            {label: p["record"].signals["error"] for label, p in recs}),
-            "Figure 9: closed-loop response and tracking error without feed-forward, at "
-            "K_fc*, at the smallest rms error of the sweep, and at K_fc* with the tuned "
-            "viscous feed-forward K_v*.")
+            {lb: p["record"].signals["motor_angle"] for lb, (_, p) in zip(labels, recs)},
+            {lb: p["record"].signals["error"] for lb, (_, p) in zip(labels, recs)},
+            title="Closed-loop response and tracking error with and without the feed-forward",
+            rms_in_legend=False),
+            "Closed-loop response and tracking error with and without the feed-forward "
+            "(the paper's Figure 9): each line names the K_fc and K_v in the loop.")
+        spec = [(loop_label(r), p) for r, p in recs
+                if r["what"] in ("no feed-forward", "the search's run nearest K_fc*",
+                                 "recommended: K_fc* and K_v*")]
+        made["error_spectrum"] = save_figure(out_dir, "error_spectrum", plots.figure_error_spectrum(
+            fs, {lb: p["record"].signals["error"] for lb, p in spec},
+            title="Tracking-error spectrum without and with the feed-forward",
+            f0=results["tune"]["frequency_hz"]),
+            "Tracking-error spectrum without and with the feed-forward: the amplitude of "
+            "the tracking error at the first 25 harmonics of the tune frequency (the tune "
+            "step's records; the odd harmonics are the friction's share).")
     return made
 
 
@@ -161,7 +343,8 @@ def _fmt(v, unit="", pct=False, level=False):
 
 
 def key_numbers(results):
-    """The headline numbers (label, text) of a results dict."""
+    """The headline numbers (label, text) of a results dict: the terminal's summary and the
+    top of the report's measurements; every rms error with the feed-forward in the loop."""
     rows = []
     t = results.get("tune")
     if t and t.get("method") == "model":       # every term at once (docs/method.md section 5)
@@ -178,49 +361,93 @@ def key_numbers(results):
                  ("Coulomb term vs truth", _fmt(t["k_fc_star_error_re_truth"], pct=True))]
         t = None
     if t:
-        rows += [
-            ("K_fc* (automated search)", _fmt(t["k_fc_star"], " V") if t["search"]["converged"]
-             else f"not converged: {t['search']['stop_reason']}"),
-            ("sigma_total(K_fc*): noise and the measured systematic parts", _fmt(t["search"].get("sigma_v"), " V")),
-            ("sigma parts", ", ".join(f"{k} {_fmt(v, ' V')}" for k, v in
-                                      (t["search"].get("sigma_parts_v") or {}).items()) or "-"),
-            ("K_fc optimum of the sweep", _fmt((t["sweep"] or {}).get("optimum_k_fc"), " V")),
-            ("search vs sweep optimum", _fmt(t["search"]["relative_to_sweep_optimum"], pct=True)),
-            ("closed-loop experiments of the search", t["search"]["experiments"]),
-            ("true Coulomb friction (simulation)", _fmt(t["true_coulomb_v"], " V")),
-            ("K_fc* vs truth", _fmt(t["k_fc_star_error_re_truth"], pct=True)),
-            ("odd-harmonic ratio at K_fc = 0 (re |H_1|)", _fmt(t["ratio_at_zero"], level=True)),
-            ("odd-harmonic ratio at K_fc* (re |H_1|)", _fmt(t["ratio_at_k_fc_star"], level=True)),
-            ("ratio improvement", _fmt(t["ratio_improvement"], "x")),
-            ("rms tracking error at K_fc = 0", _fmt(t["rms_error_rad"]["k_fc_0"], " rad")),
-            ("rms tracking error at K_fc*", _fmt(t["rms_error_rad"]["k_fc_star"], " rad")),
-            ("smallest rms error of the sweep",
-             f"{_fmt(t['rms_error_rad']['sweep_min'], ' rad')} at K_fc = "
-             f"{_fmt(t['rms_error_rad']['sweep_min_at_k_fc'], ' V')}"),
-        ]
-        if t.get("viscous"):
-            rows += [("K_v* (viscous feed-forward)", _fmt(t["viscous"]["k_v_star"], " V s/rad")),
-                     ("rms tracking error at K_fc*, K_v*", _fmt(t["viscous"]["rms_error_rad"], " rad"))]
+        srch = t["search"]
+        rec = results.get("recommendation") or recommendation(results)
+        rows.append(("K_fc* (automated search)",
+                     f"{gain_text(t['k_fc_star'])} +- {sigma_text(srch.get('sigma_v'))} (1 sigma_total) "
+                     f"after {srch['experiments']} experiments" if srch["converged"]
+                     else f"not converged: {srch['stop_reason']}"))
+        rows.append(("on the drive", rec["text"]))
+        if t.get("true_coulomb_v") is not None:
+            rows.append(("K_fc* vs the true Coulomb level (simulation)",
+                         f"{_fmt(t['k_fc_star_error_re_truth'], pct=True)} (true "
+                         f"{gain_text(t['true_coulomb_v'])})"))
+        if (t.get("sweep") or {}).get("optimum_k_fc") is not None:
+            rows.append(("K_fc* vs the sweep's optimum",
+                         f"{_fmt(srch['relative_to_sweep_optimum'], pct=True)} (sweep optimum "
+                         f"{gain_text(t['sweep']['optimum_k_fc'])}, K_v = 0)"))
+        rows.append(("odd-harmonic ratio re |H_1|",
+                     f"{_fmt(t['ratio_at_zero'], level=True)} without feed-forward -> "
+                     f"{_fmt(t['ratio_at_k_fc_star'], level=True)} at K_fc* "
+                     f"({_fmt(t['ratio_improvement'], 'x')})"))
+        for r in loop_comparison(results):
+            rows.append((f"rms tracking error, {loop_label(r)}", rms_text(r["rms_error_rad"])))
     d = results.get("detect")
     if d:
         rows.append(("detection verdict", d["verdict"]))
+    q = results.get("quantify")
+    if q:
+        rows.append(("largest HOSIDF level re |H_1|",
+                     f"odd {_fmt(q['max_odd_relative_level'], level=True)}, even "
+                     f"{_fmt(q['max_even_relative_level'], level=True)}"))
+    if results.get("experiments"):
+        rows.append(("experiments measured / resumed from captures",
+                     f"{results['experiments']['measured']} / {results['experiments']['resumed']}"))
+    return rows
+
+
+def detail_rows(results):
+    """The report's further numbers (label, text): the uncertainty's parts, the sweep and
+    the detection per level."""
+    rows = []
+    t = results.get("tune")
+    if t:
+        s = t["search"]
+        rows += [
+            ("sigma_total(K_fc*) parts", ", ".join(f"{k} {sigma_text(v)}" for k, v in
+                                                   (s.get("sigma_parts_v") or {}).items()) or "-"),
+            ("K_v in the loop during the search", _search_kv_text(s)),
+            ("tune amplitude, frequency", f"{t['amplitude_rad']:.3g} rad, {t['frequency_hz']:g} Hz"),
+        ]
+    d = results.get("detect")
+    if d:
         for tag, lv in (("lowest", d["levels"][0]), ("highest", d["levels"][-1])):
             s = lv["summary_db"]
-            rows.append((f"per line, {tag} level ({lv['rms_requested']:g} rms): nonlinear re output "
-                         f"/ noise re nonlinear (median)",
+            rows.append((f"{tag} level ({lv['rms_requested']:g} rms): nonlinear re output / noise "
+                         f"re nonlinear (per-line medians)",
                          f"{_fmt(s.get('line_median_nl_re_output_db'), ' dB')} / "
                          f"{_fmt(s.get('line_median_noise_re_nl_db'), ' dB')}"))
         top = d["levels"][-1]["summary_db"]
         if top.get("parity_classifiable"):
             rows.append(("highest level: odd re even (power ratio)",
                          _fmt(top.get("odd_re_even_db"), " dB")))
-    q = results.get("quantify")
-    if q:
-        rows.append(("largest odd HOSIDF level re |H_1|", _fmt(q["max_odd_relative_level"], level=True)))
-        rows.append(("largest even HOSIDF level re |H_1|", _fmt(q["max_even_relative_level"], level=True)))
-    rows.append(("experiments measured / resumed from captures",
-                 f"{results['experiments']['measured']} / {results['experiments']['resumed']}"))
     return rows
+
+
+def _search_kv_text(s):
+    runs = ((s.get("budget") or {}).get("viscous") or {}).get("k_v_in_search")
+    final = s.get("k_v_in_search") or 0.0
+    if runs is None or runs == final:
+        return gain_text(final, "V s/rad")
+    return (f"{gain_text(runs, 'V s/rad')} (read at K_fc = 0); K_fc* read again with "
+            f"{gain_text(final, 'V s/rad')} (the motor's lag corrected)")
+
+
+def comparison_table(results):
+    """The like-for-like table (HTML): each row the feed-forward in the loop and what it gave."""
+    rows = loop_comparison(results)
+    if not rows:
+        return ""
+    out = ["<table class='cmp'><tr><th>in the loop</th><th>K_fc</th><th>K_v</th>"
+           "<th>rms tracking error</th><th>odd-harmonic ratio re |H_1|</th></tr>"]
+    for r in rows:
+        out.append("<tr>" + "".join(f"<td>{html.escape(x)}</td>" for x in (
+            r["what"], gain_text(r["k_fc_v"]), gain_text(r["k_v"], "V s/rad"),
+            rms_text(r["rms_error_rad"]), _fmt(r["ratio"], level=True) if r["ratio"] is not None
+            else "-")) + "</tr>")
+    out.append("</table><p class='note'>Compare rows with the same K_v: the sweep runs with "
+               "K_v = 0; the search runs with the K_v shown.</p>")
+    return "\n".join(out)
 
 
 # dB values below this are a floor (an exactly zero power clipped at 1e-300 before the log,
@@ -266,34 +493,93 @@ def _zero_levels_readable(results):
     return dict(results, quantify=dict(q, even_relative_level=rows))
 
 
+_CSS = ("body{font-family:sans-serif;max-width:1200px;margin:auto;padding:0 8px;font-size:14px}"
+        "h1{font-size:20px;margin:8px 0 2px}h2{font-size:16px;margin:14px 0 4px}"
+        "h3{font-size:14px;margin:4px 0 0}p.meta,p.note,.sub,figcaption{color:#555;font-size:12px}"
+        "p{margin:3px 0}.rec{border:2px solid #2a7;background:#eefaf2;padding:8px;font-size:15px}"
+        "table{border-collapse:collapse;font-size:13px}th,td{border:1px solid #bbb;padding:2px 6px;"
+        "text-align:left;vertical-align:top}"
+        ".figs{display:grid;grid-template-columns:repeat(auto-fill,minmax(560px,1fr));gap:10px}"
+        "figure{margin:0}img{width:100%}.sub{margin:0 0 2px}"
+        "pre{background:#f4f4f4;padding:8px;white-space:pre-wrap;overflow-wrap:anywhere;font-size:12px}"
+        "details{margin:6px 0}summary{cursor:pointer;font-weight:bold}")
+
+
+def _figure_heading(caption):
+    """(title, subtitle, text) of a caption "Title (the paper's Figure N ...): text."."""
+    import re
+    head, _, text = caption.partition(": ")
+    m = re.match(r"^(.*?) \((the paper's Figure [^)]*)\)$", head)
+    if m:
+        return m.group(1), m.group(2), text
+    m = re.match(r"^Figure (\d+)\s*(\(([^)]*)\))?$", head)
+    if m:      # an older caption "Figure N (detail): text"
+        return text.split(".")[0], f"the paper's Figure {m.group(1)}" + (
+            f", {m.group(3)}" if m.group(3) else ""), text
+    return head, "", text
+
+
+def _config_text(results):
+    path = results.get("config_file")
+    if not path or not os.path.isfile(str(path)):
+        return None
+    try:
+        with open(path, "r", encoding="utf-8") as fh:
+            return fh.read(200_000)
+    except (OSError, UnicodeDecodeError):
+        return None
+
+
 def write_html(out_dir, results, figures, title="fftune report", sections=()):
-    """``report.html``: ``sections`` ((heading, HTML) pairs) first, then the key numbers,
-    the figures with captions, the full results (dB floors printed as such)."""
+    """``report.html``, a decision page: the recommendation first (what to set, on which
+    object, :func:`recommendation`), ``sections`` ((heading, HTML) pairs), the like-for-like
+    comparison (:func:`loop_comparison`), the key numbers, the figures (titled by what they
+    show, the paper's figure number as a subtitle) in a grid, then the configuration and
+    the full results (dB floors printed as such) collapsed."""
     ident = results.get("drive", {}).get("identity", {})
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
-        "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}"
-        "table{border-collapse:collapse}th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}"
-        "img{max-width:100%}pre{background:#f4f4f4;padding:8px;white-space:pre-wrap;"
-        "overflow-wrap:anywhere}</style></head><body>",
+        f"<style>{_CSS}</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
-        f"<p>{html.escape(datetime.datetime.now().isoformat(timespec='seconds'))} &mdash; drive "
+        f"<p class='meta'>{html.escape(datetime.datetime.now().isoformat(timespec='seconds'))} &mdash; drive "
         f"{html.escape(str(ident.get('device_name', '?')))}, firmware "
         f"{html.escape(str(ident.get('firmware_version', '?')))}, "
         f"{html.escape(str(ident.get('bus', '')))}; configuration "
         f"{html.escape(str(results.get('config_file', '')))}</p>",
     ]
+    rec = results.get("recommendation") or recommendation(results)
+    if rec is not None:
+        parts.append(f"<h2>Recommendation</h2><p class='rec'>{html.escape(rec['text'])}</p>")
+    elif results.get("detect"):
+        parts.append(f"<h2>Result</h2><p class='rec'>Detection: "
+                     f"{html.escape(results['detect']['verdict'])} (no tune step: nothing to set)</p>")
     for heading, body in sections:
         parts += [f"<h2>{html.escape(heading)}</h2>", body]
-    parts += ["<h2>Key numbers</h2>", _table(key_numbers(results))]
-    for name, (fname, caption) in figures.items():
-        parts.append(f"<h2>{html.escape(caption.split(':')[0])}</h2>")
-        parts.append(f"<figure><img src='{html.escape(fname)}' alt='{html.escape(name)}'>"
-                     f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-    parts.append("<h2>All results (results.yaml)</h2><pre>")
+    cmp_html = comparison_table(results)
+    if cmp_html:
+        parts += ["<h2>With and without the feed-forward (like for like)</h2>", cmp_html]
+    # (the recommendation and the rms errors are above: not twice)
+    keys = [(k, v) for k, v in key_numbers(results)
+            if not (cmp_html and k.startswith("rms tracking error")) and k != "on the drive"]
+    parts += ["<h2>Key numbers</h2>", _table(keys + detail_rows(results))]
+    if figures:
+        parts.append("<h2>Figures</h2><div class='figs'>")
+        for name, (fname, caption) in figures.items():
+            head, sub, text = _figure_heading(caption)
+            parts.append(f"<figure><h3>{html.escape(head)}</h3>"
+                         + (f"<p class='sub'>{html.escape(sub)}</p>" if sub else "")
+                         + f"<a href='{html.escape(fname)}'><img src='{html.escape(fname)}' "
+                           f"alt='{html.escape(name)}'></a>"
+                           f"<figcaption>{html.escape(text)}</figcaption></figure>")
+        parts.append("</div>")
+    cfg_text = _config_text(results)
+    if cfg_text is not None:
+        parts.append(f"<details><summary>Configuration ({html.escape(str(results.get('config_file')))})"
+                     f"</summary><pre>{html.escape(cfg_text)}</pre></details>")
+    parts.append("<details><summary>All results (results.yaml)</summary><pre>")
     parts.append(html.escape(yaml.safe_dump(_floors_readable(_zero_levels_readable(results)), sort_keys=False,
                                             default_flow_style=None, width=90)))
-    parts.append("</pre></body></html>")
+    parts.append("</pre></details></body></html>")
     path = os.path.join(out_dir, "report.html")
     write_atomic(path, "\n".join(parts))
     return path

@@ -504,6 +504,8 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
     write_atomic(os.path.join(out, "results.yaml"), yaml.safe_dump(results, sort_keys=False))
     if figures:
         plot_track(rows, os.path.join(out, "track_kfc.png"))
+    from fftune.host.track_report import write_track_report
+    log(f"fftune track: open {os.path.relpath(write_track_report(out, results, cfg, figures))}")
     return results
 
 

@@ -134,7 +134,7 @@ def test_doc_table_is_generated_from_reproduction_json(short_run):
     for row in doc["comparison"]:
         line = next(ln for ln in text.splitlines() if ln.startswith(f"| {row['claim']} |"))
         assert f"| {row['measured_text']} |" in line
-        assert ("| yes |" in line) == row["agrees"]
+        assert ("| yes |" in line) == (row["verdict"] == "yes")
     html = (out / "report.html").read_text()
     assert "The paper&#x27;s results reproduced" in html or "The paper's results reproduced" in html
 

@@ -1,11 +1,13 @@
 """Benchmark: `fftune fleet` throughput, captures per second with 1 and 2 Dask workers.
 
-A fleet of 8 capture directories (2 made on the Python test double of the drive with
+A fleet of 16 capture directories (2 made on the Python test double of the drive with
 tests/test_host_experiments.py's small configuration, 0.3 V and 0.5 V Coulomb level, each
-copied 4 times; 31-32 runs each: detect, quantify, tune) re-analysed as one task graph on
-a dask.distributed LocalCluster of 1 and of 2 worker processes (1 thread each). Printed:
-wall time of the graph and capture files per second. The figure depends on the cores free
-(2 workers need 2 idle cores to approach twice the rate) and on the capture sizes; the
+copied 8 times; 31-32 runs each: detect, quantify, tune) re-analysed as one task graph (the
+items batched, a few per worker: fleet.batches) on Dask's local multiprocessing scheduler
+with 1 and 2 processes, and on a dask.distributed LocalCluster of 1 and 2 worker processes
+(1 thread each). Printed: wall time of the graph and capture files per second. The figure
+depends on the cores free (2 workers need 2 idle cores to approach twice the rate) and on
+the capture sizes; the local scheduler's figure includes its process pool's start, the
 cluster's start-up is not counted.
 """
 import os
@@ -32,22 +34,28 @@ def main():
             d = FakeDriveForTests(fc_volt=fc, fv_volt=0.02, noise_std=1e-5)
             d.enable()
             run_pipeline(d, _cfg(), os.path.join(root, "m0", name), log=lambda s: None, figures=False)
-        for i in range(1, 4):
+        for i in range(1, 8):
             for name in ("a", "b"):
                 shutil.copytree(os.path.join(root, "m0", name), os.path.join(root, f"m{i}", name))
         items, _ = fleet.discover([root])
         n_files = sum(len(fleet._capture_files(p)) for _, p in items)
-        print(f"fleet: {len(items)} capture directories, {n_files} capture files")
+        print(f"fleet: {len(items)} capture directories, {n_files} capture files; load average "
+              f"{' '.join(open('/proc/loadavg').read().split()[:3])} on {os.cpu_count()} cores")
+
+        def report(what, dt, rows):
+            ok = sum(r["status"] == "ok" for r in rows)
+            print(f"  {what}: {dt:.2f} s, {n_files / dt:.1f} captures/s ({ok}/{len(rows)} rows ok)")
+        for workers in (1, 2):
+            t0 = time.monotonic()
+            rows = fleet.run_graph(items, workers=workers)
+            report(f"local processes, {workers} worker(s)", time.monotonic() - t0, rows)
         for workers in (1, 2):
             with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                               dashboard_address=None, host="127.0.0.1") as cluster:
-                fleet.run_graph(items[:1], scheduler=cluster.scheduler_address)   # warm the workers
+                fleet.run_graph(items[:workers], scheduler=cluster.scheduler_address)   # warm the workers
                 t0 = time.monotonic()
                 rows = fleet.run_graph(items, scheduler=cluster.scheduler_address)
-                dt = time.monotonic() - t0
-            ok = sum(r["status"] == "ok" for r in rows)
-            print(f"  {workers} worker(s): {dt:.2f} s, {n_files / dt:.1f} captures/s, "
-                  f"{len(items) / dt:.2f} directories/s ({ok}/{len(rows)} rows ok)")
+                report(f"distributed LocalCluster, {workers} worker(s)", time.monotonic() - t0, rows)
 
 
 if __name__ == "__main__":

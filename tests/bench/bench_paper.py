@@ -31,7 +31,7 @@ def main():
     print(f"  {'claim':<64} {'paper':>10} {'measured':>10}  agrees")
     for row in doc["comparison"]:
         print(f"  {row['claim'][:64]:<64} {row['paper']:>10} {row['measured_text']:>10}  "
-              f"{'yes' if row['agrees'] else 'NO'}")
+              f"{ {'yes': 'yes', 'no': 'NO'}.get(row.get('verdict', 'yes' if row['agrees'] else 'no'), 'other set-up')}")
     print(f"  H_3 / H_5 turn on the set-up itself: {doc['h3_phase_turn_deg_setup']:.0f} / "
           f"{doc['h5_phase_turn_deg_setup']:.0f} deg (the paper's 180 deg is its simulation's)")
     return 0

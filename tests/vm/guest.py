@@ -18,7 +18,12 @@ Command line::
 
     python tests/vm/guest.py check
     python tests/vm/guest.py build
-    python tests/vm/guest.py run [--cwd DIR] [--env K=V ...] [--timeout S] -- COMMAND [ARG ...]
+    python tests/vm/guest.py run [--cwd DIR] [--env K=V ...] [--timeout S] [--out DIR] -- COMMAND [ARG ...]
+
+``--out DIR``: what the command writes under $FFTUNE_VM_OUT (/run/vmjob/out) comes back into
+DIR on the host, byte for byte (the host tree is read-only in the guest: its writes elsewhere
+vanish at power-off); the text ``{out}`` in the command's arguments stands for that path,
+e.g. ``-- .venv/bin/fftune demo -i socketcan -c vcan0 --config configs/demo_vm.yaml --out {out}/demo``.
 """
 from __future__ import annotations
 
@@ -428,7 +433,7 @@ def _read_text(path: Path) -> str:
 
 def run_in_guest(command, env: dict | None = None, cwd: str | os.PathLike | None = None,
                  timeout_s: float = 300.0, files: dict | None = None, memory_mib: int = 1536, cpus: int = 2,
-                 hard_limit_s: float | None = None) -> GuestResult:
+                 hard_limit_s: float | None = None, out_dir: str | os.PathLike | None = None) -> GuestResult:
     """Boot the guest, run ``command`` in the host tree with vcan0 up, power off.
 
     Parameters
@@ -450,6 +455,9 @@ def run_in_guest(command, env: dict | None = None, cwd: str | os.PathLike | None
     memory_mib, cpus : guest RAM (also holds everything written in the guest) and vCPUs.
     hard_limit_s : float, optional
         Host-side limit for the whole qemu run; default ``timeout_s + BOOT_ALLOWANCE_S``.
+    out_dir : path, optional
+        The files the command wrote under $FFTUNE_VM_OUT are copied here (binary, the tree
+        kept; existing files replaced), also after a failure or a timeout.
 
     Returns
     -------
@@ -511,11 +519,19 @@ def run_in_guest(command, env: dict | None = None, cwd: str | os.PathLike | None
                        f"{': ' + qemu_err.strip() if qemu_err.strip() else ''}\n")
         outputs = {str(p.relative_to(job / "out")): _read_text(p)
                    for p in sorted((job / "out").rglob("*")) if p.is_file()}
+        if out_dir is not None:
+            shutil.copytree(job / "out", out_dir, dirs_exist_ok=True, symlinks=True)
         return GuestResult(
             outputs=outputs, args=command, returncode=returncode, stdout=_read_text(job / "stdout"),
             stderr=stderr, timed_out=guest_timed_out or host_timed_out,
             init_log=_read_text(job / "init.log"), console=_read_text(console),
             duration_s=duration)
+
+
+def substitute_out(command):
+    """``command`` (a sequence) with "{out}" in each argument replaced by the guest's
+    $FFTUNE_VM_OUT path."""
+    return [str(a).replace("{out}", DEFAULT_GUEST_ENV["FFTUNE_VM_OUT"]) for a in command]
 
 
 def _main(argv=None) -> int:
@@ -529,6 +545,9 @@ def _main(argv=None) -> int:
     run.add_argument("--env", action="append", default=[], metavar="KEY=VALUE")
     run.add_argument("--timeout", type=float, default=300.0, help="seconds (default 300)")
     run.add_argument("--verbose", action="store_true", help="also print init.log and console")
+    run.add_argument("--out", metavar="DIR",
+                     help="bring back what the command writes under $FFTUNE_VM_OUT into DIR "
+                          "('{out}' in the command stands for that path in the guest)")
     run.add_argument("command", nargs=argparse.REMAINDER)
     args = parser.parse_args(argv)
 
@@ -551,7 +570,11 @@ def _main(argv=None) -> int:
             if not sep:
                 parser.error(f"--env {item!r}: expected KEY=VALUE")
             env[key] = value
-        result = run_in_guest(command, env=env, cwd=args.cwd, timeout_s=args.timeout)
+        if args.out:
+            if os.path.exists(args.out) and not os.path.isdir(args.out):
+                parser.error(f"--out {args.out}: not a directory")
+            command = substitute_out(command)
+        result = run_in_guest(command, env=env, cwd=args.cwd, timeout_s=args.timeout, out_dir=args.out)
     except GuestUnavailable as exc:
         print(f"guest.py: error: {exc}", file=sys.stderr)
         return 2
@@ -560,7 +583,8 @@ def _main(argv=None) -> int:
     if args.verbose:
         sys.stderr.write(f"--- init.log\n{result.init_log}--- console\n{result.console}")
     print(f"[guest.py] returncode {result.returncode}, {result.duration_s:.1f} s"
-          f"{', TIMED OUT' if result.timed_out else ''}", file=sys.stderr)
+          f"{', TIMED OUT' if result.timed_out else ''}"
+          + (f"; {len(result.outputs)} files back in {args.out}" if args.out else ""), file=sys.stderr)
     return result.returncode if result.returncode is not None and result.returncode >= 0 else 1
 
 
