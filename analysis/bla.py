@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fftune.analysis.checks import check_arguments, check_blocks
 from fftune.analysis.errors import InputError
 
 __all__ = ["BLAResult", "TransientCheck", "TransientWarning", "BLALevels",
@@ -1070,14 +1071,17 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         if arr is not None and arr.shape != u.shape:
             raise InputError(f"{name}: shape {arr.shape} differs from input u {u.shape}")
     n_real, n_total, n = u.shape
-    settle = int(settle_periods)
-    if not 0 <= settle < n_total:
-        raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1} "
-                         f"(the data hold {n_total} periods per realization)")
-    if n < 4:
-        raise InputError(f"samples per period N = {n} is too small")
-    if not np.isfinite(fs) or fs <= 0:
-        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    fs, settle = check_arguments(fs=fs, n_period=n, settle_periods=settle_periods,
+                                 n_total=n_total)
+    # the layout and the steady state of the excitation, before anything is averaged
+    layout = check_blocks(r if r is not None else u, kind="multisine", settle_periods=settle,
+                          name="reference r" if r is not None else "input u", fs=fs,
+                          mixed_levels="note")
+    if layout.changed:
+        u, y = layout.apply(u), layout.apply(y)
+        r = None if r is None else layout.apply(r)
+        n_real, n_total, n = u.shape
+        settle = layout.settle_periods
     excitation = r if r is not None else u
     detected_here = excited_bins is None
     line_note = None
@@ -1175,6 +1179,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         res.summary["excited_lines_confidence"] = info["confidence"]
     if line_note:
         res.notes.insert(1, line_note)
+    res.notes.extend(layout.notes)
     if res.transient.suspect and warn_transient:
         warnings.warn(res.transient.message, TransientWarning, stacklevel=2)
     return res
@@ -1262,11 +1267,10 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
                 raise InputError(f"spectra {name}: expected shape (M, T+P, {bins.size}) like "
                                  f"U {U.shape}, got {arr.shape}")
         _shape = U.shape[:2]
-    excited = _validate_lines(excited_bins, n)
     n_real, n_total = _shape
-    settle = int(settle_periods)
-    if not 0 <= settle < n_total:
-        raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1}")
+    fs, settle = check_arguments(fs=fs, n_period=n, settle_periods=settle_periods,
+                                 n_total=n_total, hold_text=False)
+    excited = _validate_lines(excited_bins, n)
     n_per = n_total - settle
     band = np.arange(excited[0], excited[-1] + 1)
     pos = _band_positions(bins, band)
@@ -1361,8 +1365,7 @@ def robust_bla_moments(moments, *, n_period, fs=1.0, excited_bins, y_quantisatio
         says so.
     """
     n = int(n_period)
-    if not np.isfinite(fs) or fs <= 0:
-        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    fs, _ = check_arguments(fs=fs, n_period=n)
     if moments.R is None:
         raise InputError("line moments: the reference R is needed (known-reference estimate)")
     excited = _validate_lines(excited_bins, n)
@@ -2123,11 +2126,8 @@ def robust_bla_mimo(u, y, *, fs=1.0, settle_periods=0, excited_bins=None):
     if n_real % n_u or n_real < n_u:
         raise InputError(f"MIMO BLA: M = {n_real} realizations is not a multiple of the "
                          f"n_u = {n_u} inputs (blocks of n_u experiments)")
-    settle = int(settle_periods)
-    if not 0 <= settle < n_total:
-        raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1}")
-    if not np.isfinite(fs) or fs <= 0:
-        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    fs, settle = check_arguments(fs=fs, n_period=n, settle_periods=settle_periods,
+                                 n_total=n_total, hold_text=False)
     if excited_bins is None:
         excited = detect_excited_lines(u[..., 0], settle)
     else:

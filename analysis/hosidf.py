@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fftune.analysis.checks import check_arguments, check_blocks
 from fftune.analysis.errors import InputError
 
 __all__ = ["HosidfResult", "hosidf", "hosidf_from_lines"]
@@ -119,8 +120,7 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2, other_line
     y = _check_layout("output y", y)
     if u.shape != y.shape:
         raise InputError(f"output y: shape {y.shape} differs from input u {u.shape}")
-    if not np.isfinite(fs) or fs <= 0:
-        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    fs, _ = check_arguments(fs=fs)
     n_harmonics = int(n_harmonics)
     if n_harmonics < 1:
         raise InputError(f"harmonics K must be >= 1, got {n_harmonics}")
