@@ -150,7 +150,8 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
     * a level that changes within the group and stays: a level step, refused naming
       the block, the sample and both levels.
     * a group without any excitation: dropped (a note names it).
-    * groups at different levels (beyond 1.5 dB for a multisine, 0.5 dB for a sine):
+    * groups at different levels (sorted levels with a step of more than 1.5 dB for a
+      multisine, 0.5 dB for a sine, :func:`amplitude_levels`):
       refused (``mixed_levels="refuse"``) naming the levels, kept with a note
       (``"note"``), or kept (``"keep"``: the caller splits them with
       :func:`amplitude_levels`).
@@ -249,6 +250,14 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
             continue
         good = np.flatnonzero(~bad)
         if good.size == 0:
+            steps = np.flatnonzero(np.abs(_db(level[ks[1:]] / level[ks[:-1]])) > STEP_DB)
+            if steps.size == 1:
+                k = ks[steps[0] + 1]
+                raise InputError(
+                    f"{name}: the excitation level changes at {where(k)} ({at(k)}): "
+                    f"{_db(level[k] / level[k - 1]).item():+.1f} dB (rms {level[k - 1]:.4g} -> "
+                    f"{level[k]:.4g}) and stays: {block}s at different levels cannot be "
+                    f"averaged; record each level on its own")
             raise InputError(f"{name}: no {block} of {group} {g} at a common level (levels "
                              f"{rel_g.min():+.1f} .. {rel_g.max():+.1f} dB re its median, from "
                              f"{at(ks[0])}): the level changes {block} by {block}")
@@ -313,20 +322,28 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                      f"(20 dB or more under the others from {at(index[dropped_groups[0], 0])}): "
                      f"dropped")
         changed = True
-    # every group keeps the same number of blocks (the estimators' layout)
-    count = int(np.min((stops - starts)[keep_groups]))
+    # every group keeps the same number of blocks (the estimators' layout): the count
+    # that keeps the most blocks (groups with fewer are dropped; ties: more groups)
+    avail = (stops - starts)[keep_groups]
+    count = max(sorted(set(avail.tolist())), key=lambda c: (c * int(np.sum(avail >= c)),
+                                                             int(np.sum(avail >= c))))
+    short = [g for g, a in zip(keep_groups, avail) if a < count]
+    if short:
+        notes.append(f"{name}: {group}(s) {_ranges(short)} dropped (fewer {block}s left than "
+                     f"the others: {count} kept in each)")
+        keep_groups = [g for g in keep_groups if g not in short]
     if changed:
         index = np.stack([np.concatenate((index[g, :settle],
                                           index[g, starts[g]:starts[g] + count]))
                           for g in keep_groups])
-        if np.any((stops - starts)[keep_groups] > count):
+        if np.any((stops - starts)[keep_groups] > count) and len(keep_groups) > 1:
             notes.append(f"{count} {block}(s) kept in every {group} (the same number in each)")
     n_groups = index.shape[0]
     # --- groups at different levels --------------------------------------------------
     glev = np.array([float(np.median(level[index[g, settle:]])) for g in range(n_groups)])
     tol = GROUP_DB.get(kind, 1.5)
-    if n_groups > 1 and _db(glev.max() / glev.min()) > tol and mixed_levels != "keep":
-        groups = amplitude_levels(glev, tol_db=tol)
+    groups = amplitude_levels(glev, tol_db=tol) if n_groups > 1 else [np.arange(n_groups)]
+    if len(groups) > 1 and mixed_levels != "keep":
         text = (f"the {group}s are at {len(groups)} different levels (rms "
                 + ", ".join(f"{glev[gs].mean():.3g}" for gs in groups[:6])
                 + (" ..." if len(groups) > 6 else "")
@@ -438,7 +455,7 @@ def _waveform(flat, index, settle, n_blocks, name, group, block, kind, fs, infer
         w = np.abs(a0) * np.abs(a1)
         slope = float(np.sum(w * lines * phase) / np.sum(w * lines * lines))
         shift = -slope * n / (2 * np.pi)
-        what = ("the sine is off the grid of the blocks" if kind == "sine" else
+        what = ("the sine is off the DFT grid of the blocks" if kind == "sine" else
                 "the excitation does not repeat every N samples")
         raise InputError(
             f"{name}: {what}: {block} {b + 1} of {group} {g} is the one before shifted by "
@@ -447,6 +464,14 @@ def _waveform(flat, index, settle, n_blocks, name, group, block, kind, fs, infer
             f"integer number of periods per {block}")
     new = c.real < NEW_CORR
     same = c.real > SAME_CORR
+    if not same[:, settle:].any():
+        period = _find_period(flat[index.reshape(-1)].reshape(-1), n, max_samples=4 * n)
+        raise InputError(
+            f"{name}: the excitation does not repeat every N = {n} samples (consecutive "
+            f"{block}s correlate at most {c.real.max():.2f} at the {lines.size} strongest "
+            f"lines)" + (f": the record repeats every {period} samples; give N = {period}"
+                         if period else ": no period found in the record, not a periodic "
+                         "excitation"))
     if not np.all(new | same):
         g, b = np.argwhere(~(new | same))[0]
         raise InputError(
@@ -458,7 +483,7 @@ def _waveform(flat, index, settle, n_blocks, name, group, block, kind, fs, infer
     bounds = [np.flatnonzero(new[g]) + 1 for g in range(n_groups)]
     runs = [np.diff(np.concatenate(([0], bd, [per]))) for bd in bounds]
     length = int(runs[0][0])
-    regular = all(np.all(r == length) for r in runs) and length > settle
+    regular = all(np.all(r == length) for r in runs) and length > max(settle, 1)
     first = next(((g, int(bd[0])) for g, bd in enumerate(bounds) if bd.size), (0, 0))
     k0 = index[first[0], first[1]]
     listing = ", ".join(str(int(b)) for b in bounds[first[0]][:6]) + \
@@ -476,6 +501,22 @@ def _waveform(flat, index, settle, n_blocks, name, group, block, kind, fs, infer
             f"realizations of {length} {block}s, the first {settle} of each not averaged "
             f"(give --realizations M to say so)")
     return new_index, settle, note
+
+
+def _find_period(x, n, max_samples=1 << 16):
+    """The lag in N/2 .. 3N/2 at which the record best repeats (normalized
+    autocorrelation over 0.9), or None."""
+    x = np.asarray(x[:max_samples], dtype=np.float64)
+    x = x - x.mean()
+    hi = min(3 * n // 2, x.size // 2)
+    if hi <= n // 2:
+        return None
+    f = np.fft.rfft(x, 2 * x.size)
+    ac = np.fft.irfft(np.abs(f) ** 2)[:hi + 1]
+    lags = np.arange(n // 2, hi + 1)
+    norm = ac[lags] / (ac[0] * (x.size - lags) / x.size)
+    best = int(np.argmax(norm))
+    return int(lags[best]) if norm[best] > 0.9 else None
 
 
 def amplitude_levels(levels, tol_db=0.5):
