@@ -1133,9 +1133,13 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     buffers = [np.empty((n_total, n // 2 + 1), np.complex128)
                if x is not None and x.dtype == np.float64 else None for x in signals]
 
+    dc_y = np.empty((n_real, n_total))     # the output's DC per period (drift check)
+
     def one_realization(m):
         scan(u, m, extremes["u"], False)
         scan(y, m, extremes["y"], True)
+        if buffers[1] is None:
+            dc_y[m] = np.add.reduce(y[m], axis=-1, dtype=np.float64)
         out = []
         for x, buf in zip(signals, buffers):
             if x is None:
@@ -1151,6 +1155,8 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                 out.append(np.fft.rfft(x[m], axis=-1, out=buf)[:, lo:hi])
             else:
                 out.append(np.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128))
+        if buffers[1] is not None:
+            dc_y[m] = buffers[1][:, 0].real
         return tuple(out)
 
     y_mean_time = None
@@ -1180,9 +1186,79 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     if line_note:
         res.notes.insert(1, line_note)
     res.notes.extend(layout.notes)
+    # a transient in the kept periods, or a drift: the local polynomial method
+    drift = _drift_test(dc_y[:, settle:])
+    if (res.transient.suspect or drift is not None) and n_total - settle >= 2:
+        res = _with_lpm(res, u, y, r, band=band, excited=excited, settle=settle, fs=fs, n=n,
+                        drift=drift, y_quantisation_step=y_quantisation_step,
+                        y_rounding=rounding("y"), u_rounding=rounding("u"),
+                        y_mean_time=y_mean_time, strays=strays)
     if res.transient.suspect and warn_transient:
         warnings.warn(res.transient.message, TransientWarning, stacklevel=2)
     return res
+
+
+def _drift_test(dc, t_limit=6.0):
+    """A trend in the output's DC over the kept periods (``dc`` (M, P): the DC line of each
+    period): the least-squares slope per realization against its standard error from the
+    residuals. Returns (realization, slope per period re the DC's scatter, t) of the most
+    significant one when |t| > t_limit (P >= 4), else None."""
+    m_real, p = dc.shape
+    if p < 4 or not np.all(np.isfinite(dc)):
+        return None
+    t = np.arange(p) - (p - 1) / 2.0
+    stt = float(np.sum(t * t))
+    slope = (dc - dc.mean(axis=1, keepdims=True)) @ t / stt
+    resid = dc - dc.mean(axis=1, keepdims=True) - slope[:, None] * t
+    s2 = np.sum(resid ** 2, axis=1) / (p - 2)
+    scale = np.maximum(np.sqrt(s2), 1e-12 * np.maximum(np.abs(dc).max(axis=1), 1e-300))
+    tstat = slope * np.sqrt(stt) / scale
+    m = int(np.argmax(np.abs(tstat)))
+    if abs(tstat[m]) <= t_limit:
+        return None
+    return m, float(slope[m]), float(tstat[m])
+
+
+def _with_lpm(res, u, y, r, *, band, excited, settle, fs, n, drift, y_quantisation_step,
+              y_rounding, u_rounding, y_mean_time, strays):
+    """The robust BLA from the local polynomial method's line moments, when the plain
+    periods show a transient (always) or the output drifts (when the LPM finds the
+    transient/drift at the excited lines above its noise); else ``res`` with a note."""
+    from fftune.analysis.lpm import lpm_moments
+    mom, G_per, info = lpm_moments(u, y, r, band=band, excited=excited, settle_periods=settle)
+    what = "transient" if res.transient.suspect else "drift"
+    size = (f"{info.transient_re_output_db:.1f} dB re the output at the excited lines, "
+            f"median {info.transient_re_noise_db:+.1f} dB re its standard error, "
+            f"{info.lines_significant} of {G_per[0].size} line(s) 6 dB over it")
+    drift_text = "" if drift is None else         (f" (the output's DC moves {drift[1]:+.3g} per period in realization {drift[0]}, "
+         f"t = {drift[2]:+.1f})")
+    if not res.transient.suspect and not info.significant:
+        res.notes.append(f"the output drifts{drift_text}, but the local polynomial method "
+                         f"finds it under the noise at the excited lines ({size}): plain "
+                         f"averaging kept")
+        return res
+    if res.transient.suspect:
+        res.transient.message += " (removed here by the local polynomial method)"
+    out = _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=None,
+                            G_per=None if r is not None else G_per, warn_transient=False,
+                            y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
+                            y_mean_time=y_mean_time, ignore_bins=strays, u_rounding=u_rounding,
+                            transient=res.transient)
+    out.notes[:0] = [note for note in res.notes if note.startswith("excited lines found")
+                     or "input u:" in note or "reference r:" in note]
+    out.notes.append(
+        f"{what}{drift_text} removed by the local polynomial method (degree {info.order} over "
+        f"{info.neighbours} neighbouring bins of the whole record, {info.dof} degrees of "
+        f"freedom per line): its size {size}; the BLA and its noise variance are from all "
+        f"{mom.n_periods} periods")
+    for key in ("excited_lines_margin_db", "excited_lines_confidence"):
+        if key in res.summary:
+            out.summary[key] = res.summary[key]
+    out.summary["lpm"] = {"removed": what, "transient_re_output_db": info.transient_re_output_db,
+                          "transient_re_noise_db": info.transient_re_noise_db,
+                          "lines_significant": info.lines_significant,
+                          "order": info.order, "neighbours": info.neighbours, "dof": info.dof}
+    return out
 
 
 @dataclass
@@ -1394,7 +1470,7 @@ def robust_bla_moments(moments, *, n_period, fs=1.0, excited_bins, y_quantisatio
 
 def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transient,
                       y_quantisation_step, y_rounding, y_mean_time=None, ignore_bins=None,
-                      u_rounding=0.0):
+                      u_rounding=0.0, transient=None):
     """The estimate and the detection from the line moments over the band (bins from the
     lowest to the highest excited line). ``Y_exc`` (M, T + P, E): every period's output
     at the excited lines for the transient check (None: not checked). ``G_per``: per
@@ -1712,7 +1788,9 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
                          "M >= 2 and P >= 2): no nonlinear detection possible with this "
                          "experiment")
 
-    if Y_exc is not None:
+    if transient is not None:
+        pass                          # (the local polynomial method: checked on the periods)
+    elif Y_exc is not None:
         transient = _transient(Y_exc, settle, n_per)
     else:
         transient = TransientCheck(level_db=np.array([]), message="not checked: line moments "
