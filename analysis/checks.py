@@ -124,13 +124,13 @@ def _db(x):
         return 20.0 * np.log10(np.maximum(x, 1e-300))
 
 
-def _first_above(block, amp):
-    hit = np.flatnonzero(np.abs(block) > 0.3 * amp)
+def _first_above(block, thr):
+    hit = np.flatnonzero(np.abs(block) > thr)
     return int(hit[0]) if hit.size else block.size
 
 
-def _last_above(block, amp):
-    hit = np.flatnonzero(np.abs(block) > 0.3 * amp)
+def _last_above(block, thr):
+    hit = np.flatnonzero(np.abs(block) > thr)
     return int(hit[-1]) + 1 if hit.size else 0
 
 
@@ -231,8 +231,12 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
     amp_cache = []
 
     def amp_ref():
+        """Where the excitation starts or stops: the first / last sample over 2 % of the
+        blocks' median peak, and over 4 times the rms of the blocks without excitation."""
         if not amp_cache:
-            amp_cache.append(float(np.median(np.max(np.abs(flat[kept]), axis=1))))
+            peak = float(np.median(np.max(np.abs(flat[kept]), axis=1)))
+            floor = float(np.median(level[dead])) if dead.any() else 0.0
+            amp_cache.append(max(0.02 * peak, 4.0 * floor))
         return amp_cache[0]
 
     dropped_groups = []

@@ -428,9 +428,12 @@ def _quiet_on_broken_pipe(run):
         try:
             return run(args)
         except BrokenPipeError:
+            # (Python's recipe: later writes, and the flush at exit, go to /dev/null)
             devnull = os.open(os.devnull, os.O_WRONLY)
             try:
                 os.dup2(devnull, sys.stdout.fileno())
+            except (OSError, ValueError, AttributeError):
+                pass
             finally:
                 os.close(devnull)
             return 0
