@@ -78,11 +78,13 @@ def lpm_offsets(line_bin, n_periods, n_side, n_full):
 
 
 def _fit_weights(offsets, order, scale):
-    """LS fit of a degree-``order`` polynomial: the weights w of its value at 0 and the
-    residual projector (I - K K^+)."""
+    """LS fit of a degree-``order`` polynomial: the weights w of its value at 0 and an
+    orthonormal basis Q of the polynomials at the offsets (the fit's projector is
+    Q Q^T, so the residual's squared norm is |x|^2 - |Q^T x|^2)."""
     K = (offsets[:, None] / scale) ** np.arange(order + 1)[None, :]
     pinv = np.linalg.pinv(K)
-    return pinv[0], np.eye(offsets.size) - K @ pinv
+    Q, _ = np.linalg.qr(K)
+    return pinv[0], Q
 
 
 def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_side=6):
@@ -127,41 +129,57 @@ def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_sid
     band = np.asarray(band, dtype=np.int64)
     n_full = p * n // 2 + 1
     lines = band * p
-    # the offset pattern of every line (interior lines share one: fitted once)
-    patterns = {}
-    for i, lb in enumerate(lines):
-        off = lpm_offsets(int(lb), p, n_side, n_full)
+    # the offset pattern of every line: the lines are multiples of P, so every line far
+    # enough from DC and fs/2 has the same one (fitted once); the others on their own
+    interior = lpm_offsets(int(p * (4 * n_side + 2)), p, n_side, 10 ** 12)
+    inside = (lines + interior[0] >= 1) & (lines + interior[-1] < n_full)
+    patterns = {tuple(interior): list(np.flatnonzero(inside))} if inside.any() else {}
+    for i in np.flatnonzero(~inside):
+        off = lpm_offsets(int(lines[i]), p, n_side, n_full)
         patterns.setdefault(tuple(off), []).append(i)
     q = 2 * n_side - order - 1
     L = band.size
-    w_all = None
     groups = []
     for off, idx in patterns.items():
         off = np.array(off)
-        w, proj = _fit_weights(off, order, float(p))
-        groups.append((np.array(idx), off, w, proj))
+        w, Q = _fit_weights(off, order, float(p))
+        groups.append((np.array(idx), off, np.column_stack((w, Q))))
 
-    def corrected(x):
-        """(M, L) corrected line sums, (M, L, 2n) residuals, (M, L) transients."""
-        X = np.fft.rfft(np.ascontiguousarray(x[:, settle:]).reshape(m_real, -1), axis=-1)
-        line = X[:, lines]
-        trans = np.empty((m_real, L), complex)
-        res = np.empty((m_real, L, 2 * n_side), complex)
-        for idx, off, w, proj in groups:
-            nb = X[:, lines[idx][:, None] + off[None, :]]          # (M, l, 2n)
-            trans[:, idx] = nb @ w
-            res[:, idx] = nb @ proj.T
-        return line - trans, res, trans
+    def spectrum(x):
+        return np.fft.rfft(np.ascontiguousarray(x[:, settle:]).reshape(m_real, -1), axis=-1)
 
-    Yc, Yres, Yt = corrected(y)
-    Uc, Ures, Ut = corrected(u)
+    XY, XU = spectrum(y), spectrum(u)
+    Yt, Ut = np.empty((m_real, L), complex), np.empty((m_real, L), complex)
+    ss = {key: np.empty((m_real, L)) for key in ("yy", "uu")}
+    s_yu = np.empty((m_real, L), complex)
     s_w = np.empty(L)
-    for idx, off, w, proj in groups:
-        s_w[idx] = float(np.sum(w ** 2))
+    for idx, off, B in groups:
+        sel = lines[idx][:, None] + off[None, :]
+        Bc = B.astype(complex)
+        parts = {}
+        for key, X in (("y", XY), ("u", XU)):
+            nb = np.take(X, sel, axis=1)                            # (M, l, 2n)
+            # numpy's own loops, not BLAS: small products whose threads cost more than
+            # they gain on a busy machine
+            c = np.einsum("mlk,kj->mlj", nb, Bc)
+            parts[key] = (nb, c)
+            q_part = c[..., 1:]
+            ss[key + key][:, idx] = (np.einsum("mlk,mlk->ml", nb.real, nb.real)
+                                     + np.einsum("mlk,mlk->ml", nb.imag, nb.imag)
+                                     - np.einsum("mlj,mlj->ml", q_part.real, q_part.real)
+                                     - np.einsum("mlj,mlj->ml", q_part.imag, q_part.imag))
+            (Yt if key == "y" else Ut)[:, idx] = c[..., 0]
+        (ny, cy), (nu, cu) = parts["y"], parts["u"]
+        # sum of res_y conj(res_u) with res = (I - Q Q^T) x: x_y . conj(x_u) minus the fit's
+        s_yu[:, idx] = (np.einsum("mlk,mlk->ml", ny, np.conj(nu))
+                        - np.einsum("mlj,mlj->ml", cy[..., 1:], np.conj(cu[..., 1:])))
+        s_w[idx] = float(np.sum(B[:, 0] ** 2))
+    Yc, Uc = XY[:, lines] - Yt, XU[:, lines] - Ut
+    del XY, XU
     factor = (1.0 + s_w) / q                     # var of a corrected line sum per |res|^2
-    var_y = np.sum(np.abs(Yres) ** 2, axis=-1) * factor
-    var_u = np.sum(np.abs(Ures) ** 2, axis=-1) * factor
-    cov_yu = np.sum(Yres * np.conj(Ures), axis=-1) * factor
+    var_y = np.maximum(ss["yy"], 0.0) * factor
+    var_u = np.maximum(ss["uu"], 0.0) * factor
+    cov_yu = s_yu * factor
     # period means and their variances; ss = P (P - 1) var(mean) (LineMoments' convention)
     k = p * (p - 1) / p ** 2
     U_mean, Y_mean = Uc / p, Yc / p
