@@ -1134,6 +1134,13 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                if x is not None and x.dtype == np.float64 else None for x in signals]
 
     dc_y = np.empty((n_real, n_total))     # the output's DC per period (drift check)
+    # detection lines above the band (a full grid has none inside it): up to 3 times the
+    # highest excited line, inside fs/2; their moments are read from the same spectra
+    a_lo, a_hi = hi, min(3 * int(excited[-1]), (n + 1) // 2 - 1) + 1
+    above = None
+    if classify_grid(excited, n)["grid"] == "full" and a_hi > a_lo and n_total - settle >= 2:
+        above = {key: (np.empty((n_real, a_hi - a_lo), np.complex128),
+                       np.empty((n_real, a_hi - a_lo))) for key in ("y", "x")}
 
     def one_realization(m):
         scan(u, m, extremes["u"], False)
@@ -1141,6 +1148,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         if buffers[1] is None:
             dc_y[m] = np.add.reduce(y[m], axis=-1, dtype=np.float64)
         out = []
+        full = {}
         for x, buf in zip(signals, buffers):
             if x is None:
                 out.append(None)
@@ -1151,12 +1159,20 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                 np.fft.rfft(r[m, settle:settle + 1], axis=-1, out=buf[settle:settle + 1])
                 buf[settle + 1:] = buf[settle]
                 out.append(buf[:, lo:hi])
+                full[id(x)] = buf
             elif buf is not None:
                 out.append(np.fft.rfft(x[m], axis=-1, out=buf)[:, lo:hi])
+                full[id(x)] = buf
             else:
-                out.append(np.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128))
+                spec = np.fft.rfft(x[m], axis=-1)
+                full[id(x)] = spec
+                out.append(spec[:, lo:hi].astype(np.complex128))
         if buffers[1] is not None:
             dc_y[m] = buffers[1][:, 0].real
+        if above is not None:
+            for key, x in (("y", y), ("x", r if r is not None else u)):
+                part = np.array(full[id(x)][settle:, a_lo:a_hi], dtype=np.complex128)
+                above[key][0][m], above[key][1][m] = _spread2_inplace(part)
         return tuple(out)
 
     y_mean_time = None
@@ -1186,6 +1202,10 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     if line_note:
         res.notes.insert(1, line_note)
     res.notes.extend(layout.notes)
+    if above is not None:
+        _above_band(res, above, a_lo, n, n_total - settle, rounding("y"),
+                    "reference r" if r is not None else "input u",
+                    float(np.mean(np.square(layout.levels))))
     # a transient in the kept periods, or a drift: the local polynomial method
     drift = _drift_test(dc_y[:, settle:])
     if (res.transient.suspect or drift is not None) and n_total - settle >= 2:
@@ -1196,6 +1216,47 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     if res.transient.suspect and warn_transient:
         warnings.warn(res.transient.message, TransientWarning, stacklevel=2)
     return res
+
+
+def _above_band(res, above, a_lo, n, n_per, y_rounding, xname, x_power):
+    """Detection lines above the band (a full grid): the lines up to 3 times the highest
+    excited one (inside fs/2) where the excitation is clean (its period mean not 6 dB
+    over its noise, or 100 dB under its power ``x_power``: what the input's own content
+    explains there cannot be told from plant distortion without G there). The output's
+    level there against its noise, by the class test of the non-excited lines; the
+    ``above_band_*`` keys and a note. A full grid's verdict then comes from them."""
+    scale2 = (2.0 / n) ** 2
+    n_real = above["y"][0].shape[0]
+    k = n_per * (n_per - 1)
+    y_level = scale2 * _mean0(_abs2(above["y"][0]))
+    floor = 4.0 * (2.0 * float(y_rounding)) ** 2 / 12.0 / n
+    y_noise = scale2 * _mean0(above["y"][1]) / k + floor
+    x_level = scale2 * _mean0(_abs2(above["x"][0]))
+    x_noise = scale2 * _mean0(above["x"][1]) / k
+    clean = (x_level <= 4.0 * x_noise) | (x_level <= 1e-10 * x_power)
+    # output lines 100 dB or more under its strongest excited line: rounding, not distortion
+    top = float(np.nanmax(10 ** (np.asarray(res.output_db, dtype=float) / 10)))
+    y_level = np.where(y_level <= 1e-10 * top, 0.0, y_level)
+    bins = np.arange(a_lo, a_lo + y_level.size)[clean]
+    # (fewer than 8 clean lines: too few to say anything, no figures)
+    st = _class_stats(y_level[clean], y_noise[clean] if bins.size >= 8 else None,
+                      n_real * (n_per - 1), "above_band_")
+    res.summary.update(st)
+    res.summary["above_band_hz"] = (None if not bins.size else
+                                    [float(bins[0] * res.fs / n), float(bins[-1] * res.fs / n)])
+    res.summary["above_band_lines_excitation_not_clean"] = int(np.sum(~clean))
+    if st["above_band_detected"] is None:
+        return
+    res.notes.append(
+        f"above the band: {bins.size} line(s) {bins[0] * res.fs / n:g} .. "
+        f"{bins[-1] * res.fs / n:g} Hz where the {xname} is clean (at its noise; "
+        f"{int(np.sum(~clean))} others left out), output "
+        + (f"{st['above_band_line_median_re_noise_db']:+.1f} dB re its noise (median), "
+           if st["above_band_line_median_re_noise_db"] is not None else "")
+        + f"{st['above_band_lines_over_noise_6db']} of {bins.size} lines 6 dB over "
+        f"({st['above_band_lines_needed']} needed): "
+        + ("nonlinear distortion above the band" if st["above_band_detected"] else
+           "no distortion above the band"))
 
 
 def _drift_test(dc, t_limit=6.0):
@@ -1886,6 +1947,8 @@ def level_verdict(summary, saturation_fraction=None, level=None):
     dict
         ``causes``: list of 'linear', 'plant odd nonlinearity', 'plant even
         nonlinearity', 'plant nonlinearity (parity not classifiable with this grid)',
+        'nonlinear distortion (above the band)' (a full grid: the lines up to 3 times
+        the highest excited one where the excitation is clean),
         'nonlinear distortion (excited lines)' (no detection line: the excited lines'
         var_total vs var_noise test), 'unmeasured inputs' (the excited lines spread over
         realizations, the detection lines are clean), 'unmeasured inputs or a scale-free
@@ -1931,6 +1994,16 @@ def level_verdict(summary, saturation_fraction=None, level=None):
                             f"(MIMO cross-coupling) look the same on the excited lines: a "
                             f"level dependence (several levels) or a MIMO BLA tells them "
                             f"apart"}
+        above = summary.get("above_band_detected")
+        if above is True:
+            return {"causes": ["nonlinear distortion (above the band)"],
+                    "text": f"nonlinear distortion{at} above the band: "
+                            f"{summary.get('above_band_lines_over_noise_6db')} of "
+                            f"{summary.get('above_band_lines')} lines up to 3 times the highest "
+                            f"excited line, where the excitation is clean, 6 dB over the "
+                            f"output's noise ({summary.get('above_band_lines_needed')} needed, or "
+                            f"one line alone at n p <= 1e-3); a full grid has no non-excited line "
+                            f"in the band, so no odd/even or plant-referred claim"}
         if exc is False:
             return {"causes": ["linear"],
                     "text": f"linear{at}: no nonlinear variance above the noise at the excited "
@@ -1944,7 +2017,15 @@ def level_verdict(summary, saturation_fraction=None, level=None):
             why.append("no non-excited line in the band")
         if not why:
             why.append("no noise estimate or no non-excited line")
-        return {"causes": ["cannot tell"], "text": "cannot tell: " + " and ".join(why)}
+        tail = ""
+        if above is False:
+            tail = (f"; no distortion above the band either ({summary.get('above_band_lines')} "
+                    f"lines where the excitation is clean)")
+        elif summary.get("above_band_lines_excitation_not_clean"):
+            tail = (f"; above the band the excitation itself has content at "
+                    f"{summary['above_band_lines_excitation_not_clean']} lines (give the "
+                    f"reference r for those)")
+        return {"causes": ["cannot tell"], "text": "cannot tell: " + " and ".join(why) + tail}
     loop = any(bool(f) for f in flags)
     open_loop = summary.get("known_reference") is False
     where = "at the output" if open_loop else "in the loop"
