@@ -382,6 +382,8 @@ def run_bla(args):
         print(f"fftune: warning: {w.message}", file=sys.stderr)
     s = res.summary
     how = "known reference r" if res.known_reference else "known input u"
+    # (the layout the estimate used: the checks may have found another one, in a note)
+    m, p, t = res.n_realizations, res.n_periods, res.settle_periods
     print(f"BLA of {columns['y']} / {columns['u']} ({how}): M = {m}, P = {p}, T = {t}, N = {n}, "
           f"fs = {fs:g} Hz, {res.bins.size} excited lines "
           f"{res.freq[0]:g} .. {res.freq[-1]:g} Hz")

@@ -230,6 +230,39 @@ def case_sine_levels(seed):
     return False, "accepted"
 
 
+def case_out_of_band(seed):
+    """A full grid (every line 1 .. 60 excited), one realization, a cubic plant: no
+    non-excited line in the band and no nonlinear variance; the lines up to 180, where
+    the input is clean, show the distortion (and the linear plant's do not)."""
+    from fftune.analysis import level_verdict
+    rng = np.random.default_rng(seed)
+    X = np.zeros(N // 2 + 1, complex)
+    X[1:61] = np.exp(2j * np.pi * rng.random(60))
+    x = np.fft.irfft(X, N)
+    x = np.tile(x / x.std(), (1, P, 1))
+    noise = 1e-3 * rng.standard_normal(x.shape)
+    cubic = level_verdict(run_bla(x, x + 0.05 * x ** 3 + noise).summary)
+    linear = level_verdict(run_bla(x, x + noise).summary)
+    return (cubic["causes"] == ["nonlinear distortion (above the band)"]
+            and linear["causes"] == ["cannot tell"]
+            and "no distortion above the band either" in linear["text"]), cubic["text"]
+
+
+def case_sine_gap_and_step(seed):
+    out = []
+    for make in (lambda u: u * ((np.arange(u.size) < 3000) | (np.arange(u.size) >= 5000)),
+                 lambda u: u * np.where(np.arange(u.size) < 6000, 1.0, 1.5)):
+        u, _ = sine(20.0)
+        u = make(u)
+        try:
+            hosidf(u.reshape(1, 10, 1000), (u + 0.2 * u ** 3).reshape(1, 10, 1000), fs=FS)
+            out.append("accepted")
+        except InputError as exc:
+            out.append(str(exc))
+    return ("gap in the excitation" in out[0] and "block 3" in out[0]
+            and "level changes at block 6 (sample 6000" in out[1]), out[0] + " | " + out[1]
+
+
 CASES = {
     "burst (periods dropped)": case_burst,
     "gap (refused)": case_gap,
@@ -243,6 +276,8 @@ CASES = {
     "sine burst": case_sine_burst,
     "sine off-grid": case_sine_off_grid,
     "sine levels as repeats": case_sine_levels,
+    "sine gap / level step": case_sine_gap_and_step,
+    "out-of-band distortion": case_out_of_band,
 }
 
 
@@ -394,3 +429,18 @@ def _lines_file(tmp_path):
     path = tmp_path / "lines.txt"
     path.write_text("20\n")
     return path
+
+
+def test_cli_infers_the_realizations_and_says_how(tmp_path, capsys):
+    """M realizations in one record without --realizations (a new user's first try): the
+    CLI path runs the same check and prints its note."""
+    from fftune.host.cli import main
+    u, y = bla_data(5)
+    np.savez(tmp_path / "m.npz", u=u.reshape(-1), y=y.reshape(-1), fs=FS)
+    code = main(["analyze", "bla", str(tmp_path / "m.npz"), "--period", str(N),
+                 "--settle-periods", "1"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert f"the excitation changes its phases every {P + 1} periods" in out
+    assert f"taken as M = {M} realizations" in out
+    assert f"M = {M}, P = {P}, T = 1, N = {N}" in out.splitlines()[0]
