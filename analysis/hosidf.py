@@ -202,9 +202,39 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2, other_line
     Y = scipy.fft.rfft(y.sum(axis=-2), axis=-1)
     Yk = np.take_along_axis(Y, k0[..., None] * np.arange(1, n_harmonics + 1), axis=-1)
     del Y
+    if u.ndim == 3 and n_blocks >= 4:
+        Yk = _without_drift(u, y, Yk, int(k0.reshape(-1)[0]), n_harmonics, notes)
     res = hosidf_from_lines(U1, Yk, k0[..., 0], n=n, n_blocks=n_blocks, fs=fs)
     res.notes.extend(notes)
     return res
+
+
+def _without_drift(u, y, Yk, k0, n_harmonics, notes):
+    """An output that drifts over the blocks (its DC per block has a trend, t > 6): the
+    drift's leakage at the harmonics is the same in every block, so averaging keeps it;
+    the local polynomial method (:mod:`fftune.analysis.lpm`) removes it from the lines
+    k0 .. K k0 of the whole record. Returns the corrected block sums (else ``Yk``)."""
+    from fftune.analysis.bla import _drift_test
+
+    drift = _drift_test(np.add.reduce(y, axis=-1, dtype=np.float64))
+    if drift is None:
+        return Yk
+    from fftune.analysis.lpm import lpm_moments
+
+    harmonics = k0 * np.arange(1, n_harmonics + 1)
+    band = np.arange(k0, harmonics[-1] + 1)
+    mom, _, info = lpm_moments(np.asarray(u, dtype=np.float64), np.asarray(y, dtype=np.float64),
+                               band=band, excited=harmonics)
+    if not info.significant:
+        notes.append(f"the output drifts (its DC moves {drift[1]:+.3g} per block in repeat "
+                     f"{drift[0]}, t = {drift[2]:+.1f}), but the local polynomial method finds "
+                     f"it under the noise at the harmonics: plain averaging kept")
+        return Yk
+    notes.append(f"drift of the output (its DC moves {drift[1]:+.3g} per block in repeat "
+                 f"{drift[0]}, t = {drift[2]:+.1f}) removed at the harmonics by the local "
+                 f"polynomial method: {info.transient_re_output_db:.1f} dB re the output "
+                 f"there, median {info.transient_re_noise_db:+.1f} dB re its standard error")
+    return mom.Y[:, harmonics - k0] * u.shape[-2]
 
 
 def _check_envelope(blocks, idx, fs, segments=32):
