@@ -116,7 +116,9 @@ def _rms_blocks(flat):
     """rms of every row of a (K, N) array (float64 accumulation)."""
     if flat.dtype == np.float64:
         return np.sqrt(np.einsum("kn,kn->k", flat, flat) / flat.shape[1])
-    return np.sqrt(np.mean(np.square(flat, dtype=np.float64), axis=1))
+    # (other types: block by block, no float64 copy of the whole record)
+    return np.sqrt(np.array([np.dot(b.astype(np.float64), b.astype(np.float64))
+                             for b in flat]) / flat.shape[1])
 
 
 def _db(x):
@@ -366,8 +368,8 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
         x2 = (level[index[:, settle:]] ** 2) * n
         if sub.dtype == np.float64:
             dots = np.einsum("gbn,gn->gb", sub, mean)
-        else:
-            dots = np.einsum("gbn,gn->gb", sub.astype(np.float64), mean)
+        else:           # (one group at a time: no float64 copy of the whole record)
+            dots = np.stack([sub[g].astype(np.float64) @ mean[g] for g in range(sub.shape[0])])
         dev2 = np.maximum(x2 - 2 * dots + m2[:, None], 0.0)
         with np.errstate(divide="ignore", invalid="ignore"):
             screen = np.sqrt(dev2 / m2[:, None])
@@ -380,7 +382,9 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                 settle = settle_new
     # --- groups that share one excitation (multisine realizations) ----------------
     if kind == "multisine" and index.shape[0] >= 2:
-        means = flat[index[:, settle:]].mean(axis=1)
+        # the group means (no copy of the record: one group at a time)
+        means = np.stack([np.add.reduce(flat[index[g, settle:]], axis=0, dtype=np.float64)
+                          / (index.shape[1] - settle) for g in range(index.shape[0])])
         lines, spec = _strong_lines(np.fft.rfft(means, axis=-1))
         if lines.size >= 2:
             c = _corr(spec[:-1], spec[1:])
