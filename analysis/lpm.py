@@ -155,19 +155,19 @@ def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_sid
     s_w = np.empty(L)
     for idx, off, B in groups:
         sel = lines[idx][:, None] + off[None, :]
-        Bc = B.astype(complex)
+        # B on the interleaved (re, im) view: one real product for both parts
+        B2 = np.zeros((2 * off.size, 2 * B.shape[1]))
+        B2[0::2, 0::2] = B
+        B2[1::2, 1::2] = B
         parts = {}
         for key, X in (("y", XY), ("u", XU)):
-            nb = np.take(X, sel, axis=1)                            # (M, l, 2n)
-            # numpy's own loops, not BLAS: small products whose threads cost more than
-            # they gain on a busy machine
-            c = np.einsum("mlk,kj->mlj", nb, Bc)
+            nb = np.take(X, sel, axis=1)                            # (M, l, 2n), contiguous
+            v = nb.reshape(-1, off.size).view(np.float64)
+            c = np.dot(v, B2).view(np.complex128).reshape(m_real, idx.size, -1)
             parts[key] = (nb, c)
-            q_part = c[..., 1:]
-            ss[key + key][:, idx] = (np.einsum("mlk,mlk->ml", nb.real, nb.real)
-                                     + np.einsum("mlk,mlk->ml", nb.imag, nb.imag)
-                                     - np.einsum("mlj,mlj->ml", q_part.real, q_part.real)
-                                     - np.einsum("mlj,mlj->ml", q_part.imag, q_part.imag))
+            cv = np.ascontiguousarray(c[..., 1:]).reshape(-1, order + 1).view(np.float64)
+            ss[key + key][:, idx] = (np.einsum("nk,nk->n", v, v)
+                                     - np.einsum("nk,nk->n", cv, cv)).reshape(m_real, idx.size)
             (Yt if key == "y" else Ut)[:, idx] = c[..., 0]
         (ny, cy), (nu, cu) = parts["y"], parts["u"]
         # sum of res_y conj(res_u) with res = (I - Q Q^T) x: x_y . conj(x_u) minus the fit's
