@@ -2287,6 +2287,16 @@ def robust_bla_mimo(u, y, *, fs=1.0, settle_periods=0, excited_bins=None):
                          f"n_u = {n_u} inputs (blocks of n_u experiments)")
     fs, settle = check_arguments(fs=fs, n_period=n, settle_periods=settle_periods,
                                  n_total=n_total, hold_text=False)
+    # every input's periods checked before averaging; the MIMO layout (blocks of n_u
+    # experiments) is not re-inferred: what the SISO estimate would handle is refused
+    notes = []
+    for i in range(n_u):
+        lay = check_blocks(u[..., i], settle_periods=settle, name=f"input {i}", fs=fs,
+                           infer=False, mixed_levels="note")
+        if lay.changed:
+            raise InputError(f"MIMO BLA: {lay.notes[0]}: every experiment must hold the "
+                             f"same periods; cut the records to the excited periods")
+        notes.extend(lay.notes)
     if excited_bins is None:
         excited = detect_excited_lines(u[..., 0], settle)
     else:
@@ -2315,7 +2325,6 @@ def robust_bla_mimo(u, y, *, fs=1.0, settle_periods=0, excited_bins=None):
     G_b = Gp.mean(axis=1)
     G = G_b.mean(axis=0)
     var_total = var_noise = var_nl = detected = over = nl_rel = None
-    notes = []
     if n_blocks >= 2:
         var_total = np.sum(np.abs(G_b - G) ** 2, axis=0) / (n_blocks * (n_blocks - 1))
     else:
