@@ -1178,13 +1178,30 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     y_mean_time = None
     if y_quantisation_step:
         y_mean_time = np.add.reduce(y[:, settle:, :], axis=1, dtype=np.float64) / (n_total - settle)
+    lpm_note = []
+
+    def before_estimate(transient, y_rnd, u_rnd):
+        """After the periods are read: a transient in the kept periods, or a drift of the
+        output, takes the local polynomial method (its result replaces the plain one)."""
+        drift = _drift_test(dc_y[:, settle:])
+        if n_total - settle < 2 or not (transient.suspect or drift is not None):
+            return None
+        out, note = _lpm_result(transient, drift, u, y, r, band=band, excited=excited,
+                                settle=settle, fs=fs, n=n,
+                                y_quantisation_step=y_quantisation_step, y_rounding=y_rnd,
+                                u_rounding=u_rnd, y_mean_time=y_mean_time, strays=strays)
+        if note:
+            lpm_note.append(note)
+        return out
+
     try:
         res = robust_bla_spectra(None, None, bins=band, n_period=n, fs=fs, settle_periods=settle,
                                  excited_bins=excited, warn_transient=False,
                                  y_quantisation_step=y_quantisation_step,
                                  y_rounding=lambda: rounding("y"), _get=one_realization, _shape=(n_real, n_total),
                                  _known_ref=r is not None, _y_mean_time=y_mean_time,
-                                 _ignore_bins=strays, _u_rounding=lambda: rounding("u"))
+                                 _ignore_bins=strays, _u_rounding=lambda: rounding("u"),
+                                 _before=before_estimate)
     except InputError as exc:
         if "non-finite" in str(exc) or "zero power" in str(exc):
             _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
@@ -1206,13 +1223,8 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         _above_band(res, above, a_lo, n, n_total - settle, rounding("y"),
                     "reference r" if r is not None else "input u",
                     float(np.mean(np.square(layout.levels))))
-    # a transient in the kept periods, or a drift: the local polynomial method
-    drift = _drift_test(dc_y[:, settle:])
-    if (res.transient.suspect or drift is not None) and n_total - settle >= 2:
-        res = _with_lpm(res, u, y, r, band=band, excited=excited, settle=settle, fs=fs, n=n,
-                        drift=drift, y_quantisation_step=y_quantisation_step,
-                        y_rounding=rounding("y"), u_rounding=rounding("u"),
-                        y_mean_time=y_mean_time, strays=strays)
+    if lpm_note:
+        res.notes.append(lpm_note[0])
     if res.transient.suspect and warn_transient:
         warnings.warn(res.transient.message, TransientWarning, stacklevel=2)
     return res
@@ -1280,46 +1292,42 @@ def _drift_test(dc, t_limit=6.0):
     return m, float(slope[m]), float(tstat[m])
 
 
-def _with_lpm(res, u, y, r, *, band, excited, settle, fs, n, drift, y_quantisation_step,
-              y_rounding, u_rounding, y_mean_time, strays):
-    """The robust BLA from the local polynomial method's line moments, when the plain
-    periods show a transient (always) or the output drifts (when the LPM finds the
-    transient/drift at the excited lines above its noise); else ``res`` with a note."""
+def _lpm_result(transient, drift, u, y, r, *, band, excited, settle, fs, n,
+                y_quantisation_step, y_rounding, u_rounding, y_mean_time, strays):
+    """The robust BLA from the local polynomial method's line moments, when the periods
+    show a transient (always) or the output drifts (when the LPM finds the drift at the
+    excited lines above its noise). Returns (result or None, note): None keeps plain
+    averaging (the note says why)."""
     from fftune.analysis.lpm import lpm_moments
     mom, G_per, info = lpm_moments(u, y, r, band=band, excited=excited, settle_periods=settle)
-    what = "transient" if res.transient.suspect else "drift"
+    what = "transient" if transient.suspect else "drift"
     size = (f"{info.transient_re_output_db:.1f} dB re the output at the excited lines, "
             f"median {info.transient_re_noise_db:+.1f} dB re its standard error, "
             f"{info.lines_significant} of {G_per[0].size} line(s) 6 dB over it")
-    drift_text = "" if drift is None else         (f" (the output's DC moves {drift[1]:+.3g} per period in realization {drift[0]}, "
+    drift_text = "" if drift is None else \
+        (f" (the output's DC moves {drift[1]:+.3g} per period in realization {drift[0]}, "
          f"t = {drift[2]:+.1f})")
-    if not res.transient.suspect and not info.significant:
-        res.notes.append(f"the output drifts{drift_text}, but the local polynomial method "
-                         f"finds it under the noise at the excited lines ({size}): plain "
-                         f"averaging kept")
-        return res
-    if res.transient.suspect:
-        res.transient.message += " (removed here by the local polynomial method)"
+    if not transient.suspect and not info.significant:
+        return None, (f"the output drifts{drift_text}, but the local polynomial method finds "
+                      f"it under the noise at the excited lines ({size}): plain averaging "
+                      f"kept")
+    if transient.suspect:
+        transient.message += " (removed here by the local polynomial method)"
     out = _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=None,
                             G_per=None if r is not None else G_per, warn_transient=False,
                             y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
                             y_mean_time=y_mean_time, ignore_bins=strays, u_rounding=u_rounding,
-                            transient=res.transient)
-    out.notes[:0] = [note for note in res.notes if note.startswith("excited lines found")
-                     or "input u:" in note or "reference r:" in note]
+                            transient=transient)
     out.notes.append(
         f"{what}{drift_text} removed by the local polynomial method (degree {info.order} over "
         f"{info.neighbours} neighbouring bins of the whole record, {info.dof} degrees of "
         f"freedom per line): its size {size}; the BLA and its noise variance are from all "
         f"{mom.n_periods} periods")
-    for key in ("excited_lines_margin_db", "excited_lines_confidence"):
-        if key in res.summary:
-            out.summary[key] = res.summary[key]
     out.summary["lpm"] = {"removed": what, "transient_re_output_db": info.transient_re_output_db,
                           "transient_re_noise_db": info.transient_re_noise_db,
                           "lines_significant": info.lines_significant,
                           "order": info.order, "neighbours": info.neighbours, "dof": info.dof}
-    return out
+    return out, None
 
 
 @dataclass
@@ -1361,7 +1369,7 @@ class LineMoments:
 def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0,
                        excited_bins, warn_transient=True, y_quantisation_step=None,
                        y_rounding=0.0, _get=None, _shape=None, _known_ref=False,
-                       _y_mean_time=None, _ignore_bins=None, _u_rounding=0.0):
+                       _y_mean_time=None, _ignore_bins=None, _u_rounding=0.0, _before=None):
     """The robust BLA of :func:`robust_bla` from per-period spectra.
 
     Parameters
@@ -1459,11 +1467,19 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
                       R=mR if known_ref else None, ss_r=ss_r if known_ref else None)
     if callable(y_rounding):        # (robust_bla: known once every realization is read)
         y_rounding, _u_rounding = y_rounding(), _u_rounding()
+    transient = None
+    if _before is not None:
+        # (robust_bla: the transient and the drift decide between this estimate and the
+        # local polynomial method's, before this one is computed)
+        transient = _transient(Y_exc, settle, n_per)
+        early = _before(transient, y_rounding, _u_rounding)
+        if early is not None:
+            return early
     return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=Y_exc,
                              G_per=G_per, warn_transient=warn_transient,
                              y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
                              y_mean_time=_y_mean_time, ignore_bins=_ignore_bins,
-                             u_rounding=_u_rounding)
+                             u_rounding=_u_rounding, transient=transient)
 
 
 def _band_positions(bins, band):
