@@ -148,7 +148,11 @@ def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_sid
     def spectrum(x):
         return np.fft.rfft(np.ascontiguousarray(x[:, settle:]).reshape(m_real, -1), axis=-1)
 
-    XY, XU = spectrum(y), spectrum(u)
+    # an input that repeats exactly (a generator's signal, open loop) has no transient:
+    # its line sums are P times one period's, with no variance (one FFT saved)
+    u_exact = all(bool((u[m, settle + 1:] == u[m, settle]).all()) for m in range(m_real))
+    XY = spectrum(y)
+    XU = None if u_exact else spectrum(u)
     Yt, Ut = np.empty((m_real, L), complex), np.empty((m_real, L), complex)
     ss = {key: np.empty((m_real, L)) for key in ("yy", "uu")}
     s_yu = np.empty((m_real, L), complex)
@@ -161,6 +165,10 @@ def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_sid
         B2[1::2, 1::2] = B
         parts = {}
         for key, X in (("y", XY), ("u", XU)):
+            if X is None:                   # (an exactly periodic input: nothing to fit)
+                ss["uu"][:, idx] = 0.0
+                Ut[:, idx] = 0.0
+                continue
             nb = np.take(X, sel, axis=1)                            # (M, l, 2n), contiguous
             v = nb.reshape(-1, off.size).view(np.float64)
             c = np.dot(v, B2).view(np.complex128).reshape(m_real, idx.size, -1)
@@ -169,12 +177,19 @@ def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_sid
             ss[key + key][:, idx] = (np.einsum("nk,nk->n", v, v)
                                      - np.einsum("nk,nk->n", cv, cv)).reshape(m_real, idx.size)
             (Yt if key == "y" else Ut)[:, idx] = c[..., 0]
-        (ny, cy), (nu, cu) = parts["y"], parts["u"]
-        # sum of res_y conj(res_u) with res = (I - Q Q^T) x: x_y . conj(x_u) minus the fit's
-        s_yu[:, idx] = (np.einsum("mlk,mlk->ml", ny, np.conj(nu))
-                        - np.einsum("mlj,mlj->ml", cy[..., 1:], np.conj(cu[..., 1:])))
+        if XU is None:
+            s_yu[:, idx] = 0.0
+        else:
+            (ny, cy), (nu, cu) = parts["y"], parts["u"]
+            # sum of res_y conj(res_u), res = (I - Q Q^T) x: x_y . conj(x_u) minus the fit's
+            s_yu[:, idx] = (np.einsum("mlk,mlk->ml", ny, np.conj(nu))
+                            - np.einsum("mlj,mlj->ml", cy[..., 1:], np.conj(cu[..., 1:])))
         s_w[idx] = float(np.sum(B[:, 0] ** 2))
-    Yc, Uc = XY[:, lines] - Yt, XU[:, lines] - Ut
+    Yc = XY[:, lines] - Yt
+    if XU is None:
+        Uc = p * np.fft.rfft(np.asarray(u[:, settle], dtype=np.float64), axis=-1)[:, band]
+    else:
+        Uc = XU[:, lines] - Ut
     del XY, XU
     factor = (1.0 + s_w) / q                     # var of a corrected line sum per |res|^2
     var_y = np.maximum(ss["yy"], 0.0) * factor
