@@ -466,3 +466,16 @@ def test_cli_infers_the_realizations_and_says_how(tmp_path, capsys):
     assert f"the excitation changes its phases every {P + 1} periods" in out
     assert f"taken as M = {M} realizations" in out
     assert f"M = {M}, P = {P}, T = 1, N = {N}" in out.splitlines()[0]
+
+
+def test_a_noisy_input_is_said_not_refused():
+    """A measured input whose noise makes its periods differ (correlation between 0.5 and
+    0.9 at the strongest lines): no layout claim, no refusal; a note names the noise."""
+    u, y = bla_data(6, m=2, periods=4)
+    rng = np.random.default_rng(6)
+    noisy = u + 1.0 * rng.standard_normal(u.shape)
+    res = run_bla(noisy, y, settle_periods=1, excited_bins=LINES)
+    assert res.n_realizations == 2 and res.n_periods == 3
+    assert sum("differ more than a clean periodic" in n for n in res.notes) == 1
+    # a clean input: no such note
+    assert not any("differ more" in n for n in run_bla(u, y, settle_periods=1).notes)
