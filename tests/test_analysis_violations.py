@@ -479,3 +479,32 @@ def test_a_noisy_input_is_said_not_refused():
     assert sum("differ more than a clean periodic" in n for n in res.notes) == 1
     # a clean input: no such note
     assert not any("differ more" in n for n in run_bla(u, y, settle_periods=1).notes)
+
+
+def test_the_motor_bench_record_broken_in_known_ways():
+    """Real data (record B of tests/data): a burst (excitation and output stop after
+    period 15), the periods given as 20 one-period realizations (the first from rest),
+    a level step at period 10, a start from rest without a settle period: each the
+    clean estimate within 3 sigma at every line, with the note, or the refusal naming
+    the period."""
+    z = np.load("tests/data/kul_motorbench_twomass.npz")
+    u, y = z["B_iq"].astype(float), z["B_theta_motor"].astype(float)
+    ref = robust_bla(u[None], y[None], fs=2500.0, settle_periods=1)
+
+    def close(res):
+        zz = np.abs(res.G - ref.G) / np.sqrt(res.var_noise + ref.var_noise)
+        return np.all(zz < 3)
+    ub, yb = u.copy(), y.copy()
+    ub[15:], yb[15:] = 0.0, yb[14, -1]
+    res = run_bla(ub[None], yb[None], settle_periods=1)
+    assert close(res) and res.n_periods == 14
+    assert any("stops at sample 37500" in n for n in res.notes)
+    res = run_bla(u[:, None, :], y[:, None, :])
+    assert close(res) and res.n_realizations == 1 and res.n_periods == 20
+    assert res.summary["lpm"]["removed"] == "transient"
+    res = run_bla(u[None], y[None])
+    assert close(res) and "lpm" in res.summary
+    us = u.copy()
+    us[10:] *= 1.3
+    with pytest.raises(InputError, match=r"level changes at period 10 \(sample 25000 .*\+2\.3 dB"):
+        robust_bla(us[None], y[None], fs=2500.0, settle_periods=1)
