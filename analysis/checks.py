@@ -362,10 +362,12 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
         notes.append(f"{name}: {text}: the BLA of a nonlinear system depends on the level, "
                      f"and this one averages them (bla_levels analyses each level on its own)")
     # --- waveform: the same excitation in every kept block -------------------------
+    screen_means = None
     sub = x[:, settle:] if not changed else flat[index[:, settle:]]      # (G, P', N)
     if sub.shape[1] >= 2:
         # |x_b - mean|^2 = |x_b|^2 - 2 <x_b, mean> + |mean|^2 (three passes, no copy)
         mean = np.add.reduce(sub, axis=1, dtype=np.float64) / sub.shape[1]
+        screen_means = (index.copy(), mean)
         m2 = np.einsum("gn,gn->g", mean, mean)
         x2 = (level[index[:, settle:]] ** 2) * n
         if sub.dtype == np.float64:
@@ -385,9 +387,14 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                 settle = settle_new
     # --- groups that share one excitation (multisine realizations) ----------------
     if kind == "multisine" and index.shape[0] >= 2:
-        # the group means (no copy of the record: one group at a time)
-        means = np.stack([np.add.reduce(flat[index[g, settle:]], axis=0, dtype=np.float64)
-                          / (index.shape[1] - settle) for g in range(index.shape[0])])
+        # the group means: those of the screen when the layout stayed, else one group
+        # at a time (no copy of the record)
+        if screen_means is not None and np.array_equal(screen_means[0], index):
+            means = screen_means[1]
+        else:
+            means = np.stack([np.add.reduce(flat[index[g, settle:]], axis=0,
+                                            dtype=np.float64) / (index.shape[1] - settle)
+                              for g in range(index.shape[0])])
         lines, spec = _strong_lines(np.fft.rfft(means, axis=-1))
         if lines.size >= 2:
             c = _corr(spec[:-1], spec[1:])
