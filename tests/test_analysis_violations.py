@@ -508,3 +508,29 @@ def test_the_motor_bench_record_broken_in_known_ways():
     us[10:] *= 1.3
     with pytest.raises(InputError, match=r"level changes at period 10 \(sample 25000 .*\+2\.3 dB"):
         robust_bla(us[None], y[None], fs=2500.0, settle_periods=1)
+
+
+def test_a_directory_of_mixed_runs_names_the_option(tmp_path, capsys):
+    """`fftune analyze bla DIR` on captures of two experiments (or levels) says which
+    option chooses one (issue 36)."""
+    import json as _json
+    from fftune.analysis import capture
+    from fftune.host.cli import main
+    n, t, p = 64, 1, 3
+
+    def meta(**kw):
+        m = {"fs_hz": 1000.0, "n_period": n, "settle_periods": t, "record_periods": p,
+             "experiment": "detect", "level_index": 0, "realization": 0, "parameters": {},
+             "firmware_version": "fw", "eds_identity": _json.dumps({"vendor_id": 1}),
+             "started_at": "2026-01-01T00:00:00+00:00", "metadata": {}}
+        m.update(kw)
+        return m
+    rng = np.random.default_rng(0)
+    sig = {name: rng.standard_normal((t + p) * n) for name in capture.STANDARD_SIGNALS}
+    capture.write_run(tmp_path / "a.h5", sig, meta())
+    capture.write_run(tmp_path / "b.h5", sig, meta(experiment="tune"))
+    assert main(["analyze", "bla", str(tmp_path)]) == 2
+    assert "choose one with --experiment NAME" in capsys.readouterr().err
+    capture.write_run(tmp_path / "c.h5", sig, meta(level_index=1))
+    assert main(["analyze", "bla", str(tmp_path), "--experiment", "detect"]) == 2
+    assert "choose one level with --level L" in capsys.readouterr().err
