@@ -297,12 +297,13 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
             if not (dead[rest].all() and level[edge] < ref_g):
                 # the step: from the last block of one level to the first of the other
                 k = sel[0] if side == "end" else sel[-1] + 1
+                other = "after" if side == "end" else "before"
                 raise InputError(
                     f"{name}: the excitation level changes at {where(k)} ({at(k)}): "
                     f"{_db(level[k] / level[k - 1]).item():+.1f} dB (rms {level[k - 1]:.4g} "
-                    f"-> {level[k]:.4g}), {count} {block}(s) {'after' if side == 'end' else 'before'} "
-                    f"it at the other level: {block}s at different levels cannot be "
-                    f"averaged; record each level on its own")
+                    f"-> {level[k]:.4g}), {count} {block}(s) {other} it at the other level: "
+                    f"{block}s at different levels cannot be averaged; record each level on "
+                    f"its own")
             if side == "end":
                 k = sel[0]
                 stop = _last_above(flat[k], amp_ref())
