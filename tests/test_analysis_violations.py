@@ -71,10 +71,10 @@ def agrees(res, ref, share=0.9):
     return bool(np.mean(z < 3) >= share), f"{100 * np.mean(z < 3):.0f} % within 3 sigma"
 
 
-def run_bla(u, y, **kw):
+def run_bla(u, y, r=None, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return robust_bla(u, y, fs=FS, **kw)
+        return robust_bla(u, y, r, fs=FS, **kw)
 
 
 # ---- the cases: each returns (ok, what happened) -------------------------------------
@@ -542,7 +542,7 @@ def test_lpm_with_a_known_reference_and_a_measured_input():
     estimate at >= 90 % of the lines."""
     u, y = bla_data(7, settle_state=False)
     um = u + 0.01 * np.random.default_rng(7).standard_normal(u.shape)
-    res = run_bla(um, y, u)
+    res = run_bla(um, y, r=u)
     ref = clean(7)
     assert res.known_reference and res.summary["lpm"]["removed"] == "transient"
     z = np.abs(res.G - ref.G) / np.sqrt(res.var_total)
