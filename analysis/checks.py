@@ -207,7 +207,22 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
     settle = int(settle_periods)
     flat = x.reshape(-1, n)
     index = np.arange(n_groups * n_blocks).reshape(n_groups, n_blocks)
-    level = _rms_blocks(flat)
+    # one realization at a time (its blocks stay in cache): the blocks' levels, and for
+    # the waveform screen below the mean of its kept blocks and their products with it
+    pre = None
+    if x.dtype == np.float64 and n_blocks - settle >= 2 and 0 <= settle:
+        level = np.empty(n_groups * n_blocks)
+        pre_mean = np.empty((n_groups, n))
+        pre_dots = np.empty((n_groups, n_blocks - settle))
+        for g in range(n_groups):
+            xg = x[g]
+            level[g * n_blocks:(g + 1) * n_blocks] = np.einsum("bn,bn->b", xg, xg)
+            pre_mean[g] = np.add.reduce(xg[settle:], axis=0) / (n_blocks - settle)
+            pre_dots[g] = np.einsum("bn,n->b", xg[settle:], pre_mean[g])
+        level = np.sqrt(level / n)
+        pre = (pre_mean, pre_dots)
+    else:
+        level = _rms_blocks(flat)
     if not np.all(np.isfinite(level)):
         return BlockLayout(index=index, settle_periods=settle)     # the estimator refuses
     kept = index[:, settle:].reshape(-1)
@@ -366,12 +381,17 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
     screen_means = None
     sub = x[:, settle:] if not changed else flat[index[:, settle:]]      # (G, P', N)
     if sub.shape[1] >= 2:
-        # |x_b - mean|^2 = |x_b|^2 - 2 <x_b, mean> + |mean|^2 (three passes, no copy)
-        mean = np.add.reduce(sub, axis=1, dtype=np.float64) / sub.shape[1]
+        # |x_b - mean|^2 = |x_b|^2 - 2 <x_b, mean> + |mean|^2 (no copy)
+        if pre is not None and not changed:
+            mean, dots = pre
+        else:
+            mean, dots = np.add.reduce(sub, axis=1, dtype=np.float64) / sub.shape[1], None
         screen_means = (index.copy(), mean)
         m2 = np.einsum("gn,gn->g", mean, mean)
         x2 = (level[index[:, settle:]] ** 2) * n
-        if sub.dtype == np.float64:
+        if dots is not None:
+            pass
+        elif sub.dtype == np.float64:
             dots = np.einsum("gbn,gn->gb", sub, mean)
         else:           # (one group at a time: no float64 copy of the whole record)
             dots = np.stack([sub[g].astype(np.float64) @ mean[g] for g in range(sub.shape[0])])
