@@ -281,13 +281,17 @@ def bla_to_json(res):
 
 
 def hosidf_to_json(res):
-    """The ``fftune analyze hosidf --json`` document of one experiment's HosidfResult."""
-    return {
+    """The ``fftune analyze hosidf --json`` document of one experiment's HosidfResult
+    (``notes`` only when the checks before averaging handled something)."""
+    doc = {
         "f0": float(np.asarray(res.f0).reshape(-1)[0]),
         "amplitude": float(np.asarray(res.amplitude).reshape(-1)[0]),
         "H": _complex_pairs(res.H),
         "H_std": _clean(res.H_std),
     }
+    if getattr(res, "notes", None):
+        doc["notes"] = list(res.notes)
+    return doc
 
 
 def check_json_target(path):

@@ -547,3 +547,18 @@ def test_lpm_with_a_known_reference_and_a_measured_input():
     assert res.known_reference and res.summary["lpm"]["removed"] == "transient"
     z = np.abs(res.G - ref.G) / np.sqrt(res.var_total)
     assert np.mean(z < 3) >= 0.9
+
+
+def test_hosidf_cli_drops_a_burst_and_says_so_in_the_json(tmp_path, capsys):
+    import json
+    from fftune.host.cli import main
+    u, y = sine(20.0)
+    u[7430:] = 0.0
+    y[7430:] = 0.0
+    np.savez(tmp_path / "b.npz", u=u, y=y, fs=FS)
+    code = main(["analyze", "hosidf", str(tmp_path / "b.npz"), "--period", "1000",
+                 "--json", str(tmp_path / "b.json")])
+    out = capsys.readouterr().out
+    doc = json.loads((tmp_path / "b.json").read_text())
+    assert code == 0 and doc["amplitude"] == pytest.approx(1.0, rel=1e-9)
+    assert "stops at sample 7430" in doc["notes"][0] and "stops at sample 7430" in out
