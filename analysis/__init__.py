@@ -25,6 +25,14 @@ LineMoments            -- per-realization means and (co)variances over periods a
 classify_grid          -- which odd/even claims an excitation grid allows.
 level_verdict          -- the cause a level's detection supports (plant, saturation ...).
 
+Checks before averaging, and the local polynomial method (issue 31)
+--------------------------------------------------------------------
+check_blocks           -- every block/period/repeat against the others (bursts, gaps,
+                          level steps, realizations, off-grid) before averaging.
+check_arguments        -- the one argument check of every BLA and HOSIDF entry.
+amplitude_levels       -- repeats grouped by level.
+lpm_moments            -- robust LPM: line moments with the transient/drift removed.
+
 Higher order sinusoidal input describing functions
 --------------------------------------------------
 hosidf                 -- H_1 .. H_K with mean and standard deviation over repeats.
@@ -66,6 +74,9 @@ _LAZY = {
                             "classify_grid", "detect_excited_lines", "level_verdict",
                             "robust_bla", "robust_bla_spectra", "robust_bla_moments",
                             "LineMoments", "robust_bla_mimo", "MimoBLAResult"),
+    "fftune.analysis.checks": ("BlockLayout", "amplitude_levels", "check_arguments",
+                               "check_blocks"),
+    "fftune.analysis.lpm": ("LPMInfo", "lpm_moments"),
     "fftune.analysis.capture": ("export_csv", "export_mat", "load_experiment", "read_run",
                                 "write_run"),
     "fftune.analysis.multisine": ("Multisine", "crest_factor", "design_multisine",
@@ -106,4 +117,6 @@ __all__ = [
     "odd_ratio", "signed_odd_ratio", "RatioMinimizer", "SignedRootSearch", "TuningResult",
     "read_run", "write_run", "load_experiment", "export_mat", "export_csv",
     "FftuneError", "InputError",
+    "check_blocks", "check_arguments", "amplitude_levels", "BlockLayout",
+    "lpm_moments", "LPMInfo",
 ]

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fftune.analysis.checks import check_arguments, check_blocks
 from fftune.analysis.errors import InputError
 
 __all__ = ["BLAResult", "TransientCheck", "TransientWarning", "BLALevels",
@@ -1075,14 +1076,17 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         if arr is not None and arr.shape != u.shape:
             raise InputError(f"{name}: shape {arr.shape} differs from input u {u.shape}")
     n_real, n_total, n = u.shape
-    settle = int(settle_periods)
-    if not 0 <= settle < n_total:
-        raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1} "
-                         f"(the data hold {n_total} periods per realization)")
-    if n < 4:
-        raise InputError(f"samples per period N = {n} is too small")
-    if not np.isfinite(fs) or fs <= 0:
-        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    fs, settle = check_arguments(fs=fs, n_period=n, settle_periods=settle_periods,
+                                 n_total=n_total)
+    # the layout and the steady state of the excitation, before anything is averaged
+    layout = check_blocks(r if r is not None else u, kind="multisine", settle_periods=settle,
+                          name="reference r" if r is not None else "input u", fs=fs,
+                          mixed_levels="note")
+    if layout.changed:
+        u, y = layout.apply(u), layout.apply(y)
+        r = None if r is None else layout.apply(r)
+        n_real, n_total, n = u.shape
+        settle = layout.settle_periods
     excitation = r if r is not None else u
     detected_here = excited_bins is None
     line_note = None
@@ -1134,10 +1138,22 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     buffers = [np.empty((n_total, n // 2 + 1), np.complex128)
                if x is not None and x.dtype == np.float64 else None for x in signals]
 
+    dc_y = np.empty((n_real, n_total))     # the output's DC per period (drift check)
+    # detection lines above the band (a full grid has none inside it): up to 3 times the
+    # highest excited line, inside fs/2; their moments are read from the same spectra
+    a_lo, a_hi = hi, min(3 * int(excited[-1]), (n + 1) // 2 - 1) + 1
+    above = None
+    if classify_grid(excited, n)["grid"] == "full" and a_hi > a_lo and n_total - settle >= 2:
+        above = {key: (np.empty((n_real, a_hi - a_lo), np.complex128),
+                       np.empty((n_real, a_hi - a_lo))) for key in ("y", "x")}
+
     def one_realization(m):
         scan(u, m, extremes["u"], False)
         scan(y, m, extremes["y"], True)
+        if buffers[1] is None:
+            dc_y[m] = np.add.reduce(y[m], axis=-1, dtype=np.float64)
         out = []
+        full = {}
         for x, buf in zip(signals, buffers):
             if x is None:
                 out.append(None)
@@ -1148,22 +1164,49 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                 np.fft.rfft(r[m, settle:settle + 1], axis=-1, out=buf[settle:settle + 1])
                 buf[settle + 1:] = buf[settle]
                 out.append(buf[:, lo:hi])
+                full[id(x)] = buf
             elif buf is not None:
                 out.append(np.fft.rfft(x[m], axis=-1, out=buf)[:, lo:hi])
+                full[id(x)] = buf
             else:
-                out.append(np.fft.rfft(x[m], axis=-1)[:, lo:hi].astype(np.complex128))
+                spec = np.fft.rfft(x[m], axis=-1)
+                full[id(x)] = spec
+                out.append(spec[:, lo:hi].astype(np.complex128))
+        if buffers[1] is not None:
+            dc_y[m] = buffers[1][:, 0].real
+        if above is not None:
+            for key, x in (("y", y), ("x", r if r is not None else u)):
+                part = np.array(full[id(x)][settle:, a_lo:a_hi], dtype=np.complex128)
+                above[key][0][m], above[key][1][m] = _spread2_inplace(part)
         return tuple(out)
 
     y_mean_time = None
     if y_quantisation_step:
         y_mean_time = np.add.reduce(y[:, settle:, :], axis=1, dtype=np.float64) / (n_total - settle)
+    lpm_note = []
+
+    def before_estimate(transient, y_rnd, u_rnd):
+        """After the periods are read: a transient in the kept periods, or a drift of the
+        output, takes the local polynomial method (its result replaces the plain one)."""
+        drift = _drift_test(dc_y[:, settle:])
+        if n_total - settle < 2 or not (transient.suspect or drift is not None):
+            return None
+        out, note = _lpm_result(transient, drift, u, y, r, band=band, excited=excited,
+                                settle=settle, fs=fs, n=n,
+                                y_quantisation_step=y_quantisation_step, y_rounding=y_rnd,
+                                u_rounding=u_rnd, y_mean_time=y_mean_time, strays=strays)
+        if note:
+            lpm_note.append(note)
+        return out
+
     try:
         res = robust_bla_spectra(None, None, bins=band, n_period=n, fs=fs, settle_periods=settle,
                                  excited_bins=excited, warn_transient=False,
                                  y_quantisation_step=y_quantisation_step,
                                  y_rounding=lambda: rounding("y"), _get=one_realization, _shape=(n_real, n_total),
                                  _known_ref=r is not None, _y_mean_time=y_mean_time,
-                                 _ignore_bins=strays, _u_rounding=lambda: rounding("u"))
+                                 _ignore_bins=strays, _u_rounding=lambda: rounding("u"),
+                                 _before=before_estimate)
     except InputError as exc:
         if "non-finite" in str(exc) or "zero power" in str(exc):
             _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
@@ -1180,9 +1223,116 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         res.summary["excited_lines_confidence"] = info["confidence"]
     if line_note:
         res.notes.insert(1, line_note)
+    res.notes.extend(layout.notes)
+    if above is not None:
+        _above_band(res, above, a_lo, n, n_total - settle, rounding("y"),
+                    "reference r" if r is not None else "input u",
+                    float(np.mean(np.square(layout.levels))))
+    if lpm_note:
+        res.notes.append(lpm_note[0])
     if res.transient.suspect and warn_transient:
         warnings.warn(res.transient.message, TransientWarning, stacklevel=2)
     return res
+
+
+def _above_band(res, above, a_lo, n, n_per, y_rounding, xname, x_power):
+    """Detection lines above the band (a full grid): the lines up to 3 times the highest
+    excited one (inside fs/2) where the excitation is clean (its period mean not 6 dB
+    over its noise, or 100 dB under its power ``x_power``: what the input's own content
+    explains there cannot be told from plant distortion without G there). The output's
+    level there against its noise, by the class test of the non-excited lines; the
+    ``above_band_*`` keys and a note. A full grid's verdict then comes from them."""
+    scale2 = (2.0 / n) ** 2
+    n_real = above["y"][0].shape[0]
+    k = n_per * (n_per - 1)
+    y_level = scale2 * _mean0(_abs2(above["y"][0]))
+    floor = 4.0 * (2.0 * float(y_rounding)) ** 2 / 12.0 / n
+    y_noise = scale2 * _mean0(above["y"][1]) / k + floor
+    x_level = scale2 * _mean0(_abs2(above["x"][0]))
+    x_noise = scale2 * _mean0(above["x"][1]) / k
+    clean = (x_level <= 4.0 * x_noise) | (x_level <= 1e-10 * x_power)
+    # output lines 100 dB or more under its strongest excited line: rounding, not distortion
+    top = float(np.nanmax(10 ** (np.asarray(res.output_db, dtype=float) / 10)))
+    y_level = np.where(y_level <= 1e-10 * top, 0.0, y_level)
+    bins = np.arange(a_lo, a_lo + y_level.size)[clean]
+    # (fewer than 8 clean lines: too few to say anything, no figures)
+    st = _class_stats(y_level[clean], y_noise[clean] if bins.size >= 8 else None,
+                      n_real * (n_per - 1), "above_band_")
+    res.summary.update(st)
+    res.summary["above_band_hz"] = (None if not bins.size else
+                                    [float(bins[0] * res.fs / n), float(bins[-1] * res.fs / n)])
+    res.summary["above_band_lines_excitation_not_clean"] = int(np.sum(~clean))
+    if st["above_band_detected"] is None:
+        return
+    res.notes.append(
+        f"above the band: {bins.size} line(s) {bins[0] * res.fs / n:g} .. "
+        f"{bins[-1] * res.fs / n:g} Hz where the {xname} is clean (at its noise; "
+        f"{int(np.sum(~clean))} others left out), output "
+        + (f"{st['above_band_line_median_re_noise_db']:+.1f} dB re its noise (median), "
+           if st["above_band_line_median_re_noise_db"] is not None else "")
+        + f"{st['above_band_lines_over_noise_6db']} of {bins.size} lines 6 dB over "
+        f"({st['above_band_lines_needed']} needed): "
+        + ("nonlinear distortion above the band" if st["above_band_detected"] else
+           "no distortion above the band"))
+
+
+def _drift_test(dc, t_limit=6.0):
+    """A trend in the output's DC over the kept periods (``dc`` (M, P): the DC line of each
+    period): the least-squares slope per realization against its standard error from the
+    residuals. Returns (realization, slope per period re the DC's scatter, t) of the most
+    significant one when |t| > t_limit (P >= 4), else None."""
+    m_real, p = dc.shape
+    if p < 4 or not np.all(np.isfinite(dc)):
+        return None
+    t = np.arange(p) - (p - 1) / 2.0
+    stt = float(np.sum(t * t))
+    slope = (dc - dc.mean(axis=1, keepdims=True)) @ t / stt
+    resid = dc - dc.mean(axis=1, keepdims=True) - slope[:, None] * t
+    s2 = np.sum(resid ** 2, axis=1) / (p - 2)
+    scale = np.maximum(np.sqrt(s2), 1e-12 * np.maximum(np.abs(dc).max(axis=1), 1e-300))
+    tstat = slope * np.sqrt(stt) / scale
+    m = int(np.argmax(np.abs(tstat)))
+    if abs(tstat[m]) <= t_limit:
+        return None
+    return m, float(slope[m]), float(tstat[m])
+
+
+def _lpm_result(transient, drift, u, y, r, *, band, excited, settle, fs, n,
+                y_quantisation_step, y_rounding, u_rounding, y_mean_time, strays):
+    """The robust BLA from the local polynomial method's line moments, when the periods
+    show a transient (always) or the output drifts (when the LPM finds the drift at the
+    excited lines above its noise). Returns (result or None, note): None keeps plain
+    averaging (the note says why)."""
+    from fftune.analysis.lpm import lpm_moments
+    mom, G_per, info = lpm_moments(u, y, r, band=band, excited=excited, settle_periods=settle)
+    what = "transient" if transient.suspect else "drift"
+    size = (f"{info.transient_re_output_db:.1f} dB re the output at the excited lines, "
+            f"median {info.transient_re_noise_db:+.1f} dB re its standard error, "
+            f"{info.lines_significant} of {G_per[0].size} line(s) 6 dB over it")
+    drift_text = "" if drift is None else \
+        (f" (the output's DC moves {drift[1]:+.3g} per period in realization {drift[0]}, "
+         f"t = {drift[2]:+.1f})")
+    if not transient.suspect and not info.significant:
+        return None, (f"the output drifts{drift_text}, but the local polynomial method finds "
+                      f"it under the noise at the excited lines ({size}): plain averaging "
+                      f"kept")
+    if transient.suspect:
+        transient.message += " (removed here by the local polynomial method)"
+    out = _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=None,
+                            G_per=None if r is not None else G_per, warn_transient=False,
+                            y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
+                            y_mean_time=y_mean_time, ignore_bins=strays, u_rounding=u_rounding,
+                            transient=transient)
+    out.notes.append(
+        f"{what}{drift_text} removed by the local polynomial method (degree {info.order} over "
+        f"{info.neighbours} neighbouring bins of the whole record, {info.dof} degrees of "
+        f"freedom per line): its size {size}; the BLA and its noise variance are from all "
+        f"{mom.n_periods} periods")
+    out.summary["lpm"] = {"removed": what, "transient_re_output_db": info.transient_re_output_db,
+                          "transient_re_noise_db": info.transient_re_noise_db,
+                          "lines_significant": info.lines_significant,
+                          "order": info.order, "neighbours": info.neighbours, "dof": info.dof}
+    return out, None
 
 
 @dataclass
@@ -1224,7 +1374,7 @@ class LineMoments:
 def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0,
                        excited_bins, warn_transient=True, y_quantisation_step=None,
                        y_rounding=0.0, _get=None, _shape=None, _known_ref=False,
-                       _y_mean_time=None, _ignore_bins=None, _u_rounding=0.0):
+                       _y_mean_time=None, _ignore_bins=None, _u_rounding=0.0, _before=None):
     """The robust BLA of :func:`robust_bla` from per-period spectra.
 
     Parameters
@@ -1267,11 +1417,10 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
                 raise InputError(f"spectra {name}: expected shape (M, T+P, {bins.size}) like "
                                  f"U {U.shape}, got {arr.shape}")
         _shape = U.shape[:2]
-    excited = _validate_lines(excited_bins, n)
     n_real, n_total = _shape
-    settle = int(settle_periods)
-    if not 0 <= settle < n_total:
-        raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1}")
+    fs, settle = check_arguments(fs=fs, n_period=n, settle_periods=settle_periods,
+                                 n_total=n_total, hold_text=False)
+    excited = _validate_lines(excited_bins, n)
     n_per = n_total - settle
     band = np.arange(excited[0], excited[-1] + 1)
     pos = _band_positions(bins, band)
@@ -1323,11 +1472,19 @@ def robust_bla_spectra(U, Y, R=None, *, bins, n_period, fs=1.0, settle_periods=0
                       R=mR if known_ref else None, ss_r=ss_r if known_ref else None)
     if callable(y_rounding):        # (robust_bla: known once every realization is read)
         y_rounding, _u_rounding = y_rounding(), _u_rounding()
+    transient = None
+    if _before is not None:
+        # (robust_bla: the transient and the drift decide between this estimate and the
+        # local polynomial method's, before this one is computed)
+        transient = _transient(Y_exc, settle, n_per)
+        early = _before(transient, y_rounding, _u_rounding)
+        if early is not None:
+            return early
     return _bla_from_moments(mom, excited=excited, n=n, fs=fs, settle=settle, Y_exc=Y_exc,
                              G_per=G_per, warn_transient=warn_transient,
                              y_quantisation_step=y_quantisation_step, y_rounding=y_rounding,
                              y_mean_time=_y_mean_time, ignore_bins=_ignore_bins,
-                             u_rounding=_u_rounding)
+                             u_rounding=_u_rounding, transient=transient)
 
 
 def _band_positions(bins, band):
@@ -1366,8 +1523,7 @@ def robust_bla_moments(moments, *, n_period, fs=1.0, excited_bins, y_quantisatio
         says so.
     """
     n = int(n_period)
-    if not np.isfinite(fs) or fs <= 0:
-        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    fs, _ = check_arguments(fs=fs, n_period=n)
     if moments.R is None:
         raise InputError("line moments: the reference R is needed (known-reference estimate)")
     excited = _validate_lines(excited_bins, n)
@@ -1396,7 +1552,7 @@ def robust_bla_moments(moments, *, n_period, fs=1.0, excited_bins, y_quantisatio
 
 def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transient,
                       y_quantisation_step, y_rounding, y_mean_time=None, ignore_bins=None,
-                      u_rounding=0.0):
+                      u_rounding=0.0, transient=None):
     """The estimate and the detection from the line moments over the band (bins from the
     lowest to the highest excited line). ``Y_exc`` (M, T + P, E): every period's output
     at the excited lines for the transient check (None: not checked). ``G_per``: per
@@ -1714,7 +1870,9 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
                          "M >= 2 and P >= 2): no nonlinear detection possible with this "
                          "experiment")
 
-    if Y_exc is not None:
+    if transient is not None:
+        pass                          # (the local polynomial method: checked on the periods)
+    elif Y_exc is not None:
         transient = _transient(Y_exc, settle, n_per)
     else:
         transient = TransientCheck(level_db=np.array([]), message="not checked: line moments "
@@ -1810,6 +1968,8 @@ def level_verdict(summary, saturation_fraction=None, level=None):
     dict
         ``causes``: list of 'linear', 'plant odd nonlinearity', 'plant even
         nonlinearity', 'plant nonlinearity (parity not classifiable with this grid)',
+        'nonlinear distortion (above the band)' (a full grid: the lines up to 3 times
+        the highest excited one where the excitation is clean),
         'nonlinear distortion (excited lines)' (no detection line: the excited lines'
         var_total vs var_noise test), 'unmeasured inputs' (the excited lines spread over
         realizations, the detection lines are clean), 'unmeasured inputs or a scale-free
@@ -1855,6 +2015,16 @@ def level_verdict(summary, saturation_fraction=None, level=None):
                             f"(MIMO cross-coupling) look the same on the excited lines: a "
                             f"level dependence (several levels) or a MIMO BLA tells them "
                             f"apart"}
+        above = summary.get("above_band_detected")
+        if above is True:
+            return {"causes": ["nonlinear distortion (above the band)"],
+                    "text": f"nonlinear distortion{at} above the band: "
+                            f"{summary.get('above_band_lines_over_noise_6db')} of "
+                            f"{summary.get('above_band_lines')} lines up to 3 times the highest "
+                            f"excited line, where the excitation is clean, 6 dB over the "
+                            f"output's noise ({summary.get('above_band_lines_needed')} needed, or "
+                            f"one line alone at n p <= 1e-3); a full grid has no non-excited line "
+                            f"in the band, so no odd/even or plant-referred claim"}
         if exc is False:
             return {"causes": ["linear"],
                     "text": f"linear{at}: no nonlinear variance above the noise at the excited "
@@ -1868,7 +2038,15 @@ def level_verdict(summary, saturation_fraction=None, level=None):
             why.append("no non-excited line in the band")
         if not why:
             why.append("no noise estimate or no non-excited line")
-        return {"causes": ["cannot tell"], "text": "cannot tell: " + " and ".join(why)}
+        tail = ""
+        if above is False:
+            tail = (f"; no distortion above the band either ({summary.get('above_band_lines')} "
+                    f"lines where the excitation is clean)")
+        elif summary.get("above_band_lines_excitation_not_clean"):
+            tail = (f"; above the band the excitation itself has content at "
+                    f"{summary['above_band_lines_excitation_not_clean']} lines (give the "
+                    f"reference r for those)")
+        return {"causes": ["cannot tell"], "text": "cannot tell: " + " and ".join(why) + tail}
     loop = any(bool(f) for f in flags)
     open_loop = summary.get("known_reference") is False
     where = "at the output" if open_loop else "in the loop"
@@ -2128,11 +2306,18 @@ def robust_bla_mimo(u, y, *, fs=1.0, settle_periods=0, excited_bins=None):
     if n_real % n_u or n_real < n_u:
         raise InputError(f"MIMO BLA: M = {n_real} realizations is not a multiple of the "
                          f"n_u = {n_u} inputs (blocks of n_u experiments)")
-    settle = int(settle_periods)
-    if not 0 <= settle < n_total:
-        raise InputError(f"settle periods T = {settle} must be in 0 .. {n_total - 1}")
-    if not np.isfinite(fs) or fs <= 0:
-        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    fs, settle = check_arguments(fs=fs, n_period=n, settle_periods=settle_periods,
+                                 n_total=n_total, hold_text=False)
+    # every input's periods checked before averaging; the MIMO layout (blocks of n_u
+    # experiments) is not re-inferred: what the SISO estimate would handle is refused
+    notes = []
+    for i in range(n_u):
+        lay = check_blocks(u[..., i], settle_periods=settle, name=f"input {i}", fs=fs,
+                           infer=False, mixed_levels="note")
+        if lay.changed:
+            raise InputError(f"MIMO BLA: {lay.notes[0]}: every experiment must hold the "
+                             f"same periods; cut the records to the excited periods")
+        notes.extend(lay.notes)
     if excited_bins is None:
         excited = detect_excited_lines(u[..., 0], settle)
     else:
@@ -2161,7 +2346,6 @@ def robust_bla_mimo(u, y, *, fs=1.0, settle_periods=0, excited_bins=None):
     G_b = Gp.mean(axis=1)
     G = G_b.mean(axis=0)
     var_total = var_noise = var_nl = detected = over = nl_rel = None
-    notes = []
     if n_blocks >= 2:
         var_total = np.sum(np.abs(G_b - G) ** 2, axis=0) / (n_blocks * (n_blocks - 1))
     else:

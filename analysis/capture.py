@@ -441,10 +441,11 @@ def load_experiment(directory, *, experiment=None, level_index=None):
     kinds = sorted({r.meta["experiment"] for r in runs})
     if len(kinds) > 1:
         raise InputError(f"{directory}: runs of several experiments ({', '.join(kinds)}): "
-                         f"choose one")
+                         f"choose one with --experiment NAME (experiment= in the library)")
     levels = sorted({r.meta["level_index"] for r in runs})
     if len(levels) > 1:
-        raise InputError(f"{directory}: runs at several levels ({levels}): choose one level")
+        raise InputError(f"{directory}: runs at several levels ({levels}): choose one level "
+                         f"with --level L (level_index= in the library)")
     runs.sort(key=lambda r: r.meta["realization"])
     first = runs[0]
     keys = ("fs_hz", "n_period", "settle_periods", "record_periods")

@@ -206,25 +206,33 @@ def _layout(loaded, args, n_samples, kind):
 
 
 def _matrix_order(loaded, columns, sig, n):
-    """MAT files: a matrix signal must hold whole periods along its first dimension
-    (MATLAB's N x P layout, read column after column as x(:)) or along its last (P x N,
-    read row after row); any other layout is refused, naming it."""
+    """MAT and NPZ matrices: a matrix signal must hold whole periods along one dimension:
+    along its first (N x P, read column after column: MATLAB's x(:)) or its last (P x N,
+    read row after row). The file's own convention is tried first (MATLAB: columns,
+    numpy: rows); the other one is taken with a note; any other layout is refused,
+    naming it. Returns (signals, notes)."""
     out = dict(sig)
+    notes = []
+    native = getattr(loaded, "matrix_order", "F")
     for role, name in columns.items():
         arr = loaded.matrices.get(name)
         if arr is None:
             continue
         shape = " x ".join(str(d) for d in arr.shape)
-        if arr.shape[0] % n == 0:
-            continue                                   # columns: whole periods (x(:))
-        if arr.shape[-1] % n == 0:
-            out[role] = np.asarray(arr, dtype=np.float64).reshape(-1)      # rows: periods
-            continue
-        raise InputError(
-            f"{loaded.path}: {role} = {name!r} is a {shape} matrix and N = {n} samples per "
-            f"period fit neither its columns (MATLAB's N x P layout) nor its rows (P x N): "
-            f"store it as one vector, or as N x P")
-    return out
+        cols, rows = arr.shape[0] % n == 0, arr.shape[-1] % n == 0
+        order = ("F" if cols else "C" if rows else None) if native == "F" else \
+            ("C" if rows else "F" if cols else None)
+        if order is None:
+            raise InputError(
+                f"{loaded.path}: {role} = {name!r} is a {shape} matrix and N = {n} samples per "
+                f"period fit neither its columns (N x P) nor its rows (P x N): store it as one "
+                f"vector, or as " + ("N x P" if native == "F" else "P x N"))
+        if order != native:
+            out[role] = np.asarray(arr, dtype=np.float64).reshape(-1, order=order)
+            if native == "C":
+                notes.append(f"{role} = {name!r} ({shape}) read column after column: its "
+                             f"columns hold the N = {n} samples of a period (N x P)")
+    return out, notes
 
 
 def _clean(values):
@@ -273,13 +281,17 @@ def bla_to_json(res):
 
 
 def hosidf_to_json(res):
-    """The ``fftune analyze hosidf --json`` document of one experiment's HosidfResult."""
-    return {
+    """The ``fftune analyze hosidf --json`` document of one experiment's HosidfResult
+    (``notes`` only when the checks before averaging handled something)."""
+    doc = {
         "f0": float(np.asarray(res.f0).reshape(-1)[0]),
         "amplitude": float(np.asarray(res.amplitude).reshape(-1)[0]),
         "H": _complex_pairs(res.H),
         "H_std": _clean(res.H_std),
     }
+    if getattr(res, "notes", None):
+        doc["notes"] = list(res.notes)
+    return doc
 
 
 def check_json_target(path):
@@ -346,7 +358,7 @@ def run_bla(args):
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "bla")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "bla")
-    sig = _matrix_order(loaded, columns, sig, n)
+    sig, layout_notes = _matrix_order(loaded, columns, sig, n)
     lines = load_lines(args.lines) if args.lines else None
     shaped = {k: v.reshape(m, t + p, n) for k, v in sig.items()}
     q, q_note = args.y_step, None
@@ -361,6 +373,7 @@ def run_bla(args):
                          excited_bins=lines, y_quantisation_step=q)
     if q_note:
         res.notes.append(q_note)
+    res.notes.extend(layout_notes)
     document = bla_to_json(res)
     plot_dir = _plot_dir(args.plot) if args.plot else None
     if args.json:
@@ -373,6 +386,8 @@ def run_bla(args):
         print(f"fftune: warning: {w.message}", file=sys.stderr)
     s = res.summary
     how = "known reference r" if res.known_reference else "known input u"
+    # (the layout the estimate used: the checks may have found another one, in a note)
+    m, p, t = res.n_realizations, res.n_periods, res.settle_periods
     print(f"BLA of {columns['y']} / {columns['u']} ({how}): M = {m}, P = {p}, T = {t}, N = {n}, "
           f"fs = {fs:g} Hz, {res.bins.size} excited lines "
           f"{res.freq[0]:g} .. {res.freq[-1]:g} Hz")
@@ -409,8 +424,36 @@ def run_bla(args):
     return 0
 
 
+def _quiet_on_broken_pipe(run):
+    """A reader that stops early (``fftune analyze ... | head``) ends the output quietly:
+    no BrokenPipeError traceback (the rest of the output goes to /dev/null)."""
+    import functools
+
+    @functools.wraps(run)
+    def wrapper(args):
+        try:
+            return run(args)
+        except BrokenPipeError:
+            # (Python's recipe: later writes, and the flush at exit, go to /dev/null)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            try:
+                os.dup2(devnull, sys.stdout.fileno())
+            except (OSError, ValueError, AttributeError):
+                pass
+            finally:
+                os.close(devnull)
+            return 0
+    return wrapper
+
+
+run_bla = _quiet_on_broken_pipe(run_bla)
+
+
+@_quiet_on_broken_pipe
 def run_hosidf(args):
-    """``fftune analyze hosidf``."""
+    """``fftune analyze hosidf``: the repeats of one file at several amplitudes are split
+    into levels (each analysed on its own, printed and in the JSON's ``levels``)."""
+    from fftune.analysis.checks import amplitude_levels, check_blocks
     from fftune.analysis.hosidf import hosidf
     from fftune.analysis.io import load_signals
 
@@ -418,26 +461,65 @@ def run_hosidf(args):
     loaded = load_signals(args.file, args.experiment, args.level_index)
     sig, columns = _select(loaded, args, "hosidf")
     fs, m, t, p, n = _layout(loaded, args, sig["u"].size, "hosidf")
-    sig = _matrix_order(loaded, columns, sig, n)
+    sig, layout_notes = _matrix_order(loaded, columns, sig, n)
     u = sig["u"].reshape(m, t + p, n)[:, t:, :]
     y = sig["y"].reshape(m, t + p, n)[:, t:, :]
-    res = hosidf(u, y, fs=fs, n_harmonics=args.harmonics)
-    document = hosidf_to_json(res)
+    # levels: repeats at different amplitudes (the checks before averaging, levels kept)
+    lay = check_blocks(u, kind="sine", name="input u", group="repeat", block="block", fs=fs,
+                       mixed_levels="keep")
+    groups = amplitude_levels(lay.levels, tol_db=0.5) if lay.index.shape[0] > 1 else \
+        [np.arange(lay.index.shape[0])]
+    if len(groups) > 1:
+        u, y = lay.apply(u), lay.apply(y)
+        results = [hosidf(u[g], y[g], fs=fs, n_harmonics=args.harmonics) for g in groups]
+        for res in results:
+            res.notes[:0] = lay.notes
+    else:
+        groups = [np.arange(m)]
+        results = [hosidf(u, y, fs=fs, n_harmonics=args.harmonics)]
+    documents = [hosidf_to_json(res) for res in results]
+    if len(results) > 1:
+        for doc, g in zip(documents, groups):
+            doc["repeats"] = [int(i) for i in g]
+        document = {"levels": documents}
+    else:
+        document = documents[0]
     plot_dir = _plot_dir(args.plot) if args.plot else None
     if args.json:
         _write_json(args.json, document)
     if plot_dir:
         from fftune.analysis import plots
-        plots.plot_hosidf_harmonics(res, plot_dir / "hosidf_harmonics.png")
-    print(f"HOSIDF of {columns['y']} / {columns['u']}: f0 = {document['f0']:g} Hz, "
-          f"amplitude = {document['amplitude']:.4g}, {m} repeat(s) of {p} period(s)")
-    h1 = abs(res.H[0])
-    for k in res.harmonics:
-        hk = res.H[k - 1]
-        std = res.H_std[k - 1]
-        std_text = "" if not np.isfinite(std) else f"  std {std:.3g}"
-        print(f"  H_{k}: |H| = {abs(hk):.4g} ({20 * np.log10(max(abs(hk), 1e-300) / h1):+.1f} dB re "
-              f"H_1), phase {np.degrees(np.angle(hk)):+.1f} deg{std_text}")
-    if m == 1:
-        print("  note: 1 repeat: no standard deviation (null in the JSON)")
+        if len(results) == 1:
+            plots.plot_hosidf_harmonics(results[0], plot_dir / "hosidf_harmonics.png")
+        else:
+            for i, res in enumerate(results):
+                plots.plot_hosidf_harmonics(res, plot_dir / f"hosidf_harmonics_level{i}.png")
+    if len(results) > 1:
+        print(f"HOSIDF of {columns['y']} / {columns['u']}: {len(results)} amplitude levels "
+              f"among the {m} repeats (repeats at one level: within 0.5 dB)")
+    for i, (res, doc, g) in enumerate(zip(results, documents, groups)):
+        head = "HOSIDF" if len(results) == 1 else f"level {i}: HOSIDF"
+        count = len(g)
+        print(f"{head} of {columns['y']} / {columns['u']}: f0 = {doc['f0']:g} Hz, "
+              f"amplitude = {doc['amplitude']:.4g}, {count} repeat(s) of {p} period(s)"
+              + ("" if len(results) == 1 else f" (repeats {_ranges_text(g)})"))
+        h1 = abs(res.H[0])
+        for k in res.harmonics:
+            hk = res.H[k - 1]
+            std = res.H_std[k - 1]
+            std_text = "" if not np.isfinite(std) else f"  std {std:.3g}"
+            print(f"  H_{k}: |H| = {abs(hk):.4g} ({20 * np.log10(max(abs(hk), 1e-300) / h1):+.1f} "
+                  f"dB re H_1), phase {np.degrees(np.angle(hk)):+.1f} deg{std_text}")
+        if count == 1:
+            print("  note: 1 repeat: no standard deviation (null in the JSON)")
+        if i == 0 or len(results) == 1:
+            for note in res.notes + layout_notes:
+                print(f"  note: {note}")
     return 0
+
+
+def _ranges_text(idx):
+    idx = [int(i) for i in idx]
+    if len(idx) > 2 and idx == list(range(idx[0], idx[-1] + 1)):
+        return f"{idx[0]}..{idx[-1]}"
+    return ", ".join(str(i) for i in idx)

@@ -14,10 +14,11 @@ periods, so the P blocks are averaged in the time domain before one DFT of N sam
 (identical to the DFT of the whole record at the harmonic bins, and P times cheaper).
 A single record is ``x.reshape(1, 1, -1)``.
 """
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from fftune.analysis.checks import check_arguments, check_blocks
 from fftune.analysis.errors import InputError
 
 __all__ = ["HosidfResult", "hosidf", "hosidf_from_lines"]
@@ -46,6 +47,8 @@ class HosidfResult:
         H_k of every repeat.
     fs : float
         Sample rate (Hz).
+    notes : list of str
+        What the checks before averaging handled (blocks without excitation dropped ...).
     """
 
     harmonics: np.ndarray
@@ -56,6 +59,7 @@ class HosidfResult:
     H_std: np.ndarray
     H_repeats: np.ndarray
     fs: float
+    notes: list = field(default_factory=list)
 
     @property
     def magnitude(self):
@@ -119,11 +123,26 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2, other_line
     y = _check_layout("output y", y)
     if u.shape != y.shape:
         raise InputError(f"output y: shape {y.shape} differs from input u {u.shape}")
-    if not np.isfinite(fs) or fs <= 0:
-        raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
+    fs, _ = check_arguments(fs=fs)
     n_harmonics = int(n_harmonics)
     if n_harmonics < 1:
         raise InputError(f"harmonics K must be >= 1, got {n_harmonics}")
+    # every block of every repeat carries the same sine at one level (checked before the
+    # blocks are averaged): a burst's empty blocks are dropped, the rest is refused
+    notes = []
+    if u.ndim == 3:
+        layout = check_blocks(u, kind="sine", name="input u", group="repeat", block="block",
+                              fs=fs)
+        if layout.changed:
+            u, y = layout.apply(u), layout.apply(y)
+            notes = list(layout.notes)
+    else:
+        for idx in np.ndindex(u.shape[:-3]):
+            layout = check_blocks(u[idx], kind="sine", name=f"input u (experiment {idx})",
+                                  group="repeat", block="block", fs=fs)
+            if layout.changed:
+                raise InputError(f"{layout.notes[0]}; give this experiment on its own "
+                                 f"(its blocks differ from the others' layout)")
     n = u.shape[-1]
     n_blocks = u.shape[-2]
     n_lines = n // 2 + 1
@@ -153,6 +172,7 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2, other_line
         bad = np.argwhere(leak > leakage_tol)
         if bad.size:
             idx = tuple(int(i) for i in bad[0])
+            _check_envelope(u[idx], idx, fs)
             raise InputError(
                 f"input u: record {idx} has its sine off the DFT grid (neighbouring lines at "
                 f"{leak[idx]:.2g} of the peak near {k0[idx] * fs / n:g} Hz): record an integer "
@@ -182,7 +202,66 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2, other_line
     Y = scipy.fft.rfft(y.sum(axis=-2), axis=-1)
     Yk = np.take_along_axis(Y, k0[..., None] * np.arange(1, n_harmonics + 1), axis=-1)
     del Y
-    return hosidf_from_lines(U1, Yk, k0[..., 0], n=n, n_blocks=n_blocks, fs=fs)
+    if u.ndim == 3 and n_blocks >= 4:
+        Yk = _without_drift(u, y, Yk, int(k0.reshape(-1)[0]), n_harmonics, notes)
+    res = hosidf_from_lines(U1, Yk, k0[..., 0], n=n, n_blocks=n_blocks, fs=fs)
+    res.notes.extend(notes)
+    return res
+
+
+def _without_drift(u, y, Yk, k0, n_harmonics, notes):
+    """An output that drifts over the blocks (its DC per block has a trend, t > 6): the
+    drift's leakage at the harmonics is the same in every block, so averaging keeps it;
+    the local polynomial method (:mod:`fftune.analysis.lpm`) removes it from the lines
+    k0 .. K k0 of the whole record. Returns the corrected block sums (else ``Yk``)."""
+    from fftune.analysis.bla import _drift_test
+
+    drift = _drift_test(np.add.reduce(y, axis=-1, dtype=np.float64))
+    if drift is None:
+        return Yk
+    from fftune.analysis.lpm import lpm_moments
+
+    harmonics = k0 * np.arange(1, n_harmonics + 1)
+    band = np.arange(k0, harmonics[-1] + 1)
+    mom, _, info = lpm_moments(np.asarray(u, dtype=np.float64), np.asarray(y, dtype=np.float64),
+                               band=band, excited=harmonics)
+    if not info.significant:
+        notes.append(f"the output drifts (its DC moves {drift[1]:+.3g} per block in repeat "
+                     f"{drift[0]}, t = {drift[2]:+.1f}), but the local polynomial method finds "
+                     f"it under the noise at the harmonics: plain averaging kept")
+        return Yk
+    notes.append(f"drift of the output (its DC moves {drift[1]:+.3g} per block in repeat "
+                 f"{drift[0]}, t = {drift[2]:+.1f}) removed at the harmonics by the local "
+                 f"polynomial method: {info.transient_re_output_db:.1f} dB re the output "
+                 f"there, median {info.transient_re_noise_db:+.1f} dB re its standard error")
+    return mom.Y[:, harmonics - k0] * u.shape[-2]
+
+
+def _check_envelope(blocks, idx, fs, segments=32):
+    """Before calling a record's sine "off the grid": an excitation that stops or pauses
+    inside the record (a burst) leaks as well. InputError naming the sample where the
+    envelope (rms over 1/32 of a block) falls 20 dB under its median, if it does."""
+    x = np.asarray(blocks, dtype=np.float64).reshape(-1)
+    seg = max(x.size // (segments * blocks.shape[0]), 1)
+    m = x.size // seg
+    env = np.sqrt(np.mean(x[:m * seg].reshape(m, seg) ** 2, axis=1))
+    med = float(np.median(env))
+    low = np.flatnonzero(env < 0.1 * med)
+    if not low.size or not med > 0:
+        return
+    amp = float(np.median(np.max(np.abs(x[:m * seg].reshape(m, seg)), axis=1)))
+    if low[-1] == m - 1 and np.all(np.diff(low) == 1):
+        above = np.flatnonzero(np.abs(x) > 0.3 * amp)
+        stop = int(above[-1]) + 1 if above.size else 0
+        raise InputError(f"input u: record {idx}: the excitation stops at sample {stop} "
+                         f"({stop / fs:.4g} s) of {x.size}, before the record ends (a burst): "
+                         f"cut the record to the excitation (whole sine periods), or give it "
+                         f"as blocks of whole periods (the blocks without excitation are "
+                         f"then dropped)")
+    start = int(low[0]) * seg
+    raise InputError(f"input u: record {idx}: the excitation pauses or starts late (20 dB "
+                     f"under its median level from sample {start} ({start / fs:.4g} s)): cut "
+                     f"the record to the part with the sine")
 
 
 def _check_one_sine(mag, k0, tol, fs, n):

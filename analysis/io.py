@@ -2,7 +2,7 @@
 
 Every loader returns :class:`LoadedSignals`: named 1-D float64 signals (NPZ arrays are
 flattened in C order, i.e. row after row; MATLAB matrices column after column, MATLAB's
-own x(:), and kept in ``matrices`` so that the CLI can check the layout against N) plus
+own x(:); both kept in ``matrices`` so that the CLI can check the layout against N) plus
 what the file says about the layout (sample rate, samples per period ...). Errors name the
 file, and for CSV the line and column.
 """
@@ -34,8 +34,11 @@ class LoadedSignals:
     layout : dict
         n_period, settle_periods, record_periods, realizations if the file states them.
     matrices : dict of str -> ndarray
-        MAT files: the signals that were matrices (2-D or more), as read (the CLI picks
-        the order that puts whole periods together, or refuses).
+        MAT and NPZ files: the signals that were matrices (2-D or more), as read (the CLI
+        picks the order that puts whole periods together, or refuses).
+    matrix_order : str
+        How ``signals`` flattened them: 'F' (MATLAB, column after column) or 'C' (numpy,
+        row after row).
     time_column : str or None
         CSV: the time column (``t``, ``time``, ``time_s``, ``t_s``), if there is one.
     time_fs_hz : float or None
@@ -47,6 +50,7 @@ class LoadedSignals:
     fs_hz: float = None
     layout: dict = field(default_factory=dict)
     matrices: dict = field(default_factory=dict)
+    matrix_order: str = "C"
     time_column: str = None
     time_fs_hz: float = None
 
@@ -238,9 +242,12 @@ def _from_mapping(path, items, matlab=False):
                                      f"{_LAYOUT_MIN[name]} .. {_LAYOUT_MAX}, got {_shown(v)}")
                 layout[name] = int(v)
             continue
-        if matlab and arr.ndim >= 2 and sum(d > 1 for d in arr.shape) >= 2:
+        if arr.ndim >= 2 and sum(d > 1 for d in arr.shape) >= 2:
+            # a matrix: flattened in the file's own order (MATLAB: column after column,
+            # numpy: row after row); the CLI checks the orientation against N
             matrices[name] = arr
-            signals[name] = _numeric(path, name, np.asarray(arr).reshape(-1, order="F"))
+            signals[name] = _numeric(path, name, np.asarray(arr).reshape(
+                -1, order="F" if matlab else "C"))
         else:
             signals[name] = _numeric(path, name, arr)
         _finite_or_raise(path, name, signals[name])
@@ -249,7 +256,7 @@ def _from_mapping(path, items, matlab=False):
     if fs is not None and not (np.isfinite(fs) and fs > 0):
         raise InputError(f"{path}: fs = {fs} is not a positive sample rate")
     return LoadedSignals(path=Path(path), signals=signals, fs_hz=fs, layout=layout,
-                         matrices=matrices)
+                         matrices=matrices, matrix_order="F" if matlab else "C")
 
 
 def load_npz(path):

@@ -56,10 +56,16 @@ def test_full_grid_verdict_from_the_excited_lines():
     lin = robust_bla(u, u + 1e-2 * rng.standard_normal(u.shape), fs=1000.0)
     assert lin.summary["excited_detected"] is False
     assert level_verdict(lin.summary)["causes"] == ["linear"]
-    # the reason given is the actual one: P = 5 here, M = 1 is what is missing
+    # the reason given is the actual one: P = 5 here, M = 1 is what is missing (a linear
+    # plant: nothing above the band either)
     one, _ = full_grid(1, 5, 1024, 200)
-    v = level_verdict(robust_bla(one, one + 0.3 * one ** 3, fs=1000.0).summary)
+    v = level_verdict(robust_bla(one, 2.0 * one, fs=1000.0).summary)
     assert v["causes"] == ["cannot tell"] and "M = 1" in v["text"] and "P = 1" not in v["text"]
+    assert "no distortion above the band either" in v["text"]
+    # since issue 31 the lines above the band (up to 3 x 200, where the input is clean)
+    # show a cubic's distortion
+    v = level_verdict(robust_bla(one, one + 0.3 * one ** 3, fs=1000.0).summary)
+    assert v["causes"] == ["nonlinear distortion (above the band)"]
 
 
 # 2 -------------------------------------------------------------------------------------
