@@ -203,7 +203,8 @@ class TaskEstimate:
     drift ends up in K_fc, unseparated) or ``NOTE_KV_SPLIT`` (K_v estimated: the split bias);
     ``NOTE_VISCOUS_CHANGE`` (K_v held, a viscous change detected and taken into the fit:
     ``k_v_shift`` [V s/rad]); ``NOTE_NOISE_CORRECTED`` (the sensor noise's bias removed:
-    ``k_fc_noise_correction`` [V], from ``sensor_noise_rad``). ``k_v_free`` [V s/rad]: the
+    ``k_fc_noise_correction`` [V], from the smallest recent ``sensor_noise_rad``, each task's
+    bound rms_residual / noise gain). ``k_v_free`` [V s/rad]: the
     viscous coefficient of the unconstrained fit (NaN when the task cannot tell it).
     """
 
@@ -317,7 +318,7 @@ def viscous_shift(k_v_free, k_v_hold, k_fc=None):
 
 
 def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_UNIQUE_MIN, hold_k_v=False,
-                  recent_k_fc=(), noise_gain=None, recent_k_v_free=None):
+                  recent_k_fc=(), noise_gain=None, recent=None):
     """Estimate K_fc (and K_v, K_a) with sigmas from one task run's statistics.
 
     Parameters
@@ -342,10 +343,12 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         rms of u per rad of sensor noise (:func:`sensor_noise_gain` of the drive's PD): the
         sensor noise is then read from the residual and its bias removed (module constants
         ``NOISE_BIAS_PER_RAD2``); None: not corrected.
-    recent_k_v_free : sequence of float or None
-        With K_v held: the unconstrained fit's viscous coefficients of the previous tasks
-        (``TaskEstimate.k_v_free``, oldest first); a change of the viscous friction is then
-        detected (:func:`viscous_shift`) and taken into the fit. None: not watched.
+    recent : sequence of TaskEstimate or None
+        The previous tasks' estimates (oldest first). With K_v held a change of the viscous
+        friction is then watched (:func:`viscous_shift` on their ``k_v_free``), and the
+        sensor noise is the smallest of their residual bounds and this one's over the last
+        ``SCATTER_WINDOW`` tasks (a model error, e.g. while a gain is still wrong, only
+        adds to a residual; with no earlier task no correction). None: neither.
 
     Returns
     -------
@@ -370,10 +373,12 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         except np.linalg.LinAlgError:
             k_v_free = math.nan
     k_v_shift, shifted = 0.0, False
-    if not kv_ok and recent_k_v_free is not None:
+    recent = list(recent) if recent is not None else None
+    if not kv_ok and recent is not None:
         fc_free_held = 0.5 * sum(_solve(A, c - k_v_hold * A[:, 2], cols)[:2])
-        k_v_shift, shifted = viscous_shift(list(recent_k_v_free) + [k_v_free], k_v_hold,
-                                           list(recent_k_fc) + [fc_free_held])
+        k_v_shift, shifted = viscous_shift([e.k_v_free for e in recent] + [k_v_free], k_v_hold,
+                                           [e.k_fc - e.k_fc_noise_correction for e in recent]
+                                           + [fc_free_held])
     if not kv_ok:  # u - b v_r on p, n, a_r
         c_shift = c - (k_v_hold + k_v_shift) * A[:, 2]
         c = c - k_v_hold * A[:, 2]
@@ -426,9 +431,12 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     sigma_n, corr = math.nan, 0.0
     if noise_gain:
         sigma_n = math.sqrt(resid2 / n) / float(noise_gain)
-        corr = NOISE_BIAS_PER_RAD2 * sigma_n ** 2 * float(fc)
+        bounds = [e.sensor_noise_rad for e in (recent or [])[-(SCATTER_WINDOW - 1):]
+                  if math.isfinite(e.sensor_noise_rad)]
+        if bounds:   # a bound confirmed by another task (the first tasks' residual is model error)
+            corr = NOISE_BIAS_PER_RAD2 * min([sigma_n] + bounds) ** 2 * float(fc)
         fc = fc + corr
-        if abs(corr) > 1e-3 * SYS_FLOOR_REL * abs(fc):
+        if abs(corr) > 0.1 * SYS_FLOOR_REL * abs(fc):
             notes.append(NOTE_NOISE_CORRECTED)
     fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + shift_effect ** 2)
     notes = tuple(notes)

@@ -76,7 +76,7 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
         n = sim.get("TASK_PERIOD")
         fs = sim.get("FS")
         decision = None
-        recent, recent_kv = [], []
+        recent, recent_est = [], []
         gain = sensor_noise_gain(sim.get("KP"), sim.get("KD"), sim.get("TAU_D"), fs) if correct_noise else None
         for k in range(tasks):
             sim.set("KFC", tr.k_fc)
@@ -88,9 +88,9 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
             try:
                 est = estimate_task(task_stats(sim), k_v_hold=tr.k_v, hold_k_v=not track_k_v,
                                     recent_k_fc=recent, noise_gain=gain,
-                                    recent_k_v_free=recent_kv if watch_viscous else None)
+                                    recent=recent_est if watch_viscous else None)
                 recent.append(est.k_fc)
-                recent_kv.append(est.k_v_free)
+                recent_est.append(est)
             except NotIdentifiable as exc:
                 est = exc
             decision = tr.after_task(est)
