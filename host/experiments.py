@@ -892,6 +892,12 @@ REPEAT_STEP = 0.05
 LOOP_GAIN_MAX = 1.4
 # A tune refused for the loop's lag is tried again at half the frequency, at most this often.
 MAX_FREQUENCY_HALVINGS = 2
+# The causes a lower frequency can remove: the loop's lag, a loop near its resonance whose
+# motion does not repeat from period to period.
+HALVE_FOR = ("loop lag", "unsettled")
+# Unconverged for these, the first experiment is repeated: a plant that changed during the
+# tune looks like stick-slip, a rotating phase, an amplitude dependence or a large budget.
+REPEAT_FOR = ("stick-slip", "amplitude dependence", "budget", "flatness")
 # A budget above this share of K_fc* is no tuning result: converged false, with the largest
 # part and what would shrink it.
 MAX_SIGMA_RE_K_FC = 0.1
@@ -1044,6 +1050,7 @@ def _budget(session, probe, outcome, by_k, amp_block):
     lag_res = visc.get("lag_after_deg") if visc["applied"] else lag_deg
     visc["lag_residual_deg"] = _f(lag_res)
     lag_part = _tuning.loop_lag_part(lag_res, k)
+    out["viscous"] = visc
     if not math.isfinite(lag_part):
         out["cause"] = _loop_lag_text(c["frequency_hz"], lag_res, kv)
         out["cause_key"] = "loop lag"
@@ -1191,7 +1198,16 @@ def _diagnose_search(probe, outcome, by_k, kv):
             f"harmonics are not the friction's relay (offset bound {100 * min(bias, 9.99):.3g} %), so "
             "the criterion cannot find the Coulomb level; set fc_smooth to 0 for the tune or raise "
             "the amplitude")
-    # a repeated point: the first experiment of the search (the top of the bracket) again
+    why = _repeat_check(probe, by_k, kv)
+    if why:
+        return "non-stationary", why
+    return outcome.cause or "not verified", None
+
+
+def _repeat_check(probe, by_k, kv):
+    """The first experiment of the search (the top of the bracket) repeated at the end: a
+    text naming the change when its signed objective moved beyond the noise (the plant
+    changed during the tune), else None."""
     k_top = max(by_k)
     first = by_k[k_top]
     if math.isfinite(first["ratio"]) and 0.0 in by_k and math.isfinite(by_k[0.0]["ratio"]):
@@ -1203,12 +1219,12 @@ def _diagnose_search(probe, outcome, by_k, kv):
             s2, se2 = _tuning.signed_point(probe.search_point(rep), phases, probe.harmonics)
             d = s2 - s1
             if abs(d) > 3 * math.hypot(se1, se2) + 0.02 * abs(s1):
-                return "non-stationary", (
-                    f"the plant changed during the tune: the first experiment (K_fc = {k_top:.4g} V) "
-                    f"repeated at the end reads s = {s2:.3g} instead of {s1:.3g} (noise {math.hypot(se1, se2):.2g}): "
-                    "the friction drifts between the experiments, which no search can follow; tune "
-                    "again in a steady state, or follow the drift with fftune track")
-    return outcome.cause or "not verified", None
+                return (f"the plant changed during the tune: the first experiment (K_fc = {k_top:.4g} V) "
+                        f"repeated at the end reads s = {s2:.3g} instead of {s1:.3g} (noise "
+                        f"{math.hypot(se1, se2):.2g}): the friction drifts between the experiments, which "
+                        "no search can follow; tune again in a steady state, or follow the drift with "
+                        "fftune track")
+    return None
 
 
 def tune(session):
@@ -1227,7 +1243,7 @@ def tune(session):
     changes, experiments = [], 0
     try:
         results, data = tune_at_frequency(session)
-        while results["search"]["cause"] == "loop lag" and len(changes) < MAX_FREQUENCY_HALVINGS:
+        while results["search"]["cause"] in HALVE_FOR and len(changes) < MAX_FREQUENCY_HALVINGS:
             c = session.cfg["tune"]
             src = session.cfg.get("_source", "config")
             cyc = _cycles(session.fs_hz, c["period_samples"], c["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
@@ -1337,6 +1353,7 @@ def tune_at_frequency(session):
             + ("; if the loop settles slowly, raise tune.settle_periods or use tune.capture: both"
                if from_lines else ""))
     k_search = float(outcome.k_fc)
+    search_converged = bool(outcome.converged)
     budget = None
     kv_search = 0.0
     if outcome.converged:
@@ -1360,6 +1377,11 @@ def tune_at_frequency(session):
         else:
             outcome.k_fc, outcome.sigma = budget["k_fc"], budget["sigma_total"]
             kv_search = budget["k_v_in_search"]
+    if not outcome.converged and cause in REPEAT_FOR:
+        # before an unconverged tune blames the plant's shape or the budget: did it change?
+        why = _repeat_check(probe, by_k, kv_pre)
+        if why:
+            cause, outcome.reason = "non-stationary", f"{why} ({outcome.reason})"
     n_search = session.tune_experiments
     pts = sorted(by_k.items())
     p0 = by_k.get(0.0) or probe.measure("verify", 0.0)
@@ -1444,6 +1466,10 @@ def tune_at_frequency(session):
                                        "encoder_step_rad", "encoder_step_source", "experiments",
                                        "repeat", "fc_smooth")},
             "k_v_in_search": _f(kv_search),
+            # the search's own root (before the budget's corrections), and the lag of the motor
+            # behind the reference left at it with the viscous feed-forward (the loop's own)
+            "k_fc_search_v": _f(k_search) if search_converged else None,
+            "loop_lag_deg": (budget or {}).get("viscous", {}).get("lag_residual_deg"),
             "converged": bool(outcome.converged), "stop_reason": outcome.reason,
             "cause": None if outcome.converged else (cause or "not verified"),
             "regime": outcome.regime,
