@@ -80,14 +80,19 @@ NOTE_NOISE_CORRECTED = "sensor_noise_bias_corrected"
 # watched against its baseline (the median of estimates VISC_BASELINE_FROM ..
 # VISC_BASELINE_FROM + VISC_BASELINE_N - 1); a shift beyond VISC_SHIFT_Z times its
 # task-to-task scatter and VISC_SHIFT_MIN_REL of the held K_v (or VISC_SHIFT_MIN_ABS) in the
-# last two tasks, while K_fc is settled, is a viscous change: the row says so and K_fc's
-# sigma carries what the shift would move it by (the held fit with b at K_v + shift; not
-# applied: the free coefficient sees only part of the change, through the split bias).
+# last two tasks, while K_fc is settled, is a viscous change: the row says so (from then
+# on) and K_fc's sigma carries what the change would move it by (the held fit with b at
+# K_v + shift, over VISC_SEEN_FRACTION; not applied: the free coefficient sees only part
+# of the change, through the split bias).
 VISC_BASELINE_FROM = 4
 VISC_BASELINE_N = 5
-VISC_SHIFT_Z = 6.0
+VISC_SHIFT_Z = 4.0
 VISC_SHIFT_MIN_REL = 0.25
 VISC_SETTLED = 3
+# the free coefficient sees about this share of a viscous change (the split bias: 0.83 of
+# 1.2 mV s/rad for +60 % on plant_twomass, bench_track.py "viscous drift"): the part is the
+# detected shift's effect on K_fc over it
+VISC_SEEN_FRACTION = 0.67
 VISC_SETTLED_REL = 0.005
 VISC_SHIFT_MIN_ABS = 2e-4
 NOTE_VISCOUS_CHANGE = "viscous_change_detected"
@@ -284,7 +289,7 @@ def sensor_noise_gain(kp, kd, tau_d_s, fs_hz):
     return math.sqrt((float(kp) + g) ** 2 + g ** 2 * (1.0 - p) / (1.0 + p))
 
 
-def viscous_shift(k_v_free, k_v_hold, k_fc=None):
+def viscous_shift(k_v_free, k_v_hold, k_fc=None, latched=False):
     """The change of the plant's viscous coefficient seen by the unconstrained fit, from the
     free estimates of the tasks so far (oldest first, this one last): (shift, detected).
 
@@ -296,11 +301,16 @@ def viscous_shift(k_v_free, k_v_hold, k_fc=None):
     minus the baseline (0 when not detected). Only while K_fc is settled: its last
     VISC_SETTLED estimates (``k_fc``, oldest first, this one last) within VISC_SETTLED_REL of
     their median; while K_fc is wrong (a Coulomb step, a drift) the closed loop moves the
-    free viscous coefficient too, and that is no viscous change."""
+    free viscous coefficient too, and that is no viscous change. ``latched`` (a change was
+    detected before): the shift is reported whatever its size (a change persists; noise
+    would make the detection flicker)."""
     x = np.asarray([v for v in k_v_free], dtype=float)
     need = VISC_BASELINE_FROM + VISC_BASELINE_N + 2
     if x.size < need or not np.all(np.isfinite(x[VISC_BASELINE_FROM:])):
         return 0.0, False
+    base = float(np.median(x[VISC_BASELINE_FROM:VISC_BASELINE_FROM + VISC_BASELINE_N]))
+    if latched:
+        return float(np.median(x[-2:]) - base), True
     if k_fc is not None:
         f = np.asarray(k_fc, dtype=float)[-VISC_SETTLED:]
         med = float(np.median(f)) if f.size else 0.0
@@ -378,7 +388,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         fc_free_held = 0.5 * sum(_solve(A, c - k_v_hold * A[:, 2], cols)[:2])
         k_v_shift, shifted = viscous_shift([e.k_v_free for e in recent] + [k_v_free], k_v_hold,
                                            [e.k_fc - e.k_fc_noise_correction for e in recent]
-                                           + [fc_free_held])
+                                           + [fc_free_held],
+                                           latched=bool(recent) and NOTE_VISCOUS_CHANGE in recent[-1].notes)
     if not kv_ok:  # u - b v_r on p, n, a_r
         c_shift = c - (k_v_hold + k_v_shift) * A[:, 2]
         c = c - k_v_hold * A[:, 2]
@@ -438,7 +449,7 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         fc = fc + corr
         if abs(corr) > 0.1 * SYS_FLOOR_REL * abs(fc):
             notes.append(NOTE_NOISE_CORRECTED)
-    fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + shift_effect ** 2)
+    fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + (shift_effect / VISC_SEEN_FRACTION) ** 2)
     notes = tuple(notes)
     return TaskEstimate(
         k_fc=float(fc), k_fc_sigma=math.hypot(fc_stat, fc_sys),
@@ -486,8 +497,9 @@ def drift_trend(estimates, scatter_floor=0.0):
     A trend is TREND_TASKS successive changes d of one sign, each at least half their mean
     (a step of the friction gives one or two changes, the mixed task and the next, then
     none: no trend), with |mean d| above TREND_MIN_Z x the estimate's scatter
-    (:func:`curvature_scatter`, at least ``scatter_floor``); its value is the mean of the
-    last two changes (the latest rate of a drift that slows, as an exponential)."""
+    (:func:`curvature_scatter`, at least ``scatter_floor``); its value is the last change
+    (the latest rate: a drift that slows, as an exponential; a ramp that ends, whose last
+    change is its partial task)."""
     x = np.asarray(estimates, dtype=float)
     if x.size < TREND_TASKS + 1 or not np.all(np.isfinite(x[-(TREND_TASKS + 1):])):
         return 0.0
@@ -498,7 +510,7 @@ def drift_trend(estimates, scatter_floor=0.0):
     noise = curvature_scatter(x)
     if noise is None or not abs(m) > TREND_MIN_Z * max(noise, float(scatter_floor)):
         return 0.0
-    return float(np.mean(d[-2:]))
+    return float(d[-1])
 
 
 @dataclass

@@ -128,13 +128,13 @@ def test_drift_trend_rules():
     rng = np.random.default_rng(5)
     base = 0.12 + 2e-5 * rng.standard_normal(12)
     ramp = base - 1.5e-3 * np.arange(12)
-    assert drift_trend(ramp) == pytest.approx(np.mean(np.diff(ramp)[-2:]))
+    assert drift_trend(ramp) == pytest.approx(np.diff(ramp)[-1])
     step = base + np.where(np.arange(12) >= 9, 0.03, 0.0)
     step[9] -= 0.015                                         # the mixed task
     assert drift_trend(step) == 0.0 and drift_trend(step[:11]) == 0.0
     assert drift_trend(base) == 0.0                          # noise is no trend
     tau = 0.12 * (1 - 0.3 * (1 - np.exp(-np.arange(12) / 12.0)))
-    assert drift_trend(tau + 2e-5 * rng.standard_normal(12)) == pytest.approx(np.mean(np.diff(tau)[-2:]), rel=0.05)
+    assert drift_trend(tau + 2e-5 * rng.standard_normal(12)) == pytest.approx(np.diff(tau)[-1], rel=0.1)
     # the scatter from second differences ignores the curvature of the approach
     w = 0.12 + 3e-4 * rng.standard_normal((300, 10))
     assert np.mean([curvature_scatter(x + tau[:10]) for x in w]) == pytest.approx(3e-4, rel=0.15)
