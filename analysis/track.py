@@ -98,11 +98,13 @@ VISC_SHIFT_MIN_ABS = 2e-4
 NOTE_VISCOUS_CHANGE = "viscous_change_detected"
 # What a task's K_fc is (results.yaml track_summary.k_fc_meaning).
 K_FC_MEANING = (
-    "the Coulomb friction averaged over the task's path: the friction the feed-forward meets "
-    "where this task moves, weighted by the time it slides there (block sums over the "
-    "repetition); fftune tune reads it over its sine's path (+- the amplitude around where the "
-    "axis stands), so with friction that depends on position (run-out, a contaminated "
-    "stretch) the two differ by the friction's variation between the two paths")
+    "the Coulomb friction averaged over the task's path and speeds: the friction the "
+    "feed-forward meets where and how fast this task moves, weighted by the time it slides "
+    "there (block sums over the repetition); fftune tune reads it over its sine's path (+- the "
+    "amplitude around where the axis stands) and speeds, so with friction that depends on "
+    "position (run-out, a contaminated stretch) the two differ by the friction's variation "
+    "between the two paths, and with a Stribeck rise at low speed the task's value lies above "
+    "the Coulomb level by the share of its time spent slow")
 
 
 class NotIdentifiable(FftuneError):
