@@ -95,7 +95,10 @@ class Session:
         rec = self.drive.run(request, desc=key, **kwargs)
         for name, values in (extra_signals or {}).items():
             rec.signals[name] = np.asarray(values, dtype=np.float32).astype(np.float64)
-        self.store.save(key, rec, experiment=experiment, request=request, config=self.cfg,
+        # the configuration as given (tune may run at a lower frequency than configured: its
+        # captures still record the configuration a replay starts from)
+        self.store.save(key, rec, experiment=experiment, request=request,
+                        config=getattr(self, "cfg_of_record", None) or self.cfg,
                         identity=self.identity, level_index=level_index, realization=realization)
         self.counts["measured"] += 1
         return rec
@@ -1240,6 +1243,7 @@ def tune(session):
     """
     cfg0 = session.cfg
     session.tune_f0 = cfg0["tune"]["frequency_hz"]
+    session.cfg_of_record = cfg0
     changes, experiments = [], 0
     try:
         results, data = tune_at_frequency(session)
