@@ -1267,6 +1267,7 @@ def tune(session):
     if changes:
         results["frequency_changes"] = changes
         results["search"]["experiments_at_other_frequencies"] = experiments
+        results["search"]["experiments"] += experiments      # every experiment of the tune
     return results, data
 
 

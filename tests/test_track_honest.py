@@ -11,7 +11,7 @@ from fftune.analysis.track import (K_FC_MEANING, NOISE_BIAS_PER_RAD2, NOTE_NOISE
                                    NOTE_VISCOUS_CHANGE, curvature_scatter, drift_trend, sensor_noise_gain,
                                    viscous_shift)
 
-from track_sim import TWOMASS, FwSim, plant_file, run_tracking
+from track_sim import TWOMASS, plant_file, run_tracking
 
 
 def _coverage(rows, skip):
