@@ -90,6 +90,15 @@ def run_row(plant_over, tune_over, workdir):
     if "drift" in plant_over:
         plant_over = dict(plant_over, drift=dict(NO_DRIFT, **plant_over["drift"]))
         plant = plant_file(plant_over, base=DRIFT_BASE, directory=workdir)
+    elif "coulomb_position" in plant_over.get("plant", {}):
+        # configs/plant_twomass.yaml has no coulomb_position key: a base with it (0)
+        os.makedirs(workdir, exist_ok=True)
+        base = os.path.join(workdir, "base_position.yaml")
+        with open(os.path.join(REPO, "configs", "plant_twomass.yaml"), encoding="utf-8") as fh:
+            text = fh.read().replace("  coulomb_asymmetry:", "  coulomb_position: 0.0\n  coulomb_asymmetry:", 1)
+        with open(base, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        plant = plant_file(plant_over, base=base, directory=workdir)
     else:
         plant = plant_file(plant_over, directory=workdir)
     drive = FwSimDrive(plant)

@@ -101,6 +101,11 @@ def families():
         ("step +15 % at 34 s", {"drift": {"coulomb_step": 0.15, "coulomb_step_time_s": 34.0}}, {},
          (None, "non-stationary")),
     ]
+    # friction x (1 + e sin th): around th = 0 the sine's path averages it to the nominal
+    # level (its odd part); the even part e Fc sin(th) sgn(w) adds even harmonics only
+    f["position friction"] = [
+        (f"coulomb_position {e:g}", {"plant": {"coulomb_position": e, "static": (1 + e) * FC0 * 1.001}}, {}, None)
+        for e in (0.2, 0.4)]
     return f
 
 
