@@ -478,6 +478,7 @@ def _block_samples(stats):
 
 TREND_TASKS = 3            # successive changes of the estimate that make a trend
 TREND_MIN_Z = 3.0          # their mean beyond this many times the estimate's scatter
+TREND_MIN_SHARE = 0.5      # each change at least this share of their mean
 
 
 def curvature_scatter(values):
@@ -507,7 +508,7 @@ def drift_trend(estimates, scatter_floor=0.0):
         return 0.0
     d = np.diff(x[-(TREND_TASKS + 1):])
     m = float(np.mean(d))
-    if not (np.all(np.sign(d) == np.sign(m)) and np.all(np.abs(d) >= 0.5 * abs(m))):
+    if not (np.all(np.sign(d) == np.sign(m)) and np.all(np.abs(d) >= TREND_MIN_SHARE * abs(m))):
         return 0.0
     noise = curvature_scatter(x)
     if noise is None or not abs(m) > TREND_MIN_Z * max(noise, float(scatter_floor)):
