@@ -890,6 +890,13 @@ SECOND_POINT_STEP = 0.05
 # away (a noisy second experiment: a friction step inside it), brings a repeat of the first
 # amplitude's experiment: did the plant change during the tune (issue 32)?
 REPEAT_STEP = 0.05
+# ... or when the search's noise part exceeds this many times the second amplitude's (one
+# experiment's period spread): the search's points disagree more than their noise, as when
+# the friction drifts between them (a ramp during the search)
+REPEAT_NOISE_RATIO = 10.0
+# A repeated experiment differs when its s moved by more than 3 times the noise and this
+# share of its first value (the loop's periodic states: a stationary plant repeats within it)
+REPEAT_FLOOR = 0.01
 # A search that did not converge while the motor moved more than this times the reference,
 # or less than its inverse, at its best point: the loop near its resonance (issue 32).
 LOOP_GAIN_MAX = 1.4
@@ -1102,28 +1109,21 @@ def _budget(session, probe, outcome, by_k, amp_block):
                 sigma2 = math.hypot(se3, se2) / abs(slope_m) * _tuning._t_factor(max(1, p3["n_periods"] - 1))
     repeat = None
     if math.isfinite(k2) and (abs(k2 - k) > 2 * math.hypot(sig_noise, sigma2)
-                              or abs(k2 - k) > REPEAT_STEP * abs(k)):
-        # (2b) K_fc* differs at the two amplitudes: before it is read as amplitude dependence,
-        # the first amplitude's experiment again (after the second): a plant that changed
-        # during the tune moves it, the amplitude does not
-        p_r, r_r = _at(probe, "repeat", k, kv, a1, phases, slope, repeat=True)
-        if r_r is not None and math.isfinite(r_r[2]):
-            sig_r = r_r[1] / abs(slope) * _tuning._t_factor(max(1, p_r["n_periods"] - 1))
-            changed, diff = _tuning.drift_between(k, r_r[2], sig_noise, sig_r,
-                                                  floor=SEARCH_RTOL / 2 * abs(k))
-            repeat = {"amplitude_rad": _f(a1), "k_fc": _f(r_r[2]), "sigma_noise": _f(sig_r),
-                      "difference": _f(diff), "changed": changed}
-            if changed:
-                out["cause"] = (
-                    f"the plant changed during the tune: K_fc* at {a1:.3g} rad read {k:.5g} V in the "
-                    f"search and {r_r[2]:.5g} V when the same experiment was repeated after the one at "
-                    f"{a2:.3g} rad ({100 * diff / abs(k):+.2g} %, more than 3 times its noise): the "
-                    "friction drifts between the experiments (warming up, wear, a load change), so the "
-                    f"difference to {a2:.3g} rad ({k2:.5g} V) is not an amplitude dependence; tune "
-                    "again in a steady state, or follow the drift with fftune track")
-                out["cause_key"] = "non-stationary"
-                out["repeat"] = repeat
-                return out
+                              or abs(k2 - k) > REPEAT_STEP * abs(k)
+                              or sig_noise > REPEAT_NOISE_RATIO * max(sigma2, 1e-3 * SEARCH_RTOL * abs(k))):
+        # (2b) K_fc* differs at the two amplitudes (or the search's points disagree): before
+        # it is read as amplitude dependence, the first amplitude's experiment again (after the
+        # second): a plant that changed during the tune moves it, the amplitude does not
+        # the search's first experiment again, at the end: a plant that changed during the
+        # tune moves it (and made the search's slope and root describe no one plant)
+        repeat = _repeat_first(probe, by_k)
+        if repeat and repeat["changed"]:
+            out["cause"] = _repeat_text(repeat, f", after the one at {a2:.3g} rad,") + (
+                f"; the difference to {a2:.3g} rad ({k2:.5g} V against {k:.5g} V) is no amplitude "
+                "dependence")
+            out["cause_key"] = "non-stationary"
+            out["repeat"] = repeat
+            return out
     k_est, noise_est, amp_part, how = _tuning.amplitude_combination(
         k, sig_noise, a1, k2, sigma2, a2, rule=AMPLITUDE_RULE)
     q, q_source = _encoder_step(session, p_star)
@@ -1207,27 +1207,41 @@ def _diagnose_search(probe, outcome, by_k, kv):
     return outcome.cause or "not verified", None
 
 
-def _repeat_check(probe, by_k, kv):
-    """The first experiment of the search (the top of the bracket) repeated at the end: a
-    text naming the change when its signed objective moved beyond the noise (the plant
-    changed during the tune), else None."""
+def _repeat_first(probe, by_k):
+    """The search's first experiment (the top of its bracket, over-compensated: s is linear
+    in the friction there) repeated at the end of the tune. Returns None when it cannot be
+    compared, else a dict: ``k_fc``, ``k_v``, ``s_then``, ``s_now``, ``noise`` and
+    ``changed`` (|s_now - s_then| above 3 times their combined noise and REPEAT_FLOOR of
+    |s_then|: the plant changed during the tune; the search's points, measured at different
+    times, then describe no one plant)."""
     k_top = max(by_k)
     first = by_k[k_top]
-    if math.isfinite(first["ratio"]) and 0.0 in by_k and math.isfinite(by_k[0.0]["ratio"]):
-        rep = probe.measure("repeat", k_top, kv if k_top != 0.0 else 0.0, repeat=True)
-        if rep["check"]["cause"] is None and math.isfinite(rep["ratio"]):
-            phases = _tuning.reference_phases(
-                np.asarray(by_k[0.0]["H"]) - np.asarray(first["H"]), probe.harmonics)
-            s1, se1 = _tuning.signed_point(probe.search_point(first), phases, probe.harmonics)
-            s2, se2 = _tuning.signed_point(probe.search_point(rep), phases, probe.harmonics)
-            d = s2 - s1
-            if abs(d) > 3 * math.hypot(se1, se2) + 0.02 * abs(s1):
-                return (f"the plant changed during the tune: the first experiment (K_fc = {k_top:.4g} V) "
-                        f"repeated at the end reads s = {s2:.3g} instead of {s1:.3g} (noise "
-                        f"{math.hypot(se1, se2):.2g}): the friction drifts between the experiments, which "
-                        "no search can follow; tune again in a steady state, or follow the drift with "
-                        "fftune track")
-    return None
+    if not (k_top > 0 and math.isfinite(first["ratio"]) and 0.0 in by_k
+            and math.isfinite(by_k[0.0]["ratio"])):
+        return None
+    rep = probe.measure("repeat", k_top, first["kv"], amplitude=first["amplitude"], repeat=True)
+    if rep["check"]["cause"] is not None or not math.isfinite(rep["ratio"]):
+        return None
+    phases = _tuning.reference_phases(np.asarray(by_k[0.0]["H"]) - np.asarray(first["H"]), probe.harmonics)
+    s1, se1 = _tuning.signed_point(probe.search_point(first), phases, probe.harmonics)
+    s2, se2 = _tuning.signed_point(probe.search_point(rep), phases, probe.harmonics)
+    noise = math.hypot(se1, se2)
+    return {"k_fc": _f(k_top), "k_v": _f(first["kv"]), "s_then": _f(s1), "s_now": _f(s2),
+            "noise": _f(noise), "changed": bool(abs(s2 - s1) > 3 * noise + REPEAT_FLOOR * abs(s1))}
+
+
+def _repeat_text(rep, after=""):
+    return (f"the plant changed during the tune: the search's first experiment (K_fc = {rep['k_fc']:.4g} V) "
+            f"repeated at the end{after} reads s = {rep['s_now']:.3g} instead of {rep['s_then']:.3g} "
+            f"(noise {rep['noise']:.2g}): the friction drifts between the experiments (warming up, wear, "
+            "a load change), which no search can follow; tune again in a steady state, or follow the "
+            "drift with fftune track")
+
+
+def _repeat_check(probe, by_k, kv):
+    """The text naming a change of the plant during the tune (:func:`_repeat_first`), or None."""
+    rep = _repeat_first(probe, by_k)
+    return _repeat_text(rep) if rep and rep["changed"] else None
 
 
 def tune(session):

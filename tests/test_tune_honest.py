@@ -129,7 +129,7 @@ def test_friction_step_during_the_second_amplitude_is_named_non_stationary(tmp_p
     t = _row(tmp_path, {"drift": {"coulomb_step": -0.2, "coulomb_step_time_s": 30.0}})
     s = t["search"]
     assert not s["converged"] and s["cause"] == "non-stationary"
-    assert "changed during the tune" in s["stop_reason"] and "not an amplitude dependence" in s["stop_reason"]
+    assert "changed during the tune" in s["stop_reason"] and "no amplitude dependence" in s["stop_reason"]
     assert t["true_coulomb_v"] == pytest.approx(0.8 * t["true_coulomb_v_at_start"], rel=1e-6)
 
 
