@@ -891,9 +891,11 @@ SECOND_POINT_STEP = 0.05
 # amplitude's experiment: did the plant change during the tune (issue 32)?
 REPEAT_STEP = 0.05
 # ... or when the search's noise part exceeds this many times the second amplitude's (one
-# experiment's period spread): the search's points disagree more than their noise, as when
-# the friction drifts between them (a ramp during the search)
+# experiment's period spread) and this share of K_fc*: the search's points (and periods)
+# disagree more than one experiment's noise, as when the friction drifts during the search
+# (a -30 % ramp over 30 s: 1.5 % and 770 times; the noise-free matrix rows 0.1 .. 0.6 %)
 REPEAT_NOISE_RATIO = 10.0
+REPEAT_NOISE_REL = 0.01
 # A repeated experiment differs when its s moved by more than 3 times the noise and this
 # share of its first value (the loop's periodic states: a stationary plant repeats within it)
 REPEAT_FLOOR = 0.01
@@ -1110,7 +1112,7 @@ def _budget(session, probe, outcome, by_k, amp_block):
     repeat = None
     if math.isfinite(k2) and (abs(k2 - k) > 2 * math.hypot(sig_noise, sigma2)
                               or abs(k2 - k) > REPEAT_STEP * abs(k)
-                              or sig_noise > REPEAT_NOISE_RATIO * max(sigma2, 1e-3 * SEARCH_RTOL * abs(k))):
+                              or sig_noise > max(REPEAT_NOISE_RATIO * sigma2, REPEAT_NOISE_REL * abs(k))):
         # (2b) K_fc* differs at the two amplitudes (or the search's points disagree): before
         # it is read as amplitude dependence, the first amplitude's experiment again (after the
         # second): a plant that changed during the tune moves it, the amplitude does not
