@@ -95,7 +95,10 @@ class Session:
         rec = self.drive.run(request, desc=key, **kwargs)
         for name, values in (extra_signals or {}).items():
             rec.signals[name] = np.asarray(values, dtype=np.float32).astype(np.float64)
-        self.store.save(key, rec, experiment=experiment, request=request, config=self.cfg,
+        # the configuration as given (tune may run at a lower frequency than configured: its
+        # captures still record the configuration a replay starts from)
+        self.store.save(key, rec, experiment=experiment, request=request,
+                        config=getattr(self, "cfg_of_record", None) or self.cfg,
                         identity=self.identity, level_index=level_index, realization=realization)
         self.counts["measured"] += 1
         return rec
@@ -141,6 +144,28 @@ def _run_u_max(session, rec):
     if value is None:
         value = session.controller.get("u_max")
     return None if value is None else float(value)
+
+
+def _run_setting(session, rec, name):
+    """A drive setting during a run: read back with the run's parameters, else the
+    configuration's controller value, else None."""
+    value = (getattr(rec, "parameters", None) or {}).get(name)
+    if value is None:
+        value = session.controller.get(name)
+    return None if value is None else float(value)
+
+
+def drive_settings(session):
+    """The drive's settings that change the tune criterion (results.yaml tune.drive_settings):
+    the controller gains, the feed-forward sign's smoothing width fc_smooth and u_max, read
+    from the drive (a setting the drive does not have: None)."""
+    out = {}
+    for name in ("kp", "kd", "tau_d", "fc_smooth", "u_max"):
+        try:
+            out[name] = _f(session.drive.get(name))
+        except (FftuneError, KeyError, AttributeError, TypeError, ValueError):
+            out[name] = _f(session.controller.get(name))
+    return out
 
 
 def detect_analysis(u_lv, y_lv, r_lv, *, fs, excited_bins, rms_levels, unit="V",
@@ -530,14 +555,20 @@ class _TuneProbe:
                               f"hold at most {_stats.STAT_K_MAX} (set tune.capture: raw or "
                               f"tune.harmonics <= {_stats.STAT_K_MAX})")
 
-    def measure(self, tag, kfc, kv=0.0, amplitude=None):
+    def measure(self, tag, kfc, kv=0.0, amplitude=None, repeat=False):
+        """One experiment; ``repeat``: measured again even when the same (K_fc, K_v,
+        amplitude) was measured before (a repeated point: did the plant change?)."""
         amplitude = self.amplitude if amplitude is None else amplitude
         key = f"tune-{tag}-kfc{kfc:.9g}-kv{kv:.9g}"
+        if getattr(self.s, "tune_f0", self.c["frequency_hz"]) != self.c["frequency_hz"]:
+            key += f"-f{self.c['frequency_hz']:.6g}"      # a lower frequency than configured
         if amplitude != self.c["amplitude_rad"]:
             key += f"-a{amplitude:.6g}"
+        if repeat:
+            key += "-repeat"
         c = self.c
         cache = (round(float(np.float32(kfc)), 12), round(float(np.float32(kv)), 12), float(amplitude))
-        if cache in self.points:          # the same experiment under another tag
+        if cache in self.points and not repeat:   # the same experiment under another tag
             return self.points[cache]
         req = sine_request(inject="reference", amplitude_peak=amplitude, n=self.n,
                            cycles=self.cycles, settle=c["settle_periods"], periods=c["periods"],
@@ -595,8 +626,13 @@ class _TuneProbe:
             "lines": lines,          # DFT lines k = 1 .. K of the plant input and the angle
             "check": check,
             "record": rec,
+            # the motor's lag behind the reference at the fundamental (deg; < 0: a lead)
+            "lag_deg": float(-np.degrees(np.angle(H[0]))) if h1 > 0 else math.nan,
+            # the drive's sign smoothing during this run (read back with the run's parameters)
+            "fc_smooth": _run_setting(self.s, rec, "fc_smooth"),
         }
-        self.points[cache] = point
+        if not repeat:
+            self.points[cache] = point
         self.s.tune_experiments = getattr(self.s, "tune_experiments", 0) + 1
         return point
 
@@ -850,6 +886,30 @@ SEARCH_RTOL = 0.02
 # At the second amplitude a root step along the scaled slope longer than this share of K_fc*
 # gets a second experiment there and the secant through both.
 SECOND_POINT_STEP = 0.05
+# K_fc* at the second amplitude beyond twice the noise, or more than this share of K_fc*
+# away (a noisy second experiment: a friction step inside it), brings a repeat of the first
+# amplitude's experiment: did the plant change during the tune (issue 32)?
+REPEAT_STEP = 0.05
+# ... or when the search's noise part exceeds this many times the second amplitude's (one
+# experiment's period spread) and this share of K_fc*: the search's points (and periods)
+# disagree more than one experiment's noise, as when the friction drifts during the search
+# (a -30 % ramp over 30 s: 1.5 % and 770 times; the noise-free matrix rows 0.1 .. 0.6 %)
+REPEAT_NOISE_RATIO = 10.0
+REPEAT_NOISE_REL = 0.01
+# A repeated experiment differs when its s moved by more than 3 times the noise and this
+# share of its first value (the loop's periodic states: a stationary plant repeats within it)
+REPEAT_FLOOR = 0.01
+# A search that did not converge while the motor moved more than this times the reference,
+# or less than its inverse, at its best point: the loop near its resonance (issue 32).
+LOOP_GAIN_MAX = 1.4
+# A tune refused for the loop's lag is tried again at half the frequency, at most this often.
+MAX_FREQUENCY_HALVINGS = 2
+# The causes a lower frequency can remove: the loop's lag, a loop near its resonance whose
+# motion does not repeat from period to period.
+HALVE_FOR = ("loop lag", "unsettled")
+# Unconverged for these, the first experiment is repeated: a plant that changed during the
+# tune looks like stick-slip, a rotating phase, an amplitude dependence or a large budget.
+REPEAT_FOR = ("stick-slip", "amplitude dependence", "budget", "flatness")
 # A budget above this share of K_fc* is no tuning result: converged false, with the largest
 # part and what would shrink it.
 MAX_SIGMA_RE_K_FC = 0.1
@@ -914,10 +974,10 @@ def _phases_and_slope(probe, outcome, by_k):
     return phases, (sb - sa) / (b - a)
 
 
-def _at(probe, tag, k, kv, amplitude, phases, slope):
+def _at(probe, tag, k, kv, amplitude, phases, slope, repeat=False):
     """One experiment after the search: (point, s, se, root along the slope) or the check
     that stopped it."""
-    p = probe.measure(tag, float(k), float(kv), amplitude=amplitude)
+    p = probe.measure(tag, float(k), float(kv), amplitude=amplitude, repeat=repeat)
     if p["check"]["cause"] is not None:
         return p, None
     s_k, se = _tuning.signed_point(probe.search_point(p), phases, probe.harmonics)
@@ -937,6 +997,7 @@ def _budget(session, probe, outcome, by_k, amp_block):
     out = {"cause": None, "k_v_in_search": 0.0, "experiments": 0}
     phases, slope = _phases_and_slope(probe, outcome, by_k)
     if phases is None:
+        out["cause_key"] = "stick-slip"
         out["cause"] = ("cannot tell the uncertainty: the signed objective has no sign change "
                         f"around K_fc = {outcome.k_fc:.4g} V (the odd phases rotate), so K_fc* at a "
                         "second amplitude cannot be read; raise the amplitude (out of stick-slip)")
@@ -962,6 +1023,7 @@ def _budget(session, probe, outcome, by_k, amp_block):
             p, r = _at(probe, "lag", k, kv, a1, phases, slope)
             if r is None:
                 out["cause"] = f"{p['check']['cause']}: {p['check']['text']}"
+                out["cause_key"] = p["check"]["cause"]
                 return out
             s_k, se, k_new = r
             if not math.isfinite(k_new):
@@ -996,6 +1058,17 @@ def _budget(session, probe, outcome, by_k, amp_block):
            "the new K_v estimate did not reduce the lag: not applied; the shift it gave is a part "
            "of the budget"))
     out["k_v_in_search"] = kv
+    # (1b) the lag K_v did not remove: the loop's own (its bandwidth at this frequency)
+    lag_res = visc.get("lag_after_deg") if visc["applied"] else lag_deg
+    visc["lag_residual_deg"] = _f(lag_res)
+    lag_part = _tuning.loop_lag_part(lag_res, k)
+    out["viscous"] = visc
+    if not math.isfinite(lag_part):
+        out["cause"] = _loop_lag_text(c["frequency_hz"], lag_res, kv)
+        out["cause_key"] = "loop lag"
+        return out
+    # (1c) the drive's sign smoothing (fc_smooth) at the smaller amplitude of the two below
+    width = p_star.get("fc_smooth") or 0.0
     # (2) a second amplitude
     amax = c["amplitude_max_rad"]
     alt = (amp_block or {}).get("alternative_rad")
@@ -1011,10 +1084,12 @@ def _budget(session, probe, outcome, by_k, amp_block):
         if r2 is not None:
             break
     if r2 is None or not math.isfinite(r2[2]):
+        out["cause_key"] = next((t.split(": ")[1] for t in tried if not t.endswith(": ok")), "budget")
         out["cause"] = ("cannot tell the amplitude dependence of K_fc*: no second amplitude gave a "
                         f"usable experiment ({'; '.join(tried)})")
         return out
     a2 = float(p2["amplitude"])
+    smooth_rel = _tuning.smoothed_sign_bias(width, omega * min(a1, a2), probe.harmonics)
     h1_2 = abs(complex(p2["H"][0]))
     slope2 = slope * a1 * abs(h1) / (a2 * h1_2)
     s2, se2, _ = r2
@@ -1034,10 +1109,28 @@ def _budget(session, probe, outcome, by_k, amp_block):
                 second = {"k_fc": _f(k_b), "s": _f(s3), "s_std": _f(se3), "slope_measured": _f(slope_m)}
                 k2 = _tuning.root_at_slope(k_b, s3, slope_m)
                 sigma2 = math.hypot(se3, se2) / abs(slope_m) * _tuning._t_factor(max(1, p3["n_periods"] - 1))
+    repeat = None
+    if math.isfinite(k2) and (abs(k2 - k) > 2 * math.hypot(sig_noise, sigma2)
+                              or abs(k2 - k) > REPEAT_STEP * abs(k)
+                              or sig_noise > max(REPEAT_NOISE_RATIO * sigma2, REPEAT_NOISE_REL * abs(k))):
+        # (2b) K_fc* differs at the two amplitudes (or the search's points disagree): before
+        # it is read as amplitude dependence, the first amplitude's experiment again (after the
+        # second): a plant that changed during the tune moves it, the amplitude does not
+        # the search's first experiment again, at the end: a plant that changed during the
+        # tune moves it (and made the search's slope and root describe no one plant)
+        repeat = _repeat_first(probe, by_k)
+        if repeat and repeat["changed"]:
+            out["cause"] = _repeat_text(repeat, f", after the one at {a2:.3g} rad,") + (
+                f"; the difference to {a2:.3g} rad ({k2:.5g} V against {k:.5g} V) is no amplitude "
+                "dependence")
+            out["cause_key"] = "non-stationary"
+            out["repeat"] = repeat
+            return out
     k_est, noise_est, amp_part, how = _tuning.amplitude_combination(
         k, sig_noise, a1, k2, sigma2, a2, rule=AMPLITUDE_RULE)
     q, q_source = _encoder_step(session, p_star)
     if q is None:
+        out["cause_key"] = "encoder"
         out["cause"] = ("cannot tell the encoder part of the uncertainty: the encoder step is "
                         f"{q_source}; set detect.encoder_step_rad (2 pi / counts per revolution, from "
                         "the encoder's data sheet) or use tune.capture: both")
@@ -1045,7 +1138,9 @@ def _budget(session, probe, outcome, by_k, amp_block):
     enc = _tuning.encoder_floor_v(q, min(a1, a2), p_star["angle_noise_rad"], slope * (a1 / min(a1, a2)))
     total, parts = _tuning.uncertainty_budget({
         "noise": noise_est, "amplitude": amp_part, "encoder": enc,
-        "flatness": float(outcome.sigma_fit), "viscous": visc_part})
+        "flatness": float(outcome.sigma_fit), "viscous": visc_part,
+        "loop_lag": _tuning.loop_lag_part(lag_res, k_est),
+        "smoothed_sign": smooth_rel * abs(k_est) if width > 0 else 0.0})
     out.update({
         "k_fc": float(k_est), "sigma_total": total, "parts": parts,
         "k_fc_at_amplitude": {"amplitude_rad": [_f(a1), _f(a2)], "k_fc": [_f(k), _f(k2)],
@@ -1056,11 +1151,143 @@ def _budget(session, probe, outcome, by_k, amp_block):
         "k_fc_search": _f(k1), "viscous": visc,
         "encoder_step_rad": _f(q), "encoder_step_source": q_source,
         "experiments": session.tune_experiments - n0,
+        "repeat": repeat,
+        "fc_smooth": {"width_rad_s": _f(width), "velocity_peak_rad_s": _f(omega * min(a1, a2)),
+                      "bias_bound_rel": _f(smooth_rel),
+                      "note": ("pure sign (fc_smooth 0)" if not width > 0 else
+                               "the drive smooths the feed-forward's sign over +-fc_smooth: its odd "
+                               "harmonics are smaller than the friction's relay, the criterion's "
+                               "optimum moves up; the bound of that offset is the smoothed_sign part")},
     })
     return out
 
 
+def _loop_lag_text(f_hz, lag_deg, kv):
+    """The refusal of a tune whose motor lags the reference because of the loop itself."""
+    return (f"the loop cannot follow the {f_hz:g} Hz sine closely enough: the motor "
+            f"{'lags' if lag_deg > 0 else 'leads'} the reference by {abs(lag_deg):.3g} deg at K_fc* "
+            f"with the viscous feed-forward K_v = {kv:.4g} V s/rad in the loop (more than "
+            f"{_tuning.LOOP_LAG_MAX_DEG:g} deg; the loop's own bandwidth, which no K_v removes): the "
+            "feed-forward switches with the reference, the friction with the motor, so the "
+            "criterion's optimum is off the Coulomb level by an amount that is no longer bounded; "
+            "lower tune.frequency_hz (the lag falls with it) or raise the loop gains")
+
+
+def _diagnose_search(probe, outcome, by_k, kv):
+    """The real cause of a search that did not converge (not stopped by a check): the
+    loop's lag, the drive's smoothed sign, a plant that changed (the first experiment
+    repeated), else the search's own (noise, or not verified). Returns (cause, text)."""
+    pts = [p for _, p in sorted(by_k.items()) if math.isfinite(p["ratio"])]
+    if not pts:
+        return outcome.cause or "not verified", None
+    best = min(pts, key=lambda p: p["ratio"])
+    lag = best["lag_deg"]
+    if math.isfinite(lag) and abs(lag) > _tuning.LOOP_LAG_MAX_DEG:
+        return "loop lag", _loop_lag_text(probe.c["frequency_hz"], lag, kv).replace(
+            "at K_fc*", f"at K_fc = {best['kfc']:.4g} V (the smallest ratio)")
+    gain = abs(complex(best["H"][0]))
+    if not 1 / LOOP_GAIN_MAX <= gain <= LOOP_GAIN_MAX:
+        return "loop lag", (
+            f"the loop cannot follow the {probe.c['frequency_hz']:g} Hz sine: the motor moves {gain:.3g} "
+            f"times the reference at K_fc = {best['kfc']:.4g} V (the smallest ratio; |H_1| "
+            f"{abs(complex(pts[0]['H'][0])):.3g} .. {abs(complex(pts[-1]['H'][0])):.3g} over the search): "
+            "the loop is near its resonance there, the criterion does not measure the friction alone; "
+            "lower tune.frequency_hz or change the loop gains")
+    width = best.get("fc_smooth") or 0.0
+    omega = 2 * math.pi * probe.c["frequency_hz"]
+    bias = _tuning.smoothed_sign_bias(width, omega * probe.amplitude, probe.harmonics)
+    if bias > MAX_SIGMA_RE_K_FC:
+        return "smoothed sign", (
+            f"the drive smooths the feed-forward's sign over fc_smooth = {width:g} rad/s, "
+            f"{100 * width / (omega * probe.amplitude):.2g} % of the sine's peak velocity: its odd "
+            f"harmonics are not the friction's relay (offset bound {100 * min(bias, 9.99):.3g} %), so "
+            "the criterion cannot find the Coulomb level; set fc_smooth to 0 for the tune or raise "
+            "the amplitude")
+    why = _repeat_check(probe, by_k, kv)
+    if why:
+        return "non-stationary", why
+    return outcome.cause or "not verified", None
+
+
+def _repeat_first(probe, by_k):
+    """The search's first experiment (the top of its bracket, over-compensated: s is linear
+    in the friction there) repeated at the end of the tune. Returns None when it cannot be
+    compared, else a dict: ``k_fc``, ``k_v``, ``s_then``, ``s_now``, ``noise`` and
+    ``changed`` (|s_now - s_then| above 3 times their combined noise and REPEAT_FLOOR of
+    |s_then|: the plant changed during the tune; the search's points, measured at different
+    times, then describe no one plant)."""
+    k_top = max(by_k)
+    first = by_k[k_top]
+    if not (k_top > 0 and math.isfinite(first["ratio"]) and 0.0 in by_k
+            and math.isfinite(by_k[0.0]["ratio"])):
+        return None
+    rep = probe.measure("repeat", k_top, first["kv"], amplitude=first["amplitude"], repeat=True)
+    if rep["check"]["cause"] is not None or not math.isfinite(rep["ratio"]):
+        return None
+    phases = _tuning.reference_phases(np.asarray(by_k[0.0]["H"]) - np.asarray(first["H"]), probe.harmonics)
+    s1, se1 = _tuning.signed_point(probe.search_point(first), phases, probe.harmonics)
+    s2, se2 = _tuning.signed_point(probe.search_point(rep), phases, probe.harmonics)
+    noise = math.hypot(se1, se2)
+    return {"k_fc": _f(k_top), "k_v": _f(first["kv"]), "s_then": _f(s1), "s_now": _f(s2),
+            "noise": _f(noise), "changed": bool(abs(s2 - s1) > 3 * noise + REPEAT_FLOOR * abs(s1))}
+
+
+def _repeat_text(rep, after=""):
+    return (f"the plant changed during the tune: the search's first experiment (K_fc = {rep['k_fc']:.4g} V) "
+            f"repeated at the end{after} reads s = {rep['s_now']:.3g} instead of {rep['s_then']:.3g} "
+            f"(noise {rep['noise']:.2g}): the friction drifts between the experiments (warming up, wear, "
+            "a load change), which no search can follow; tune again in a steady state, or follow the "
+            "drift with fftune track")
+
+
+def _repeat_check(probe, by_k, kv):
+    """The text naming a change of the plant during the tune (:func:`_repeat_first`), or None."""
+    rep = _repeat_first(probe, by_k)
+    return _repeat_text(rep) if rep and rep["changed"] else None
+
+
 def tune(session):
+    """K_fc* (:func:`tune_at_frequency`) at ``tune.frequency_hz``; when the loop cannot follow
+    that sine (cause ``loop lag``: its own lag, which no K_v removes, moves the criterion's
+    optimum), again at half the frequency (on the drive's DFT grid, N <= 8192), at most
+    ``MAX_FREQUENCY_HALVINGS`` times; ``frequency_changes`` in the results says so.
+
+    Returns
+    -------
+    results, data : dict, dict
+        As :func:`tune_at_frequency`.
+    """
+    cfg0 = session.cfg
+    session.tune_f0 = cfg0["tune"]["frequency_hz"]
+    session.cfg_of_record = cfg0
+    changes, experiments = [], 0
+    try:
+        results, data = tune_at_frequency(session)
+        while results["search"]["cause"] in HALVE_FOR and len(changes) < MAX_FREQUENCY_HALVINGS:
+            c = session.cfg["tune"]
+            src = session.cfg.get("_source", "config")
+            cyc = _cycles(session.fs_hz, c["period_samples"], c["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
+            nxt = _tuning.halved_frequency(c["period_samples"], cyc, n_max=8192)
+            if nxt is None:
+                break
+            n2, c2 = nxt
+            f2 = c2 * session.fs_hz / n2
+            changes.append({"from_hz": _f(c["frequency_hz"]), "to_hz": _f(f2), "period_samples": int(n2),
+                            "reason": results["search"]["stop_reason"]})
+            session.log(f"tune: the loop cannot follow {c['frequency_hz']:g} Hz; again at {f2:g} Hz")
+            experiments += results["search"]["experiments"] + results["search"]["amplitude_probes"]
+            session.cfg = dict(session.cfg, tune=dict(c, frequency_hz=f2, period_samples=n2))
+            results, data = tune_at_frequency(session)
+    finally:
+        session.cfg = cfg0
+    if changes:
+        results["frequency_changes"] = changes
+        results["search"]["experiments_at_other_frequencies"] = experiments
+        results["search"]["experiments"] += experiments      # every experiment of the tune
+    return results, data
+
+
+def tune_at_frequency(session):
     """K_fc: (a) the paper's sweep (optional), (b) the automated search, then (c) K_v.
 
     Returns
@@ -1077,6 +1304,8 @@ def tune(session):
     check_tune_plan(session)
     probe = _TuneProbe(session)
     session.tune_experiments = 0
+    settings = drive_settings(session)
+    cause = None
     # (0) amplitude
     amp_block = stop = None
     if c["amplitude_rad"] == "auto":
@@ -1121,14 +1350,20 @@ def tune(session):
         outcome.converged = False
         outcome.reason = f"{stop['cause']}: {stop['text']}"
         outcome.sigma = math.nan
+        cause = stop["cause"]
         if not by_k:                       # stopped in the amplitude choice
             by_k[0.0] = probe.measure("amplitude", 0.0)
         if not math.isfinite(outcome.k_fc):
             outcome.k_fc = min(by_k)
+    elif not outcome.converged:
+        cause, why = _diagnose_search(probe, outcome, by_k, kv_pre)
+        if why:
+            outcome.reason = f"{why} ({outcome.reason})"
     p_lo = by_k.get(0.0)
     if outcome.converged and p_lo is not None and \
             p_lo["angle_noise_rad"] > MAX_NOISE_RE_AMPLITUDE * probe.amplitude:
         outcome.converged = False
+        cause = "noise"
         from_lines = "motor_angle" not in p_lo["record"].signals
         outcome.reason = (
             f"the angle noise ({p_lo['angle_noise_rad']:.2g} rad, "
@@ -1142,6 +1377,7 @@ def tune(session):
             + ("; if the loop settles slowly, raise tune.settle_periods or use tune.capture: both"
                if from_lines else ""))
     k_search = float(outcome.k_fc)
+    search_converged = bool(outcome.converged)
     budget = None
     kv_search = 0.0
     if outcome.converged:
@@ -1150,8 +1386,10 @@ def tune(session):
             outcome.converged = False
             outcome.reason = budget["cause"]
             outcome.sigma = math.nan
+            cause = budget.get("cause_key", "budget")
         elif not budget["sigma_total"] <= MAX_SIGMA_RE_K_FC * abs(budget["k_fc"]):
             part, value = max(budget["parts"].items(), key=lambda kv: kv[1])
+            cause = _tuning.PART_CAUSES.get(part, "budget")
             outcome.converged = False
             outcome.sigma = math.nan
             outcome.k_fc = budget["k_fc"]
@@ -1163,6 +1401,11 @@ def tune(session):
         else:
             outcome.k_fc, outcome.sigma = budget["k_fc"], budget["sigma_total"]
             kv_search = budget["k_v_in_search"]
+    if not outcome.converged and cause in REPEAT_FOR:
+        # before an unconverged tune blames the plant's shape or the budget: did it change?
+        why = _repeat_check(probe, by_k, kv_pre)
+        if why:
+            cause, outcome.reason = "non-stationary", f"{why} ({outcome.reason})"
     n_search = session.tune_experiments
     pts = sorted(by_k.items())
     p0 = by_k.get(0.0) or probe.measure("verify", 0.0)
@@ -1213,6 +1456,17 @@ def tune(session):
         }
     truth = session.truth or {}
     fc_true = truth.get("sim_fc_volt")
+    fc_true_start = fc_true
+    if fc_true is not None:
+        # the plant's truth when the tune ends (a simulated plant may drift during it)
+        try:
+            fc_true = (session.drive.plant_truth() or {}).get("sim_fc_volt", fc_true)
+        except (FftuneError, AttributeError):
+            pass
+    # what the unconverged search leaves: an estimate whose budget is too large, or only
+    # the experiment with the smallest ratio, which is no estimate of K_fc*
+    is_estimate = outcome.converged or (budget is not None and budget.get("cause") is None
+                                        and "k_fc" in budget)
     sigma = _f(outcome.sigma) if outcome.converged else None
     results = {
         "frequency_hz": c["frequency_hz"], "amplitude_rad": _f(probe.amplitude),
@@ -1233,10 +1487,15 @@ def tune(session):
             "sigma_total_v": None if not (budget and "parts" in budget) else _f(budget["sigma_total"]),
             "budget": None if not (budget and "parts" in budget) else {
                 k: budget[k] for k in ("k_fc_search", "k_fc_at_amplitude", "rule", "viscous",
-                                       "encoder_step_rad", "encoder_step_source", "experiments")},
+                                       "encoder_step_rad", "encoder_step_source", "experiments",
+                                       "repeat", "fc_smooth")},
             "k_v_in_search": _f(kv_search),
+            # the search's own root (before the budget's corrections), and the lag of the motor
+            # behind the reference left at it with the viscous feed-forward (the loop's own)
+            "k_fc_search_v": _f(k_search) if search_converged else None,
+            "loop_lag_deg": (budget or {}).get("viscous", {}).get("lag_residual_deg"),
             "converged": bool(outcome.converged), "stop_reason": outcome.reason,
-            "cause": (stop or {}).get("cause"),
+            "cause": None if outcome.converged else (cause or "not verified"),
             "regime": outcome.regime,
             "bracket_v": [_f(x) for x in outcome.bracket],
             "bracket_extended": None if outcome.extended_to is None else {
@@ -1256,13 +1515,20 @@ def tune(session):
                             for _, p in pts],
         },
         "k_fc_star": _f(k_star) if outcome.converged else None,
-        "k_fc_best_measured": _f(k_star),
+        "k_fc_best_measured": _f(k_star) if is_estimate else None,
+        "k_fc_best_measured_note": (
+            "K_fc*" if outcome.converged else
+            "an estimate whose uncertainty is too large (tune.search.sigma_total_v)" if is_estimate else
+            f"none: the search did not converge ({cause or 'not verified'}); the experiment with the "
+            f"smallest odd-harmonic ratio was at K_fc = {k_star:.5g} V, which is no estimate of K_fc*"),
+        "drive_settings": settings,
         "ratio_at_zero": _f(p0["ratio"]), "ratio_at_k_fc_star": _f(p_star["ratio"]),
         "ratio_improvement": _f(p0["ratio"] / p_star["ratio"]) if p_star["ratio"] > 0 else None,
         "rms_error_rad": {"k_fc_0": _f(p0["rms_error"]), "k_fc_star": _f(p_star["rms_error"]),
                           "sweep_min": _f(p_rms["rms_error"]), "sweep_min_at_k_fc": _f(p_rms["kfc"])},
         "viscous": kv_block,
         "true_coulomb_v": _f(fc_true),
+        "true_coulomb_v_at_start": _f(fc_true_start),
         "k_fc_star_error_re_truth": _f(k_star / fc_true - 1) if fc_true and outcome.converged else None,
     }
     if kv_block:

@@ -21,8 +21,8 @@ import time
 import yaml
 
 from fftune.analysis.errors import FftuneError
-from fftune.analysis.track import (NotIdentifiable, Tracker, TrackSettings, estimate_task,
-                                   parse_task_stats)
+from fftune.analysis.track import (K_FC_MEANING, NotIdentifiable, Tracker, TrackSettings, estimate_task,
+                                   parse_task_stats, sensor_noise_gain)
 from fftune.host.atomic import write_atomic
 from fftune.host.config import DEFAULTS as _CFG_DEFAULTS
 from fftune.host.config import (_bool, _choice, _err, _merge, _number, check_output_dir, read_yaml,
@@ -372,10 +372,22 @@ def _progress_pdo_off(client):
     return cob
 
 
+def _noise_gain(client, fs):
+    """The rms of u per rad of sensor noise of the drive's PD (its gains read back), or None
+    when the drive does not give them (the noise bias is then not corrected)."""
+    try:
+        return sensor_noise_gain(float(client.get("kp")), float(client.get("kd")),
+                                 float(client.get("tau_d")), float(fs))
+    except (FftuneError, KeyError, AttributeError, TypeError, ValueError, ZeroDivisionError):
+        return None
+
+
 def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counter, k_fc, k_v, k_a):
     tc = cfg["track"]
     rows = []
     recent_k_fc = []  # the K_fc estimates so far: their scatter is K_fc sigma's statistical part
+    recent = []  # the estimates so far: a viscous change with K_v held, the sensor noise
+    noise_gain = _noise_gain(client, drive.fs)
     checks = []
     stop = None
     t_s = 0.0
@@ -405,8 +417,9 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
             t_s += drive.run_s
         try:
             est = estimate_task(stats, k_v_hold=tracker.k_v, hold_k_v=not tc["track_k_v"],
-                                recent_k_fc=recent_k_fc)
+                                recent_k_fc=recent_k_fc, noise_gain=noise_gain, recent=recent)
             recent_k_fc.append(est.k_fc)
+            recent.append(est)
         except NotIdentifiable as exc:
             est = exc
         decision = tracker.after_task(est)
@@ -435,6 +448,11 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
                "action": decision.action, "bus_frames": f1 - f0, "bus_bits": b1 - b0}
         if ok and est.notes:
             row["notes"] = list(est.notes)
+        if ok and math.isfinite(est.sensor_noise_rad):
+            row["sensor_noise_rad"] = _f(est.sensor_noise_rad)
+            row["k_fc_noise_correction"] = _f(est.k_fc_noise_correction)
+        if ok and est.k_v_shift:
+            row["k_v_shift"] = _f(est.k_v_shift)
         if decision.cause:
             row["cause"] = decision.cause
         if fc_true is not None:
@@ -497,7 +515,10 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
                "continuous": cont, "repetitions_not_used": drive.skipped if cont else 0,
                "k_fc_final": _f(tracker.k_fc), "k_v_final": _f(tracker.k_v), "k_a_final": _f(tracker.k_a),
                "stop": stop, "bus": bus, "check": check, "checks": checks,
-               "excitation": "the task only (exc_kind 0 during tracking)"}
+               "excitation": "the task only (exc_kind 0 during tracking)",
+               "k_fc_meaning": K_FC_MEANING,
+               "sensor_noise_gain_v_per_rad": _f(noise_gain),
+               "viscous_changes": [r["task"] for r in rows if "viscous_change_detected" in r.get("notes", ())]}
     if rows and "k_fc_true" in rows[-1]:
         summary["k_fc_true_final"] = rows[-1]["k_fc_true"]
     results = {"track": rows, "track_summary": summary}

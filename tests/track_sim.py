@@ -9,7 +9,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "firmware_sim",
 from fwsim import FwSim  # noqa: E402
 
 from fftune.analysis.track import (NotIdentifiable, Tracker, TrackSettings,  # noqa: E402
-                                   estimate_task, parse_task_stats)
+                                   estimate_task, parse_task_stats, sensor_noise_gain)
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
 TWOMASS = os.path.join(REPO, "configs", "plant_twomass.yaml")
@@ -62,19 +62,22 @@ def plant_file(tmp_dir, name="plant.yaml", base=TWOMASS, sensor=None, drift=None
 
 
 def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mode=1,
-                 settings=None, track_k_v=False):
+                 settings=None, track_k_v=False, settle=0, correct_noise=True, watch_viscous=True):
     """Track over ``tasks`` repetitions; rows of dicts (k_fc in effect, estimate, sigma,
-    truth at the task's end, action) and the last decision."""
+    truth at the task's end, action) and the last decision. ``correct_noise``: the sensor
+    noise's bias removed (the drive's PD gains give the noise gain); ``watch_viscous``: a
+    viscous change with K_v held detected and taken into the fit (as ``fftune track``)."""
     rows = []
     with FwSim(plant) as sim:
-        sim.configure(task_mode=mode, exc_kind=0, exc_settle_periods=0, exc_record_periods=1,
+        sim.configure(task_mode=mode, exc_kind=0, exc_settle_periods=settle, exc_record_periods=1,
                       rec_signals=0, **(task or DEMO_TASK))
         sim.enable()
         tr = Tracker(k_fc=k_fc, k_v=k_v, k_a=k_a, settings=settings or TrackSettings(update_kv=track_k_v))
         n = sim.get("TASK_PERIOD")
         fs = sim.get("FS")
         decision = None
-        recent = []
+        recent, recent_est = [], []
+        gain = sensor_noise_gain(sim.get("KP"), sim.get("KD"), sim.get("TAU_D"), fs) if correct_noise else None
         for k in range(tasks):
             sim.set("KFC", tr.k_fc)
             sim.set("KV", tr.k_v)
@@ -84,18 +87,25 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
             sim.run_until_idle()
             try:
                 est = estimate_task(task_stats(sim), k_v_hold=tr.k_v, hold_k_v=not track_k_v,
-                                    recent_k_fc=recent)
+                                    recent_k_fc=recent, noise_gain=gain,
+                                    recent=recent_est if watch_viscous else None)
                 recent.append(est.k_fc)
+                recent_est.append(est)
             except NotIdentifiable as exc:
                 est = exc
             decision = tr.after_task(est)
             ok = not isinstance(est, NotIdentifiable)
-            rows.append({"task": k, "t_s": (k + 1) * n / fs, "k_fc": applied,
+            rows.append({"task": k, "t_s": (k + 1) * (1 + settle) * n / fs, "k_fc": applied,
                          "k_fc_estimate": est.k_fc if ok else None,
                          "k_fc_sigma": est.k_fc_sigma if ok else None,
                          "k_fc_sigma_stat": est.k_fc_sigma_stat if ok else None,
                          "notes": list(est.notes) if ok else [],
+                         "cause": decision.cause,
+                         "k_v_shift": est.k_v_shift if ok else None,
+                         "k_v_free": est.k_v_free if ok else None,
+                         "sensor_noise_rad": est.sensor_noise_rad if ok else None,
                          "rms_error": est.rms_error if ok else None,
+                         "rms_residual": est.rms_residual if ok else None,
                          "k_fc_true": sim.truth("SIM_FC_VOLT"), "action": decision.action})
             if decision.action == "stop":
                 break

@@ -79,10 +79,28 @@ def tune_config(tune_over):
     return cfg
 
 
+DRIFT_BASE = os.path.join(REPO, "configs", "plant_twomass_drift.yaml")
+NO_DRIFT = {"coulomb_step": 0.0, "coulomb_ramp": 0.0, "coulomb_ramp_start_s": 0.0, "coulomb_ramp_end_s": 0.0}
+
+
 def run_row(plant_over, tune_over, workdir):
-    """results['tune'] of one matrix row."""
+    """results['tune'] of one matrix row (a ``drift`` section in ``plant_over``: the plant
+    drifts during the tune, configs/plant_twomass_drift.yaml's section with those keys)."""
     from fwsim_drive import FwSimDrive, plant_file
-    plant = plant_file(plant_over, directory=workdir)
+    if "drift" in plant_over:
+        plant_over = dict(plant_over, drift=dict(NO_DRIFT, **plant_over["drift"]))
+        plant = plant_file(plant_over, base=DRIFT_BASE, directory=workdir)
+    elif "coulomb_position" in plant_over.get("plant", {}):
+        # configs/plant_twomass.yaml has no coulomb_position key: a base with it (0)
+        os.makedirs(workdir, exist_ok=True)
+        base = os.path.join(workdir, "base_position.yaml")
+        with open(os.path.join(REPO, "configs", "plant_twomass.yaml"), encoding="utf-8") as fh:
+            text = fh.read().replace("  coulomb_asymmetry:", "  coulomb_position: 0.0\n  coulomb_asymmetry:", 1)
+        with open(base, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        plant = plant_file(plant_over, base=base, directory=workdir)
+    else:
+        plant = plant_file(plant_over, directory=workdir)
     drive = FwSimDrive(plant)
     try:
         drive.enable()

@@ -1,0 +1,153 @@
+"""track where the sensor is noisy, the viscous friction changes with K_v held and the drift
+is fast (issue 32): one test per row of the issue, on the direct simulation path
+(tests/track_sim.py: the drive core + plant through ctypes, the estimator and tracker of
+``fftune track``), and the new estimator parts on independent references."""
+import math
+
+import numpy as np
+import pytest
+
+from fftune.analysis.track import (K_FC_MEANING, NOISE_BIAS_PER_RAD2, NOTE_NOISE_CORRECTED,
+                                   NOTE_VISCOUS_CHANGE, curvature_scatter, drift_trend, sensor_noise_gain,
+                                   viscous_shift)
+
+from track_sim import TWOMASS, plant_file, run_tracking
+
+
+def _coverage(rows, skip):
+    sel = [r for r in rows if r["task"] not in skip and r["k_fc_estimate"] is not None]
+    return sum(abs(r["k_fc_estimate"] - r["k_fc_true"]) <= 2 * r["k_fc_sigma"] for r in sel) / len(sel)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_sigma_covers_the_truth_with_noise_1e_2(tmp_path, seed):
+    # today: the estimate -1.1 % low with sigma at its 0.4 % floor: truth within 2 sigma on
+    # about half of the settled tasks
+    plant = plant_file(str(tmp_path), sensor={"noise_std": 1e-2, "seed": seed})
+    rows, _ = run_tracking(plant, 40, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    assert _coverage(rows, skip=range(3)) >= 0.9
+    late = rows[10:]
+    # the noise is read from the residual (within 5 % of the configured 1e-2 rad) ...
+    assert np.median([r["sensor_noise_rad"] for r in late]) == pytest.approx(1e-2, rel=0.05)
+    assert all(NOTE_NOISE_CORRECTED in r["notes"] for r in late)
+    # ... and its bias removed: the mean error within 0.5 % (today -1.1 %)
+    err = np.mean([r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in late])
+    assert abs(err) < 0.005
+
+
+def test_noise_free_rows_have_no_noise_correction(tmp_path):
+    rows, _ = run_tracking(TWOMASS, 8, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    assert not any(NOTE_NOISE_CORRECTED in r["notes"] for r in rows)
+    assert rows[-1]["sensor_noise_rad"] < 1.5e-3       # the model error's bound, no more
+
+
+def test_viscous_step_with_k_v_held_is_flagged_and_covered(tmp_path):
+    # +60 % viscous friction at 12 s (task 10), K_v held: today K_fc +2.9 % at z = +7 and
+    # nothing but a note every row carries
+    plant = plant_file(str(tmp_path), drift={"viscous_step": 0.6, "viscous_step_time_s": 12.0})
+    rows, _ = run_tracking(plant, 24, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    step = next(r["task"] for r in rows if r["t_s"] > 12.0)
+    flagged = [r["task"] for r in rows if NOTE_VISCOUS_CHANGE in r["notes"]]
+    assert flagged and step < flagged[0] <= step + 5
+    assert all(t >= step for t in flagged)                     # not before the change
+    assert flagged == list(range(flagged[0], len(rows)))      # and from then on
+    # flagged rows carry the change's effect on K_fc in their sigma: the truth is covered
+    for r in rows[flagged[0]:]:
+        assert r["k_v_shift"] > 0.3e-3
+        assert abs(r["k_fc_estimate"] - r["k_fc_true"]) <= 2 * r["k_fc_sigma"]
+
+
+def test_coulomb_step_is_no_viscous_change(tmp_path):
+    plant = plant_file(str(tmp_path), drift={"coulomb_step": 0.3, "coulomb_step_time_s": 12.0})
+    rows, _ = run_tracking(plant, 24, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    assert not any(NOTE_VISCOUS_CHANGE in r["notes"] for r in rows)
+    step = next(r["task"] for r in rows if r["t_s"] > 12.0)
+    err = [abs(r["k_fc"] / r["k_fc_true"] - 1) for r in rows]
+    assert max(err[step + 3:]) < 0.02                  # no trend overshoot after a step
+    assert not any(r["cause"] == "trend" for r in rows)
+
+
+def test_fast_exponential_drift_is_followed_from_three_tasks_after_its_start(tmp_path):
+    # -30 % with tau 15 s from 12 s (2.4 % per task at first): today 1.5 tasks late (3.5 %)
+    plant = plant_file(str(tmp_path), drift={"coulomb_exp": -0.3, "coulomb_exp_start_s": 12.0,
+                                             "coulomb_exp_tau_s": 15.0})
+    rows, _ = run_tracking(plant, 30, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    start = next(r["task"] for r in rows if r["t_s"] > 12.0)
+    err = [abs(r["k_fc"] / r["k_fc_true"] - 1) for r in rows]
+    assert max(err[start + 3:]) < 0.02
+    assert any(r["cause"] == "trend" for r in rows[start:start + 4])
+
+
+def test_position_dependent_friction_is_the_path_average(tmp_path):
+    # friction x (1 + e sin th) on a 0 .. 1 rad task: the task's K_fc is the average over its
+    # path (weighted by the time spent sliding there), not the nominal level tune reads
+    # around 0; the summary says so (K_FC_MEANING)
+    text = open(TWOMASS, encoding="utf-8").read().replace(
+        "  coulomb_asymmetry: 0.0", "  coulomb_position: 0.4\n  coulomb_asymmetry: 0.0")
+    text = text.replace("  static: 5.785e-3 ", "  static: 8.2e-3 ")
+    path = tmp_path / "pos.yaml"
+    path.write_text(text)
+    rows, _ = run_tracking(str(path), 12, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    est = rows[-1]["k_fc_estimate"]
+    uniform = 1 + 0.4 * (1 - math.cos(1.0))               # the plain path average, 1.184
+    assert est / 0.1157 == pytest.approx(uniform, rel=0.04)
+    assert "path" in K_FC_MEANING and "fftune tune" in K_FC_MEANING
+
+
+def test_sensor_noise_gain_against_the_controller_recursion():
+    kp, kd, tau, fs = 1.3, 0.07, 0.0035, 2000.0
+    rng = np.random.default_rng(3)
+    n = rng.standard_normal(400000)
+    ts = 1 / fs
+    p, g = tau / (tau + ts), kd / (tau + ts)
+    d = np.zeros_like(n)
+    for i in range(1, n.size):                               # the drive's D-filter, sample by sample
+        d[i] = p * d[i - 1] + g * (n[i] - n[i - 1])
+    u = kp * n + d
+    assert sensor_noise_gain(kp, kd, tau, fs) == pytest.approx(np.std(u[100:]), rel=0.01)
+
+
+def test_noise_correction_constant_and_the_first_task():
+    # a task alone (no earlier bound) is not corrected: its residual may be model error
+    from test_track import _synthetic
+    from fftune.analysis.track import estimate_task
+    st = _synthetic([0.12, 0.12, 0.003, 0.006], noise=0.05, seed=2)
+    first = estimate_task(st, noise_gain=10.0, recent=[])
+    assert first.k_fc_noise_correction == 0.0 and first.sensor_noise_rad == pytest.approx(
+        first.rms_residual / 10.0)
+    second = estimate_task(st, noise_gain=10.0, recent=[first])
+    sn = first.sensor_noise_rad
+    plain = estimate_task(st)
+    assert second.k_fc_noise_correction == pytest.approx(NOISE_BIAS_PER_RAD2 * sn ** 2 * plain.k_fc, rel=1e-9)
+    assert second.k_fc == pytest.approx(plain.k_fc + second.k_fc_noise_correction, rel=1e-12)
+    assert second.k_fc_sigma_sys == pytest.approx(
+        math.hypot(0.02 * plain.k_fc, second.k_fc_noise_correction), rel=1e-9)   # K_v estimated: 2 % floor
+
+
+def test_drift_trend_rules():
+    rng = np.random.default_rng(5)
+    base = 0.12 + 2e-5 * rng.standard_normal(12)
+    ramp = base - 1.5e-3 * np.arange(12)
+    assert drift_trend(ramp) == pytest.approx(np.diff(ramp)[-1])
+    step = base + np.where(np.arange(12) >= 9, 0.03, 0.0)
+    step[9] -= 0.015                                         # the mixed task
+    assert drift_trend(step) == 0.0 and drift_trend(step[:11]) == 0.0
+    assert drift_trend(base) == 0.0                          # noise is no trend
+    tau = 0.12 * (1 - 0.3 * (1 - np.exp(-np.arange(12) / 12.0)))
+    assert drift_trend(tau + 2e-5 * rng.standard_normal(12)) == pytest.approx(np.diff(tau)[-1], rel=0.1)
+    # the scatter from second differences ignores the curvature of the approach
+    w = 0.12 + 3e-4 * rng.standard_normal((300, 10))
+    assert np.mean([curvature_scatter(x + tau[:10]) for x in w]) == pytest.approx(3e-4, rel=0.15)
+
+
+def test_viscous_shift_rules():
+    kv = [0.08, 0.005, 0.001, 0.002, 0.00150, 0.00152, 0.00149, 0.00151, 0.00150, 0.00151]
+    fc = [0.116] * 12
+    assert viscous_shift(kv, 0.002, fc[:10]) == (0.0, False)
+    shifted = kv + [0.00236, 0.00237]
+    d, ok = viscous_shift(shifted, 0.002, fc)
+    assert ok and d == pytest.approx(0.002365 - 0.00150, rel=1e-6)
+    # not while K_fc moves (a Coulomb step drags the free viscous coefficient along)
+    assert viscous_shift(shifted, 0.002, fc[:10] + [0.13, 0.15]) == (0.0, False)
+    # one task is not a change
+    assert viscous_shift(kv + [0.00151, 0.00236], 0.002, fc) == (0.0, False)

@@ -1,0 +1,170 @@
+"""tune where the loop is slow, the sign smoothed and the plant drifting (issue 32): never
+converged and wrong, every unconverged stop names its real cause. One test per row of the
+issue; each runs `fftune tune`'s logic on the firmware core + plant (tests/bench/bench_tune.py,
+about 0.3 s a row)."""
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from fftune.analysis import tuning
+from fftune.host import experiments as ex
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "bench"))
+import bench_tune  # noqa: E402
+
+
+def _row(tmp_path, plant, tune=None, name="r"):
+    return bench_tune.run_row(plant, dict(tune or {}, capture="raw"), str(tmp_path / name))
+
+
+def _ok(t):
+    """Converged within max(2 %, 2 sigma_total) of the truth at the tune's end."""
+    s = t["search"]
+    return abs(t["k_fc_star"] - t["true_coulomb_v"]) <= max(0.02 * t["true_coulomb_v"], 2 * s["sigma_v"])
+
+
+def test_slow_loop_is_refused_at_its_frequency_and_tuned_at_half(tmp_path, monkeypatch):
+    # kp 0.2: the motor lags the sine by 14 deg because of the loop (K_v does not remove it);
+    # today's main reported -11 % with sigma 3.9 % (converged, wrong)
+    plant = {"controller": {"kp": 0.2}}
+    t = _row(tmp_path, plant)
+    s = t["search"]
+    assert s["converged"] and _ok(t)
+    ch = t["frequency_changes"]
+    assert ch[0]["from_hz"] == 0.625 and ch[0]["to_hz"] == pytest.approx(0.3125)
+    assert "cannot follow" in ch[0]["reason"] and "lags the reference by 14" in ch[0]["reason"]
+    assert t["frequency_hz"] == pytest.approx(0.3125) and 0 < s["experiments_at_other_frequencies"] < s["experiments"]
+    # at the configured frequency alone: refused, the cause named, no value that is no estimate
+    monkeypatch.setattr(ex, "tune", ex.tune_at_frequency)
+    t1 = _row(tmp_path, plant, name="one")
+    s1 = t1["search"]
+    assert not s1["converged"] and s1["cause"] == "loop lag"
+    assert s1["loop_lag_deg"] > tuning.LOOP_LAG_MAX_DEG and "noise" not in s1["stop_reason"]
+    assert t1["k_fc_star"] is None and t1["k_fc_best_measured"] is None
+
+
+def test_loop_lag_part_is_the_quadratic_bound_of_the_lag_left(tmp_path):
+    # kp 0.4: 5.4 deg left after the viscous feed-forward; the part is 1.2e-3 lag^2 K_fc*
+    t = _row(tmp_path, {"controller": {"kp": 0.4}})
+    s = t["search"]
+    assert s["converged"] and _ok(t)
+    lag = s["loop_lag_deg"]
+    assert 4.0 < lag < tuning.LOOP_LAG_MAX_DEG
+    assert s["sigma_parts_v"]["loop_lag"] == pytest.approx(1.2e-3 * lag ** 2 * t["k_fc_star"], rel=1e-6)
+    # it covers the bias the lag leaves (today: +3.8 % against a sigma of 1.1 %)
+    assert abs(t["k_fc_star_error_re_truth"]) * t["true_coulomb_v"] <= 2 * s["sigma_v"]
+
+
+def test_loop_lag_part_formula_and_limit():
+    assert tuning.loop_lag_part(3.0, 0.2) == pytest.approx(1.2e-3 * 9 * 0.2)
+    assert tuning.loop_lag_part(-5.0, 0.1) == pytest.approx(1.2e-3 * 25 * 0.1)    # a lead counts the same
+    assert math.isinf(tuning.loop_lag_part(7.5, 0.1)) and math.isinf(tuning.loop_lag_part(float("nan"), 0.1))
+
+
+def test_fast_sine_first_stop_names_the_loop_not_the_noise(tmp_path, monkeypatch):
+    # 2.5 Hz: today "max_experiments reached ... (noise)" and a best measured K_fc 97 % low
+    monkeypatch.setattr(ex, "tune", ex.tune_at_frequency)
+    t = _row(tmp_path, {}, {"frequency_hz": 2.5})
+    s = t["search"]
+    assert not s["converged"] and s["cause"] == "loop lag"
+    assert "cannot follow the 2.5 Hz sine" in s["stop_reason"] and "(noise)" not in s["stop_reason"]
+    assert t["k_fc_best_measured"] is None and "no estimate" in t["k_fc_best_measured_note"]
+
+
+def test_fast_sine_is_tuned_at_a_frequency_the_loop_follows(tmp_path):
+    t = _row(tmp_path, {}, {"frequency_hz": 2.5})
+    assert t["search"]["converged"] and _ok(t)
+    assert [c["to_hz"] for c in t["frequency_changes"]][0] == pytest.approx(1.25)
+
+
+def test_fc_smooth_is_read_recorded_and_a_wide_one_refused(tmp_path):
+    # fc_smooth 1 rad/s (51 % of the sine's peak velocity): today converged +8 % (sigma 1.3 %)
+    t = _row(tmp_path, {"controller": {"fc_smooth": 1.0}})
+    s = t["search"]
+    assert t["drive_settings"]["fc_smooth"] == pytest.approx(1.0)
+    assert not s["converged"] and s["cause"] == "smoothed sign"
+    assert "smoothed_sign" in s["stop_reason"] and t["k_fc_star"] is None
+
+
+def test_a_narrow_fc_smooth_is_carried_as_its_bound(tmp_path):
+    t = _row(tmp_path, {"controller": {"fc_smooth": 0.2}})
+    s = t["search"]
+    assert s["converged"] and _ok(t)
+    fs = s["budget"]["fc_smooth"]
+    amps = s["budget"]["k_fc_at_amplitude"]["amplitude_rad"]
+    v = 2 * math.pi * 0.625 * min(amps)
+    assert fs["width_rad_s"] == pytest.approx(0.2) and fs["velocity_peak_rad_s"] == pytest.approx(v)
+    assert s["sigma_parts_v"]["smoothed_sign"] == pytest.approx(
+        tuning.smoothed_sign_bias(0.2, v) * t["k_fc_star"], rel=1e-6)
+    # pure sign: no part
+    t0 = _row(tmp_path, {}, name="pure")
+    assert t0["drive_settings"]["fc_smooth"] == 0.0 and t0["search"]["sigma_parts_v"]["smoothed_sign"] == 0.0
+
+
+def _sat_cos_coefficient(rho, k):
+    """a_k of sat(cos t / rho) by quadrature (the relay's is 4 / (k pi) (-1)^((k-1)/2))."""
+    from scipy.integrate import quad
+    f = lambda t: np.clip(np.cos(t) / rho, -1, 1) * np.cos(k * t)  # noqa: E731
+    brk = [math.acos(min(1.0, rho))] if rho < 1 else []
+    return 2 / math.pi * quad(f, 0, math.pi, points=brk + [math.pi - b for b in brk], limit=200)[0]
+
+
+@pytest.mark.parametrize("rho", [0.07, 0.3, 0.45])
+def test_smoothed_sign_bias_against_quadrature(rho):
+    ks = (3, 5, 7)
+    c = [_sat_cos_coefficient(rho, k) / (4 / (k * math.pi) * (-1) ** ((k - 1) // 2)) for k in ks]
+    num = sum(abs(ck) / k for ck, k in zip(c, ks))
+    den = sum(math.copysign(1, ck) / k for ck, k in zip(c, ks))
+    expected = abs(den / num - 1)
+    assert tuning.smoothed_sign_bias(rho * 2.3, 2.3) == pytest.approx(expected, rel=1e-3)
+    assert tuning.smoothed_sign_bias(0.0, 2.3) == 0.0
+
+
+def test_friction_step_during_the_second_amplitude_is_named_non_stationary(tmp_path):
+    # -20 % at 30 s, inside the second-amplitude experiment: today read as amplitude
+    # dependence ("cannot tell K_fc* better than +-30 %: the largest part is 'amplitude'")
+    t = _row(tmp_path, {"drift": {"coulomb_step": -0.2, "coulomb_step_time_s": 30.0}})
+    s = t["search"]
+    assert not s["converged"] and s["cause"] == "non-stationary"
+    assert "changed during the tune" in s["stop_reason"] and "no amplitude dependence" in s["stop_reason"]
+    assert t["true_coulomb_v"] == pytest.approx(0.8 * t["true_coulomb_v_at_start"], rel=1e-6)
+
+
+def test_friction_ramp_during_the_tune_is_right_for_its_end_or_named(tmp_path):
+    t = _row(tmp_path, {"drift": {"coulomb_ramp": 0.3, "coulomb_ramp_start_s": 0.0, "coulomb_ramp_end_s": 40.0}})
+    s = t["search"]
+    assert t["true_coulomb_v"] > 1.25 * t["true_coulomb_v_at_start"]
+    assert (s["converged"] and _ok(t)) or s["cause"] == "non-stationary"
+
+
+def test_drift_between_and_halved_frequency():
+    assert tuning.drift_between(0.100, 0.104, 0.001, 0.0008) == (True, pytest.approx(0.004))
+    assert tuning.drift_between(0.100, 0.1035, 0.001, 0.0008)[0] is False     # 3.5 mV < 3 x 1.28 mV
+    assert tuning.drift_between(0.100, 0.1009, 0.0, 0.0, floor=0.001)[0] is False
+    assert tuning.halved_frequency(4096, 4) == (4096, 2)
+    assert tuning.halved_frequency(4096, 3) == (8192, 3)
+    assert tuning.halved_frequency(8192, 1) is None
+
+
+def _h(k_fc, fc=0.1157, jump=0.0):
+    h = np.zeros(7, dtype=complex)
+    h[0] = 2.0
+    for k in (3, 5, 7):
+        h[k - 1] = (-1) ** ((k - 1) // 2) * 4 * (fc - k_fc) / (k * math.pi) + jump * (1 if k == 3 else 0)
+    return h
+
+
+def test_search_does_not_blame_the_noise_for_a_plant_that_changes():
+    # a plant whose friction jumps between experiments (noise-free): not the noise
+    calls = []
+
+    def jumping(k):
+        calls.append(k)
+        fc = 0.1157 * (1 + 0.25 * (len(calls) % 2))
+        return np.repeat(_h(k, fc)[None, :], 3, axis=0) + 1e-9 * np.arange(3)[:, None]
+
+    res = tuning.KfcSearch(0.0, 0.3, max_experiments=6).run(jumping)
+    assert not res.converged and res.cause == "not verified" and "not because of the noise" in res.reason
