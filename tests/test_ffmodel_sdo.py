@@ -110,9 +110,10 @@ def test_gains_during_a_run_accepted_and_bad_ones_refused_without_a_fault(co_nod
 
 
 def test_position_gains_move_the_recorded_plant_input_as_the_formula(co_node):
-    """A short sine run with K_kp = 0 ... only the feed-forward: with K_ps and K_pc set the
-    recorded plant input follows sgn(v_r) (K_fc + K_ps sin th_r + K_pc cos th_r) + K_fa |sgn|
-    (kd 0, kp 0, K_v 0) at the recorded reference, within the level table's bound."""
+    """A short sine run with Kp = Kd = K_v = 0 (the feed-forward alone): with every Coulomb
+    term written over SDO the recorded plant input follows
+    sgn(v_r) (K_fc + K_ps sin th_r + K_pc cos th_r) + K_fa |sgn| at the recorded reference,
+    within the level table's bound."""
     net, node = co_node
     node.nmt.state = "OPERATIONAL"
     c = node.sdo["Controller"]

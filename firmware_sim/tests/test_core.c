@@ -1887,6 +1887,17 @@ static void test_drv_friction_ff_params(void)
         if (n == 100) {
             TH_EQ(drv_set_f32(&d, DRV_P_KPS, kps), DRV_OK); /* settable while running */
         }
+        if (n == 150) { /* refusals while running: the run goes on with the old gains */
+            const drv_param_id_t signed_ids[] = {DRV_P_KFA, DRV_P_KPS, DRV_P_KPC};
+            for (size_t i = 0; i < 3u; i++) {
+                TH_EQ(drv_set_f32(&d, signed_ids[i], NAN), DRV_E_NOT_FINITE);
+                TH_EQ(drv_set_f32(&d, signed_ids[i], -INFINITY), DRV_E_NOT_FINITE);
+                TH_EQ(drv_set_f32(&d, signed_ids[i], 3e38f), DRV_E_RANGE_HIGH);
+                TH_EQ(drv_set_f32(&d, signed_ids[i], -1e30f), DRV_E_RANGE_LOW);
+                TH_EQ(drv_set_u32(&d, signed_ids[i], 0x7FC00000u), DRV_E_LENGTH);
+            }
+            TH_ASSERT(!drv_fault(&d));
+        }
     }
     TH_ASSERT(moving > 200);
 }
