@@ -329,3 +329,18 @@ def test_refused_against_the_drives_limits_before_any_run(tmp_path):
     msg = str(exc.value)
     assert f"key 'tune.sweep.k_fc_max': {u_max + 2.0:g} V is above what the drive allows (its output " \
            f"limit u_max = {u_max:g} V); nothing was run" in msg, msg
+
+
+def test_plan_prints_the_model_tunes_amplitudes_and_runs(tmp_path):
+    from fftune.host.config import load_config
+    from fftune.host.plan import DriveLimits, preflight
+    cfg = load_config(_demo_model(tmp_path, {"tune.terms": ["coulomb", "position"],
+                                             "tune.model.max_experiments": 5}))
+    plan = preflight(cfg, DriveLimits(**SIM), steps=("tune",))
+    text = "\n".join(plan.lines("cfg"))
+    # pi, doubled once within 8 rad; 5 runs of (2 + 2) periods of 4096 at 2560 Hz = 32 s
+    assert "tune: at most 5 runs at 0.625 Hz, tune.method model (coulomb, position), amplitude 3.14159 rad " \
+           "(doubled up to 6.28319 rad), K_fc 0 .. 0.3 V, 32.0 s of excitation at most" in text, text
+    keys = [(c.key, c.what) for c in plan.checks if c.step == "tune"]
+    assert ("tune.model.amplitude_rad", "peak") in keys and ("tune.amplitude_max_rad", "peak velocity") in keys
+    assert ("tune.viscous.k_v_max", "viscous gain") in keys and ("tune.sweep.k_fc_max", "feed-forward") in keys
