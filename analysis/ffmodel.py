@@ -317,6 +317,9 @@ class FeedForwardModelTune:
         A sigma above this share of the Coulomb scale ends the tune unconverged.
     k_fc_max, k_v_max : float
         Upper limits of the gains asked for.
+    gain_limits : dict or None
+        (low, high) of the signed gains ``kfa``, ``kps``, ``kpc`` asked for (the drive's
+        ranges and its output limit); default :data:`GAIN_LIMITS` (configs/od.yaml's +-100 V).
     odd_max : float
         Odd level (rms of |H_3,5,7| / |H_1|) above which an identification experiment at the
         estimate says the model does not hold at its amplitude (stick-slip, Stribeck): the
@@ -330,7 +333,7 @@ class FeedForwardModelTune:
 
     def __init__(self, terms, *, omega_rad_s, amplitude_rad, verify_amplitude_rad=None, n_fit=5,
                  rtol=0.05, max_experiments=6, max_sigma_re_coulomb=0.1, k_fc_max=100.0, k_v_max=100.0,
-                 controller=None, odd_max=0.01, amplitude_max_rad=None):
+                 controller=None, odd_max=0.01, amplitude_max_rad=None, gain_limits=None):
         terms = list(terms)
         bad = [t for t in terms if t not in TERMS]
         if not terms or bad or len(set(terms)) != len(terms):
@@ -354,7 +357,11 @@ class FeedForwardModelTune:
         self.rtol = float(rtol)
         self.max_experiments = int(max_experiments)
         self.max_sigma = float(max_sigma_re_coulomb)
-        self.limits = dict(GAIN_LIMITS, kfc=(0.0, float(k_fc_max)), kv=(0.0, float(k_v_max)))
+        signed = dict(gain_limits or {})
+        if set(signed) - {"kfa", "kps", "kpc"} or any(not lo <= 0.0 <= hi for lo, hi in signed.values()):
+            raise InputError(f"FeedForwardModelTune: gain_limits {signed}: (low <= 0 <= high) of kfa, kps, kpc")
+        self.limits = dict(GAIN_LIMITS, **{k: (float(lo), float(hi)) for k, (lo, hi) in signed.items()},
+                           kfc=(0.0, float(k_fc_max)), kv=(0.0, float(k_v_max)))
         if controller is not None and not (controller.get("kp", 0) > 0):
             raise InputError("FeedForwardModelTune: controller needs kp > 0")
         self.controller = controller

@@ -853,7 +853,11 @@ def check_tune_plan(session):
     bracket within what the drive allows), before any experiment is made."""
     c = session.cfg["tune"]
     src = session.cfg.get("_source", "config")
-    _TuneProbe(session)
+    if c.get("method") == "model":       # the lines the model tune reads (not tune.harmonics)
+        from fftune.host.ffmodel_tune import check_model_lines
+        check_model_lines(c, session.fs_hz, src)
+    else:
+        _TuneProbe(session)
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
     limit = k_fc_limit(session)
     if k_hi > limit:
@@ -1298,10 +1302,10 @@ def tune_at_frequency(session):
         error (for the paper's Figures 7 and 9).
     """
     c = session.cfg["tune"]
+    check_tune_plan(session)
     if c.get("method") == "model":       # every term at once (issue 35): fftune.analysis.ffmodel
         from fftune.host.ffmodel_tune import run_model_tune
         return run_model_tune(session)
-    check_tune_plan(session)
     probe = _TuneProbe(session)
     session.tune_experiments = 0
     settings = drive_settings(session)

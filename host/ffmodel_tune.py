@@ -36,25 +36,83 @@ def model_amplitude(c):
     return a
 
 
-def run_model_tune(session):
-    """results['tune'] and the figure data (None) of `tune.method: model`."""
-    from fftune.host.experiments import _cycles, _run_u_max, _saturation_fraction, sine_request
-    c = session.cfg["tune"]
-    src = session.cfg.get("_source", "config")
+def model_plan(c):
+    """The sine amplitudes the model tune of the tune keys ``c`` may ask for, each with the
+    key that sets it: what the preflight (:func:`fftune.host.plan.preflight`) checks and
+    what :func:`run_model_tune` hands to the tune, so the two cannot differ.
+
+    Returns
+    -------
+    dict
+        ``amplitude`` the identification amplitude (:func:`model_amplitude`),
+        ``amplitude_max`` the ceiling of its doubling (odd harmonics at the estimate:
+        ``FeedForwardModelTune``), ``verify`` the verifying experiment's amplitude or None,
+        ``checked`` [(key, amplitude_rad)]: the identification amplitude, the largest one the
+        doubling can reach (when above it) and the verifying one; the half-amplitude
+        experiment is below the first.
+    """
+    a = model_amplitude(c)
+    a_max = max(a, float(c["amplitude_max_rad"]))
+    top = a
+    while 2 * top <= a_max:     # the tune's own rule (FeedForwardModelTune._next)
+        top *= 2
+    verify, verify_key = c["model"]["verify_amplitude_rad"], "tune.model.verify_amplitude_rad"
+    if verify is None and c["amplitude_rad"] != "auto" and float(c["amplitude_rad"]) < 0.5 * a:
+        verify, verify_key = float(c["amplitude_rad"]), "tune.amplitude_rad"   # the smaller one verifies
+    # (auto: 1 rad or pi, raised to a larger numeric tune.amplitude_rad: that key then sets it)
+    from_tune = c["model"]["amplitude_rad"] == "auto" and c["amplitude_rad"] != "auto" and \
+        float(c["amplitude_rad"]) > (math.pi if "position" in c["terms"] else 1.0)
+    checked = [("tune.amplitude_rad" if from_tune else "tune.model.amplitude_rad", a)]
+    if top > a:
+        checked.append(("tune.amplitude_max_rad", top))
+    if verify is not None:
+        checked.append((verify_key, float(verify)))
+    return {"amplitude": a, "amplitude_max": a_max, "verify": None if verify is None else float(verify),
+            "checked": checked}
+
+
+def check_model_lines(c, fs_hz, src):
+    """The lines k = 0 .. N_LINES the model tune reads lie below fs/2; returns the sine's
+    cycles per period. Raises FftuneError naming tune.frequency_hz."""
+    from fftune.host.experiments import _cycles
     n = c["period_samples"]
-    cycles = _cycles(session.fs_hz, n, c["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
+    cycles = _cycles(fs_hz, n, c["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
     if (N_LINES + 1) * cycles * 2 > n:
         raise FftuneError(f"{src}: key 'tune.frequency_hz': harmonic {N_LINES} of {c['frequency_hz']:g} Hz "
                           f"is above fs/2 (tune.method: model reads k = 0 .. {N_LINES})")
+    return cycles
+
+
+def signed_gain_limits(u_max_v):
+    """(low, high) of K_fa, K_ps, K_pc the model tune may ask for: the range of their drive
+    objects (configs/od.yaml, 0x2000:9 .. 11) within +-u_max_v (None: not known), so no
+    request is refused by the drive nor alone exceeds its output."""
+    from fftune.host.config import od_param_high
+    out = {}
+    for alias in ("kfa", "kps", "kpc"):
+        high = od_param_high(alias.upper())
+        if u_max_v is not None:
+            high = min(high, float(u_max_v))
+        out[alias] = (-high, high)
+    return out
+
+
+def run_model_tune(session):
+    """results['tune'] and the figure data (None) of `tune.method: model`. The session's
+    preflight (:func:`fftune.host.plan.preflight`) has checked what it asks for
+    (:func:`model_plan`)."""
+    from fftune.host.experiments import _run_u_max, _saturation_fraction, k_fc_limit, sine_request
+    c = session.cfg["tune"]
+    src = session.cfg.get("_source", "config")
+    n = c["period_samples"]
+    cycles = check_model_lines(c, session.fs_hz, src)
     capture = session.capture_mode("tune")
     if capture != "raw" and N_LINES > STAT_K_MAX:
         raise FftuneError(f"{src}: tune.method model needs {N_LINES} harmonics, the drive's statistics hold "
                           f"{STAT_K_MAX}")
     omega = 2 * math.pi * c["frequency_hz"]
-    amplitude = model_amplitude(c)
-    verify = c["model"]["verify_amplitude_rad"]
-    if verify is None and c["amplitude_rad"] != "auto" and float(c["amplitude_rad"]) < 0.5 * amplitude:
-        verify = float(c["amplitude_rad"])      # the configured (smaller) amplitude verifies
+    plan = model_plan(c)
+    amplitude, verify = plan["amplitude"], plan["verify"]
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
     ctl = session.controller
     if ctl.get("kp") is None:
@@ -67,7 +125,7 @@ def run_model_tune(session):
         c["terms"], omega_rad_s=omega, amplitude_rad=amplitude, verify_amplitude_rad=verify,
         n_fit=c["model"]["n_fit"], rtol=c["model"]["rtol"], max_experiments=c["model"]["max_experiments"],
         k_fc_max=max(k_hi, 1e-3), k_v_max=c["viscous"]["k_v_max"], controller=controller,
-        amplitude_max_rad=max(amplitude, c["amplitude_max_rad"]))
+        amplitude_max_rad=plan["amplitude_max"], gain_limits=signed_gain_limits(k_fc_limit(session)))
     stats_request = {"harmonics": N_LINES, "signals": ["motor_angle", "plant_input"],
                      "power": ["plant_input", "motor_angle", "error"]}
     session.tune_experiments = 0

@@ -18,6 +18,8 @@ __all__ = ["StepPlan", "experiment_plan", "bus_rates", "project", "STATS_HEADER_
 
 STATS_HEADER_BYTES = 8
 FLOAT_BYTES = 4
+# the feed-forward gains' drive parameters (0x2000:4, 5, 9, 10, 11)
+FF_GAIN_PARAMS = ("KFC", "KV", "KFA", "KPS", "KPC")
 
 
 def stats_bytes(harmonics, n_harmonic_signals, n_power_signals):
@@ -188,6 +190,9 @@ class DriveLimits:
     drive_u_max_v : float or None
         The output limit the drive has (0x2000:7) before the session writes any: the
         configuration's ``drive.controller.u_max`` may lower it, not raise it.
+    gain_high : dict or None
+        High limits of the feed-forward gains' objects by parameter (KFC, KV, KFA, KPS,
+        KPC: 0x2000:4, 5, 9 .. 11) in the drive's EDS, else configs/od.yaml; None: od.yaml.
     source : str
         Where the numbers come from (printed with the plan).
     """
@@ -199,6 +204,7 @@ class DriveLimits:
     table_capacity: object = None
     amplitude_high: object = None
     drive_u_max_v: object = None
+    gain_high: object = None
     source: str = "the configuration only (no drive)"
 
 
@@ -247,6 +253,7 @@ def read_drive_limits(drive, cfg):
                        table_capacity=int(min(table, _od_high(drive, "EXC_PERIOD")) if table is not None
                                           else _od_high(drive, "EXC_PERIOD")),
                        amplitude_high=_od_high(drive, "EXC_AMPLITUDE"),
+                       gain_high={p: _od_high(drive, p) for p in FF_GAIN_PARAMS},
                        source=f"read from {where}")
 
 
@@ -258,7 +265,8 @@ def config_limits(cfg):
     u_max = cfg["drive"]["controller"].get("u_max")
     return DriveLimits(fs_hz=cfg["drive"].get("fs_hz"), u_max_v=u_max,
                        table_capacity=int(od_param_high("EXC_PERIOD")),
-                       amplitude_high=od_param_high("EXC_AMPLITUDE"))
+                       amplitude_high=od_param_high("EXC_AMPLITUDE"),
+                       gain_high={p: od_param_high(p) for p in FF_GAIN_PARAMS})
 
 
 @dataclass
@@ -409,7 +417,9 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
     import math
 
     from fftune.analysis.errors import FftuneError
+    from fftune.host.config import od_param_high
     from fftune.host.experiments import _cycles, detect_lines
+    from fftune.host.ffmodel_tune import check_model_lines, model_plan
 
     lim = limits or config_limits(cfg)
     src = cfg.get("_source", "config")
@@ -460,11 +470,16 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
             check(step, f"{step}.settle_periods", "run length", (c["settle_periods"] + c["periods"]) * n / fs,
                   cfg["drive"]["run_timeout_s"], "s", "drive.run_timeout_s")
 
+    def gain_high(param):
+        return (lim.gain_high or {}).get(param) or od_param_high(param)
+
     def kfc_check(step, key, value):
-        limit = None if u_max is None else min(u_max, 100.0)
-        check(step, key, "feed-forward", value, limit, "V", "the drive's u_max",
-              text=None if limit is None else
-              f"{value:g} V is above what the drive allows (its output limit u_max = {limit:g} V)")
+        high = gain_high("KFC")
+        if u_max is not None and u_max <= high:
+            check(step, key, "feed-forward", value, u_max, "V", "the drive's u_max",
+                  text=f"{value:g} V is above what the drive allows (its output limit u_max = {u_max:g} V)")
+        else:
+            check(step, key, "feed-forward", value, high, "V", "the range of the drive's object 0x2000:4")
 
     # the rule of every command that moves an axis: the drive's consumer watches the host
     hb = cfg["drive"].get("heartbeat_ms")
@@ -549,34 +564,54 @@ def preflight(cfg, limits=None, steps=("detect", "quantify", "tune"), capture_mo
     t = cfg.get("tune")
     if "tune" in steps and t["enabled"]:
         n = t["period_samples"]
+        # tune.method model (issue 35): the same rules for what it asks for (its sines'
+        # amplitudes, the lines it reads, its gains), fftune.host.ffmodel_tune.model_plan
+        model = t["method"] == "model"
         if fs:
-            cyc = _cycles(fs, n, t["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
-            if cyc * t["harmonics"] * 2 >= n:
-                raise FftuneError(f"{src}: key 'tune.harmonics': harmonic {t['harmonics']} of "
-                                  f"{t['frequency_hz']:g} Hz is above fs/2 = {fs / 2:g} Hz")
-        if t["amplitude_rad"] == "auto":
-            key, amp = "tune.amplitude_max_rad", t["amplitude_max_rad"]
+            if model:
+                check_model_lines(t, fs, src)
+            else:
+                cyc = _cycles(fs, n, t["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
+                if cyc * t["harmonics"] * 2 >= n:
+                    raise FftuneError(f"{src}: key 'tune.harmonics': harmonic {t['harmonics']} of "
+                                      f"{t['frequency_hz']:g} Hz is above fs/2 = {fs / 2:g} Hz")
+        if model:
+            amplitudes = model_plan(t)["checked"]
+        elif t["amplitude_rad"] == "auto":
+            amplitudes = [("tune.amplitude_max_rad", t["amplitude_max_rad"])]
         else:
-            key, amp = "tune.amplitude_rad", t["amplitude_rad"]
-        amplitude_checks("tune", key, "reference", None, amp, 2 * math.pi * t["frequency_hz"] * amp)
+            amplitudes = [("tune.amplitude_rad", t["amplitude_rad"])]
+        for key, a in amplitudes:
+            amplitude_checks("tune", key, "reference", None, a, 2 * math.pi * t["frequency_hz"] * a)
+        amp = max(a for _, a in amplitudes)
         k_hi = t["search"]["k_fc_max"] or t["sweep"]["k_fc_max"]
         kfc_check("tune", "tune.search.k_fc_max" if t["search"]["k_fc_max"] else "tune.sweep.k_fc_max", k_hi)
-        if t["viscous"]["enabled"] and u_max is not None:
-            check("tune", "tune.viscous.k_v_max", "K_v x peak velocity",
-                  t["viscous"]["k_v_max"] * 2 * math.pi * t["frequency_hz"] * amp, u_max, "V",
-                  "u_max: the feed-forward saturates", hard=False)
+        if t["viscous"]["enabled"] or model:        # (the model tune always sets K_v)
+            check("tune", "tune.viscous.k_v_max", "viscous gain", t["viscous"]["k_v_max"], gain_high("KV"),
+                  "V s/rad", "the range of the drive's object 0x2000:5")
+            if u_max is not None:
+                check("tune", "tune.viscous.k_v_max", "K_v x peak velocity",
+                      t["viscous"]["k_v_max"] * 2 * math.pi * t["frequency_hz"] * amp, u_max, "V",
+                      "u_max: the feed-forward saturates", hard=False)
         run_checks("tune", t, 0 if mode("tune") == "stats" else 4)
-        runs = t["sweep"]["points"] + t["search"]["max_experiments"] + \
-            (4 if t["amplitude_rad"] == "auto" else 0) + \
-            (t["viscous"]["max_experiments"] + 2 if t["viscous"]["enabled"] else 0) + \
-            4       # the uncertainty budget: lag correction (<= 2), second amplitude (<= 2)
+        if model:
+            runs = t["model"]["max_experiments"]
+        else:
+            runs = t["sweep"]["points"] + t["search"]["max_experiments"] + \
+                (4 if t["amplitude_rad"] == "auto" else 0) + \
+                (t["viscous"]["max_experiments"] + 2 if t["viscous"]["enabled"] else 0) + \
+                4       # the uncertainty budget: lag correction (<= 2), second amplitude (<= 2)
         plan = [StepPlan("tune", runs, runs * (t["settle_periods"] + t["periods"]) * n / fs, 0, None)] \
             if fs else []
+        if model:
+            top = dict(amplitudes).get("tune.amplitude_max_rad")
+            what = (f"tune.method model ({', '.join(t['terms'])}), amplitude {amplitudes[0][1]:g} rad"
+                    + (f" (doubled up to {top:g} rad)" if top else ""))
+        else:
+            what = (f"amplitude {t['amplitude_rad'] if t['amplitude_rad'] == 'auto' else f'{amp:g} rad'}"
+                    + (f" (probes up to {amp:g} rad)" if t["amplitude_rad"] == "auto" else ""))
         step_rows.append({"step": "tune", "text": (
-            f"at most {runs} runs at {t['frequency_hz']:g} Hz, amplitude "
-            f"{t['amplitude_rad'] if t['amplitude_rad'] == 'auto' else f'{amp:g} rad'}"
-            + (f" (probes up to {amp:g} rad)" if t["amplitude_rad"] == "auto" else "")
-            + f", K_fc 0 .. {k_hi:g} V"
+            f"at most {runs} runs at {t['frequency_hz']:g} Hz, {what}, K_fc 0 .. {k_hi:g} V"
             + (f", {plan[0].excitation_s:.1f} s of excitation at most" if plan else ""))})
 
     for c in checks:

@@ -38,6 +38,7 @@ static void ctl_update_derived(ctl_t *ctl)
     if (!isfinite(ctl->inv_smooth)) {
         ctl->inv_smooth = 0.0f; /* a denormal width: 1/w overflows (0 * inf = NaN); pure sign */
     }
+    ctl->smooth = ctl->inv_smooth > 0.0f;
 }
 
 ctl_status_t ctl_init(ctl_t *ctl, float fs_hz)
@@ -67,10 +68,9 @@ ctl_status_t ctl_init(ctl_t *ctl, float fs_hz)
 
 void ctl_reset(ctl_t *ctl)
 {
-    ctl->e_prev = 0.0f;
+    ctl->e_prev = NAN; /* e - NaN is NaN: the step's test for its first sample */
     ctl->d_state = 0.0f;
     ctl->u_unsat = 0.0f;
-    ctl->primed = false;
 }
 
 /* One setter per parameter, all of the same shape: check, then store and re-derive. */

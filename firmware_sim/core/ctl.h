@@ -51,11 +51,11 @@ typedef struct {
     float d_pole;     /* tau/(tau+T) */
     float d_gain;     /* Kd/(tau+T) */
     float inv_smooth; /* 1/width, 0 = pure sign */
+    bool smooth;      /* inv_smooth > 0 (the step tests an integer) */
     /* state */
-    float e_prev;
+    float e_prev; /* NaN until the first step after ctl_reset (no derivative kick) */
     float d_state;
     float u_unsat; /* last output before saturation: the drive faults when it is not finite */
-    bool primed; /* e_prev valid (no derivative kick on the first step) */
     /* the friction feed-forward's signed gains [V] and the level table (ctl_ff_level) */
     float kfa, kps, kpc;
     /* per entry k: [0] K_fc + K_ps sin(2 pi k / N) + K_pc cos(2 pi k / N), [1] its change
@@ -105,9 +105,20 @@ static inline float ctl_ff_level(const ctl_t *ctl, float theta_r)
  * theta_r [rad]. */
 static inline float ctl_ff(const ctl_t *ctl, float v_ref, float theta_r)
 {
-    float sg = ctl_ff_sign(ctl, v_ref);
-    float mag = (sg < 0.0f) ? -sg : sg; /* |sgn| without a libm call */
-    return sg * ctl_ff_level(ctl, theta_r) + ctl->kfa * mag + ctl->kv * v_ref;
+    float level = ctl_ff_level(ctl, theta_r);
+    float coulomb;
+    if (ctl->smooth) {
+        float sg = ctl_ff_sign(ctl, v_ref);
+        float mag = (sg < 0.0f) ? -sg : sg; /* |sgn| without a libm call */
+        coulomb = sg * level + ctl->kfa * mag;
+    } else if (v_ref > 0.0f) {
+        coulomb = level + ctl->kfa; /* pure sign: the branches that find sgn = +-1 apply it */
+    } else if (v_ref < 0.0f) {
+        coulomb = ctl->kfa - level;
+    } else {
+        coulomb = 0.0f;
+    }
+    return coulomb + ctl->kv * v_ref;
 }
 
 /* One step: error e [rad], reference velocity [rad/s], reference angle theta_r [rad] (the
@@ -117,9 +128,11 @@ static inline float ctl_ff(const ctl_t *ctl, float v_ref, float theta_r)
  * caller checks u_unsat (drv_step: not finite -> fault, output 0). */
 static inline float ctl_step(ctl_t *ctl, float e, float v_ref, float theta_r, float u_add)
 {
-    float de = ctl->primed ? (e - ctl->e_prev) : 0.0f;
+    float de = e - ctl->e_prev;
+    if (de != de) {
+        de = 0.0f; /* the first step after ctl_reset (e_prev NaN): no derivative kick */
+    }
     ctl->e_prev = e;
-    ctl->primed = true;
     ctl->d_state = ctl->d_pole * ctl->d_state + ctl->d_gain * de;
     float u = ctl->kp * e + ctl->d_state + ctl_ff(ctl, v_ref, theta_r) + u_add;
     ctl->u_unsat = u;

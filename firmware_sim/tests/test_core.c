@@ -158,6 +158,50 @@ static void test_ctl_friction_ff_terms(void)
     TH_NEAR(ctl_ff(&c, 1.0f, -1.1f), 0.2 + kps * sin(-1.1) + kpc * cos(-1.1) + kfa + kv, tol);
 }
 
+/* ctl_ff applies sgn inside its branches (the M4 step budget, issue 35); it must give the
+ * same float32 numbers as the plain formula sg * level + K_fa |sg| + K_v v_r evaluated here
+ * from ctl_ff_sign and ctl_ff_level: over velocities of both signs, zero, subnormal and large,
+ * angles of both signs, gains of both signs, pure and smoothed sign (up to the sign of a
+ * zero result). */
+static void test_ctl_ff_branches_equal_the_formula(void)
+{
+    static const float vs[] = {0.0f, -0.0f, 1e-40f, -1e-40f, 1e-30f, -3e-7f, 0.013f, -0.41f, 0.5f, -2.0f,
+                               7.25f, -130.0f, 3e5f};
+    static const float gains[][5] = {/* kfc, kfa, kps, kpc, kv */
+                                     {0.53f, -0.11f, 0.21f, -0.073f, 0.31f},
+                                     {0.0f, 0.37f, -0.05f, 0.19f, 0.0f},
+                                     {1.7f, 0.0f, 0.0f, 0.0f, 0.004f}};
+    static const float widths[] = {0.0f, 0.8f, 1e-45f};
+    uint32_t n_checked = 0u, n_coulomb = 0u;
+    for (size_t g = 0; g < sizeof gains / sizeof gains[0]; g++) {
+        for (size_t w = 0; w < sizeof widths / sizeof widths[0]; w++) {
+            ctl_t c;
+            TH_EQ(ctl_init(&c, FS), CTL_OK);
+            TH_EQ(ctl_set_kfc(&c, gains[g][0]), CTL_OK);
+            TH_EQ(ctl_set_kfa(&c, gains[g][1]), CTL_OK);
+            TH_EQ(ctl_set_kps(&c, gains[g][2]), CTL_OK);
+            TH_EQ(ctl_set_kpc(&c, gains[g][3]), CTL_OK);
+            TH_EQ(ctl_set_kv(&c, gains[g][4]), CTL_OK);
+            TH_EQ(ctl_set_fc_smooth(&c, widths[w]), CTL_OK);
+            for (size_t i = 0; i < sizeof vs / sizeof vs[0]; i++) {
+                for (int k = 0; k < 37; k++) {
+                    float th = -31.4f + 1.737f * (float)k;
+                    float sg = ctl_ff_sign(&c, vs[i]);
+                    float mag = sg < 0.0f ? -sg : sg;
+                    float lvl = ctl_ff_level(&c, th);
+                    float expect = sg * lvl + c.kfa * mag + c.kv * vs[i];
+                    float got = ctl_ff(&c, vs[i], th);
+                    TH_ASSERT(got == expect);
+                    n_checked++;
+                    n_coulomb += (sg != 0.0f && lvl != 0.0f) ? 1u : 0u;
+                }
+            }
+        }
+    }
+    TH_ASSERT(n_checked == 3u * 3u * 13u * 37u);
+    TH_ASSERT(n_coulomb > n_checked / 2u); /* the level term took part in most of them */
+}
+
 /* The signed gains accept negative values, refuse NaN / inf and keep everything (the level
  * table included) on a refusal. */
 static void test_ctl_signed_setters(void)
@@ -690,6 +734,45 @@ static void test_enable_safe_stop_fault(void)
     drv_enable(&d, true);
     TH_ASSERT(!drv_fault(&d));
     TH_EQ(drv_run_start(&d), DRV_OK);
+}
+
+/* drv_step tests both measurements for finiteness at once (drv_nan_unless_finite): each of
+ * NaN, +inf and -inf in either one faults (reason MEAS_FAULT, output 0); the largest finite,
+ * the smallest subnormal and a negative zero pass (no fault, the controller's output). */
+static void test_meas_not_finite_in_either_faults(void)
+{
+    const float bad[] = {NAN, INFINITY, -INFINITY};
+    for (int which = 0; which < 2; which++) {
+        for (size_t i = 0; i < sizeof bad / sizeof bad[0]; i++) {
+            drv_t d = make_drv(REC_CAP);
+            drv_enable(&d, true);
+            drv_meas_t m = {0.25f, -0.5f};
+            TH_ASSERT(isfinite(drv_step(&d, &m)));
+            if (which == 0) {
+                m.motor_angle_rad = bad[i];
+            } else {
+                m.load_angle_rad = bad[i];
+            }
+            TH_NEAR(drv_step(&d, &m), 0.0, 0.0);
+            TH_ASSERT(drv_fault(&d));
+            uint32_t v;
+            TH_EQ(drv_get_u32(&d, DRV_P_RUN_LAST_ERROR, &v), DRV_OK);
+            TH_EQ(v, DRV_STOP_MEAS_FAULT);
+        }
+    }
+    const float good[][2] = {{3.4028235e38f, -3.4028235e38f}, {1e-45f, -1e-45f}, {-0.0f, 0.0f}};
+    for (size_t i = 0; i < sizeof good / sizeof good[0]; i++) {
+        drv_t d = make_drv(REC_CAP);
+        TH_EQ(drv_set_f32(&d, DRV_P_KP, 1e-3f), DRV_OK); /* kp e stays finite at FLT_MAX */
+        TH_EQ(drv_set_f32(&d, DRV_P_U_MAX, 10.0f), DRV_OK);
+        drv_enable(&d, true); /* target = the last measurement (0) */
+        drv_meas_t m = {good[i][0], good[i][1]};
+        float u = drv_step(&d, &m);
+        TH_ASSERT(!drv_fault(&d));
+        /* kp (0 - motor), saturated to +-10 V */
+        double expect = fmax(-10.0, fmin(10.0, -1e-3 * (double)good[i][0]));
+        TH_NEAR(u, expect, 1e-6 * fabs(expect) + 1e-44); /* the subnormal product underflows */
+    }
 }
 
 static void test_plant_input_injection(void)
@@ -1804,6 +1887,17 @@ static void test_drv_friction_ff_params(void)
         if (n == 100) {
             TH_EQ(drv_set_f32(&d, DRV_P_KPS, kps), DRV_OK); /* settable while running */
         }
+        if (n == 150) { /* refusals while running: the run goes on with the old gains */
+            const drv_param_id_t signed_ids[] = {DRV_P_KFA, DRV_P_KPS, DRV_P_KPC};
+            for (size_t i = 0; i < 3u; i++) {
+                TH_EQ(drv_set_f32(&d, signed_ids[i], NAN), DRV_E_NOT_FINITE);
+                TH_EQ(drv_set_f32(&d, signed_ids[i], -INFINITY), DRV_E_NOT_FINITE);
+                TH_EQ(drv_set_f32(&d, signed_ids[i], 3e38f), DRV_E_RANGE_HIGH);
+                TH_EQ(drv_set_f32(&d, signed_ids[i], -1e30f), DRV_E_RANGE_LOW);
+                TH_EQ(drv_set_u32(&d, signed_ids[i], 0x7FC00000u), DRV_E_LENGTH);
+            }
+            TH_ASSERT(!drv_fault(&d));
+        }
     }
     TH_ASSERT(moving > 200);
 }
@@ -1816,6 +1910,7 @@ int main(void)
     TH_RUN(test_ctl_init_defaults_reset_and_edges);
     TH_RUN(test_ctl_friction_ff_terms);
     TH_RUN(test_ctl_signed_setters);
+    TH_RUN(test_ctl_ff_branches_equal_the_formula);
     TH_RUN(test_drv_friction_ff_params);
     TH_RUN(test_drv_defaults_from_od);
     TH_RUN(test_drv_param_validation_keeps_old_value);
@@ -1827,6 +1922,7 @@ int main(void)
     TH_RUN(test_run_exact_sample_counts);
     TH_RUN(test_run_refusals);
     TH_RUN(test_enable_safe_stop_fault);
+    TH_RUN(test_meas_not_finite_in_either_faults);
     TH_RUN(test_plant_input_injection);
     TH_RUN(test_ms_prng_vectors);
     TH_RUN(test_ms_lines_and_period_vectors);
