@@ -39,7 +39,7 @@ FOREIGN = {
     "backlash_karnopp": {
         "file": "BacklashStage.fmu",
         "input": "u", "output": "q_m", "load_output": "q_l",
-        "parameters": {"Fc": 5.5e-3, "Fs": 7.0e-3, "gap": 1.0e-3},
+        "parameters": {"Fc": 5.5e-3, "Fs": 7.0e-3, "gap": 1.0e-3, "warnOnImpact": True},
         "truth": {"kfc_v": 5.5e-3 / 0.05, "ks_v": 7.0e-3 / 0.05},
         "law": "Karnopp stick-slip Coulomb at the motor, backlash to the load",
     },

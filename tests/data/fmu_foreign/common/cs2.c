@@ -243,6 +243,10 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real t, fmi2Real h, fmi2Boolean noSet
     if (!cs2_in(s, ST_STEP, "fmi2DoStep")) {
         return fmi2Error;
     }
+    if (t < s->t - 1e-9 * (1.0 + s->t) || t > s->t + 1e-9 * (1.0 + s->t)) { /* (as the Reference FMUs check) */
+        cs2_log(s, fmi2Error, "logStatusError", "Expected currentCommunicationPoint = %.16g but was %.16g.", s->t, t);
+        return fmi2Error;
+    }
     if (!(h > 0.0)) {
         cs2_log(s, fmi2Error, "logStatusError", "communication step %g s <= 0", h);
         return fmi2Error;

@@ -1,0 +1,224 @@
+"""FMUs written by someone else run through `fftune demo --plant` (docs/fmu.md, "FMUs from
+other exporters").
+
+The FMUs of tests/data/fmu_foreign/ are not made with fftune's fmugen.py / fmu_slave.c: a
+hand-written FMI 2.0 co-simulation slave and hand-written modelDescription.xml files, compiled
+by FMPy's CMake project (fmpy.build.build_platform_binary), with friction laws fftune does not
+ship (smooth Stribeck + viscous; Maxwell-slip with a current loop and a one-step delay;
+Karnopp stick-slip with backlash) and the habits of other exporters: structured names with
+dots, brackets and der(), declared units and types, Integer / Boolean parameters, fixed /
+tunable variability, calculated parameters, canHandleVariableCommunicationStepSize false, a
+GUID check, a model identifier other than the file name, binaries for win64 too, resources
+read through the resource URI, a logger called every step, fmi2Warning from steps. The plant
+files and the cache live under paths with spaces and non-ASCII letters.
+
+Each bad one is one `fftune: error:` line naming the plant file and the variable or function,
+exit status 2, nothing written. The full demo per law (the defaults, K_fc* against the
+truth): tests/bench/bench_fmu_foreign.py.
+"""
+import os
+import shutil
+import sys
+
+import pytest
+import yaml
+
+from fftune.host.cli import main
+from host_fixtures import REPO, drive_sim_missing_reason
+
+sys.path.insert(0, os.path.join(REPO, "tests", "data", "fmu_foreign"))
+import build as foreign  # noqa: E402  (tests/data/fmu_foreign/build.py)
+
+pytestmark = [
+    pytest.mark.skipif(drive_sim_missing_reason() is not None, reason=drive_sim_missing_reason() or ""),
+    pytest.mark.skipif(shutil.which("cmake") is None
+                       and not os.path.exists(os.path.join(os.path.dirname(sys.executable), "cmake")),
+                       reason="cmake not found (FMPy's build_platform_binary needs it; pip install cmake)"),
+]
+
+ODD_DIR = "plants of someone else ü"
+
+
+@pytest.fixture(autouse=True)
+def _fmu_cache(tmp_path_factory, monkeypatch):
+    """FMUs unpack into a per-session cache whose path has a space and a non-ASCII letter
+    (the resource URI the FMU decodes)."""
+    monkeypatch.setenv("FFTUNE_FMU_CACHE", str(tmp_path_factory.getbasetemp() / "fmu cache é"))
+
+
+@pytest.fixture(scope="module")
+def fmus():
+    """name -> path of the built FMU (built once per source content, cached)."""
+    return {name: foreign.build(name) for name in foreign.FOREIGN}
+
+
+def plant_file(tmp_path, fmu, name, *, copy=True, file_name="plant.yaml", **over):
+    """The plant file of FOREIGN[name] (keys as an outside engineer writes them), the FMU
+    copied beside it under its own file name; ``over`` replaces fmu: keys (None drops one)."""
+    spec = foreign.FOREIGN[name]
+    folder = tmp_path / ODD_DIR
+    folder.mkdir(exist_ok=True)
+    path = fmu
+    if copy:
+        shutil.copy(fmu, folder / os.path.basename(fmu))
+        path = os.path.basename(fmu)          # relative: beside the plant file
+    f = {"path": path, "input": spec["input"], "output": spec["output"],
+         "load_output": spec["load_output"], "parameters": dict(spec["parameters"])}
+    f.update(over)
+    data = {"fmu": {k: v for k, v in f.items() if v is not None},
+            "sensor": {"counts_per_rev": 2000, "noise_std": 0.0, "seed": 1},
+            "truth": dict(spec["truth"])}
+    out = folder / file_name
+    out.write_text(yaml.safe_dump(data, sort_keys=False, allow_unicode=True), encoding="utf-8")
+    return str(out)
+
+
+def small_demo_config(tmp_path):
+    """configs/demo.yaml with fewer, shorter experiments (the full demo: the bench)."""
+    with open(os.path.join(REPO, "configs", "demo.yaml"), encoding="utf-8") as fh:
+        cfg = yaml.safe_load(fh)
+    cfg["detect"].update(rms_levels=[1.0], realizations=2)
+    cfg["quantify"].update(frequencies_hz=[2.5], rms_levels=[0.35], repeats=2, period_samples=1024)
+    cfg["tune"].update(frequency_hz=1.25, period_samples=2048, settle_periods=1)
+    cfg["tune"]["viscous"]["enabled"] = False
+    cfg["tune"]["sweep"]["points"] = 3
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return str(path)
+
+
+# ---- good FMUs: through fftune demo --plant, fftune unchanged ----
+
+@pytest.mark.parametrize("name", list(foreign.FOREIGN))
+def test_a_foreign_fmu_runs_through_fftune_demo(fmus, tmp_path, capsys, name):
+    plant = plant_file(tmp_path, fmus[name], name)
+    out = tmp_path / "out"
+    code = main(["demo", "--config", small_demo_config(tmp_path), "--plant", plant, "--out", str(out),
+                 "--no-progress"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert captured.err.strip() == "", captured.err          # (the FMU's chatter stays in drive_sim)
+    res = yaml.safe_load(open(out / "results.yaml", encoding="utf-8"))
+    truth = foreign.FOREIGN[name]["truth"]["kfc_v"]
+    assert res["tune"]["true_coulomb_v"] == pytest.approx(truth, rel=1e-9)
+    s = res["tune"]["search"]
+    if s["converged"]:
+        assert abs(s["k_fc_star"] - truth) <= 3 * s["sigma_v"] + 0.05 * truth, s
+    else:
+        assert s["stop_reason"], s
+
+
+# ---- bad FMUs and plant files: one line each, nothing moves ----
+
+def demo_error(tmp_path, capsys, plant):
+    out = tmp_path / "out"
+    code = main(["demo", "--plant", plant, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, err
+    assert len(err) == 1 and err[0].startswith("fftune: error: "), err
+    assert not out.exists()        # failed before the drive was enabled: nothing written
+    return err[0]
+
+
+def test_a_wrong_guid_is_drive_sims_one_line_with_the_fmus_reason(fmus, tmp_path, capsys):
+    def guid(m):
+        m["modelDescription.xml"] = m["modelDescription.xml"].replace(b"msm-plant-2.1.0-7f3e", b"msm-plant-2.0.9-0000")
+    fmu = foreign.rezip(fmus["maxwell_slip"], tmp_path / "old guid.fmu", guid)
+    plant = plant_file(tmp_path, fmu, "maxwell_slip")
+    line = demo_error(tmp_path, capsys, plant)
+    assert line.startswith("fftune: error: drive_sim: ") and plant in line
+    assert "fmi2Instantiate (co-simulation, GUID msm-plant-2.0.9-0000) returned NULL" in line
+    assert "wrong GUID msm-plant-2.0.9-0000, expected msm-plant-2.1.0-7f3e" in line   # the FMU's own log
+
+
+def test_a_source_only_fmu_is_refused_in_one_line_naming_why(fmus, tmp_path, capsys):
+    def strip(m):
+        for n in [n for n in m if n.startswith("binaries/")]:
+            del m[n]
+    fmu = foreign.rezip(fmus["backlash_karnopp"], tmp_path / "source only.fmu", strip)
+    line = demo_error(tmp_path, capsys, plant_file(tmp_path, fmu, "backlash_karnopp"))
+    assert "source only.fmu" in line and "binaries/linux64/bls_cs.so" in line
+    assert "no binary for this platform" in line and "a source FMU" in line
+
+
+def test_a_windows_only_fmu_is_one_line_listing_what_it_has(fmus, tmp_path, capsys):
+    def windows_only(m):
+        del m["binaries/linux64/StribeckStage.so"]
+    fmu = foreign.rezip(fmus["stribeck_stage"], tmp_path / "win.fmu", windows_only)
+    line = demo_error(tmp_path, capsys, plant_file(tmp_path, fmu, "stribeck_stage"))
+    assert "binaries/linux64/StribeckStage.so" in line and "the FMU has win64" in line
+
+
+@pytest.mark.parametrize("mode,status", [(1, "fmi2Discard"), (2, "fmi2Pending"), (3, "fmi2Fatal")])
+def test_a_step_returning_discard_pending_or_fatal_is_one_line(fmus, tmp_path, capsys, mode, status):
+    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], failMode=mode, failTime=0.0)
+    plant = plant_file(tmp_path, fmus["maxwell_slip"], "maxwell_slip", parameters=params)
+    line = demo_error(tmp_path, capsys, plant)
+    assert line.startswith("fftune: error: drive_sim: ") and plant in line
+    assert f"fmi2DoStep(t = 0 s, h = 0.000390625 s) with input 'u_cmd' = 0 returned {status}" in line
+    assert f"failMode {mode} at t = 0 s (on purpose)" in line
+
+
+def test_a_missing_resource_is_one_line_from_the_fmu(fmus, tmp_path, capsys):
+    def no_resources(m):
+        del m["resources/elements.csv"]
+    fmu = foreign.rezip(fmus["maxwell_slip"], tmp_path / "no resources.fmu", no_resources)
+    line = demo_error(tmp_path, capsys, plant_file(tmp_path, fmu, "maxwell_slip"))
+    assert "fmi2ExitInitializationMode returned fmi2Error" in line
+    assert "resources/elements.csv (the resource location given to fmi2Instantiate)" in line
+
+
+@pytest.mark.parametrize("key,value,words", [
+    ("output", "w[1]", ["key 'fmu.output'", "'w[1]'", "causality 'local'", "needed: output"]),
+    ("output", "phi[3]", ["key 'fmu.output'", "no variable 'phi[3]'", "output variables: phi[1], phi[2]"]),
+    ("input", "tau_i", ["key 'fmu.input'", "'tau_i'", "causality 'parameter'", "needed: input"]),
+    ("parameters", {"Ftot": 6e-3}, ["key 'fmu.parameters.Ftot'", "causality 'calculatedParameter'"]),
+    ("parameters", {"nElem": 2.5}, ["key 'fmu.parameters.nElem'", "Integer: expected a whole number"]),
+    ("parameters", {"delay": 1}, ["key 'fmu.parameters.delay'", "Boolean: expected true or false"]),
+])
+def test_a_wrong_variable_is_one_line_naming_it(fmus, tmp_path, capsys, key, value, words):
+    plant = plant_file(tmp_path, fmus["maxwell_slip"], "maxwell_slip", **{key: value})
+    line = demo_error(tmp_path, capsys, plant)
+    assert plant in line
+    for w in words:
+        assert w in line, line
+
+
+@pytest.mark.parametrize("params,words", [
+    ({"hMax": 2.0e-3}, ["key 'fmu.parameters.hMax'", "0.002 is outside the range", "(min 1e-07, max 0.001)"]),
+    ({"gap": -1.0e-3}, ["key 'fmu.parameters.gap'", "(min 0.0, max inf)"]),
+    ({"Fc": float("inf")}, ["key 'fmu.parameters.Fc'", "expected a finite number, got inf"]),
+])
+def test_a_start_value_outside_what_the_fmu_declares_is_one_line(fmus, tmp_path, capsys, params, words):
+    """min / max of the variable (hMax) or of its declared type; before drive_sim starts."""
+    plant = plant_file(tmp_path, fmus["backlash_karnopp"], "backlash_karnopp", parameters=params)
+    line = demo_error(tmp_path, capsys, plant)
+    assert plant in line
+    for w in words:
+        assert w in line, line
+
+
+def test_an_integer_start_value_beyond_32_bits_is_one_line(fmus, tmp_path, capsys):
+    plant = plant_file(tmp_path, fmus["maxwell_slip"], "maxwell_slip", parameters={"nElem": 2 ** 32 + 2})
+    line = demo_error(tmp_path, capsys, plant)
+    assert "key 'fmu.parameters.nElem'" in line and "Integer (32 bits): 4294967298 is out of its range" in line
+
+
+def test_a_name_yaml_reads_as_a_boolean_says_to_quote_it(fmus, tmp_path, capsys):
+    plant = plant_file(tmp_path, fmus["backlash_karnopp"], "backlash_karnopp")
+    text = open(plant, encoding="utf-8").read().replace("output: q_m", "output: on")
+    open(plant, "w", encoding="utf-8").write(text)
+    line = demo_error(tmp_path, capsys, plant)
+    assert "key 'fmu.output'" in line and "got True" in line and "quote the name" in line
+
+
+def test_quotes_and_backslashes_in_the_plant_files_path_reach_drive_sim(fmus, tmp_path, capsys):
+    """drive_sim only prints the plant file's and the variables' names: a path with a double
+    quote and a backslash is no reason to refuse it (shown as ' and /)."""
+    odd = tmp_path / 'the "new" stage\\2'
+    odd.mkdir()
+    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], failMode=1, failTime=0.0)
+    plant = plant_file(odd, fmus["maxwell_slip"], "maxwell_slip", parameters=params)
+    line = demo_error(tmp_path, capsys, plant)
+    shown = plant.replace('"', "'").replace("\\", "/")
+    assert line.startswith(f"fftune: error: drive_sim: {shown}: FMU maxwell-slip_v2.fmu: fmi2DoStep(t = 0 s"), line
