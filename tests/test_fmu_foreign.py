@@ -100,7 +100,7 @@ def test_a_foreign_fmu_runs_through_fftune_demo(fmus, tmp_path, capsys, name):
     assert captured.err.strip() == "", captured.err          # (the FMU's chatter stays in drive_sim)
     res = yaml.safe_load(open(out / "results.yaml", encoding="utf-8"))
     truth = foreign.FOREIGN[name]["truth"]["kfc_v"]
-    assert res["tune"]["true_coulomb_v"] == pytest.approx(truth, rel=1e-9)
+    assert res["tune"]["true_coulomb_v"] == pytest.approx(truth, rel=1e-6)   # (float32 in the drive)
     s = res["tune"]["search"]
     if s["converged"]:
         assert abs(s["k_fc_star"] - truth) <= 3 * s["sigma_v"] + 0.05 * truth, s
