@@ -231,6 +231,17 @@ def _limits(v):
     return one("min"), one("max")
 
 
+def _default_tolerance(md):
+    """The FMU's DefaultExperiment tolerance (positive, finite), else None: drive_sim passes it
+    to fmi2SetupExperiment / fmi3EnterInitializationMode as FMPy's simulate_fmu does, so the
+    FMU's own solver runs as it does under FMPy."""
+    try:
+        tol = float(md.defaultExperiment.tolerance)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    return tol if math.isfinite(tol) and tol > 0 else None
+
+
 def _numbers(plant, section, values, keys):
     if values is None:
         return {}
@@ -342,6 +353,9 @@ def drive_sim_text(plant, cache=None):
     if vload is not None:
         lines += [f"  load_output: {_c_label(vload.name)}",
                   f"  load_output_vr: {vload.valueReference}"]
+    tol = _default_tolerance(md)
+    if tol is not None:
+        lines.append(f"  tolerance: {tol!r}")
     for i, (name, vr, typ, value) in enumerate(plist):
         lines += [f"  p{i}_name: {_c_label(name)}", f"  p{i}_vr: {vr}",
                   f'  p{i}_type: "{typ}"', f"  p{i}_value: {value!r}"]

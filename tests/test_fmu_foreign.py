@@ -108,6 +108,58 @@ def test_a_foreign_fmu_runs_through_fftune_demo(fmus, tmp_path, capsys, name):
         assert s["stop_reason"], s
 
 
+# ---- FMPy (the reference) and drive_sim run a foreign FMU to the same samples ----
+
+def test_fmpy_and_drive_sim_agree_on_a_foreign_fmu_whose_solver_follows_the_tolerance(fmus, tmp_path):
+    """maxwell_slip sizes its sub-steps from the tolerance of fmi2SetupExperiment (the
+    DefaultExperiment's 1e-8: 20 sub-steps a controller step; none given: its own 1e-4, one
+    sub-step). FMPy passes the DefaultExperiment tolerance; drive_sim must too, else the
+    samples differ by far more than the float32 recording."""
+    import numpy as np
+    from fmpy import simulate_fmu
+
+    from fftune.host.drive import BusOptions, DriveClient
+    from fftune.host.sim import start_drive_sim
+    from host_fixtures import EDS
+
+    fmu = fmus["maxwell_slip"]
+    # (delay false: with the one-step delay the first step would apply the input of the
+    # initialisation, which FMPy sets from the signal and drive_sim to 0 -- the drive's output then)
+    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], tau_i=3.0e-4, delay=False)
+    plant = plant_file(tmp_path, fmu, "maxwell_slip", parameters=params)
+    data = yaml.safe_load(open(plant, encoding="utf-8"))
+    data["controller"] = {"kp": 0.0, "kd": 0.0}             # open loop: the multisine is the plant input
+    data["sensor"]["counts_per_rev"] = 0
+    open(plant, "w", encoding="utf-8").write(yaml.safe_dump(data, allow_unicode=True))
+    n = 2048
+    req = {"exc_kind": 3, "exc_inject": 1, "exc_amplitude": 0.4, "exc_offset": -0.05, "exc_period": n,
+           "ms_k_min": 1, "ms_k_max": 150, "ms_group": 0, "ms_seed": 7, "ms_realization": 0,
+           "exc_settle_periods": 0, "exc_record_periods": 1}
+    sim = start_drive_sim(plant, log_path=str(tmp_path / "drive_sim.log"))
+    try:
+        with DriveClient(BusOptions(port=sim.port, host=sim.host, eds=EDS), progress=False) as d:
+            d.enable()
+            rec = d.run(req, signals=("plant_input", "motor_angle"))
+    finally:
+        sim.stop()
+    u = np.asarray(rec.signals["plant_input"], dtype=np.float64)
+    y = np.asarray(rec.signals["motor_angle"], dtype=np.float64)
+    assert u.size == n and np.std(u) > 0.1
+    dt = 1.0 / float(np.float32(2560.0))
+    t = np.arange(n + 1) * dt
+    sig = np.zeros(n + 1, dtype=[("time", np.float64), ("u_cmd", np.float64)])
+    sig["time"], sig["u_cmd"][:n], sig["u_cmd"][n] = t, u, u[-1]
+    ref = {}
+    for tol in (None, 1e-4):                   # None: FMPy takes the DefaultExperiment's 1e-8
+        res = simulate_fmu(fmu, fmi_type="CoSimulation", start_values=params, input=sig, step_size=dt,
+                           output_interval=dt, stop_time=t[-1], output=["phi[1]"], relative_tolerance=tol)
+        ref[tol] = np.asarray(res["phi[1]"])[:n]
+    assert np.max(np.abs(ref[None])) > 0.05                  # it slid
+    bound = 2.0 ** -23 * np.max(np.abs(ref[None]))           # the float32 recording of the same doubles
+    assert np.max(np.abs(y - ref[None])) <= bound
+    assert np.max(np.abs(ref[1e-4] - ref[None])) > 100 * bound   # (the tolerance matters for this FMU)
+
+
 # ---- bad FMUs and plant files: one line each, nothing moves ----
 
 def demo_error(tmp_path, capsys, plant):

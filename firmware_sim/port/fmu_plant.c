@@ -108,6 +108,8 @@ struct fmup {
 
 typedef enum { K_STR, K_INT } fmup_kind_t;
 
+#define FMUP_KEYS 13u /* the named keys of fmup_key; pN_* follow */
+
 static int fmup_parse_string(const char *text, char *out, size_t outlen, char *msg, size_t msglen)
 {
     size_t n = strlen(text);
@@ -172,7 +174,7 @@ static void fmup_strip_comment(char *value)
 static int fmup_key(fmup_cfg_t *c, const char *key, const char *value, unsigned seen[], char *msg, size_t msglen)
 {
     static const char *const names[] = {"source", "path", "fmi_version", "unzipdir", "model_identifier", "guid",
-                                        "input", "input_vr", "output", "output_vr", "load_output", "load_output_vr"};
+                                        "input", "input_vr", "output", "output_vr", "load_output", "load_output_vr", "tolerance"};
     for (unsigned i = 0; i < sizeof names / sizeof names[0]; i++) {
         if (strcmp(key, names[i]) != 0) {
             continue;
@@ -202,7 +204,18 @@ static int fmup_key(fmup_cfg_t *c, const char *key, const char *value, unsigned 
         case 10:
             c->has_load_output = 1;
             return fmup_parse_string(value, c->load_output, sizeof c->load_output, msg, msglen);
-        default: return fmup_parse_uint(value, &c->load_output_vr, msg, msglen);
+        case 11: return fmup_parse_uint(value, &c->load_output_vr, msg, msglen);
+        default: {
+            char *end;
+            errno = 0;
+            c->tolerance = strtod(value, &end);
+            if (end == value || *end != '\0' || errno == ERANGE || !isfinite(c->tolerance) || c->tolerance <= 0.0) {
+                snprintf(msg, msglen, "fmu.tolerance: '%s' is not a positive finite number", value);
+                return -1;
+            }
+            c->has_tolerance = 1;
+            return 0;
+        }
         }
     }
     /* pN_name / pN_vr / pN_type / pN_value */
@@ -221,7 +234,7 @@ static int fmup_key(fmup_cfg_t *c, const char *key, const char *value, unsigned 
     if ((int)idx >= c->n_params) {
         c->n_params = (int)idx + 1;
     }
-    unsigned slot = 12u + 4u * idx;
+    unsigned slot = FMUP_KEYS + 4u * idx;
     if (strcmp(field, "name") == 0) {
         if (seen[slot]++) {
             snprintf(msg, msglen, "duplicate key 'fmu.%s'", key);
@@ -283,7 +296,7 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
         return -1;
     }
     fmup_cfg_t *c = calloc(1, sizeof *c);
-    unsigned seen[12 + 4 * FMUP_PARAMS_MAX];
+    unsigned seen[FMUP_KEYS + 4 * FMUP_PARAMS_MAX];
     memset(seen, 0, sizeof seen);
     char line[1200], msg[700] = "";
     int lineno = 0, rc = c ? 0 : -1, in_fmu = 0, found = 0;
@@ -350,7 +363,7 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
         return -1;
     }
     for (int i = 0; i < c->n_params; i++) {
-        unsigned s = 12u + 4u * (unsigned)i;
+        unsigned s = FMUP_KEYS + 4u * (unsigned)i;
         if (!seen[s] || !seen[s + 1] || !seen[s + 2] || !seen[s + 3]) {
             snprintf(err, errlen, "%s: fmu.p%d: name, vr, type and value go together", path, i);
             free(c);
@@ -597,7 +610,7 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
         return -1;
     }
     if (f->cfg.fmi_version == 2) {
-        s = (int)f->setup_experiment(f->c, 0, 0.0, 0.0, 0, 0.0);
+        s = (int)f->setup_experiment(f->c, f->cfg.has_tolerance, f->cfg.tolerance, 0.0, 0, 0.0);
         if (s > (int)fmi2Warning) {
             fmup_fail(f, err, errlen, "fmi2SetupExperiment returned %s", fmup_status_name(f, s));
             return -1;
@@ -638,7 +651,7 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
                   f->cfg.input, fmup_status_name(f, s));
         return -1;
     }
-    s = f->cfg.fmi_version == 3 ? f->enter_init3(f->c, false, 0.0, 0.0, false, 0.0) : (int)f->enter_init(f->c);
+    s = f->cfg.fmi_version == 3 ? f->enter_init3(f->c, f->cfg.has_tolerance != 0, f->cfg.tolerance, 0.0, false, 0.0) : (int)f->enter_init(f->c);
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "fmi%dEnterInitializationMode returned %s", f->cfg.fmi_version,
                   fmup_status_name(f, s));

@@ -19,6 +19,8 @@
  *     output_vr: 1
  *     load_output: "theta2"                    optional: the load encoder (else = output)
  *     load_output_vr: 3
+ *     tolerance: 1e-06                         optional: the FMU's DefaultExperiment tolerance, passed
+ *                                              to fmi2SetupExperiment / fmi3EnterInitializationMode (as FMPy does)
  *     p0_name: "Fc"                            start values, p0 .. p31: name, value
  *     p0_vr: 7                                 reference, type (real, integer, boolean: FMI 3.0 Float64, Int32, Boolean)
  *     p0_type: "real"
@@ -67,6 +69,8 @@ typedef struct {
     char load_output[FMUP_STR];
     unsigned load_output_vr;
     int has_load_output;
+    double tolerance;       /* > 0 if has_tolerance */
+    int has_tolerance;
     int n_params;
     fmup_param_t param[FMUP_PARAMS_MAX];
 } fmup_cfg_t;

@@ -2,7 +2,8 @@
  * communication step (delay true) or the present one. Maxwell-slip friction: element i is a
  * spring k_i whose end slips when |k_i z_i| reaches Fmax_i; F = sum k_i z_i + b w1.
  * J1 w1' = T - F - k (phi1 - phi2) - d (w1 - w2); J2 w2' = k (...) + d (...).
- * Semi-implicit Euler, sub-steps of at most 20 us. Elements from resources/elements.csv
+ * Semi-implicit Euler, sub-steps of at most 0.2 sqrt(tolerance) s (the tolerance of
+ * fmi2SetupExperiment, else 1e-4: 2 ms; the DefaultExperiment's 1e-8: 20 us). Elements from resources/elements.csv
  * (the first nElem rows). failMode 1 / 2 / 3: fmi2DoStep returns fmi2Discard / fmi2Pending /
  * fmi2Fatal from t >= failTime (tests of the importer). */
 #include <math.h>
@@ -96,7 +97,7 @@ int model_step(Model *m, double t, double h, char *msg, unsigned long n)
     }
     double ud = m->b[B_DELAY] ? m->u_prev : r[R_U];
     m->u_prev = r[R_U];
-    int sub = (int)ceil(h / 20e-6);
+    int sub = (int)ceil(h / (0.2 * sqrt(m->tolerance)));
     double hs = h / sub;
     for (int s = 0; s < sub; s++) {
         r[R_TAU] += hs / r[R_TAUI] * (r[R_KM] * ud - r[R_TAU]);
