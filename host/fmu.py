@@ -217,6 +217,14 @@ def _c_label(text):
     return f'"{out}"'
 
 
+def _unit(v):
+    """A variable's declared unit (its own, else its declared type's), None if none."""
+    unit = getattr(v, "unit", None)
+    if unit is None and getattr(v, "declaredType", None) is not None:
+        unit = getattr(v.declaredType, "unit", None)
+    return unit
+
+
 def _limits(v):
     """A variable's declared (min, max) as floats (its own attributes, else its declared
     type's; None where not declared)."""
@@ -298,6 +306,11 @@ def drive_sim_text(plant, cache=None):
     vload = None
     if f.get("load_output") is not None:
         vload = _variable(plant, shown, md, "fmu.load_output", f["load_output"], ("output",), real)
+    for key, v in (("fmu.output", vout), ("fmu.load_output", vload)):
+        unit = _unit(v) if v is not None else None
+        if unit not in (None, "", "rad"):
+            raise _err(plant, key, f"variable {v.name!r} of FMU {shown} is in {unit!r}: the drive's encoder reads "
+                                   f"an angle in rad (export the angle in rad)")
     params = f.get("parameters") or {}
     if not isinstance(params, dict):
         raise _err(plant, "fmu.parameters", f"expected {{variable: value}}, got {params!r}")

@@ -250,6 +250,18 @@ def test_a_start_value_outside_what_the_fmu_declares_is_one_line(fmus, tmp_path,
         assert w in line, line
 
 
+@pytest.mark.parametrize("key,name,unit", [("output", "body.w", "rad/s"), ("load_output", "der(body.phi)", None)])
+def test_an_output_that_is_no_angle_in_rad_is_one_line(fmus, tmp_path, capsys, key, name, unit):
+    """body.w's unit comes from its declared type (Modelica.SIunits.AngularVelocity)."""
+    plant = plant_file(tmp_path, fmus["stribeck_stage"], "stribeck_stage", **{key: name})
+    line = demo_error(tmp_path, capsys, plant)
+    assert f"key 'fmu.{key}'" in line and f"'{name}'" in line
+    if unit:
+        assert f"is in '{unit}': the drive's encoder reads an angle in rad" in line
+    else:
+        assert "causality 'local'" in line
+
+
 def test_an_integer_start_value_beyond_32_bits_is_one_line(fmus, tmp_path, capsys):
     plant = plant_file(tmp_path, fmus["maxwell_slip"], "maxwell_slip", parameters={"nElem": 2 ** 32 + 2})
     line = demo_error(tmp_path, capsys, plant)
