@@ -4,7 +4,7 @@ A plant file with an ``fmu:`` section::
 
     fmu:
       path: models/stage.fmu        # FMI 2.0 or 3.0 co-simulation; relative: beside the plant file,
-                                    # else from the working directory
+                                    # else from the working directory; ~ is the home folder
       input: u                      # Real (FMI 3.0: Float64), causality input: the drive's output [V]
       output: theta1                # Real, causality output: what the encoder reads [rad]
       load_output: theta2           # optional: the load encoder (default: output)
@@ -84,6 +84,7 @@ def _err(plant, key, msg):
 def _fmu_file(plant, text):
     if not isinstance(text, str) or not text:
         raise _err(plant, "fmu.path", f"expected the FMU's file name, got {text!r}")
+    text = os.path.expanduser(text)          # ~/models/stage.fmu, as a shell would
     if os.path.isabs(text):
         cands = [text]
     else:

@@ -286,3 +286,19 @@ def test_quotes_and_backslashes_in_the_plant_files_path_reach_drive_sim(fmus, tm
     line = demo_error(tmp_path, capsys, plant)
     shown = plant.replace('"', "'").replace("\\", "/")
     assert line.startswith(f"fftune: error: drive_sim: {shown}: FMU maxwell-slip_v2.fmu: fmi2DoStep(t = 0 s"), line
+
+
+def test_a_path_from_the_home_folder_is_found(fmus, tmp_path, monkeypatch):
+    """fmu.path: ~/models/... (as a shell expands it), the FMU in a folder named like a user's."""
+    from fftune.host.fmu import drive_sim_text
+
+    home = tmp_path / "home ü"
+    (home / "models").mkdir(parents=True)
+    shutil.copy(fmus["backlash_karnopp"], home / "models" / "stage v1.fmu")
+    monkeypatch.setenv("HOME", str(home))
+    plant = plant_file(tmp_path, fmus["backlash_karnopp"], "backlash_karnopp", copy=False,
+                       path="~/models/stage v1.fmu")
+    text, unzipdir = drive_sim_text(plant)
+    assert 'path: "~/models/stage v1.fmu"' in text and 'model_identifier: "bls_cs"' in text
+    assert os.path.isfile(os.path.join(unzipdir, "binaries", "linux64", "bls_cs.so"))
+    assert "tolerance: 1e-05" in text            # its DefaultExperiment's
