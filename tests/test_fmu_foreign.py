@@ -302,3 +302,23 @@ def test_a_path_from_the_home_folder_is_found(fmus, tmp_path, monkeypatch):
     assert 'path: "~/models/stage v1.fmu"' in text and 'model_identifier: "bls_cs"' in text
     assert os.path.isfile(os.path.join(unzipdir, "binaries", "linux64", "bls_cs.so"))
     assert "tolerance: 1e-05" in text            # its DefaultExperiment's
+
+
+def test_an_fmu_that_crashes_is_one_line_naming_the_function(fmus, tmp_path, capsys):
+    """A SIGSEGV inside fmi2DoStep (failMode 4) in the trial step: drive_sim's line, not a bare signal."""
+    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], failMode=4, failTime=0.0)
+    plant = plant_file(tmp_path, fmus["maxwell_slip"], "maxwell_slip", parameters=params)
+    line = demo_error(tmp_path, capsys, plant)
+    assert line.startswith(f"fftune: error: drive_sim: {plant}: FMU maxwell-slip_v2.fmu: "), line
+    assert "the FMU crashed (SIGSEGV) in fmi2DoStep at t = 0 s" in line
+
+
+def test_an_fmu_that_crashes_mid_run_stops_the_run_with_its_line(fmus, tmp_path, capsys):
+    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], failMode=4, failTime=0.3)
+    plant = plant_file(tmp_path, fmus["maxwell_slip"], "maxwell_slip", parameters=params)
+    out = tmp_path / "out"
+    code = main(["demo", "--config", small_demo_config(tmp_path), "--plant", plant, "--out", str(out),
+                 "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("fftune: error: "), err
+    assert f"; drive_sim: {plant}: FMU maxwell-slip_v2.fmu: the FMU crashed (SIGSEGV) in fmi2DoStep at t = 0.3" in err[0]

@@ -8,12 +8,14 @@
 #include <dlfcn.h>
 #include <errno.h>
 #include <math.h>
+#include <signal.h>
 #include <stdarg.h>
 #include <stdbool.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 /* ---- the part of the FMI 2.0 standard used here (fmi2TypesPlatform.h, fmi2FunctionTypes.h) */
 typedef void *fmi2Component;
@@ -383,6 +385,65 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
 
 /* ---- the FMU ---- */
 
+/* A crash inside the FMU (SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT while one of its functions
+ * runs) is one "drive_sim: error:" line naming the plant file, the FMU and the function, and
+ * exit status 2, instead of a bare signal. The one piece of process state here: a signal
+ * handler has no other way to know which FMU call was running (set around each call, cleared
+ * when drive_sim's own code runs again, so its own crashes stay crashes). */
+static fmup_t *volatile fmup_crash_f;
+static const char *volatile fmup_crash_fn;
+
+#define FMUP_AT(f, name)        \
+    do {                        \
+        fmup_crash_fn = (name); \
+        fmup_crash_f = (f);     \
+    } while (0)
+#define FMUP_DONE() (fmup_crash_f = NULL)
+
+static void fmup_on_crash(int sig)
+{
+    fmup_t *f = fmup_crash_f;
+    if (f != NULL) {
+        static char line[2 * FMUP_STR + 400];
+        const char *name = sig == SIGSEGV ? "SIGSEGV" : sig == SIGBUS ? "SIGBUS" : sig == SIGFPE ? "SIGFPE"
+                           : sig == SIGILL ? "SIGILL" : "SIGABRT";
+        int n = snprintf(line, sizeof line, "drive_sim: error: %s: FMU %s: the FMU crashed (%s) in %s at t = %.9g s; "
+                         "drive_sim stops\n", f->cfg.source, f->cfg.path, name, fmup_crash_fn, f->t);
+        if (n > 0) {
+            size_t len = (size_t)n < sizeof line ? (size_t)n : sizeof line - 1;
+            ssize_t w = write(STDERR_FILENO, line, len);
+            (void)w;
+        }
+        _exit(2);
+    }
+    signal(sig, SIG_DFL);
+    raise(sig);
+}
+
+static void fmup_guard_install(void)
+{
+    static int installed;
+    static char alt[64 * 1024]; /* (a stack overflow in the FMU still reaches the handler) */
+    static const int sigs[] = {SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT};
+    if (installed) {
+        return;
+    }
+    installed = 1;
+    stack_t st;
+    memset(&st, 0, sizeof st);
+    st.ss_sp = alt;
+    st.ss_size = sizeof alt;
+    (void)sigaltstack(&st, NULL);
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = fmup_on_crash;
+    sa.sa_flags = SA_ONSTACK;
+    sigemptyset(&sa.sa_mask);
+    for (unsigned i = 0; i < sizeof sigs / sizeof sigs[0]; i++) {
+        (void)sigaction(sigs[i], &sa, NULL);
+    }
+}
+
 static void fmup_logger(fmi2ComponentEnvironment env, fmi2String instance, fmi2Status status, fmi2String category,
                         fmi2String message, ...)
 {
@@ -477,6 +538,7 @@ static int fmup_bind(fmup_t *f, char *err, size_t errlen)
         FMUP_BIND(set_int32, "fmi3SetInt32");
         FMUP_BIND(set_boolean3, "fmi3SetBoolean");
         FMUP_BIND(do_step3, "fmi3DoStep");
+        FMUP_AT(f, "fmi3GetVersion");
         v = f->get_version3();
     } else {
         FMUP_BIND(get_version, "fmi2GetVersion");
@@ -492,7 +554,9 @@ static int fmup_bind(fmup_t *f, char *err, size_t errlen)
         FMUP_BIND(set_integer, "fmi2SetInteger");
         FMUP_BIND(set_boolean, "fmi2SetBoolean");
         FMUP_BIND(do_step, "fmi2DoStep");
+        FMUP_AT(f, "fmi2GetVersion");
         v = f->get_version();
+        FMUP_AT(f, "fmi2GetTypesPlatform");
         const char *tp = f->get_types_platform();
         if (tp == NULL || strcmp(tp, "default") != 0) {
             fmup_fail(f, err, errlen, "fmi2GetTypesPlatform() = '%s': drive_sim uses the standard's \"default\"",
@@ -520,18 +584,22 @@ static const char *fmup_status_name(fmup_t *f, int s)
     return f->cfg.fmi_version == 3 ? n3[s] : n2[s];
 }
 
-static void fmup_free_instance(fmup_t *f)
+static void fmup_free_instance_in(fmup_t *f)
 {
     if (f->c != NULL && !f->fatal) {
         if (f->cfg.fmi_version == 3) {
             if (f->ok) {
+                FMUP_AT(f, "fmi3Terminate");
                 (void)f->terminate3(f->c);
             }
+            FMUP_AT(f, "fmi3FreeInstance");
             f->free_instance3(f->c);
         } else {
             if (f->ok) {
+                FMUP_AT(f, "fmi2Terminate");
                 (void)f->terminate(f->c);
             }
+            FMUP_AT(f, "fmi2FreeInstance");
             f->free_instance(f->c);
         }
     }
@@ -540,14 +608,22 @@ static void fmup_free_instance(fmup_t *f)
     f->fatal = 0;
 }
 
+static void fmup_free_instance(fmup_t *f)
+{
+    fmup_free_instance_in(f);
+    FMUP_DONE();
+}
+
 /* fmi2SetReal / fmi3SetFloat64 of one variable */
 static int fmup_set_f64(fmup_t *f, unsigned vr, double v)
 {
     if (f->cfg.fmi_version == 3) {
         fmi3ValueReference r = vr;
+        FMUP_AT(f, "fmi3SetFloat64");
         return f->set_float64(f->c, &r, 1, &v, 1);
     }
     fmi2ValueReference r = vr;
+    FMUP_AT(f, "fmi2SetReal");
     return (int)f->set_real(f->c, &r, 1, &v);
 }
 
@@ -564,11 +640,14 @@ static int fmup_read(fmup_t *f, char *err, size_t errlen)
     int s;
     if (f->cfg.fmi_version == 3) {
         fmi3ValueReference r[2] = {vr[0], vr[1]};
+        FMUP_AT(f, "fmi3GetFloat64");
         s = f->get_float64(f->c, r, 2, y, 2);
     } else {
         fmi2ValueReference r[2] = {vr[0], vr[1]};
+        FMUP_AT(f, "fmi2GetReal");
         s = (int)f->get_real(f->c, r, 2, y);
     }
+    FMUP_DONE();
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "%s of output '%s' at t = %.9g s returned %s", fmup_fn(f, "fmi2GetReal", "fmi3GetFloat64"),
                   f->cfg.output, f->t, fmup_status_name(f, s));
@@ -590,12 +669,13 @@ static void fmup_log3(fmi3InstanceEnvironment env, int status, const char *categ
 }
 
 /* a new instance at t = 0 with the start values, initialised (0, or -1) */
-static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
+static int fmup_instantiate_in(fmup_t *f, char *err, size_t errlen)
 {
     int s;
     fmup_free_instance(f);
     f->log[0] = '\0';
     f->t = 0.0;
+    FMUP_AT(f, fmup_fn(f, "fmi2Instantiate", "fmi3InstantiateCoSimulation"));
     if (f->cfg.fmi_version == 3) {
         f->c = f->instantiate3("fftune", f->cfg.guid, f->resource_path, false, false, false, false, NULL, 0, f,
                                fmup_log3, NULL);
@@ -610,6 +690,7 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
         return -1;
     }
     if (f->cfg.fmi_version == 2) {
+        FMUP_AT(f, "fmi2SetupExperiment");
         s = (int)f->setup_experiment(f->c, f->cfg.has_tolerance, f->cfg.tolerance, 0.0, 0, 0.0);
         if (s > (int)fmi2Warning) {
             fmup_fail(f, err, errlen, "fmi2SetupExperiment returned %s", fmup_status_name(f, s));
@@ -618,6 +699,7 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
     }
     for (int i = 0; i < f->cfg.n_params; i++) {
         const fmup_param_t *p = &f->cfg.param[i];
+        FMUP_AT(f, "setting a start value (fmu.parameters)");
         if (p->type == FMUP_REAL) {
             s = fmup_set_f64(f, p->vr, p->value);
         } else if (f->cfg.fmi_version == 3) {
@@ -651,12 +733,14 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
                   f->cfg.input, fmup_status_name(f, s));
         return -1;
     }
+    FMUP_AT(f, fmup_fn(f, "fmi2EnterInitializationMode", "fmi3EnterInitializationMode"));
     s = f->cfg.fmi_version == 3 ? f->enter_init3(f->c, f->cfg.has_tolerance != 0, f->cfg.tolerance, 0.0, false, 0.0) : (int)f->enter_init(f->c);
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "fmi%dEnterInitializationMode returned %s", f->cfg.fmi_version,
                   fmup_status_name(f, s));
         return -1;
     }
+    FMUP_AT(f, fmup_fn(f, "fmi2ExitInitializationMode", "fmi3ExitInitializationMode"));
     s = f->cfg.fmi_version == 3 ? f->exit_init3(f->c) : (int)f->exit_init(f->c);
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "fmi%dExitInitializationMode returned %s", f->cfg.fmi_version,
@@ -666,7 +750,14 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
     return fmup_read(f, err, errlen);
 }
 
-static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
+static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
+{
+    int rc = fmup_instantiate_in(f, err, errlen);
+    FMUP_DONE();
+    return rc;
+}
+
+static int fmup_step_in(fmup_t *f, double u, double dt, char *err, size_t errlen)
 {
     if (f->c == NULL || !f->ok) {
         if (err != NULL) {
@@ -683,6 +774,7 @@ static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
     if (f->cfg.fmi_version == 3) {
         bool event = false, terminate = false, early = false;
         double last = f->t;
+        FMUP_AT(f, "fmi3DoStep");
         s = f->do_step3(f->c, f->t, dt, true, &event, &terminate, &early, &last);
         if (s <= (int)fmi2Warning && (terminate || early)) {
             fmup_fail(f, err, errlen, "fmi3DoStep(t = %.9g s, h = %.9g s) with input '%s' = %g: the FMU %s", f->t, dt,
@@ -690,6 +782,7 @@ static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
             return -1;
         }
     } else {
+        FMUP_AT(f, "fmi2DoStep");
         s = (int)f->do_step(f->c, f->t, dt, 1);
     }
     if (s > (int)fmi2Warning) {
@@ -699,6 +792,13 @@ static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
     }
     f->t += dt;
     return fmup_read(f, err, errlen);
+}
+
+static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
+{
+    int rc = fmup_step_in(f, u, dt, err, errlen);
+    FMUP_DONE();
+    return rc;
 }
 
 static int fmup_ext_advance(void *ctx, double u, double dt)
@@ -756,7 +856,10 @@ fmup_t *fmup_open(const fmup_cfg_t *cfg, double dt_s, char *err, size_t errlen)
     char so[2 * FMUP_STR + 32];
     snprintf(f->resource_path, sizeof f->resource_path, "%s/resources/", cfg->unzipdir);
     snprintf(so, sizeof so, "%s/%s/%s.so", cfg->unzipdir, fmup_binary_dir(cfg), cfg->model_identifier);
+    fmup_guard_install();
+    FMUP_AT(f, "loading the binary (its constructors)");
     f->lib = dlopen(so, RTLD_NOW | RTLD_LOCAL);
+    FMUP_DONE();
     if (f->lib == NULL) {
         const char *why = dlerror();
         fmup_fail(f, err, errlen, "cannot load %s/%s.so: %s", fmup_binary_dir(cfg), cfg->model_identifier,
@@ -764,8 +867,9 @@ fmup_t *fmup_open(const fmup_cfg_t *cfg, double dt_s, char *err, size_t errlen)
         free(f);
         return NULL;
     }
-    if (fmup_bind(f, err, errlen) != 0 || fmup_instantiate(f, err, errlen) != 0 ||
-        fmup_step(f, 0.0, dt_s, err, errlen) != 0) {
+    int bound = fmup_bind(f, err, errlen);
+    FMUP_DONE();
+    if (bound != 0 || fmup_instantiate(f, err, errlen) != 0 || fmup_step(f, 0.0, dt_s, err, errlen) != 0) {
         /* trial (an FMU that cannot take a step fails before the drive exists) */
         fmup_close(f);
         return NULL;

@@ -94,9 +94,26 @@ def build(name, cache=CACHE):
         os.makedirs(os.path.join(work, "cmake"))
         path = os.environ.get("PATH", "")
         os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + path   # pip's cmake, if any
+        log = os.path.join(work, "build.log")
+        saved = [os.dup(1), os.dup(2)]
         try:
-            build_platform_binary(tree, build_dir=os.path.join(work, "cmake"))
+            sys.stdout.flush()
+            sys.stderr.flush()
+            with open(log, "wb") as fh:                  # cmake's output: into the log, shown on failure
+                os.dup2(fh.fileno(), 1)
+                os.dup2(fh.fileno(), 2)
+                try:
+                    build_platform_binary(tree, build_dir=os.path.join(work, "cmake"))
+                finally:
+                    os.dup2(saved[0], 1)
+                    os.dup2(saved[1], 2)
+        except Exception as exc:
+            with open(log, encoding="utf-8", errors="replace") as fh:
+                tail = fh.read()[-3000:]
+            raise RuntimeError(f"building {name} with FMPy's build_platform_binary failed: {exc}\n{tail}") from None
         finally:
+            os.close(saved[0])
+            os.close(saved[1])
             os.environ["PATH"] = path
         if spec.get("win64"):
             os.makedirs(os.path.join(tree, "binaries", "win64"))
