@@ -304,21 +304,30 @@ def test_a_path_from_the_home_folder_is_found(fmus, tmp_path, monkeypatch):
     assert "tolerance: 1e-05" in text            # its DefaultExperiment's
 
 
-def test_an_fmu_that_crashes_is_one_line_naming_the_function(fmus, tmp_path, capsys):
-    """A SIGSEGV inside fmi2DoStep (failMode 4) in the trial step: drive_sim's line, not a bare signal."""
-    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], failMode=4, failTime=0.0)
+@pytest.mark.parametrize("mode,words", [
+    (4, "the FMU crashed (SIGSEGV) in fmi2DoStep at t = 0 s"),
+    (5, "fmi2DoStep did not return within 1 s (t = 0 s; the FMU hangs?)"),
+])
+def test_an_fmu_that_crashes_or_hangs_is_one_line_naming_the_function(fmus, tmp_path, capsys, mode, words):
+    """A SIGSEGV inside fmi2DoStep (failMode 4) or an endless loop (5) in the trial step:
+    drive_sim's line, not a bare signal or fftune's start-up timeout."""
+    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], failMode=mode, failTime=0.0)
     plant = plant_file(tmp_path, fmus["maxwell_slip"], "maxwell_slip", parameters=params)
     line = demo_error(tmp_path, capsys, plant)
     assert line.startswith(f"fftune: error: drive_sim: {plant}: FMU maxwell-slip_v2.fmu: "), line
-    assert "the FMU crashed (SIGSEGV) in fmi2DoStep at t = 0 s" in line
+    assert words in line, line
 
 
-def test_an_fmu_that_crashes_mid_run_stops_the_run_with_its_line(fmus, tmp_path, capsys):
-    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], failMode=4, failTime=0.3)
+@pytest.mark.parametrize("mode,words", [
+    (4, "the FMU crashed (SIGSEGV) in fmi2DoStep at t = 0.3"),
+    (5, "fmi2DoStep did not return within 1 s (t = 0.3"),
+])
+def test_an_fmu_that_crashes_or_hangs_mid_run_stops_the_run_with_its_line(fmus, tmp_path, capsys, mode, words):
+    params = dict(foreign.FOREIGN["maxwell_slip"]["parameters"], failMode=mode, failTime=0.3)
     plant = plant_file(tmp_path, fmus["maxwell_slip"], "maxwell_slip", parameters=params)
     out = tmp_path / "out"
     code = main(["demo", "--config", small_demo_config(tmp_path), "--plant", plant, "--out", str(out),
                  "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("fftune: error: "), err
-    assert f"; drive_sim: {plant}: FMU maxwell-slip_v2.fmu: the FMU crashed (SIGSEGV) in fmi2DoStep at t = 0.3" in err[0]
+    assert f"; drive_sim: {plant}: FMU maxwell-slip_v2.fmu: {words}" in err[0], err[0]

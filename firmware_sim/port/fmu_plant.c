@@ -15,6 +15,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/time.h>
 #include <unistd.h>
 
 /* ---- the part of the FMI 2.0 standard used here (fmi2TypesPlatform.h, fmi2FunctionTypes.h) */
@@ -392,12 +393,20 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
  * when drive_sim's own code runs again, so its own crashes stay crashes). */
 static fmup_t *volatile fmup_crash_f;
 static const char *volatile fmup_crash_fn;
+static volatile unsigned long fmup_calls; /* FMU calls begun (the hang watchdog's progress) */
+static volatile unsigned fmup_patience;   /* seconds a call may take: 1 (to 2) a step, 8 loading / initialising */
 
-#define FMUP_AT(f, name)        \
+#define FMUP_PATIENCE_STEP 1u
+#define FMUP_PATIENCE_INIT 8u
+#define FMUP_AT_P(f, name, p)   \
     do {                        \
         fmup_crash_fn = (name); \
+        fmup_patience = (p);    \
+        fmup_calls++;           \
         fmup_crash_f = (f);     \
     } while (0)
+#define FMUP_AT(f, name) FMUP_AT_P(f, name, FMUP_PATIENCE_STEP)
+#define FMUP_AT_INIT(f, name) FMUP_AT_P(f, name, FMUP_PATIENCE_INIT)
 #define FMUP_DONE() (fmup_crash_f = NULL)
 
 static void fmup_on_crash(int sig)
@@ -418,6 +427,36 @@ static void fmup_on_crash(int sig)
     }
     signal(sig, SIG_DFL);
     raise(sig);
+}
+
+/* The hang watchdog: SIGALRM every second (wall clock; installed only with an FMU plant; the
+ * bus code takes EINTR as "nothing yet", file reads restart); an FMU call that has not
+ * returned after its patience is one line and exit status 2 (fftune waits 10 s for drive_sim
+ * to start and 2 x 2 s for an SDO answer: without this a hung FMU is a bare timeout naming no
+ * FMU). CPU time would not do: on a loaded machine it runs slower than fftune's timeouts. */
+static void fmup_on_tick(int sig)
+{
+    static unsigned long last;
+    static unsigned ticks;
+    fmup_t *f = fmup_crash_f;
+    (void)sig;
+    if (f == NULL || fmup_calls != last) {
+        last = fmup_calls;
+        ticks = 0;
+        return;
+    }
+    if (++ticks >= fmup_patience) {
+        static char line[2 * FMUP_STR + 400];
+        int n = snprintf(line, sizeof line, "drive_sim: error: %s: FMU %s: %s did not return within %u s "
+                         "(t = %.9g s; the FMU hangs?); drive_sim stops\n", f->cfg.source, f->cfg.path, fmup_crash_fn,
+                         ticks, f->t);
+        if (n > 0) {
+            size_t len = (size_t)n < sizeof line ? (size_t)n : sizeof line - 1;
+            ssize_t w = write(STDERR_FILENO, line, len);
+            (void)w;
+        }
+        _exit(2);
+    }
 }
 
 static void fmup_guard_install(void)
@@ -442,6 +481,14 @@ static void fmup_guard_install(void)
     for (unsigned i = 0; i < sizeof sigs / sizeof sigs[0]; i++) {
         (void)sigaction(sigs[i], &sa, NULL);
     }
+    struct sigaction tick;
+    memset(&tick, 0, sizeof tick);
+    tick.sa_handler = fmup_on_tick;
+    tick.sa_flags = SA_RESTART;
+    sigemptyset(&tick.sa_mask);
+    (void)sigaction(SIGALRM, &tick, NULL);
+    struct itimerval every = {{1, 0}, {1, 0}};
+    (void)setitimer(ITIMER_REAL, &every, NULL);
 }
 
 static void fmup_logger(fmi2ComponentEnvironment env, fmi2String instance, fmi2Status status, fmi2String category,
@@ -675,7 +722,7 @@ static int fmup_instantiate_in(fmup_t *f, char *err, size_t errlen)
     fmup_free_instance(f);
     f->log[0] = '\0';
     f->t = 0.0;
-    FMUP_AT(f, fmup_fn(f, "fmi2Instantiate", "fmi3InstantiateCoSimulation"));
+    FMUP_AT_INIT(f, fmup_fn(f, "fmi2Instantiate", "fmi3InstantiateCoSimulation"));
     if (f->cfg.fmi_version == 3) {
         f->c = f->instantiate3("fftune", f->cfg.guid, f->resource_path, false, false, false, false, NULL, 0, f,
                                fmup_log3, NULL);
@@ -733,14 +780,14 @@ static int fmup_instantiate_in(fmup_t *f, char *err, size_t errlen)
                   f->cfg.input, fmup_status_name(f, s));
         return -1;
     }
-    FMUP_AT(f, fmup_fn(f, "fmi2EnterInitializationMode", "fmi3EnterInitializationMode"));
+    FMUP_AT_INIT(f, fmup_fn(f, "fmi2EnterInitializationMode", "fmi3EnterInitializationMode"));
     s = f->cfg.fmi_version == 3 ? f->enter_init3(f->c, f->cfg.has_tolerance != 0, f->cfg.tolerance, 0.0, false, 0.0) : (int)f->enter_init(f->c);
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "fmi%dEnterInitializationMode returned %s", f->cfg.fmi_version,
                   fmup_status_name(f, s));
         return -1;
     }
-    FMUP_AT(f, fmup_fn(f, "fmi2ExitInitializationMode", "fmi3ExitInitializationMode"));
+    FMUP_AT_INIT(f, fmup_fn(f, "fmi2ExitInitializationMode", "fmi3ExitInitializationMode"));
     s = f->cfg.fmi_version == 3 ? f->exit_init3(f->c) : (int)f->exit_init(f->c);
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "fmi%dExitInitializationMode returned %s", f->cfg.fmi_version,
@@ -857,7 +904,7 @@ fmup_t *fmup_open(const fmup_cfg_t *cfg, double dt_s, char *err, size_t errlen)
     snprintf(f->resource_path, sizeof f->resource_path, "%s/resources/", cfg->unzipdir);
     snprintf(so, sizeof so, "%s/%s/%s.so", cfg->unzipdir, fmup_binary_dir(cfg), cfg->model_identifier);
     fmup_guard_install();
-    FMUP_AT(f, "loading the binary (its constructors)");
+    FMUP_AT_INIT(f, "loading the binary (its constructors)");
     f->lib = dlopen(so, RTLD_NOW | RTLD_LOCAL);
     FMUP_DONE();
     if (f->lib == NULL) {

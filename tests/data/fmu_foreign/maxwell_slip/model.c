@@ -5,7 +5,7 @@
  * Semi-implicit Euler, sub-steps of at most 0.2 sqrt(tolerance) s (the tolerance of
  * fmi2SetupExperiment, else 1e-4: 2 ms; the DefaultExperiment's 1e-8: 20 us). Elements from resources/elements.csv
  * (the first nElem rows). failMode 1 / 2 / 3: fmi2DoStep returns fmi2Discard / fmi2Pending /
- * fmi2Fatal from t >= failTime, 4: it crashes (tests of the importer). */
+ * fmi2Fatal from t >= failTime, 4: it crashes, 5: it never returns (tests of the importer). */
 #include <math.h>
 #include <stdio.h>
 #include <string.h>
@@ -91,6 +91,9 @@ int model_step(Model *m, double t, double h, char *msg, unsigned long n)
     double *r = m->r;
     if (m->i[I_FAILMODE] != 0 && t + 0.5 * h >= r[R_FAILT]) {
         static const int st[] = {fmi2OK, fmi2Discard, fmi2Pending, fmi2Fatal};
+        while (m->i[I_FAILMODE] == 5) {
+            r[R_PHI1] += 1.0; /* a hang (an endless solver loop), on purpose */
+        }
         if (m->i[I_FAILMODE] == 4) {
             volatile double *nowhere = NULL;
             r[R_PHI1] = *nowhere; /* a crash (SIGSEGV), on purpose */
