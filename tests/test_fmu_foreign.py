@@ -27,7 +27,7 @@ from fftune.host.cli import main
 from host_fixtures import REPO, drive_sim_missing_reason
 
 sys.path.insert(0, os.path.join(REPO, "tests", "data", "fmu_foreign"))
-import build as foreign  # noqa: E402  (tests/data/fmu_foreign/build.py)
+import foreign_fmus as foreign  # noqa: E402  (tests/data/fmu_foreign/foreign_fmus.py)
 
 pytestmark = [
     pytest.mark.skipif(drive_sim_missing_reason() is not None, reason=drive_sim_missing_reason() or ""),

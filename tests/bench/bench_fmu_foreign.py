@@ -16,7 +16,7 @@ import yaml
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 sys.path.insert(0, os.path.join(ROOT, "tests", "data", "fmu_foreign"))
-import build as foreign  # noqa: E402  (tests/data/fmu_foreign/build.py)
+import foreign_fmus as foreign  # noqa: E402  (tests/data/fmu_foreign/foreign_fmus.py)
 
 
 def plant_file(folder, name):
