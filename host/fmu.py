@@ -8,7 +8,8 @@ A plant file with an ``fmu:`` section::
       input: u                      # Real (FMI 3.0: Float64), causality input: the drive's output [V]
       output: theta1                # Real, causality output: what the encoder reads [rad]
       load_output: theta2           # optional: the load encoder (default: output)
-      parameters: {Fc: 0.0058}      # optional: start values set at instantiation
+      parameters: {Fc: 0.0058}      # optional: start values set at instantiation (nested
+                                    # keys are structured names: {friction: {Fc: 1}} = friction.Fc)
     sensor: {counts_per_rev: 2000, noise_std: 0.0, seed: 1}
     truth: {kfc_v: 0.1157}          # optional: what a report compares K_fc* with [V]
     drive: {...}                    # optional, as in configs/plant_twomass.yaml
@@ -197,6 +198,19 @@ def _variable(plant, fmu, md, key, name, causalities, types=("Real",)):
     return v
 
 
+def _flatten(values, prefix=""):
+    """Nested start values as structured names: {friction: {Fc: 1}} -> {'friction.Fc': 1}
+    (FMI's structured naming convention; a dotted key stays as it is)."""
+    flat = {}
+    for k, v in values.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            flat.update(_flatten(v, name + "."))
+        else:
+            flat[name] = v
+    return flat
+
+
 def _c_string(plant, what, text):
     """A string drive_sim uses as it is (the unpack folder, the model identifier, the GUID)."""
     if (len(text.encode("utf-8")) > STRING_MAX or any(ch in text for ch in '"\\')
@@ -315,6 +329,7 @@ def drive_sim_text(plant, cache=None):
     params = f.get("parameters") or {}
     if not isinstance(params, dict):
         raise _err(plant, "fmu.parameters", f"expected {{variable: value}}, got {params!r}")
+    params = _flatten(params)
     if len(params) > PARAMS_MAX:
         raise _err(plant, "fmu.parameters", f"{len(params)} values: drive_sim sets at most {PARAMS_MAX}")
     plist = []

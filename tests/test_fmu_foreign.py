@@ -331,3 +331,19 @@ def test_an_fmu_that_crashes_or_hangs_mid_run_stops_the_run_with_its_line(fmus, 
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("fftune: error: "), err
     assert f"; drive_sim: {plant}: FMU maxwell-slip_v2.fmu: {words}" in err[0], err[0]
+
+
+def test_nested_start_values_are_structured_names(fmus, tmp_path):
+    """parameters: {friction: {Fc: ...}} is friction.Fc (FMI's structured naming); an unknown
+    nested name is named in full."""
+    from fftune.analysis.errors import FftuneError
+    from fftune.host.fmu import drive_sim_text
+
+    nested = {"friction": {"Fc": 5.0e-3, "Fs": 8.0e-3}, "nSub": 12}
+    text, _ = drive_sim_text(plant_file(tmp_path, fmus["stribeck_stage"], "stribeck_stage", parameters=nested))
+    assert 'p0_name: "friction.Fc"' in text and "p0_vr: 11" in text and "p0_value: 0.005" in text
+    assert 'p1_name: "friction.Fs"' in text and "p1_vr: 12" in text
+    assert 'p2_name: "nSub"' in text and 'p2_type: "integer"' in text and "p2_value: 12.0" in text
+    with pytest.raises(FftuneError, match=r"key 'fmu.parameters.friction.Fk': .* no variable 'friction.Fk'"):
+        drive_sim_text(plant_file(tmp_path, fmus["stribeck_stage"], "stribeck_stage",
+                                  parameters={"friction": {"Fk": 1.0e-3}}))
