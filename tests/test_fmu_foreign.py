@@ -91,7 +91,15 @@ def small_demo_config(tmp_path):
 
 @pytest.mark.parametrize("name", list(foreign.FOREIGN))
 def test_a_foreign_fmu_runs_through_fftune_demo(fmus, tmp_path, capsys, name):
+    """BacklashStage with the shortest plant file (fmu: path, input, output; no sensor, no
+    truth: K_fc* is compared with the law's level here, not in the report)."""
     plant = plant_file(tmp_path, fmus[name], name)
+    minimal = name == "backlash_karnopp"
+    if minimal:
+        spec = foreign.FOREIGN[name]
+        with open(plant, "w", encoding="utf-8") as fh:
+            fh.write(f"fmu:\n  path: {os.path.basename(fmus[name])}\n  input: {spec['input']}\n"
+                     f"  output: {spec['output']}\n")
     out = tmp_path / "out"
     code = main(["demo", "--config", small_demo_config(tmp_path), "--plant", plant, "--out", str(out),
                  "--no-progress"])
@@ -100,7 +108,10 @@ def test_a_foreign_fmu_runs_through_fftune_demo(fmus, tmp_path, capsys, name):
     assert captured.err.strip() == "", captured.err          # (the FMU's chatter stays in drive_sim)
     res = yaml.safe_load(open(out / "results.yaml", encoding="utf-8"))
     truth = foreign.FOREIGN[name]["truth"]["kfc_v"]
-    assert res["tune"]["true_coulomb_v"] == pytest.approx(truth, rel=1e-6)   # (float32 in the drive)
+    if minimal:
+        assert res["tune"]["true_coulomb_v"] is None
+    else:
+        assert res["tune"]["true_coulomb_v"] == pytest.approx(truth, rel=1e-6)   # (float32 in the drive)
     s = res["tune"]["search"]
     if s["converged"]:
         assert abs(s["k_fc_star"] - truth) <= 3 * s["sigma_v"] + 0.05 * truth, s
