@@ -240,6 +240,28 @@ def _unit(v):
     return unit
 
 
+# units that are surely no angle in rad (a unit fftune cannot tell is taken as rad)
+_NOT_RAD = {"deg", "degree", "degrees", "°", "rev", "r", "turn", "grad", "gon", "mrad", "urad", "arcmin", "arcsec",
+            "rad/s", "deg/s", "rpm", "rev/min", "1/min", "m", "mm", "um", "m/s", "mm/s", "inc", "counts"}
+
+
+def _not_rad(md, unit):
+    """Why ``unit`` is surely not rad (its name, or its UnitDefinitions entry: a factor or an
+    offset, other base units), else None (rad, no unit, or a unit fftune cannot tell)."""
+    if not unit:
+        return None
+    base = next((u.baseUnit for u in (getattr(md, "unitDefinitions", None) or []) if u.name == unit), None)
+    if base is not None:
+        exps = [(k, getattr(base, k)) for k in ("kg", "m", "s", "A", "K", "mol", "cd", "rad") if getattr(base, k)]
+        scaled = base.factor != 1.0 or base.offset != 0.0
+        if exps == [("rad", 1)] and not scaled:
+            return None
+        if exps:                    # (a unit declared without a BaseUnit tells nothing: by its name)
+            text = " ".join(f"{k}^{e}" if e != 1 else k for k, e in exps)
+            return f"{unit!r} ({base.factor:g} {text}{f' + {base.offset:g}' if base.offset else ''})"
+    return repr(unit) if unit.strip().lower() in _NOT_RAD else None
+
+
 def _limits(v):
     """A variable's declared (min, max) as floats (its own attributes, else its declared
     type's; None where not declared)."""
@@ -322,9 +344,9 @@ def drive_sim_text(plant, cache=None):
     if f.get("load_output") is not None:
         vload = _variable(plant, shown, md, "fmu.load_output", f["load_output"], ("output",), real)
     for key, v in (("fmu.output", vout), ("fmu.load_output", vload)):
-        unit = _unit(v) if v is not None else None
-        if unit not in (None, "", "rad"):
-            raise _err(plant, key, f"variable {v.name!r} of FMU {shown} is in {unit!r}: the drive's encoder reads "
+        why = _not_rad(md, _unit(v)) if v is not None else None
+        if why:
+            raise _err(plant, key, f"variable {v.name!r} of FMU {shown} is in {why}: the drive's encoder reads "
                                    f"an angle in rad (export the angle in rad)")
     params = f.get("parameters") or {}
     if not isinstance(params, dict):

@@ -17,6 +17,7 @@ exit status 2, nothing written. The full demo per law (the defaults, K_fc* again
 truth): tests/bench/bench_fmu_foreign.py.
 """
 import os
+import re
 import shutil
 import sys
 
@@ -268,7 +269,7 @@ def test_an_output_that_is_no_angle_in_rad_is_one_line(fmus, tmp_path, capsys, k
     line = demo_error(tmp_path, capsys, plant)
     assert f"key 'fmu.{key}'" in line and f"'{name}'" in line
     if unit:
-        assert f"is in '{unit}': the drive's encoder reads an angle in rad" in line
+        assert f"is in '{unit}' (1 s^-1 rad): the drive's encoder reads an angle in rad" in line
     else:
         assert "causality 'local'" in line
 
@@ -358,3 +359,32 @@ def test_nested_start_values_are_structured_names(fmus, tmp_path):
     with pytest.raises(FftuneError, match=r"key 'fmu.parameters.friction.Fk': .* no variable 'friction.Fk'"):
         drive_sim_text(plant_file(tmp_path, fmus["stribeck_stage"], "stribeck_stage",
                                   parameters={"friction": {"Fk": 1.0e-3}}))
+
+
+@pytest.mark.parametrize("unit,definition,refused", [
+    ("Winkel", '<BaseUnit rad="1" factor="0.017453292519943295"/>', "'Winkel' (0.0174533 rad)"),
+    ("deg", None, "'deg'"),
+    ("radian", '<BaseUnit rad="1"/>', None),
+    ("Bogenmass", None, None),                # (a name fftune cannot tell: taken as rad)
+])
+def test_an_output_unit_is_judged_by_its_definition_else_its_name(fmus, tmp_path, unit, definition, refused):
+    from fftune.analysis.errors import FftuneError
+    from fftune.host.fmu import drive_sim_text
+
+    def edit(m):
+        xml = m["modelDescription.xml"].decode()
+        xml = xml.replace('<ScalarVariable name="phi[1]" valueReference="1" causality="output"><Real unit="rad" '
+                          'displayUnit="deg"/>', f'<ScalarVariable name="phi[1]" valueReference="1" '
+                          f'causality="output"><Real unit="{unit}"/>')
+        if definition:
+            xml = xml.replace("<UnitDefinitions>", f'<UnitDefinitions><Unit name="{unit}">{definition}</Unit>')
+        m["modelDescription.xml"] = xml.encode()
+    fmu = foreign.rezip(fmus["maxwell_slip"], tmp_path / f"unit {unit}.fmu", edit)
+    plant = plant_file(tmp_path, fmu, "maxwell_slip")
+    if refused:
+        with pytest.raises(FftuneError, match=r"key 'fmu.output': variable 'phi\[1\]' .* is in "
+                                              + re.escape(refused)):
+            drive_sim_text(plant)
+    else:
+        text, _ = drive_sim_text(plant)
+        assert 'output: "phi[1]"' in text
