@@ -30,7 +30,10 @@
  * initialises (SetupExperiment at t = 0, Enter/ExitInitializationMode) and reads the output;
  * fmup_trial also takes one step of dt with u = 0 on a throw-away instance first, so an FMU
  * that cannot step fails before the drive exists. Every failure is one message naming the
- * user's plant file, the FMU and the function or variable.
+ * user's plant file, the FMU and the function or variable; so is a crash inside the FMU
+ * (SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT) and a call that hangs (SIGALRM every second,
+ * installed by fmup_open: a step may take 1 to 2 s, loading and initialising 8 s), with
+ * drive_sim's exit status 2.
  *
  *   fmup_t f; fmup_cfg_t c;
  *   fmup_config_load(path, &c, err, n);  fmup_open(&f, &c, dt, err, n);
