@@ -407,6 +407,8 @@ def drive_sim_text(plant, cache=None):
     tol = _default_tolerance(md)
     if tol is not None:
         lines.append(f"  tolerance: {tol!r}")
+    if md.coSimulation.canBeInstantiatedOnlyOncePerProcess:
+        lines.append("  once_per_process: 1")       # (one instance, restarted by fmi2Reset)
     for i, (name, vr, typ, value) in enumerate(plist):
         lines += [f"  p{i}_name: {_c_label(name)}", f"  p{i}_vr: {vr}",
                   f'  p{i}_type: "{typ}"', f"  p{i}_value: {value!r}"]

@@ -5,11 +5,12 @@ The FMUs of tests/data/fmu_foreign/ are not made with fftune's fmugen.py / fmu_s
 hand-written FMI 2.0 co-simulation slave and hand-written modelDescription.xml files, compiled
 by FMPy's CMake project (fmpy.build.build_platform_binary), with friction laws fftune does not
 ship (smooth Stribeck + viscous; Maxwell-slip with a current loop and a one-step delay;
-Karnopp stick-slip with backlash) and the habits of other exporters: structured names with
+Karnopp stick-slip with backlash; elasto-plastic) and the habits of other exporters: structured names with
 dots, brackets and der(), declared units and types, Integer / Boolean parameters, fixed /
 tunable variability, calculated parameters, canHandleVariableCommunicationStepSize false, a
 GUID check, a model identifier other than the file name, binaries for win64 too, resources
-read through the resource URI, a logger called every step, fmi2Warning from steps. The plant
+read through the resource URI, a logger called every step, fmi2Warning from steps, embedded
+code that can be instantiated only once per process. The plant
 files and the cache live under paths with spaces and non-ASCII letters.
 
 Each bad one is one `fftune: error:` line naming the plant file and the variable or function,
@@ -90,7 +91,7 @@ def small_demo_config(tmp_path):
 
 # ---- good FMUs: through fftune demo --plant, fftune unchanged ----
 
-@pytest.mark.parametrize("name", list(foreign.FOREIGN))
+@pytest.mark.parametrize("name", ["stribeck_stage", "maxwell_slip", "backlash_karnopp"])   # (elastoplastic: the bench)
 def test_a_foreign_fmu_runs_through_fftune_demo(fmus, tmp_path, capsys, name):
     """BacklashStage with the shortest plant file (fmu: path, input, output; no sensor, no
     truth: K_fc* is compared with the law's level here, not in the report)."""
@@ -388,3 +389,52 @@ def test_an_output_unit_is_judged_by_its_definition_else_its_name(fmus, tmp_path
     else:
         text, _ = drive_sim_text(plant)
         assert 'output: "phi[1]"' in text
+
+
+def test_an_fmu_instantiable_once_per_process_restarts_by_reset(fmus, tmp_path):
+    """ep-stage.fmu (canBeInstantiatedOnlyOncePerProcess, embedded code: its second
+    fmi2Instantiate fails): drive_sim's trial step and an NMT reset go through fmi2Reset of
+    the one instance; the run after the reset repeats the first run's samples."""
+    import time
+
+    import numpy as np
+
+    from fftune.host.drive import BusOptions, DriveClient
+    from fftune.host.fmu import drive_sim_text
+    from fftune.host.sim import start_drive_sim
+    from host_fixtures import EDS
+
+    plant = plant_file(tmp_path, fmus["elastoplastic"], "elastoplastic")
+    data = yaml.safe_load(open(plant, encoding="utf-8"))
+    data["controller"] = {"kp": 0.0, "kd": 0.0}
+    open(plant, "w", encoding="utf-8").write(yaml.safe_dump(data, allow_unicode=True))
+    assert "once_per_process: 1" in drive_sim_text(plant)[0]
+    req = {"exc_kind": 1, "exc_inject": 1, "exc_amplitude": 0.35, "exc_offset": 0.04, "exc_period": 1024,
+           "exc_sine_cycles": 2, "exc_settle_periods": 0, "exc_record_periods": 1}
+    sim = start_drive_sim(plant, log_path=str(tmp_path / "drive_sim.log"))
+    try:
+        with DriveClient(BusOptions(port=sim.port, host=sim.host, eds=EDS), progress=False, heartbeat_ms=250) as d:
+            d.enable()
+            first = np.asarray(d.run(req, signals=("motor_angle",)).signals["motor_angle"])
+            d.node.nmt.state = "RESET"
+            time.sleep(0.3)
+            d.write(0x1016, 1, (127 << 16) | 1000)   # the reset cleared the consumer: re-arm it
+            d.enable()
+            reset = np.asarray(d.run(req, signals=("motor_angle",)).signals["motor_angle"])
+    finally:
+        sim.stop()
+    assert np.max(np.abs(first)) > 0.05 and abs(first[-1]) > 0.01      # it moved and stayed displaced
+    np.testing.assert_array_equal(reset, first)
+
+
+def test_two_axes_cannot_share_an_fmu_instantiable_once_per_process(fmus, tmp_path):
+    from fftune.analysis.errors import FftuneError
+    from fftune.host.sim import start_drive_sim
+
+    plant = plant_file(tmp_path, fmus["elastoplastic"], "elastoplastic")
+    with pytest.raises(FftuneError) as info:
+        start_drive_sim(plant, node_id=1, extra=["--axis", f"1:{plant}", "--axis", f"2:{plant}"],
+                        log_path=str(tmp_path / "drive_sim.log"))
+    line = str(info.value)
+    assert line.startswith(f"drive_sim: {plant}: FMU ep-stage.fmu: another axis of this drive_sim runs it"), line
+    assert "canBeInstantiatedOnlyOncePerProcess" in line and "\n" not in line

@@ -48,6 +48,7 @@ typedef fmi2Status fmi2GetRealTYPE(fmi2Component, const fmi2ValueReference[], si
 typedef fmi2Status fmi2SetIntegerTYPE(fmi2Component, const fmi2ValueReference[], size_t, const fmi2Integer[]);
 typedef fmi2Status fmi2SetBooleanTYPE(fmi2Component, const fmi2ValueReference[], size_t, const fmi2Boolean[]);
 typedef fmi2Status fmi2DoStepTYPE(fmi2Component, fmi2Real, fmi2Real, fmi2Boolean);
+typedef fmi2Status fmi2ResetTYPE(fmi2Component);
 
 /* ---- the part of the FMI 3.0 standard used here (fmi3PlatformTypes.h, fmi3FunctionTypes.h);
  * fmi3Status has fmi2Status' first five values */
@@ -83,6 +84,7 @@ struct fmup {
     fmi2SetIntegerTYPE *set_integer;
     fmi2SetBooleanTYPE *set_boolean;
     fmi2DoStepTYPE *do_step;
+    fmi2ResetTYPE *reset; /* (fmi3Reset has the same shape) */
     /* FMI 3.0 (cfg.fmi_version 3) */
     fmi3GetVersionTYPE *get_version3;
     fmi3InstantiateCoSimulationTYPE *instantiate3;
@@ -111,7 +113,7 @@ struct fmup {
 
 typedef enum { K_STR, K_INT } fmup_kind_t;
 
-#define FMUP_KEYS 13u /* the named keys of fmup_key; pN_* follow */
+#define FMUP_KEYS 14u /* the named keys of fmup_key; pN_* follow */
 
 static int fmup_parse_string(const char *text, char *out, size_t outlen, char *msg, size_t msglen)
 {
@@ -177,7 +179,8 @@ static void fmup_strip_comment(char *value)
 static int fmup_key(fmup_cfg_t *c, const char *key, const char *value, unsigned seen[], char *msg, size_t msglen)
 {
     static const char *const names[] = {"source", "path", "fmi_version", "unzipdir", "model_identifier", "guid",
-                                        "input", "input_vr", "output", "output_vr", "load_output", "load_output_vr", "tolerance"};
+                                        "input", "input_vr", "output", "output_vr", "load_output", "load_output_vr", "tolerance",
+                                        "once_per_process"};
     for (unsigned i = 0; i < sizeof names / sizeof names[0]; i++) {
         if (strcmp(key, names[i]) != 0) {
             continue;
@@ -208,6 +211,15 @@ static int fmup_key(fmup_cfg_t *c, const char *key, const char *value, unsigned 
             c->has_load_output = 1;
             return fmup_parse_string(value, c->load_output, sizeof c->load_output, msg, msglen);
         case 11: return fmup_parse_uint(value, &c->load_output_vr, msg, msglen);
+        case 13: {
+            unsigned v;
+            if (fmup_parse_uint(value, &v, msg, msglen) != 0 || v > 1u) {
+                snprintf(msg, msglen, "fmu.once_per_process: '%s' is not 0 or 1", value);
+                return -1;
+            }
+            c->once_per_process = (int)v;
+            return 0;
+        }
         default: {
             char *end;
             errno = 0;
@@ -585,6 +597,9 @@ static int fmup_bind(fmup_t *f, char *err, size_t errlen)
         FMUP_BIND(set_int32, "fmi3SetInt32");
         FMUP_BIND(set_boolean3, "fmi3SetBoolean");
         FMUP_BIND(do_step3, "fmi3DoStep");
+        if (f->cfg.once_per_process) {
+            FMUP_BIND(reset, "fmi3Reset");
+        }
         FMUP_AT(f, "fmi3GetVersion");
         v = f->get_version3();
     } else {
@@ -601,6 +616,9 @@ static int fmup_bind(fmup_t *f, char *err, size_t errlen)
         FMUP_BIND(set_integer, "fmi2SetInteger");
         FMUP_BIND(set_boolean, "fmi2SetBoolean");
         FMUP_BIND(do_step, "fmi2DoStep");
+        if (f->cfg.once_per_process) {
+            FMUP_BIND(reset, "fmi2Reset");
+        }
         FMUP_AT(f, "fmi2GetVersion");
         v = f->get_version();
         FMUP_AT(f, "fmi2GetTypesPlatform");
@@ -716,12 +734,29 @@ static void fmup_log3(fmi3InstanceEnvironment env, int status, const char *categ
 }
 
 /* a new instance at t = 0 with the start values, initialised (0, or -1) */
-static int fmup_instantiate_in(fmup_t *f, char *err, size_t errlen)
+/* a new instance, or (canBeInstantiatedOnlyOncePerProcess) the one instance back to its
+ * instantiated state by fmi2Reset / fmi3Reset (0, or -1 with the failure recorded) */
+static int fmup_new_instance(fmup_t *f, char *err, size_t errlen)
 {
-    int s;
-    fmup_free_instance(f);
     f->log[0] = '\0';
     f->t = 0.0;
+    if (f->cfg.once_per_process && f->c != NULL) {
+        if (f->fatal) {
+            fmup_fail(f, err, errlen, "it returned %sFatal and can be instantiated only once per process "
+                      "(canBeInstantiatedOnlyOncePerProcess): no restart", f->cfg.fmi_version == 3 ? "fmi3" : "fmi2");
+            return -1;
+        }
+        FMUP_AT_INIT(f, fmup_fn(f, "fmi2Reset", "fmi3Reset"));
+        int s = (int)f->reset(f->c);
+        f->ok = s <= (int)fmi2Warning;
+        if (!f->ok) {
+            fmup_fail(f, err, errlen, "%s (its restart: it can be instantiated only once per process) returned %s",
+                      fmup_fn(f, "fmi2Reset", "fmi3Reset"), fmup_status_name(f, s));
+            return -1;
+        }
+        return 0;
+    }
+    fmup_free_instance(f);
     FMUP_AT_INIT(f, fmup_fn(f, "fmi2Instantiate", "fmi3InstantiateCoSimulation"));
     if (f->cfg.fmi_version == 3) {
         f->c = f->instantiate3("fftune", f->cfg.guid, f->resource_path, false, false, false, false, NULL, 0, f,
@@ -734,6 +769,15 @@ static int fmup_instantiate_in(fmup_t *f, char *err, size_t errlen)
         fmup_fail(f, err, errlen, "%s (co-simulation, %s %s) returned NULL",
                   fmup_fn(f, "fmi2Instantiate", "fmi3InstantiateCoSimulation"),
                   fmup_fn(f, "GUID", "instantiation token"), f->cfg.guid);
+        return -1;
+    }
+    return 0;
+}
+
+static int fmup_instantiate_in(fmup_t *f, char *err, size_t errlen)
+{
+    int s;
+    if (fmup_new_instance(f, err, errlen) != 0) {
         return -1;
     }
     if (f->cfg.fmi_version == 2) {
@@ -904,6 +948,16 @@ fmup_t *fmup_open(const fmup_cfg_t *cfg, double dt_s, char *err, size_t errlen)
     snprintf(f->resource_path, sizeof f->resource_path, "%s/resources/", cfg->unzipdir);
     snprintf(so, sizeof so, "%s/%s/%s.so", cfg->unzipdir, fmup_binary_dir(cfg), cfg->model_identifier);
     fmup_guard_install();
+    if (cfg->once_per_process) {
+        void *loaded = dlopen(so, RTLD_NOW | RTLD_NOLOAD);
+        if (loaded != NULL) {
+            dlclose(loaded);
+            fmup_fail(f, err, errlen, "another axis of this drive_sim runs it already, and it can be instantiated "
+                      "only once per process (canBeInstantiatedOnlyOncePerProcess): one drive_sim per such axis");
+            free(f);
+            return NULL;
+        }
+    }
     FMUP_AT_INIT(f, "loading the binary (its constructors)");
     f->lib = dlopen(so, RTLD_NOW | RTLD_LOCAL);
     FMUP_DONE();

@@ -21,6 +21,9 @@
  *     load_output_vr: 3
  *     tolerance: 1e-06                         optional: the FMU's DefaultExperiment tolerance, passed
  *                                              to fmi2SetupExperiment / fmi3EnterInitializationMode (as FMPy does)
+ *     once_per_process: 1                      optional: canBeInstantiatedOnlyOncePerProcess: one
+ *                                              instance for the process' life (trial and NMT reset
+ *                                              through fmi2Reset / fmi3Reset; a second axis refused)
  *     p0_name: "Fc"                            start values, p0 .. p31: name, value
  *     p0_vr: 7                                 reference, type (real, integer, boolean: FMI 3.0 Float64, Int32, Boolean)
  *     p0_type: "real"
@@ -74,6 +77,7 @@ typedef struct {
     int has_load_output;
     double tolerance;       /* > 0 if has_tolerance */
     int has_tolerance;
+    int once_per_process;
     int n_params;
     fmup_param_t param[FMUP_PARAMS_MAX];
 } fmup_cfg_t;

@@ -43,6 +43,13 @@ FOREIGN = {
         "truth": {"kfc_v": 5.5e-3 / 0.05, "ks_v": 7.0e-3 / 0.05},
         "law": "Karnopp stick-slip Coulomb at the motor, backlash to the load",
     },
+    "elastoplastic": {
+        "file": "ep-stage.fmu",
+        "input": "Motor.u", "output": "Motor.phi", "load_output": "Load.phi",
+        "parameters": {"friction": {"Fc": 6.2e-3, "Fs": 8.5e-3}, "nSub": 40},
+        "truth": {"kfc_v": 6.2e-3 / 0.05, "kv_v": 1.5e-4 / 0.05, "ks_v": 8.5e-3 / 0.05},
+        "law": "elasto-plastic (Dupont 2002) with Stribeck and viscous; one instance per process",
+    },
 }
 
 

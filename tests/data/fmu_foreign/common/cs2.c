@@ -6,7 +6,8 @@
  *   MODEL_GUID, NR / NI / NB (Real / Integer / Boolean variables, value reference = index),
  *   Model (r[NR], i[NI], b[NB] and its states), model_defaults(), model_settable(),
  *   model_init(), model_step() (returns an fmi2Status, a message for anything but fmi2OK),
- *   optional CS2_CHATTY (log through the logger callback every step, whatever loggingOn says).
+ *   optional CS2_CHATTY (log through the logger callback every step, whatever loggingOn says),
+ *   optional CS2_ONCE_PER_PROCESS (a second fmi2Instantiate in the process fails, as embedded code).
  */
 #include <stdarg.h>
 #include <stdio.h>
@@ -112,6 +113,14 @@ fmi2Component fmi2Instantiate(fmi2String name, fmi2Type type, fmi2String guid, f
         cb->freeMemory(c);
         return NULL;
     }
+#ifdef CS2_ONCE_PER_PROCESS
+    static int ever; /* embedded code: one instance for the life of the process */
+    if (ever++) {
+        cs2_log(c, fmi2Error, "logStatusError", "only one instance per process (canBeInstantiatedOnlyOncePerProcess)");
+        cb->freeMemory(c);
+        return NULL;
+    }
+#endif
     if (guid == NULL || strcmp(guid, MODEL_GUID) != 0) {
         cs2_log(c, fmi2Error, "logStatusError", "wrong GUID %s, expected %s", guid ? guid : "(null)", MODEL_GUID);
         cb->freeMemory(c);
