@@ -4,11 +4,12 @@ A plant file with an ``fmu:`` section::
 
     fmu:
       path: models/stage.fmu        # FMI 2.0 or 3.0 co-simulation; relative: beside the plant file,
-                                    # else from the working directory
+                                    # else from the working directory; ~ is the home folder
       input: u                      # Real (FMI 3.0: Float64), causality input: the drive's output [V]
       output: theta1                # Real, causality output: what the encoder reads [rad]
       load_output: theta2           # optional: the load encoder (default: output)
-      parameters: {Fc: 0.0058}      # optional: start values set at instantiation
+      parameters: {Fc: 0.0058}      # optional: start values set at instantiation (nested
+                                    # keys are structured names: {friction: {Fc: 1}} = friction.Fc)
     sensor: {counts_per_rev: 2000, noise_std: 0.0, seed: 1}
     truth: {kfc_v: 0.1157}          # optional: what a report compares K_fc* with [V]
     drive: {...}                    # optional, as in configs/plant_twomass.yaml
@@ -22,6 +23,7 @@ Every problem is one :class:`FftuneError` naming the plant file, the FMU and the
 variable.
 """
 import hashlib
+import math
 import os
 import platform
 import shutil
@@ -83,6 +85,7 @@ def _err(plant, key, msg):
 def _fmu_file(plant, text):
     if not isinstance(text, str) or not text:
         raise _err(plant, "fmu.path", f"expected the FMU's file name, got {text!r}")
+    text = os.path.expanduser(text)          # ~/models/stage.fmu, as a shell would
     if os.path.isabs(text):
         cands = [text]
     else:
@@ -146,7 +149,9 @@ def _check_binary(plant, fmu, unzipdir, mid, version=2):
     so = os.path.join(unzipdir, "binaries", bdir_name, mid + ".so")
     if not os.path.isfile(so):
         bdir = os.path.join(unzipdir, "binaries")
-        have = sorted(os.listdir(bdir)) if os.path.isdir(bdir) else []
+        # platforms with a file in their folder (zip tools keep empty folders: not a binary)
+        have = sorted(d for d in os.listdir(bdir) if os.path.isdir(os.path.join(bdir, d))
+                      and any(files for _, _, files in os.walk(os.path.join(bdir, d)))) if os.path.isdir(bdir) else []
         if bdir_name in have:
             raise FftuneError(f"{plant}: FMU {fmu}: no {rel} (model identifier {mid}); binaries/{bdir_name} holds "
                               f"{', '.join(sorted(os.listdir(os.path.join(bdir, bdir_name)))) or 'nothing'}")
@@ -170,6 +175,9 @@ def _check_binary(plant, fmu, unzipdir, mid, version=2):
 
 
 def _variable(plant, fmu, md, key, name, causalities, types=("Real",)):
+    if isinstance(name, bool) or name is None:
+        raise _err(plant, key, f"expected a variable name of {fmu}, got {name!r} (YAML reads on, off, yes, no, "
+                               f"true, false, null as such: quote the name, e.g. 'on')")
     if not isinstance(name, str) or not name:
         raise _err(plant, key, f"expected a variable name of {fmu}, got {name!r}")
     by_name = {v.name: v for v in md.modelVariables}
@@ -190,11 +198,93 @@ def _variable(plant, fmu, md, key, name, causalities, types=("Real",)):
     return v
 
 
+def _flatten(values, prefix=""):
+    """Nested start values as structured names: {friction: {Fc: 1}} -> {'friction.Fc': 1}
+    (FMI's structured naming convention; a dotted key stays as it is)."""
+    flat = {}
+    for k, v in values.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            flat.update(_flatten(v, name + "."))
+        else:
+            flat[name] = v
+    return flat
+
+
 def _c_string(plant, what, text):
-    if len(text) > STRING_MAX or any(ch in text for ch in '"\\') or any(ord(ch) < 0x20 for ch in text):
-        raise FftuneError(f"{plant}: {what} {text[:80]!r}: drive_sim takes at most {STRING_MAX} characters "
+    """A string drive_sim uses as it is (the unpack folder, the model identifier, the GUID)."""
+    if (len(text.encode("utf-8")) > STRING_MAX or any(ch in text for ch in '"\\')
+            or any(ord(ch) < 0x20 for ch in text)):
+        raise FftuneError(f"{plant}: {what} {text[:80]!r}: drive_sim takes at most {STRING_MAX} bytes (UTF-8) "
                           f"without quotes, backslashes or control characters")
     return f'"{text}"'
+
+
+def _c_label(text):
+    """A name drive_sim only prints in its messages (the plant file, the FMU file, variable
+    names): a double quote shown as ', a backslash as /, a control character as ?, cut to
+    STRING_MAX bytes (UTF-8) with '...' -- never a reason to refuse the file."""
+    out = "".join("'" if ch == '"' else "/" if ch == "\\" else "?" if ord(ch) < 0x20 else ch for ch in str(text))
+    if len(out.encode("utf-8")) > STRING_MAX:
+        while len(out.encode("utf-8")) > STRING_MAX - 3:
+            out = out[:-1]
+        out += "..."
+    return f'"{out}"'
+
+
+def _unit(v):
+    """A variable's declared unit (its own, else its declared type's), None if none."""
+    unit = getattr(v, "unit", None)
+    if unit is None and getattr(v, "declaredType", None) is not None:
+        unit = getattr(v.declaredType, "unit", None)
+    return unit
+
+
+# units that are surely no angle in rad (a unit fftune cannot tell is taken as rad)
+_NOT_RAD = {"deg", "degree", "degrees", "°", "rev", "r", "turn", "grad", "gon", "mrad", "urad", "arcmin", "arcsec",
+            "rad/s", "deg/s", "rpm", "rev/min", "1/min", "m", "mm", "um", "m/s", "mm/s", "inc", "counts"}
+
+
+def _not_rad(md, unit):
+    """Why ``unit`` is surely not rad (its name, or its UnitDefinitions entry: a factor or an
+    offset, other base units), else None (rad, no unit, or a unit fftune cannot tell)."""
+    if not unit:
+        return None
+    base = next((u.baseUnit for u in (getattr(md, "unitDefinitions", None) or []) if u.name == unit), None)
+    if base is not None:
+        exps = [(k, getattr(base, k)) for k in ("kg", "m", "s", "A", "K", "mol", "cd", "rad") if getattr(base, k)]
+        scaled = base.factor != 1.0 or base.offset != 0.0
+        if exps == [("rad", 1)] and not scaled:
+            return None
+        if exps:                    # (a unit declared without a BaseUnit tells nothing: by its name)
+            text = " ".join(f"{k}^{e}" if e != 1 else k for k, e in exps)
+            return f"{unit!r} ({base.factor:g} {text}{f' + {base.offset:g}' if base.offset else ''})"
+    return repr(unit) if unit.strip().lower() in _NOT_RAD else None
+
+
+def _limits(v):
+    """A variable's declared (min, max) as floats (its own attributes, else its declared
+    type's; None where not declared)."""
+    def one(attr):
+        text = getattr(v, attr, None)
+        if text is None and getattr(v, "declaredType", None) is not None:
+            text = getattr(v.declaredType, attr, None)
+        try:
+            return None if text is None else float(text)
+        except (TypeError, ValueError):
+            return None
+    return one("min"), one("max")
+
+
+def _default_tolerance(md):
+    """The FMU's DefaultExperiment tolerance (positive, finite), else None: drive_sim passes it
+    to fmi2SetupExperiment / fmi3EnterInitializationMode as FMPy's simulate_fmu does, so the
+    FMU's own solver runs as it does under FMPy."""
+    try:
+        tol = float(md.defaultExperiment.tolerance)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    return tol if math.isfinite(tol) and tol > 0 else None
 
 
 def _numbers(plant, section, values, keys):
@@ -205,8 +295,8 @@ def _numbers(plant, section, values, keys):
     for k, v in values.items():
         if keys is not None and k not in keys:
             raise _err(plant, f"{section}.{k}", f"unknown key (expected one of {', '.join(keys)})")
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise _err(plant, f"{section}.{k}", f"expected a number, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise _err(plant, f"{section}.{k}", f"expected a finite number, got {v!r}")
     return values
 
 
@@ -253,9 +343,15 @@ def drive_sim_text(plant, cache=None):
     vload = None
     if f.get("load_output") is not None:
         vload = _variable(plant, shown, md, "fmu.load_output", f["load_output"], ("output",), real)
+    for key, v in (("fmu.output", vout), ("fmu.load_output", vload)):
+        why = _not_rad(md, _unit(v)) if v is not None else None
+        if why:
+            raise _err(plant, key, f"variable {v.name!r} of FMU {shown} is in {why}: the drive's encoder reads "
+                                   f"an angle in rad (export the angle in rad)")
     params = f.get("parameters") or {}
     if not isinstance(params, dict):
         raise _err(plant, "fmu.parameters", f"expected {{variable: value}}, got {params!r}")
+    params = _flatten(params)
     if len(params) > PARAMS_MAX:
         raise _err(plant, "fmu.parameters", f"{len(params)} values: drive_sim sets at most {PARAMS_MAX}")
     plist = []
@@ -272,8 +368,17 @@ def drive_sim_text(plant, cache=None):
             value = float(value)
         elif isinstance(value, bool) or not isinstance(value, (int, float)):
             raise _err(plant, key, f"expected a number, got {value!r}")
+        elif not math.isfinite(value):
+            raise _err(plant, key, f"expected a finite number, got {value!r}")
         elif v.type in ("Integer", "Int32") and value != int(value):
             raise _err(plant, key, f"variable {name!r} is Integer: expected a whole number, got {value!r}")
+        elif v.type in ("Integer", "Int32") and not -2 ** 31 <= value < 2 ** 31:
+            raise _err(plant, key, f"variable {name!r} is Integer (32 bits): {value!r} is out of its range")
+        if v.type != "Boolean":
+            lo, hi = _limits(v)
+            if (lo is not None and value < lo) or (hi is not None and value > hi):
+                raise _err(plant, key, f"{value!r} is outside the range variable {name!r} of FMU {shown} declares "
+                                       f"(min {lo if lo is not None else '-inf'}, max {hi if hi is not None else 'inf'})")
         kind = {"Real": "real", "Float64": "real", "Integer": "integer", "Int32": "integer"}.get(v.type, "boolean")
         plist.append((str(name), v.valueReference, kind, float(value)))
     sensor = _numbers(plant, "sensor", data.get("sensor"), SENSOR_KEYS)
@@ -286,21 +391,26 @@ def drive_sim_text(plant, cache=None):
             lines.append(f"{section}:")
             lines += [f"  {k}: {v!r}" for k, v in values.items()]
     lines += ["fmu:",
-              f"  source: {_c_string(plant, 'plant file', str(plant))}",
-              f"  path: {_c_string(plant, 'fmu.path', str(shown))}",
+              f"  source: {_c_label(plant)}",
+              f"  path: {_c_label(shown)}",
               f"  fmi_version: {version}",
               f"  unzipdir: {_c_string(plant, 'unpack folder', unzipdir)}",
               f"  model_identifier: {_c_string(plant, 'model identifier', mid)}",
               f"  guid: {_c_string(plant, 'GUID', md.guid or '')}",
-              f"  input: {_c_string(plant, 'fmu.input', vin.name)}",
+              f"  input: {_c_label(vin.name)}",
               f"  input_vr: {vin.valueReference}",
-              f"  output: {_c_string(plant, 'fmu.output', vout.name)}",
+              f"  output: {_c_label(vout.name)}",
               f"  output_vr: {vout.valueReference}"]
     if vload is not None:
-        lines += [f"  load_output: {_c_string(plant, 'fmu.load_output', vload.name)}",
+        lines += [f"  load_output: {_c_label(vload.name)}",
                   f"  load_output_vr: {vload.valueReference}"]
+    tol = _default_tolerance(md)
+    if tol is not None:
+        lines.append(f"  tolerance: {tol!r}")
+    if md.coSimulation.canBeInstantiatedOnlyOncePerProcess:
+        lines.append("  once_per_process: 1")       # (one instance, restarted by fmi2Reset)
     for i, (name, vr, typ, value) in enumerate(plist):
-        lines += [f"  p{i}_name: {_c_string(plant, 'fmu.parameters', name)}", f"  p{i}_vr: {vr}",
+        lines += [f"  p{i}_name: {_c_label(name)}", f"  p{i}_vr: {vr}",
                   f'  p{i}_type: "{typ}"', f"  p{i}_value: {value!r}"]
     return "\n".join(lines) + "\n", unzipdir
 

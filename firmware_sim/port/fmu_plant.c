@@ -8,12 +8,15 @@
 #include <dlfcn.h>
 #include <errno.h>
 #include <math.h>
+#include <signal.h>
 #include <stdarg.h>
 #include <stdbool.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/time.h>
+#include <unistd.h>
 
 /* ---- the part of the FMI 2.0 standard used here (fmi2TypesPlatform.h, fmi2FunctionTypes.h) */
 typedef void *fmi2Component;
@@ -45,6 +48,7 @@ typedef fmi2Status fmi2GetRealTYPE(fmi2Component, const fmi2ValueReference[], si
 typedef fmi2Status fmi2SetIntegerTYPE(fmi2Component, const fmi2ValueReference[], size_t, const fmi2Integer[]);
 typedef fmi2Status fmi2SetBooleanTYPE(fmi2Component, const fmi2ValueReference[], size_t, const fmi2Boolean[]);
 typedef fmi2Status fmi2DoStepTYPE(fmi2Component, fmi2Real, fmi2Real, fmi2Boolean);
+typedef fmi2Status fmi2ResetTYPE(fmi2Component);
 
 /* ---- the part of the FMI 3.0 standard used here (fmi3PlatformTypes.h, fmi3FunctionTypes.h);
  * fmi3Status has fmi2Status' first five values */
@@ -80,6 +84,7 @@ struct fmup {
     fmi2SetIntegerTYPE *set_integer;
     fmi2SetBooleanTYPE *set_boolean;
     fmi2DoStepTYPE *do_step;
+    fmi2ResetTYPE *reset; /* (fmi3Reset has the same shape) */
     /* FMI 3.0 (cfg.fmi_version 3) */
     fmi3GetVersionTYPE *get_version3;
     fmi3InstantiateCoSimulationTYPE *instantiate3;
@@ -107,6 +112,8 @@ struct fmup {
 /* ---- the plant file's fmu: section ---- */
 
 typedef enum { K_STR, K_INT } fmup_kind_t;
+
+#define FMUP_KEYS 14u /* the named keys of fmup_key; pN_* follow */
 
 static int fmup_parse_string(const char *text, char *out, size_t outlen, char *msg, size_t msglen)
 {
@@ -172,7 +179,8 @@ static void fmup_strip_comment(char *value)
 static int fmup_key(fmup_cfg_t *c, const char *key, const char *value, unsigned seen[], char *msg, size_t msglen)
 {
     static const char *const names[] = {"source", "path", "fmi_version", "unzipdir", "model_identifier", "guid",
-                                        "input", "input_vr", "output", "output_vr", "load_output", "load_output_vr"};
+                                        "input", "input_vr", "output", "output_vr", "load_output", "load_output_vr", "tolerance",
+                                        "once_per_process"};
     for (unsigned i = 0; i < sizeof names / sizeof names[0]; i++) {
         if (strcmp(key, names[i]) != 0) {
             continue;
@@ -202,7 +210,27 @@ static int fmup_key(fmup_cfg_t *c, const char *key, const char *value, unsigned 
         case 10:
             c->has_load_output = 1;
             return fmup_parse_string(value, c->load_output, sizeof c->load_output, msg, msglen);
-        default: return fmup_parse_uint(value, &c->load_output_vr, msg, msglen);
+        case 11: return fmup_parse_uint(value, &c->load_output_vr, msg, msglen);
+        case 13: {
+            unsigned v;
+            if (fmup_parse_uint(value, &v, msg, msglen) != 0 || v > 1u) {
+                snprintf(msg, msglen, "fmu.once_per_process: '%s' is not 0 or 1", value);
+                return -1;
+            }
+            c->once_per_process = (int)v;
+            return 0;
+        }
+        default: {
+            char *end;
+            errno = 0;
+            c->tolerance = strtod(value, &end);
+            if (end == value || *end != '\0' || errno == ERANGE || !isfinite(c->tolerance) || c->tolerance <= 0.0) {
+                snprintf(msg, msglen, "fmu.tolerance: '%s' is not a positive finite number", value);
+                return -1;
+            }
+            c->has_tolerance = 1;
+            return 0;
+        }
         }
     }
     /* pN_name / pN_vr / pN_type / pN_value */
@@ -221,7 +249,7 @@ static int fmup_key(fmup_cfg_t *c, const char *key, const char *value, unsigned 
     if ((int)idx >= c->n_params) {
         c->n_params = (int)idx + 1;
     }
-    unsigned slot = 12u + 4u * idx;
+    unsigned slot = FMUP_KEYS + 4u * idx;
     if (strcmp(field, "name") == 0) {
         if (seen[slot]++) {
             snprintf(msg, msglen, "duplicate key 'fmu.%s'", key);
@@ -283,7 +311,7 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
         return -1;
     }
     fmup_cfg_t *c = calloc(1, sizeof *c);
-    unsigned seen[12 + 4 * FMUP_PARAMS_MAX];
+    unsigned seen[FMUP_KEYS + 4 * FMUP_PARAMS_MAX];
     memset(seen, 0, sizeof seen);
     char line[1200], msg[700] = "";
     int lineno = 0, rc = c ? 0 : -1, in_fmu = 0, found = 0;
@@ -350,7 +378,7 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
         return -1;
     }
     for (int i = 0; i < c->n_params; i++) {
-        unsigned s = 12u + 4u * (unsigned)i;
+        unsigned s = FMUP_KEYS + 4u * (unsigned)i;
         if (!seen[s] || !seen[s + 1] || !seen[s + 2] || !seen[s + 3]) {
             snprintf(err, errlen, "%s: fmu.p%d: name, vr, type and value go together", path, i);
             free(c);
@@ -369,6 +397,111 @@ int fmup_config_load(const char *path, fmup_cfg_t *out, char *err, size_t errlen
 }
 
 /* ---- the FMU ---- */
+
+/* A crash inside the FMU (SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT while one of its functions
+ * runs) is one "drive_sim: error:" line naming the plant file, the FMU and the function, and
+ * exit status 2, instead of a bare signal. The one piece of process state here: a signal
+ * handler has no other way to know which FMU call was running (set around each call, cleared
+ * when drive_sim's own code runs again, so its own crashes stay crashes). */
+static fmup_t *volatile fmup_crash_f;
+static const char *volatile fmup_crash_fn;
+static volatile unsigned long fmup_calls; /* FMU calls begun (the hang watchdog's progress) */
+static volatile unsigned fmup_patience;   /* seconds a call may take: 1 (to 2) a step, 8 loading / initialising */
+
+#define FMUP_PATIENCE_STEP 1u
+#define FMUP_PATIENCE_INIT 8u
+#define FMUP_AT_P(f, name, p)   \
+    do {                        \
+        fmup_crash_fn = (name); \
+        fmup_patience = (p);    \
+        fmup_calls++;           \
+        fmup_crash_f = (f);     \
+    } while (0)
+#define FMUP_AT(f, name) FMUP_AT_P(f, name, FMUP_PATIENCE_STEP)
+#define FMUP_AT_INIT(f, name) FMUP_AT_P(f, name, FMUP_PATIENCE_INIT)
+#define FMUP_DONE() (fmup_crash_f = NULL)
+
+static void fmup_on_crash(int sig)
+{
+    fmup_t *f = fmup_crash_f;
+    if (f != NULL) {
+        static char line[2 * FMUP_STR + 400];
+        const char *name = sig == SIGSEGV ? "SIGSEGV" : sig == SIGBUS ? "SIGBUS" : sig == SIGFPE ? "SIGFPE"
+                           : sig == SIGILL ? "SIGILL" : "SIGABRT";
+        int n = snprintf(line, sizeof line, "drive_sim: error: %s: FMU %s: the FMU crashed (%s) in %s at t = %.9g s; "
+                         "drive_sim stops\n", f->cfg.source, f->cfg.path, name, fmup_crash_fn, f->t);
+        if (n > 0) {
+            size_t len = (size_t)n < sizeof line ? (size_t)n : sizeof line - 1;
+            ssize_t w = write(STDERR_FILENO, line, len);
+            (void)w;
+        }
+        _exit(2);
+    }
+    signal(sig, SIG_DFL);
+    raise(sig);
+}
+
+/* The hang watchdog: SIGALRM every second (wall clock; installed only with an FMU plant; the
+ * bus code takes EINTR as "nothing yet", file reads restart); an FMU call that has not
+ * returned after its patience is one line and exit status 2 (fftune waits 10 s for drive_sim
+ * to start and 2 x 2 s for an SDO answer: without this a hung FMU is a bare timeout naming no
+ * FMU). CPU time would not do: on a loaded machine it runs slower than fftune's timeouts. */
+static void fmup_on_tick(int sig)
+{
+    static unsigned long last;
+    static unsigned ticks;
+    fmup_t *f = fmup_crash_f;
+    (void)sig;
+    if (f == NULL || fmup_calls != last) {
+        last = fmup_calls;
+        ticks = 0;
+        return;
+    }
+    if (++ticks >= fmup_patience) {
+        static char line[2 * FMUP_STR + 400];
+        int n = snprintf(line, sizeof line, "drive_sim: error: %s: FMU %s: %s did not return within %u s "
+                         "(t = %.9g s; the FMU hangs?); drive_sim stops\n", f->cfg.source, f->cfg.path, fmup_crash_fn,
+                         ticks, f->t);
+        if (n > 0) {
+            size_t len = (size_t)n < sizeof line ? (size_t)n : sizeof line - 1;
+            ssize_t w = write(STDERR_FILENO, line, len);
+            (void)w;
+        }
+        _exit(2);
+    }
+}
+
+static void fmup_guard_install(void)
+{
+    static int installed;
+    static char alt[64 * 1024]; /* (a stack overflow in the FMU still reaches the handler) */
+    static const int sigs[] = {SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT};
+    if (installed) {
+        return;
+    }
+    installed = 1;
+    stack_t st;
+    memset(&st, 0, sizeof st);
+    st.ss_sp = alt;
+    st.ss_size = sizeof alt;
+    (void)sigaltstack(&st, NULL);
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = fmup_on_crash;
+    sa.sa_flags = SA_ONSTACK;
+    sigemptyset(&sa.sa_mask);
+    for (unsigned i = 0; i < sizeof sigs / sizeof sigs[0]; i++) {
+        (void)sigaction(sigs[i], &sa, NULL);
+    }
+    struct sigaction tick;
+    memset(&tick, 0, sizeof tick);
+    tick.sa_handler = fmup_on_tick;
+    tick.sa_flags = SA_RESTART;
+    sigemptyset(&tick.sa_mask);
+    (void)sigaction(SIGALRM, &tick, NULL);
+    struct itimerval every = {{1, 0}, {1, 0}};
+    (void)setitimer(ITIMER_REAL, &every, NULL);
+}
 
 static void fmup_logger(fmi2ComponentEnvironment env, fmi2String instance, fmi2Status status, fmi2String category,
                         fmi2String message, ...)
@@ -464,6 +597,10 @@ static int fmup_bind(fmup_t *f, char *err, size_t errlen)
         FMUP_BIND(set_int32, "fmi3SetInt32");
         FMUP_BIND(set_boolean3, "fmi3SetBoolean");
         FMUP_BIND(do_step3, "fmi3DoStep");
+        if (f->cfg.once_per_process) {
+            FMUP_BIND(reset, "fmi3Reset");
+        }
+        FMUP_AT(f, "fmi3GetVersion");
         v = f->get_version3();
     } else {
         FMUP_BIND(get_version, "fmi2GetVersion");
@@ -479,7 +616,12 @@ static int fmup_bind(fmup_t *f, char *err, size_t errlen)
         FMUP_BIND(set_integer, "fmi2SetInteger");
         FMUP_BIND(set_boolean, "fmi2SetBoolean");
         FMUP_BIND(do_step, "fmi2DoStep");
+        if (f->cfg.once_per_process) {
+            FMUP_BIND(reset, "fmi2Reset");
+        }
+        FMUP_AT(f, "fmi2GetVersion");
         v = f->get_version();
+        FMUP_AT(f, "fmi2GetTypesPlatform");
         const char *tp = f->get_types_platform();
         if (tp == NULL || strcmp(tp, "default") != 0) {
             fmup_fail(f, err, errlen, "fmi2GetTypesPlatform() = '%s': drive_sim uses the standard's \"default\"",
@@ -507,18 +649,22 @@ static const char *fmup_status_name(fmup_t *f, int s)
     return f->cfg.fmi_version == 3 ? n3[s] : n2[s];
 }
 
-static void fmup_free_instance(fmup_t *f)
+static void fmup_free_instance_in(fmup_t *f)
 {
     if (f->c != NULL && !f->fatal) {
         if (f->cfg.fmi_version == 3) {
             if (f->ok) {
+                FMUP_AT(f, "fmi3Terminate");
                 (void)f->terminate3(f->c);
             }
+            FMUP_AT(f, "fmi3FreeInstance");
             f->free_instance3(f->c);
         } else {
             if (f->ok) {
+                FMUP_AT(f, "fmi2Terminate");
                 (void)f->terminate(f->c);
             }
+            FMUP_AT(f, "fmi2FreeInstance");
             f->free_instance(f->c);
         }
     }
@@ -527,14 +673,22 @@ static void fmup_free_instance(fmup_t *f)
     f->fatal = 0;
 }
 
+static void fmup_free_instance(fmup_t *f)
+{
+    fmup_free_instance_in(f);
+    FMUP_DONE();
+}
+
 /* fmi2SetReal / fmi3SetFloat64 of one variable */
 static int fmup_set_f64(fmup_t *f, unsigned vr, double v)
 {
     if (f->cfg.fmi_version == 3) {
         fmi3ValueReference r = vr;
+        FMUP_AT(f, "fmi3SetFloat64");
         return f->set_float64(f->c, &r, 1, &v, 1);
     }
     fmi2ValueReference r = vr;
+    FMUP_AT(f, "fmi2SetReal");
     return (int)f->set_real(f->c, &r, 1, &v);
 }
 
@@ -551,11 +705,14 @@ static int fmup_read(fmup_t *f, char *err, size_t errlen)
     int s;
     if (f->cfg.fmi_version == 3) {
         fmi3ValueReference r[2] = {vr[0], vr[1]};
+        FMUP_AT(f, "fmi3GetFloat64");
         s = f->get_float64(f->c, r, 2, y, 2);
     } else {
         fmi2ValueReference r[2] = {vr[0], vr[1]};
+        FMUP_AT(f, "fmi2GetReal");
         s = (int)f->get_real(f->c, r, 2, y);
     }
+    FMUP_DONE();
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "%s of output '%s' at t = %.9g s returned %s", fmup_fn(f, "fmi2GetReal", "fmi3GetFloat64"),
                   f->cfg.output, f->t, fmup_status_name(f, s));
@@ -577,12 +734,30 @@ static void fmup_log3(fmi3InstanceEnvironment env, int status, const char *categ
 }
 
 /* a new instance at t = 0 with the start values, initialised (0, or -1) */
-static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
+/* a new instance, or (canBeInstantiatedOnlyOncePerProcess) the one instance back to its
+ * instantiated state by fmi2Reset / fmi3Reset (0, or -1 with the failure recorded) */
+static int fmup_new_instance(fmup_t *f, char *err, size_t errlen)
 {
-    int s;
-    fmup_free_instance(f);
     f->log[0] = '\0';
     f->t = 0.0;
+    if (f->cfg.once_per_process && f->c != NULL) {
+        if (f->fatal) {
+            fmup_fail(f, err, errlen, "it returned %sFatal and can be instantiated only once per process "
+                      "(canBeInstantiatedOnlyOncePerProcess): no restart", f->cfg.fmi_version == 3 ? "fmi3" : "fmi2");
+            return -1;
+        }
+        FMUP_AT_INIT(f, fmup_fn(f, "fmi2Reset", "fmi3Reset"));
+        int s = (int)f->reset(f->c);
+        f->ok = s <= (int)fmi2Warning;
+        if (!f->ok) {
+            fmup_fail(f, err, errlen, "%s (its restart: it can be instantiated only once per process) returned %s",
+                      fmup_fn(f, "fmi2Reset", "fmi3Reset"), fmup_status_name(f, s));
+            return -1;
+        }
+        return 0;
+    }
+    fmup_free_instance(f);
+    FMUP_AT_INIT(f, fmup_fn(f, "fmi2Instantiate", "fmi3InstantiateCoSimulation"));
     if (f->cfg.fmi_version == 3) {
         f->c = f->instantiate3("fftune", f->cfg.guid, f->resource_path, false, false, false, false, NULL, 0, f,
                                fmup_log3, NULL);
@@ -596,8 +771,18 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
                   fmup_fn(f, "GUID", "instantiation token"), f->cfg.guid);
         return -1;
     }
+    return 0;
+}
+
+static int fmup_instantiate_in(fmup_t *f, char *err, size_t errlen)
+{
+    int s;
+    if (fmup_new_instance(f, err, errlen) != 0) {
+        return -1;
+    }
     if (f->cfg.fmi_version == 2) {
-        s = (int)f->setup_experiment(f->c, 0, 0.0, 0.0, 0, 0.0);
+        FMUP_AT(f, "fmi2SetupExperiment");
+        s = (int)f->setup_experiment(f->c, f->cfg.has_tolerance, f->cfg.tolerance, 0.0, 0, 0.0);
         if (s > (int)fmi2Warning) {
             fmup_fail(f, err, errlen, "fmi2SetupExperiment returned %s", fmup_status_name(f, s));
             return -1;
@@ -605,6 +790,7 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
     }
     for (int i = 0; i < f->cfg.n_params; i++) {
         const fmup_param_t *p = &f->cfg.param[i];
+        FMUP_AT(f, "setting a start value (fmu.parameters)");
         if (p->type == FMUP_REAL) {
             s = fmup_set_f64(f, p->vr, p->value);
         } else if (f->cfg.fmi_version == 3) {
@@ -638,12 +824,14 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
                   f->cfg.input, fmup_status_name(f, s));
         return -1;
     }
-    s = f->cfg.fmi_version == 3 ? f->enter_init3(f->c, false, 0.0, 0.0, false, 0.0) : (int)f->enter_init(f->c);
+    FMUP_AT_INIT(f, fmup_fn(f, "fmi2EnterInitializationMode", "fmi3EnterInitializationMode"));
+    s = f->cfg.fmi_version == 3 ? f->enter_init3(f->c, f->cfg.has_tolerance != 0, f->cfg.tolerance, 0.0, false, 0.0) : (int)f->enter_init(f->c);
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "fmi%dEnterInitializationMode returned %s", f->cfg.fmi_version,
                   fmup_status_name(f, s));
         return -1;
     }
+    FMUP_AT_INIT(f, fmup_fn(f, "fmi2ExitInitializationMode", "fmi3ExitInitializationMode"));
     s = f->cfg.fmi_version == 3 ? f->exit_init3(f->c) : (int)f->exit_init(f->c);
     if (s > (int)fmi2Warning) {
         fmup_fail(f, err, errlen, "fmi%dExitInitializationMode returned %s", f->cfg.fmi_version,
@@ -653,7 +841,14 @@ static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
     return fmup_read(f, err, errlen);
 }
 
-static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
+static int fmup_instantiate(fmup_t *f, char *err, size_t errlen)
+{
+    int rc = fmup_instantiate_in(f, err, errlen);
+    FMUP_DONE();
+    return rc;
+}
+
+static int fmup_step_in(fmup_t *f, double u, double dt, char *err, size_t errlen)
 {
     if (f->c == NULL || !f->ok) {
         if (err != NULL) {
@@ -670,6 +865,7 @@ static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
     if (f->cfg.fmi_version == 3) {
         bool event = false, terminate = false, early = false;
         double last = f->t;
+        FMUP_AT(f, "fmi3DoStep");
         s = f->do_step3(f->c, f->t, dt, true, &event, &terminate, &early, &last);
         if (s <= (int)fmi2Warning && (terminate || early)) {
             fmup_fail(f, err, errlen, "fmi3DoStep(t = %.9g s, h = %.9g s) with input '%s' = %g: the FMU %s", f->t, dt,
@@ -677,6 +873,7 @@ static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
             return -1;
         }
     } else {
+        FMUP_AT(f, "fmi2DoStep");
         s = (int)f->do_step(f->c, f->t, dt, 1);
     }
     if (s > (int)fmi2Warning) {
@@ -686,6 +883,13 @@ static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
     }
     f->t += dt;
     return fmup_read(f, err, errlen);
+}
+
+static int fmup_step(fmup_t *f, double u, double dt, char *err, size_t errlen)
+{
+    int rc = fmup_step_in(f, u, dt, err, errlen);
+    FMUP_DONE();
+    return rc;
 }
 
 static int fmup_ext_advance(void *ctx, double u, double dt)
@@ -743,7 +947,20 @@ fmup_t *fmup_open(const fmup_cfg_t *cfg, double dt_s, char *err, size_t errlen)
     char so[2 * FMUP_STR + 32];
     snprintf(f->resource_path, sizeof f->resource_path, "%s/resources/", cfg->unzipdir);
     snprintf(so, sizeof so, "%s/%s/%s.so", cfg->unzipdir, fmup_binary_dir(cfg), cfg->model_identifier);
+    fmup_guard_install();
+    if (cfg->once_per_process) {
+        void *loaded = dlopen(so, RTLD_NOW | RTLD_NOLOAD);
+        if (loaded != NULL) {
+            dlclose(loaded);
+            fmup_fail(f, err, errlen, "another axis of this drive_sim runs it already, and it can be instantiated "
+                      "only once per process (canBeInstantiatedOnlyOncePerProcess): one drive_sim per such axis");
+            free(f);
+            return NULL;
+        }
+    }
+    FMUP_AT_INIT(f, "loading the binary (its constructors)");
     f->lib = dlopen(so, RTLD_NOW | RTLD_LOCAL);
+    FMUP_DONE();
     if (f->lib == NULL) {
         const char *why = dlerror();
         fmup_fail(f, err, errlen, "cannot load %s/%s.so: %s", fmup_binary_dir(cfg), cfg->model_identifier,
@@ -751,8 +968,9 @@ fmup_t *fmup_open(const fmup_cfg_t *cfg, double dt_s, char *err, size_t errlen)
         free(f);
         return NULL;
     }
-    if (fmup_bind(f, err, errlen) != 0 || fmup_instantiate(f, err, errlen) != 0 ||
-        fmup_step(f, 0.0, dt_s, err, errlen) != 0) {
+    int bound = fmup_bind(f, err, errlen);
+    FMUP_DONE();
+    if (bound != 0 || fmup_instantiate(f, err, errlen) != 0 || fmup_step(f, 0.0, dt_s, err, errlen) != 0) {
         /* trial (an FMU that cannot take a step fails before the drive exists) */
         fmup_close(f);
         return NULL;

@@ -19,6 +19,11 @@
  *     output_vr: 1
  *     load_output: "theta2"                    optional: the load encoder (else = output)
  *     load_output_vr: 3
+ *     tolerance: 1e-06                         optional: the FMU's DefaultExperiment tolerance, passed
+ *                                              to fmi2SetupExperiment / fmi3EnterInitializationMode (as FMPy does)
+ *     once_per_process: 1                      optional: canBeInstantiatedOnlyOncePerProcess: one
+ *                                              instance for the process' life (trial and NMT reset
+ *                                              through fmi2Reset / fmi3Reset; a second axis refused)
  *     p0_name: "Fc"                            start values, p0 .. p31: name, value
  *     p0_vr: 7                                 reference, type (real, integer, boolean: FMI 3.0 Float64, Int32, Boolean)
  *     p0_type: "real"
@@ -28,7 +33,10 @@
  * initialises (SetupExperiment at t = 0, Enter/ExitInitializationMode) and reads the output;
  * fmup_trial also takes one step of dt with u = 0 on a throw-away instance first, so an FMU
  * that cannot step fails before the drive exists. Every failure is one message naming the
- * user's plant file, the FMU and the function or variable.
+ * user's plant file, the FMU and the function or variable; so is a crash inside the FMU
+ * (SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT) and a call that hangs (SIGALRM every second,
+ * installed by fmup_open: a step may take 1 to 2 s, loading and initialising 8 s), with
+ * drive_sim's exit status 2.
  *
  *   fmup_t f; fmup_cfg_t c;
  *   fmup_config_load(path, &c, err, n);  fmup_open(&f, &c, dt, err, n);
@@ -67,6 +75,9 @@ typedef struct {
     char load_output[FMUP_STR];
     unsigned load_output_vr;
     int has_load_output;
+    double tolerance;       /* > 0 if has_tolerance */
+    int has_tolerance;
+    int once_per_process;
     int n_params;
     fmup_param_t param[FMUP_PARAMS_MAX];
 } fmup_cfg_t;
