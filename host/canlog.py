@@ -10,12 +10,14 @@ run's start command, the parameters read back after it, and the recorder data up
 experiment code of a live session (``fftune.host.experiments``) analyses a log and reaches the
 live result (same recorded bytes, same computation).
 """
+import math
 import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from fftune.analysis.errors import FftuneError
+from fftune.host.config import MAX_CANLOG_BYTES, MAX_EDS_BYTES, regular_file
 from fftune.host.drive import RunRecord
 from fftune.host.odmap import PARAMS, SIGNAL_BITS
 from fftune.host.sdo_sniffer import SdoSniffer
@@ -28,8 +30,9 @@ def read_transfers(path, node_id=1):
     """SDO transfers of ``node_id`` in the CAN log ``path`` (any python-can log format)."""
     import can
 
-    if not os.path.exists(path):
+    if not os.path.lexists(path):
         raise FftuneError(f"{path}: no such CAN log")
+    regular_file(path, "CAN log", MAX_CANLOG_BYTES)      # (a FIFO would wait for a writer)
     sniffer = SdoSniffer([node_id])
     n_frames = 0
     try:
@@ -42,7 +45,12 @@ def read_transfers(path, node_id=1):
             if msg.is_error_frame or msg.is_remote_frame:
                 continue
             n_frames += 1
+            if not math.isfinite(msg.timestamp):
+                raise FftuneError(f"{path}: frame {n_frames}: timestamp {msg.timestamp!r} is not a "
+                                  f"finite number")
             sniffer.feed(msg.arbitration_id, msg.data, msg.timestamp)
+    except FftuneError:
+        raise
     except Exception as exc:  # the reader's own parse errors
         raise FftuneError(f"{path}: cannot decode the CAN log after {n_frames} frames: "
                           f"{type(exc).__name__}: {exc}") from None
@@ -84,6 +92,8 @@ def session_from_transfers(transfers, eds_path, node_id=1):
     """Reassemble runs: writes before a start command, readback and recorder upload after."""
     import canopen
 
+    if eds_path and os.path.exists(eds_path):
+        regular_file(eds_path, "EDS", MAX_EDS_BYTES)
     try:
         od = canopen.import_od(eds_path, node_id)
     except FileNotFoundError:

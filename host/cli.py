@@ -25,8 +25,18 @@ SUBCOMMAND_MODULES = [
 ]
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors (a missing argument, ``--node-id abc``, an option out
+    of range) are the one line of every fftune error: ``fftune: error: ...``, exit 2 (the
+    usage is in ``--help``); subcommands' parsers are of this class too."""
+
+    def error(self, message):
+        sub = self.prog[len("fftune"):].strip() if self.prog.startswith("fftune") else self.prog
+        self.exit(2, f"fftune: error: {sub + ': ' if sub else ''}{' '.join(str(message).split())}\n")
+
+
 def build_parser():
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="fftune",
         description="Measure how nonlinear a motion system is and tune its friction feed-forward.",
     )

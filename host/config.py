@@ -7,11 +7,15 @@ nested ``dict`` (JSON/YAML serialisable) so that it can be stored with every cap
 Units: frequencies in Hz, amplitudes in the units of the injection point (rad at the
 reference, V at the plant input), K_fc in V, K_v in V s/rad, times in s.
 """
+import contextlib
 import copy
+import functools
 import math
 import os
 import re
 import reprlib
+import shutil
+import stat
 
 import numpy as np
 import yaml
@@ -130,6 +134,17 @@ def _err(path, key, msg):
     return FftuneError(f"{where}: {msg}")
 
 
+def unknown_key_text(key, known):
+    """The words after an unknown key: the nearest known key as a suggestion (a typo, a
+    unit typed wrong: ``max_amplitude_deg`` -> ``max_amplitude_rad``), then every known key."""
+    import difflib
+
+    known = [str(k) for k in known]
+    near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6) if isinstance(key, str) else []
+    hint = f"did you mean '{near[0]}'? " if near else ""
+    return f"unknown key ({hint}expected one of: {', '.join(known)})"
+
+
 def _merge(defaults, user, path, prefix):
     """Defaults overlaid with the user's values; unknown keys refused."""
     if user is None:
@@ -140,7 +155,7 @@ def _merge(defaults, user, path, prefix):
     for key, value in user.items():
         full = f"{prefix}.{key}" if prefix else show(key, 60) if not isinstance(key, str) else key[:60]
         if not isinstance(key, str) or key not in defaults:
-            raise _err(path, full, f"unknown key (expected one of: {', '.join(map(str, defaults))})")
+            raise _err(path, full, unknown_key_text(key, defaults))
         default = defaults[key]
         if isinstance(default, dict) and default and set(default) != {"start", "stop", "count"} \
                 and set(default) != {"start", "stop", "step"}:
@@ -378,7 +393,10 @@ def validate_drive(cfg, path):
     if not isinstance(cfg["drive"]["controller"], dict):
         raise _err(path, "drive.controller", f"expected a mapping, got {show(cfg['drive']['controller'])}")
     for name in cfg["drive"]["controller"]:
-        _number(cfg, path, f"drive.controller.{name}", low=0, allow_none=True)
+        # the drive's own range of the object (configs/od.yaml): a value above it would be
+        # refused by the drive mid-session, after it was enabled
+        _number(cfg, path, f"drive.controller.{name}", low=0, high=od_param_high(name.upper()),
+                allow_none=True)
     return cfg["drive"]
 
 
@@ -437,6 +455,7 @@ def safe_name(value, path, key):
     return value
 
 
+@functools.lru_cache(maxsize=None)
 def od_param_high(param):
     """The upper limit of the drive object carrying ``param`` (configs/od.yaml, the one
     source of the object dictionary): values above it the drive refuses mid-experiment."""
@@ -452,7 +471,27 @@ def od_param_high(param):
 
 class ConfigLoader(yaml.SafeLoader):
     """PyYAML's SafeLoader that also reads ``1e-3`` and ``1e12`` as numbers (YAML 1.2; YAML
-    1.1, PyYAML's, wants a dot: ``1.0e-3``, and reads ``1e-3`` as a string)."""
+    1.1, PyYAML's, wants a dot: ``1.0e-3``, and reads ``1e-3`` as a string), and refuses a
+    key given twice in one mapping (PyYAML keeps the last one silently: ``kp: 2`` below
+    ``kp: 20`` would win unseen)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key_node, _ in node.value:
+                if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                    continue        # (a merge key's values may be overridden: YAML's own rule)
+                key = self.construct_object(key_node)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark)
+                except TypeError:
+                    continue
+                if first is not key_node.start_mark:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"duplicate key {show(key, 60)} (first on line {first.line + 1})",
+                        key_node.start_mark)
+        return super().construct_mapping(node, deep)
+
 
 
 ConfigLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
@@ -518,20 +557,53 @@ def safe_yaml_load(text, where, *, max_bytes=MAX_CONFIG_BYTES, max_depth=MAX_YAM
         raise _yaml_error(where, exc) from None
 
 
-def read_text(path, what="configuration", *, max_bytes=MAX_CONFIG_BYTES):
-    """The text of a file a user names (``what``: configuration, machine file, plant ...):
-    a regular file (a directory is refused), at most ``max_bytes``, UTF-8, without NUL
-    bytes; else one FftuneError line naming the file."""
+def _kind(mode):
+    return ("a directory" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a character device" if stat.S_ISCHR(mode) else "a block device" if stat.S_ISBLK(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+
+
+# An EDS is a few tens of kB (the drive's: 38 kB); a CAN log may hold hours of a bus.
+MAX_EDS_BYTES = 4 << 20
+MAX_CANLOG_BYTES = 2 << 30
+
+
+def regular_file(path, what="configuration", max_bytes=None):
+    """``path`` if it names a regular file (after symbolic links); else one FftuneError line
+    naming it: a directory, a FIFO (reading it would wait for a writer forever), a device
+    (``/dev/zero`` never ends), a socket, a missing file or a symbolic link loop. The check
+    of every file a user names (configurations, machine, plant, EDS, CAN log, capture)."""
     if not isinstance(path, (str, os.PathLike)) or not str(path) or "\0" in str(path):
         raise FftuneError(f"{what}: expected a file name, got {show(path)}")
     try:
-        if os.path.isdir(path):
-            raise FftuneError(f"{path}: cannot read {what}: is a directory, expected a file")
-        size = os.path.getsize(path)
-        if size > max_bytes:
-            raise FftuneError(f"{path}: {size} bytes: a {what} holds at most {max_bytes} "
-                              f"(fftune.host.config.MAX_CONFIG_BYTES)")
-        with open(path, "rb") as fh:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        raise FftuneError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    except ValueError as exc:       # (an unencodable name)
+        raise FftuneError(f"{what}: {show(str(path))}: {exc}") from None
+    if not stat.S_ISREG(mode):
+        raise FftuneError(f"{path}: cannot read {what}: is {_kind(mode)}, expected a file")
+    size = os.stat(path).st_size
+    if max_bytes is not None and size > max_bytes:
+        raise FftuneError(f"{path}: {size} bytes: a {what} holds at most {max_bytes}")
+    return path
+
+
+def read_text(path, what="configuration", *, max_bytes=MAX_CONFIG_BYTES):
+    """The text of a file a user names (``what``: configuration, machine file, plant ...):
+    a regular file (:func:`regular_file`: a directory, FIFO or device is refused), at most
+    ``max_bytes``, UTF-8, without NUL bytes; else one FftuneError line naming the file."""
+    regular_file(path, what)
+    try:
+        # O_NONBLOCK: a FIFO swapped in after the check opens without waiting, and is refused
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as fh:
+            st = os.fstat(fh.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise FftuneError(f"{path}: cannot read {what}: is {_kind(st.st_mode)}, expected a file")
+            if st.st_size > max_bytes:
+                raise FftuneError(f"{path}: {st.st_size} bytes: a {what} holds at most {max_bytes} "
+                                  f"(fftune.host.config.MAX_CONFIG_BYTES)")
             data = fh.read(max_bytes + 1)
     except OSError as exc:
         raise FftuneError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
@@ -561,6 +633,80 @@ def load_config(path):
     cfg = validate(raw, path)
     cfg["_source"] = os.path.abspath(path)
     return cfg
+
+
+def read_plant(path, what="plant configuration"):
+    """A plant file of the simulated drive (drive_sim's ``--config``) read by the one loader
+    (:func:`read_yaml`) and checked for drive_sim's shape: sections of ``key: number``.
+    Returns the parsed mapping; one FftuneError line naming the file and the key on any
+    problem, before drive_sim is started or any folder is made (drive_sim checks each
+    value's range itself and says which)."""
+    raw = read_yaml(path, what)
+    if not isinstance(raw, dict) or not raw:
+        raise FftuneError(f"{path}: {what}: expected sections of key: number, got {show(raw)}")
+    for section, values in raw.items():
+        if not isinstance(section, str) or not isinstance(values, dict) or not values:
+            raise FftuneError(f"{path}: {what}: key '{show(section, 40) if not isinstance(section, str) else section[:40]}': "
+                              f"expected a section of key: number, got {show(values)}")
+        for key, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                name = key[:40] if isinstance(key, str) else show(key, 40)
+                raise FftuneError(f"{path}: {what}: key '{section[:40]}.{name}': expected a finite "
+                                  f"number, got {show(value)}")
+    return raw
+
+
+def _experimented(out):
+    """True once the session wrote what it measured into ``out`` (a capture or results.yaml)."""
+    captures = os.path.join(out, "captures")
+    return os.path.exists(os.path.join(out, "results.yaml")) or \
+        (os.path.isdir(captures) and bool(os.listdir(captures)))
+
+
+@contextlib.contextmanager
+def output_session(path, *, set_aside=False, log=None):
+    """The output directory of a command that moves an axis, made on entry and, when the
+    command fails before it measured anything (no capture, no results.yaml), left as it
+    was: what the command made is removed (the directory itself, and any parent it had to
+    make), an earlier directory set aside is put back. Yields the absolute path.
+
+    ``set_aside``: a fresh run (``fftune demo``, ``paper``, ``demo --machine``): an earlier
+    non-empty directory is moved to ``<path>.previous`` (replacing an older one) first.
+    """
+    apath = check_output_dir(path, create=False)      # (a file in the way: refused here)
+    top = apath                                       # the highest folder this call makes
+    while not os.path.exists(os.path.dirname(top)):
+        top = os.path.dirname(top)
+    existed = os.path.isdir(apath)
+    previous = None
+    if set_aside and existed and os.listdir(apath):
+        previous = apath.rstrip(os.sep) + ".previous"
+        if os.path.isdir(previous):
+            shutil.rmtree(previous)
+        os.replace(apath, previous)
+        if log is not None:
+            log(f"the earlier {os.path.relpath(apath)} is kept as {os.path.relpath(previous)}")
+        existed = False
+        top = apath
+    before = set(os.listdir(apath)) if existed else set()
+    try:
+        check_output_dir(apath)
+        yield apath
+    except BaseException:
+        if not _experimented(apath):
+            if existed:
+                for name in set(os.listdir(apath)) - before:
+                    target = os.path.join(apath, name)
+                    if os.path.isdir(target) and not os.path.islink(target):
+                        shutil.rmtree(target, ignore_errors=True)
+                    else:
+                        with contextlib.suppress(OSError):
+                            os.remove(target)
+            else:
+                shutil.rmtree(top if os.path.exists(top) else apath, ignore_errors=True)
+                if previous is not None and not os.path.exists(apath):
+                    os.replace(previous, apath)
+        raise
 
 
 def check_output_dir(path, create=True):

@@ -10,8 +10,10 @@ drive watches the host's (object 0x1016), the client watches the drive's and its
 Every failure a user can cause or meet (unreachable bus, wrong node id, SDO abort, timeout,
 run stopped by the drive) is raised as one :class:`fftune.analysis.errors.FftuneError` line.
 """
+import argparse
 import contextlib
 import logging
+import os
 import signal
 import socket
 import struct
@@ -52,6 +54,21 @@ def quiet_can_loggers():
     logging.getLogger("canopen").setLevel(logging.CRITICAL)
 
 
+def int_in_range(name, low, high, unit=""):
+    """An argparse ``type``: an integer ``low .. high`` (``0x`` hex allowed), else an error
+    naming the option and the range (one ``fftune: error:`` line, exit 2)."""
+    def parse(text):
+        try:
+            value = int(str(text).strip(), 0)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer {low} .. {high}{unit}, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{value}: expected {low} .. {high}{unit}")
+        return value
+    parse.__name__ = name
+    return parse
+
+
 def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_PORT):
     """python-can's option names (as in ``python -m can.logger``) plus the drive's.
 
@@ -68,15 +85,17 @@ def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_
                    "else socketcand, the simulated drive)")
     g.add_argument("-c", "--channel", default=None,
                    help="channel (socketcand: the bus name served, default can0; socketcan: vcan0 ...)")
-    g.add_argument("-b", "--bitrate", type=int, default=None,
+    g.add_argument("-b", "--bitrate", type=int_in_range("bit rate", 10_000, 1_000_000, " bit/s"), default=None,
                    help="simulate a classic CAN bus of this bit rate (socketcand only; default: "
                         "frames pass at once)" if drive_side else "bit rate in bit/s")
     g.add_argument("--host", default=DEFAULT_SOCKETCAND_HOST,
                    help=f"socketcand address to bind (default {DEFAULT_SOCKETCAND_HOST})" if drive_side else
                    f"socketcand server (default {DEFAULT_SOCKETCAND_HOST}, the simulated drive)")
-    g.add_argument("--port", type=int, default=port_default,
+    g.add_argument("--port", type=int_in_range("port", 0 if port_default == 0 else 1, 65535),
+                   default=port_default,
                    help=f"socketcand TCP port (default {port_default if port_default else 'a free one'})")
-    g.add_argument("--node-id", type=int, default=None, help="drive node id (default: config, else 1)")
+    g.add_argument("--node-id", type=int_in_range("node id", 1, 127), default=None,
+                   help="drive node id 1 .. 127 (default: config, else 1)")
     if not drive_side:
         g.add_argument("--eds", default=None,
                        help="the drive's EDS (default: config, else the firmware_sim build's)")
@@ -502,6 +521,9 @@ class DriveClient:
         self.bus_nodes = bus_nodes
         self.sdo_burst = sdo_burst_frames(self.bus_bitrate, heartbeat_ms, bus_nodes)
         self.cancel = None            # a threading.Event: set, the next SDO request raises Cancelled
+        if opts.eds and os.path.exists(opts.eds):     # (a directory, FIFO, device: one line)
+            from fftune.host.config import MAX_EDS_BYTES, regular_file
+            regular_file(opts.eds, "EDS", MAX_EDS_BYTES)
         try:
             self.node = canopen.BaseNode402(opts.node_id, opts.eds)
         except FileNotFoundError:
