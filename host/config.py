@@ -656,11 +656,17 @@ def read_plant(path, what="plant configuration"):
     return raw
 
 
-def _experimented(out):
-    """True once the session wrote what it measured into ``out`` (a capture or results.yaml)."""
+def _experimented(out, depth=2):
+    """True once the session wrote what it measured into ``out`` (a capture or results.yaml,
+    in ``out`` or, for a machine, in an axis' folder below it)."""
     captures = os.path.join(out, "captures")
-    return os.path.exists(os.path.join(out, "results.yaml")) or \
-        (os.path.isdir(captures) and bool(os.listdir(captures)))
+    if os.path.exists(os.path.join(out, "results.yaml")) or \
+            (os.path.isdir(captures) and bool(os.listdir(captures))):
+        return True
+    if depth > 1 and os.path.isdir(out):
+        return any(_experimented(os.path.join(out, name), depth - 1) for name in os.listdir(out)
+                   if os.path.isdir(os.path.join(out, name)) and not os.path.islink(os.path.join(out, name)))
+    return False
 
 
 @contextlib.contextmanager

@@ -23,7 +23,7 @@ import time
 
 from fftune.analysis.errors import FftuneError
 from fftune.host.atomic import write_atomic
-from fftune.host.config import check_output_dir, load_config
+from fftune.host.config import check_output_dir, load_config, output_session
 from fftune.host.resources import config_path
 
 DEFAULT_SETUP = config_path("paper_setup.yaml")
@@ -79,6 +79,8 @@ def _resolve_plant(path):
             return packaged
     if not os.path.exists(path):
         raise FftuneError(f"plant configuration not found: {path}")
+    from fftune.host.config import read_plant
+    read_plant(path)            # both plants checked before any folder is made or moved
     return path
 
 
@@ -229,11 +231,14 @@ def run(args):
         template = _template_path(args.doc)
         if not os.path.exists(template):
             raise FftuneError(f"--doc {args.doc}: its template {template} is missing")
-    out = check_output_dir(_set_aside_previous(args.out or cfg["output"]))
     log = lambda s: print(s, flush=True)  # noqa: E731
-    log(f"fftune paper: set-up {os.path.relpath(plant)}, simulation {os.path.relpath(sim_plant)}")
-    results, data, sim_results, sim_data, numbers = measure(
-        cfg, plant, sim_plant, out, progress=not args.no_progress, log=log)
+    # a fresh run (the earlier directory kept as <out>.previous, put back on a failure before
+    # the first experiment, with nothing left behind)
+    with output_session(args.out or cfg["output"], set_aside=True,
+                        log=lambda s: log(f"fftune paper: {s}")) as out:
+        log(f"fftune paper: set-up {os.path.relpath(plant)}, simulation {os.path.relpath(sim_plant)}")
+        results, data, sim_results, sim_data, numbers = measure(
+            cfg, plant, sim_plant, out, progress=not args.no_progress, log=log)
     numbers.update(rep.detect_numbers(results.get("detect")))
     # the Figure 3 rows whenever detect ran (a figure it did not report shows as n/a)
     claims = rep.PAPER_CLAIMS + (rep.DETECT_CLAIMS if "detect_level_v_rms" in numbers else [])
@@ -264,19 +269,6 @@ def run(args):
     log(f"fftune paper: done in {time.monotonic() - t0:.1f} s; {os.path.relpath(out)}/reproduction.json, "
         f"{os.path.relpath(out)}/report.html")
     return 0
-
-
-def _set_aside_previous(out):
-    """A fresh run each time: an earlier output directory is kept as ``<out>.previous``."""
-    import shutil
-
-    if os.path.isdir(out) and os.listdir(out):
-        previous = out.rstrip(os.sep) + ".previous"
-        if os.path.isdir(previous):
-            shutil.rmtree(previous)
-        os.replace(out, previous)
-        print(f"fftune paper: the earlier {os.path.relpath(out)} is kept as {os.path.relpath(previous)}")
-    return out
 
 
 def _html_table(rows, notes):

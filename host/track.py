@@ -25,7 +25,7 @@ from fftune.analysis.track import (NotIdentifiable, Tracker, TrackSettings, esti
                                    parse_task_stats)
 from fftune.host.atomic import write_atomic
 from fftune.host.config import DEFAULTS as _CFG_DEFAULTS
-from fftune.host.config import (_bool, _choice, _err, _merge, _number, check_output_dir, read_yaml,
+from fftune.host.config import (_bool, _choice, _err, _merge, _number, output_session, read_yaml,
                                  validate_drive, validate_limits, validate_sim)
 from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
 from fftune.host.drive import frame_bits  # (one definition: the bus load below, the SDO bursts)
@@ -582,8 +582,9 @@ def _track(args):
     preflight_track(cfg)                # (before the drive is contacted)
     opts = BusOptions.from_args(args, cfg["drive"])
     client = _client(cfg, opts, not args.no_progress)
-    out = check_output_dir(args.out or cfg["output"])
-    with client:
+    # made now; removed again when the session fails before it wrote its results (an
+    # unreachable drive, a refused preflight: nothing left behind)
+    with output_session(args.out or cfg["output"]) as out, client:
         preflight_track(cfg, client)    # the drive's own limits, before it is enabled
         client.enable()
         results = track_session(client, cfg, out, figures=not args.no_figures,
@@ -594,7 +595,7 @@ def _track(args):
 
 def _demo_track(args):
     from fftune.host.resources import config_path
-    from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
+    from fftune.host.sim import DEFAULT_PLANT, check_bus
 
     t0 = time.monotonic()
     # demo-track starts its own drive on a free port: python-can's configuration plays no part
@@ -603,12 +604,23 @@ def _demo_track(args):
     preflight_track(cfg)
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     check_bus(args.interface, args.channel, bitrate)
-    out = check_output_dir(args.out or cfg["output"])
     plant = args.plant or cfg["sim"]["plant"] or DEFAULT_PLANT
     if not os.path.isabs(plant) and not os.path.exists(plant):
         packaged = config_path(os.path.basename(plant))
         if os.path.exists(packaged):
             plant = packaged
+    with output_session(args.out or cfg["output"]) as out:
+        results = _demo_track_session(args, cfg, out, plant, bitrate)
+    print("\n".join(summary_lines(results, out)))
+    print(f"fftune demo-track: done in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+def _demo_track_session(args, cfg, out, plant, bitrate):
+    """drive_sim with ``plant`` (and the configuration's sim.overrides) and the tracking
+    session against it; ``out`` is made (and removed again on a failure before results)."""
+    from fftune.host.sim import derived_plant, start_drive_sim
+
     if cfg["sim"]["overrides"]:
         plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
                               where=f"{args.config}: key 'sim.overrides'")
@@ -623,13 +635,10 @@ def _demo_track(args):
         with _client(cfg, opts, not args.no_progress) as client:
             preflight_track(cfg, client)
             client.enable()
-            results = track_session(client, cfg, out, figures=not args.no_figures,
-                                    log=lambda s: print(s, flush=True))
+            return track_session(client, cfg, out, figures=not args.no_figures,
+                                 log=lambda s: print(s, flush=True))
     finally:
         sim.stop()
-    print("\n".join(summary_lines(results, out)))
-    print(f"fftune demo-track: done in {time.monotonic() - t0:.1f} s")
-    return 0
 
 
 def add_parser(sub):
