@@ -91,7 +91,7 @@ def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_
     g.add_argument("--host", default=DEFAULT_SOCKETCAND_HOST,
                    help=f"socketcand address to bind (default {DEFAULT_SOCKETCAND_HOST})" if drive_side else
                    f"socketcand server (default {DEFAULT_SOCKETCAND_HOST}, the simulated drive)")
-    g.add_argument("--port", type=int_in_range("port", 0 if port_default == 0 else 1, 65535),
+    g.add_argument("--port", type=int_in_range("port", 0 if drive_side else 1, 65535),  # (0: a free one)
                    default=port_default,
                    help=f"socketcand TCP port (default {port_default if port_default else 'a free one'})")
     g.add_argument("--node-id", type=int_in_range("node id", 1, 127), default=None,
