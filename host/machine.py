@@ -195,6 +195,8 @@ def load_machine(path):
         plant = None
         if a.get("plant") is not None:
             plant = _resolve(file_name(a["plant"], where, "plant"), path)
+            if not os.path.lexists(plant):
+                raise FftuneError(f"{where}.plant: {a['plant']}: no such plant file")
             try:
                 read_plant(plant)           # (the one loader: a FIFO, bomb or wrong shape refused)
             except FftuneError as exc:
