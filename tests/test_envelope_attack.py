@@ -1,0 +1,317 @@
+"""Issue 30, second pass: the envelope probed as an attacker would, at every entry point.
+
+Each probe is one user input that once hung, crashed with a traceback, was silently
+accepted or left folders behind. Every failure must be one ``fftune: error: ...`` line with
+exit status 2, nothing moved, the working folder unchanged. The rules live in one place each
+(fftune.host.config: regular_file / read_text / ConfigLoader / read_plant / output_session;
+fftune.host.cli.Parser; fftune.host.drive.add_bus_arguments; fftune.analysis.io's declared
+shapes); the tests reach them through the commands.
+"""
+import contextlib
+import os
+import signal
+import socket
+import zipfile
+
+import numpy as np
+import pytest
+
+from fftune.host.cli import main
+from host_fixtures import REPO, drive_sim_missing_reason
+
+TWOMASS = os.path.join(REPO, "configs", "plant_twomass.yaml")
+needs_drive = pytest.mark.skipif(drive_sim_missing_reason() is not None,
+                                 reason=str(drive_sim_missing_reason()))
+
+
+@contextlib.contextmanager
+def _deadline(seconds=20):
+    """A probe that would block (a FIFO opened for reading) fails the test instead of hanging."""
+    def fire(signum, frame):
+        raise TimeoutError(f"the command blocked for {seconds} s")
+    old = signal.signal(signal.SIGALRM, fire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def _tree(path):
+    out = set()
+    for root, dirs, files in os.walk(path):
+        for name in dirs + files:
+            out.add(os.path.relpath(os.path.join(root, name), path))
+    return out
+
+
+def _refused(capsys, argv, *needles, cwd=None):
+    """``fftune argv`` is one error line containing ``needles``, exit 2, and the folder
+    ``cwd`` holds exactly what it held before."""
+    before = _tree(cwd) if cwd else None
+    with _deadline():
+        rc = main(argv)
+    err = capsys.readouterr().err.splitlines()
+    assert rc == 2, (argv, err)
+    assert len(err) == 1 and err[0].startswith("fftune: error: "), (argv, err)
+    for needle in needles:
+        assert needle in err[0], (argv, needle, err[0])
+    if cwd:
+        assert _tree(cwd) == before, (argv, _tree(cwd) ^ before)
+    return err[0]
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def work(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    os.mkfifo(tmp_path / "fifo.yaml")
+    (tmp_path / "adir").mkdir()
+    return tmp_path
+
+
+# ---- files that are not regular files -------------------------------------------------
+@pytest.mark.parametrize("argv", [
+    ["run", "--config", "fifo.yaml"],
+    ["plan", "--offline", "--config", "fifo.yaml"],
+    ["demo", "--config", "fifo.yaml"],
+    ["sim", "--config", "fifo.yaml"],
+    ["track", "--config", "fifo.yaml"],
+    ["demo-track", "--config", "fifo.yaml"],
+    ["paper", "--config", "fifo.yaml"],
+    ["run", "--machine", "fifo.yaml"],
+    ["demo", "--machine", "fifo.yaml"],
+    ["sim", "--machine", "fifo.yaml"],
+    ["demo", "--plant", "fifo.yaml"],
+    ["sim", "--plant", "fifo.yaml"],
+    ["demo-track", "--plant", "fifo.yaml"],
+    ["paper", "--sim-plant", "fifo.yaml"],
+    ["import-canlog", "fifo.log"],
+    ["run", "--dry-run", "--eds", "fifo.yaml"],
+])
+def test_a_fifo_is_refused_without_waiting_for_a_writer(work, capsys, argv):
+    os.mkfifo(work / "fifo.log")
+    _refused(capsys, argv, "is a FIFO (named pipe), expected a file", cwd=work)
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["run", "--dry-run", "--config", "/dev/zero"], "is a character device"),
+    (["run", "--dry-run", "--eds", "/dev/zero"], "is a character device"),
+    (["run", "--dry-run", "--eds", "adir"], "adir: cannot read EDS: is a directory"),
+    (["demo-track", "--plant", "adir"], "adir: cannot read plant configuration: is a directory"),
+    (["import-canlog", "adir.log"], "is a directory"),
+])
+def test_devices_and_directories_are_refused(work, capsys, argv, needle):
+    (work / "adir.log").mkdir()
+    _refused(capsys, argv, needle, cwd=work)
+
+
+def test_machine_files_it_names_go_through_the_one_loader(work, capsys):
+    (work / "bomb.yaml").write_text("a: &a [x, x, x, x, x, x, x, x, x, x]\n"
+                                    + "".join(f"{c}: &{c} [{', '.join([f'*{p}'] * 10)}]\n"
+                                              for p, c in zip("abcdef", "bcdefg")))
+    (work / "m.yaml").write_text("machine: m\naxes:\n  - {name: x, node_id: 1, plant: bomb.yaml}\n")
+    _refused(capsys, ["run", "--machine", "m.yaml"], "axes[0].plant: bomb.yaml", "alias bomb", cwd=work)
+    (work / "m.yaml").write_text("machine: m\naxes:\n  - {name: x, node_id: 1, plant: fifo.yaml}\n")
+    _refused(capsys, ["demo", "--machine", "m.yaml"], "axes[0].plant", "FIFO", cwd=work)
+    (work / "m.yaml").write_text("machine: m\nconfig: /dev/zero\naxes:\n  - {name: x, node_id: 1}\n")
+    _refused(capsys, ["sim", "--machine", "m.yaml"], "key 'config'", "character device", cwd=work)
+
+
+@pytest.mark.parametrize("plant, needle", [
+    ("plant: [1, 2]\n", "key 'plant': expected a section of key: number"),
+    ("plant:\n  j1: .nan\n", "key 'plant.j1': expected a finite number, got nan"),
+    ("plant:\n  j1: yes\n", "key 'plant.j1': expected a finite number, got True"),
+    ("- 1\n", "expected sections of key: number"),
+])
+def test_a_plant_of_the_wrong_shape_is_refused_before_drive_sim_starts(work, capsys, plant, needle):
+    (work / "p.yaml").write_text(plant)
+    for argv in (["demo-track", "--plant", "p.yaml"], ["sim", "--plant", "p.yaml"],
+                 ["paper", "--sim-plant", "p.yaml"]):
+        _refused(capsys, argv, "p.yaml: plant configuration", needle, cwd=work)
+
+
+# ---- YAML: duplicate keys, unknown keys, numbers out of the drive's ranges ------------
+@pytest.mark.parametrize("text, needle", [
+    ("output: a\noutput: b\n", "dup.yaml:2: invalid YAML: \"duplicate key 'output' (first on line 1)\""),
+    ("drive:\n  node_id: 2\n  heartbeat_ms: 100\n  node_id: 3\n", "dup.yaml:4:"),
+    ("drive: {controller: {kp: 20, kp: 2}}\n", "duplicate key 'kp'"),
+])
+def test_a_key_given_twice_is_refused(work, capsys, text, needle):
+    (work / "dup.yaml").write_text(text)
+    for argv in (["plan", "--offline", "--config", "dup.yaml"], ["track", "--config", "dup.yaml"]):
+        _refused(capsys, argv, needle, cwd=work)
+    (work / "m.yaml").write_text("machine: m\naxes:\n  - {name: x, node_id: 1, node_id: 2}\n")
+    _refused(capsys, ["run", "--machine", "m.yaml"], "m.yaml:3:", "duplicate key 'node_id'", cwd=work)
+
+
+def test_a_merge_key_may_still_be_overridden(work, capsys):
+    from fftune.host.config import load_config
+
+    (work / "c.yaml").write_text("drive:\n  <<: {node_id: 2, heartbeat_ms: 50}\n  node_id: 3\n")
+    cfg = load_config("c.yaml")
+    assert (cfg["drive"]["node_id"], cfg["drive"]["heartbeat_ms"]) == (3, 50)
+
+
+@pytest.mark.parametrize("text, key, hint", [
+    ("limits:\n  max_amplitude_deg: 3\n", "limits.max_amplitude_deg", "did you mean 'max_amplitude_rad'?"),
+    ("detct:\n  enabled: false\n", "detct", "did you mean 'detect'?"),
+    ("drive:\n  heartbeat_s: 1\n", "drive.heartbeat_s", "did you mean 'heartbeat_ms'?"),
+])
+def test_an_unknown_key_names_the_nearest_one(work, capsys, text, key, hint):
+    (work / "t.yaml").write_text(text)
+    _refused(capsys, ["plan", "--offline", "--config", "t.yaml"], f"key '{key}': unknown key ({hint}",
+             cwd=work)
+
+
+@pytest.mark.parametrize("gain, value, limit", [
+    ("kp", "1e300", "100000.0"), ("kd", "2.0e4", "10000.0"), ("tau_d", "1.5", "1.0"),
+    ("u_max", "1000.5", "1000.0"),
+])
+def test_controller_gains_within_the_drives_own_ranges(work, capsys, gain, value, limit):
+    """configs/od.yaml's high limits: a gain above one would be refused by the drive only
+    after it was enabled."""
+    (work / "g.yaml").write_text(f"drive:\n  controller: {{{gain}: {value}}}\n")
+    for argv in (["plan", "--offline", "--config", "g.yaml"], ["track", "--config", "g.yaml"]):
+        _refused(capsys, argv, f"key 'drive.controller.{gain}': expected a number <= {limit}", cwd=work)
+    (work / "m.yaml").write_text(f"machine: m\noverrides: {{drive: {{controller: {{{gain}: {value}}}}}}}\n"
+                                 f"axes:\n  - {{name: x, node_id: 1}}\n")
+    _refused(capsys, ["run", "--machine", "m.yaml"], f"drive.controller.{gain}", limit, cwd=work)
+
+
+def test_controller_gains_at_the_limit_are_accepted(work):
+    from fftune.host.config import load_config, od_param_high
+
+    (work / "g.yaml").write_text("drive:\n  controller: {kp: 1.0e5, kd: 1.0e4, tau_d: 1.0, u_max: 1000}\n")
+    c = load_config("g.yaml")["drive"]["controller"]
+    assert c == {"kp": od_param_high("KP"), "kd": od_param_high("KD"), "tau_d": 1.0, "u_max": 1000.0}
+
+
+# ---- command-line options ---------------------------------------------------------------
+@pytest.mark.parametrize("option, value, needle", [
+    ("-b", "0", "argument -b/--bitrate: 0: expected 10000 .. 1000000 bit/s"),
+    ("-b", "99999999", "argument -b/--bitrate: 99999999: expected 10000 .. 1000000 bit/s"),
+    ("--node-id", "0", "argument --node-id: 0: expected 1 .. 127"),
+    ("--node-id", "128", "argument --node-id: 128: expected 1 .. 127"),
+    ("--node-id", "abc", "argument --node-id: expected an integer 1 .. 127, got 'abc'"),
+    ("--port", "70000", "argument --port: 70000: expected"),
+])
+@pytest.mark.parametrize("command", ["run", "plan", "track", "demo", "sim", "demo-track"])
+def test_bus_options_out_of_range_are_one_line(work, capsys, command, option, value, needle):
+    _refused(capsys, [command, option, value, "--config", "none.yaml"], f"{command}: {needle}", cwd=work)
+
+
+def test_argparse_errors_are_one_line(work, capsys):
+    _refused(capsys, ["track"], "track: the following arguments are required: --config", cwd=work)
+    _refused(capsys, ["bogus"], "argument COMMAND: invalid choice: 'bogus'", cwd=work)
+    _refused(capsys, ["import-canlog", "x.log", "--node-id", "200"], "--node-id: 200: expected 1 .. 127",
+             cwd=work)
+
+
+def test_port_zero_means_a_free_port_for_the_simulated_drive_only(work, capsys):
+    _refused(capsys, ["run", "--port", "0"], "argument --port: 0: expected 1 .. 65535", cwd=work)
+    from fftune.host.cli import build_parser
+    assert build_parser().parse_args(["sim", "--port", "0"]).port == 0
+
+
+# ---- nothing left behind when a command that moves an axis is refused -----------------
+def test_unreachable_drive_leaves_no_folder(work, capsys):
+    port = str(_free_port())
+    (work / "t.yaml").write_text("output: out/deep/track\n")
+    _refused(capsys, ["track", "--config", "t.yaml", "--port", port], "drive not reachable", cwd=work)
+    (work / "m.yaml").write_text("machine: 5\noutput: out/deep\naxes:\n  - {name: x, node_id: 1}\n")
+    _refused(capsys, ["run", "--machine", "m.yaml", "--port", port], "drive not reachable", cwd=work)
+    # an existing output folder keeps exactly what it held
+    (work / "keep").mkdir()
+    (work / "keep" / "old.txt").write_text("earlier\n")
+    _refused(capsys, ["track", "--config", "t.yaml", "--port", port, "--out", "keep"],
+             "drive not reachable", cwd=work)
+    assert (work / "keep" / "old.txt").read_text() == "earlier\n"
+
+
+def test_output_session_removes_what_it_made_and_puts_back_the_earlier(tmp_path):
+    from fftune.host.config import output_session
+
+    earlier = tmp_path / "o"
+    earlier.mkdir()
+    (earlier / "results.yaml").write_text("earlier\n")
+    with pytest.raises(RuntimeError), output_session(str(earlier), set_aside=True) as out:
+        assert not os.path.exists(os.path.join(out, "results.yaml"))
+        assert (tmp_path / "o.previous" / "results.yaml").exists()
+        open(os.path.join(out, "drive_sim.log"), "w").close()
+        raise RuntimeError("refused before the first experiment")
+    assert _tree(tmp_path) == {"o", "o/results.yaml"}
+    with pytest.raises(RuntimeError), output_session(str(tmp_path / "a" / "b" / "c")) as out:
+        raise RuntimeError("refused")
+    assert _tree(tmp_path) == {"o", "o/results.yaml"}
+    # measured: kept (a capture in an axis' folder, as a machine writes them)
+    with pytest.raises(RuntimeError), output_session(str(tmp_path / "m")) as out:
+        os.makedirs(os.path.join(out, "x", "captures"))
+        open(os.path.join(out, "x", "captures", "run0.h5"), "w").close()
+        raise RuntimeError("failed after a run")
+    assert (tmp_path / "m" / "x" / "captures" / "run0.h5").exists()
+    with pytest.raises(Exception, match="exists and is not a directory"):
+        with output_session(str(earlier / "results.yaml")):
+            pass
+
+
+@needs_drive
+def test_demo_refused_by_the_drives_limits_leaves_no_parent_folder(work, capsys):
+    """The demo connects (drive_sim writes its log into the output folder), the plan is
+    refused by the drive's fs: the folder and the parents it made are gone."""
+    (work / "c.yaml").write_text("output: out/a/b\nquantify: {frequencies_hz: [1000]}\n"
+                                 "detect: {enabled: false}\ntune: {enabled: false}\n")
+    _refused(capsys, ["demo", "--config", "c.yaml", "--no-progress"], "quantify", "fs/2", cwd=work)
+
+
+# ---- CAN logs and captures --------------------------------------------------------------
+def test_canlog_non_finite_timestamp_and_size(work, capsys, monkeypatch):
+    (work / "nan.log").write_text("(nan) can0 601#4000200000000000\n")
+    _refused(capsys, ["import-canlog", "nan.log", "--out", "o"], "frame 1: timestamp nan is not a finite number",
+             cwd=work)
+    import fftune.host.canlog as canlog
+    monkeypatch.setattr(canlog, "MAX_CANLOG_BYTES", 40)
+    text = "(0.000000) can0 601#4000200000000000\n" * 3
+    (work / "big.log").write_text(text)
+    _refused(capsys, ["import-canlog", "big.log", "--out", "o"],
+             f"big.log: {len(text)} bytes: a CAN log holds at most 40", cwd=work)
+
+
+def _npz_declaring(path, shape):
+    """An .npz whose one array's header declares ``shape`` over 64 bytes of data."""
+    import io
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("u.npy", head.getvalue() + b"\0" * 64)
+        z.writestr("y.npy", head.getvalue() + b"\0" * 64)
+
+
+def test_captures_declaring_more_than_a_signal_holds_are_refused_unread(work, capsys, monkeypatch):
+    from fftune.analysis.capture import MAX_CAPTURE_SAMPLES
+
+    _npz_declaring(work / "huge.npz", (10 ** 11,))
+    _refused(capsys, ["analyze", "bla", "huge.npz", "--fs", "1000", "--period", "64"],
+             "variable 'u' declares 100000000000 values", "nothing was read", cwd=work)
+    _npz_declaring(work / "edge.npz", (MAX_CAPTURE_SAMPLES + 1,))
+    _refused(capsys, ["analyze", "hosidf", "edge.npz", "--fs", "1000", "--period", "64"],
+             f"declares {MAX_CAPTURE_SAMPLES + 1} values", cwd=work)
+    # .mat: the declared shape from the headers (whosmat), with the limit lowered so that the
+    # file stays small; a file at the limit is read
+    import scipy.io
+
+    import fftune.analysis.capture as capture
+    monkeypatch.setattr(capture, "MAX_CAPTURE_SAMPLES", 1000)
+    scipy.io.savemat(work / "big.mat", {"u": np.zeros(1001), "y": np.zeros(1001)}, do_compression=True)
+    _refused(capsys, ["analyze", "bla", "big.mat", "--fs", "1000", "--period", "64"],
+             "variable 'u' declares 1001 values (shape (1, 1001))", cwd=work)
+    from fftune.analysis.io import load_mat
+    scipy.io.savemat(work / "ok.mat", {"u": np.arange(1000.0), "y": np.ones(1000)})
+    assert load_mat(work / "ok.mat").signals["u"][999] == 999.0
