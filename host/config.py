@@ -388,7 +388,8 @@ def validate_drive(cfg, path):
     # attempts per SDO request (python-canopen's MAX_RETRIES): 1 = no retry; 0 would send
     # nothing and was once raised to 1 without a word
     _number(cfg, path, "drive.sdo_retries", low=1, high=10, integer=True)
-    _number(cfg, path, "drive.run_timeout_s", low=0.1)
+    # (a day: longer is a typo, and 1e300 s overflows the waits: OverflowError)
+    _number(cfg, path, "drive.run_timeout_s", low=0.1, high=86400.0)
     file_name(cfg["drive"]["eds"], path, "drive.eds", allow_none=True)
     if not isinstance(cfg["drive"]["controller"], dict):
         raise _err(path, "drive.controller", f"expected a mapping, got {show(cfg['drive']['controller'])}")

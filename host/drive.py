@@ -151,6 +151,22 @@ class BusOptions:
                     # (python-can's socketcand keys; the command line's when given)
                     host = conf.get("host", host) if host == DEFAULT_SOCKETCAND_HOST else host
                     port = conf.get("port", port) if port == DEFAULT_SOCKETCAND_PORT else port
+        # python-can's configuration is text (CAN_BITRATE=abc, a port of 70000): the command
+        # line's ranges, one error line naming where it came from
+        for name, value, low, high in (("bitrate", bitrate, 10_000, 1_000_000), ("port", port, 1, 65535)):
+            if value is None or (isinstance(value, int) and not isinstance(value, bool) and low <= value <= high):
+                continue
+            try:
+                number = int(str(value).strip(), 0)
+            except ValueError:
+                number = None
+            if number is None or not low <= number <= high:
+                raise FftuneError(f"python-can configuration (CAN_BITRATE, CAN_CONFIG, ~/.canrc ...): "
+                                  f"{name} {str(value)[:40]!r}: expected an integer {low} .. {high}")
+            if name == "bitrate":
+                bitrate = number
+            else:
+                port = number
         return cls(interface=interface, channel=channel, bitrate=bitrate, host=host, port=port,
                    node_id=args.node_id if args.node_id is not None else cfg_drive.get("node_id", 1),
                    eds=args.eds or cfg_drive.get("eds") or DEFAULT_EDS)
@@ -496,6 +512,21 @@ class DriveClient:
         if isinstance(sdo_retries, bool) or not isinstance(sdo_retries, int) or sdo_retries < 1:
             raise ValueError(f"sdo_retries: attempts per SDO request must be an integer >= 1, "
                              f"got {sdo_retries!r}")
+        # the one place every command's client passes (--node-id overrides the configuration's
+        # node id after its checks): a drive whose node id is the host's heartbeat id would
+        # watch a COB-ID its own heartbeat uses (0x700 + id), fed after the host died
+        for name, value in (("node id", opts.node_id), ("host node id", host_node_id)):
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 127:
+                raise FftuneError(f"{name} {value!r}: expected 1 .. 127")
+        if opts.node_id == host_node_id:
+            raise FftuneError(f"node id {opts.node_id} is the host's heartbeat id (drive.host_node_id "
+                              f"= {host_node_id}): the drive's consumer would watch its own "
+                              f"heartbeat's COB-ID 0x{0x700 + host_node_id:03X}; give the host "
+                              f"another id")
+        if isinstance(heartbeat_ms, bool) or not isinstance(heartbeat_ms, int) \
+                or not 0 <= heartbeat_ms <= 0xFFFF // 4:
+            raise FftuneError(f"heartbeat_ms {heartbeat_ms!r}: expected 0 .. {0xFFFF // 4} ms (the "
+                              f"consumer time, 4 x the period, is a 16-bit ms field)")
         self.opts = opts
         self.sdo_timeout_s = sdo_timeout_s
         self.sdo_retries = sdo_retries
