@@ -620,12 +620,12 @@ def read_text(path, what="configuration", *, max_bytes=MAX_CONFIG_BYTES):
         raise FftuneError(f"{path}: cannot read {what}: not UTF-8 text (byte {exc.start})") from None
 
 
-def read_yaml(path, what="configuration"):
+def read_yaml(path, what="configuration", *, max_bytes=MAX_CONFIG_BYTES):
     """The YAML file ``path`` parsed within bounds (:func:`read_text`, then
     :func:`safe_yaml_load`: size, depth, aliases; ``1e-3`` a number): the one loader of every
     file a user gives (configuration, machine file, axis configuration, track configuration,
     plant). One FftuneError line on any problem."""
-    return safe_yaml_load(read_text(path, what), str(path))
+    return safe_yaml_load(read_text(path, what, max_bytes=max_bytes), str(path), max_bytes=max_bytes)
 
 
 def load_config(path):

@@ -259,14 +259,15 @@ def _names_for(folder):
     res_path = os.path.join(out_dir, "results.yaml")
     if os.path.exists(res_path):
         try:
-            with open(res_path, "r", encoding="utf-8") as fh:
-                res = yaml.safe_load(fh) or {}
+            # the one loader (size, depth, aliases; a FIFO or device refused, not waited on)
+            from fftune.host.config import read_yaml
+            res = read_yaml(res_path, "results file", max_bytes=64 << 20) or {}
             ax = res.get("axis") or {}
             axis = ax.get("name", axis)
             machine = ax.get("machine", machine)
             node_id = ax.get("node_id")
             truth = (res.get("drive") or {}).get("plant_truth")
-        except (OSError, yaml.YAMLError, AttributeError):
+        except (OSError, yaml.YAMLError, AttributeError, FftuneError):
             pass
     return machine, axis, node_id, truth, out_dir
 
