@@ -315,3 +315,98 @@ def test_captures_declaring_more_than_a_signal_holds_are_refused_unread(work, ca
     from fftune.analysis.io import load_mat
     scipy.io.savemat(work / "ok.mat", {"u": np.arange(1000.0), "y": np.ones(1000)})
     assert load_mat(work / "ok.mat").signals["u"][999] == 999.0
+
+
+# ---- the host's heartbeat id, python-can's configuration, timeouts ----------------------
+def test_a_node_id_equal_to_the_host_heartbeat_id_is_refused_from_the_command_line(work, capsys):
+    """The configuration's node id passed its check (1 != 127); ``--node-id 127`` replaced
+    it afterwards: the drive's consumer would watch its own heartbeat's COB-ID."""
+    for argv in (["run", "--dry-run", "--node-id", "127"], ["plan", "--node-id", "127"],
+                 ["track", "--config", "t.yaml", "--node-id", "127"]):
+        (work / "t.yaml").write_text("output: o\n")
+        _refused(capsys, argv, "node id 127 is the host's heartbeat id (drive.host_node_id = 127)",
+                 "0x77F", cwd=work)
+
+
+def test_the_client_refuses_ids_and_heartbeat_out_of_range():
+    from fftune.analysis.errors import FftuneError
+    from fftune.host.drive import BusOptions, DriveClient
+
+    for kw, needle in (({"heartbeat_ms": 20000}, "heartbeat_ms 20000: expected 0 .. 16383"),
+                       ({"heartbeat_ms": True}, "heartbeat_ms True"),
+                       ({"host_node_id": 0}, "host node id 0: expected 1 .. 127"),
+                       ({"host_node_id": 5}, "node id 5 is the host's heartbeat id")):
+        with pytest.raises(FftuneError, match=needle):
+            DriveClient(BusOptions(node_id=5), progress=False, **kw)
+    with pytest.raises(FftuneError, match="node id 128: expected 1 .. 127"):
+        DriveClient(BusOptions(node_id=128), progress=False)
+
+
+@pytest.mark.parametrize("name, value, needle", [
+    ("CAN_BITRATE", "abc", "bitrate 'abc': expected an integer 10000 .. 1000000"),
+    ("CAN_BITRATE", "5000000", "bitrate '5000000'"),
+])
+def test_python_can_configuration_from_the_environment_is_checked(work, capsys, monkeypatch, name, value, needle):
+    monkeypatch.setenv("CAN_INTERFACE", "socketcand")
+    monkeypatch.setenv(name, value)
+    _refused(capsys, ["run", "--dry-run"], "python-can configuration", needle, cwd=work)
+
+
+def test_run_timeout_is_bounded(work, capsys):
+    (work / "t.yaml").write_text("drive: {run_timeout_s: 1.0e+300}\n")
+    _refused(capsys, ["plan", "--offline", "--config", "t.yaml"],
+             "key 'drive.run_timeout_s': expected a number <= 86400.0", cwd=work)
+
+
+# ---- captures written by an earlier session, exports ------------------------------------
+def _captures(folder, n=2):
+    from fftune.analysis.capture import write_run
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        write_run(folder / f"r{i}.h5", {"reference": np.arange(64.0) * (i + 1), "plant_input": np.ones(64)},
+                  dict(fs_hz=1000.0, n_period=32, settle_periods=0, record_periods=2, experiment="detect"))
+
+
+def test_export_is_all_or_nothing(work, capsys):
+    _captures(work / "caps")
+    (work / "caps" / "r2.h5").write_bytes(b"\x00" * 600)      # damaged: refused
+    _refused(capsys, ["export", "caps", "--to", "x/y"], "capture caps/r2.h5", cwd=work)
+    _refused(capsys, ["export", "caps", "--format", "csv"], "capture caps/r2.h5", cwd=work)
+    (work / "afile").write_text("x\n")
+    _refused(capsys, ["export", "caps", "--to", "afile"], "output directory afile: exists and is not a directory",
+             cwd=work)
+    (work / "caps" / "r2.h5").unlink()
+    assert main(["export", "caps", "--to", "x"]) == 0
+    assert sorted(os.listdir(work / "x")) == ["r0.mat", "r1.mat"]
+
+
+@pytest.mark.parametrize("content, needle", [
+    (None, "is a FIFO"),
+    ("[" * 100_000 + "]" * 100_000, "RecursionError"),
+    ('{"meta": 5, "stats": {}}', "not a readable statistics capture"),
+])
+def test_a_damaged_statistics_capture_is_one_line(tmp_path, content, needle):
+    from fftune.analysis.errors import FftuneError
+    from fftune.host.captures import _load_stats
+
+    path = tmp_path / "tune-x.stats.json"
+    if content is None:
+        os.mkfifo(path)
+    else:
+        path.write_text(content)
+    with _deadline(), pytest.raises(FftuneError, match=needle):
+        _load_stats(str(path), {})
+
+
+def test_fleet_reads_results_yaml_with_the_one_loader(tmp_path):
+    from fftune.host.fleet import _names_for
+
+    folder = tmp_path / "mach" / "ax"
+    (folder / "captures").mkdir(parents=True)
+    (folder / "results.yaml").write_text(
+        "a: &a [x, x, x, x, x, x, x, x, x, x]\n"
+        + "".join(f"{c}: &{c} [{', '.join([f'*{p}'] * 10)}]\n" for p, c in zip("abcdef", "bcdefg")))
+    assert _names_for(str(folder / "captures"))[:3] == ("mach", "ax", None)   # (the folder names)
+    (folder / "results.yaml").write_text("axis: {name: y, machine: m2, node_id: 3}\n")
+    assert _names_for(str(folder / "captures"))[:3] == ("m2", "y", 3)
