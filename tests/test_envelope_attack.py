@@ -410,3 +410,31 @@ def test_fleet_reads_results_yaml_with_the_one_loader(tmp_path):
     assert _names_for(str(folder / "captures"))[:3] == ("mach", "ax", None)   # (the folder names)
     (folder / "results.yaml").write_text("axis: {name: y, machine: m2, node_id: 3}\n")
     assert _names_for(str(folder / "captures"))[:3] == ("m2", "y", 3)
+
+
+def test_a_capture_with_too_many_datasets_is_refused_before_one_is_read(tmp_path, monkeypatch):
+    """Each compressed dataset may hold up to MAX_CAPTURE_SAMPLES and inflate from a few kB:
+    their number is bounded too, checked before any is read."""
+    import h5py
+
+    from fftune.analysis.capture import MAX_CAPTURE_DATASETS, read_run
+
+    def forged(n):
+        path = tmp_path / f"c{n}.h5"
+        with h5py.File(path, "w") as f:
+            for key, value in (("format", "fftune-capture"), ("format_version", 1), ("fs_hz", 1000.0),
+                               ("n_period", 32), ("settle_periods", 0), ("record_periods", 2),
+                               ("experiment", "detect")):
+                f.attrs[key] = value
+            for i in range(n):
+                f.create_dataset(f"s{i}", data=np.full(64, float(i), dtype="<f4"), compression="gzip")
+        return path
+
+    read = []
+    original = h5py.Dataset.__getitem__
+    monkeypatch.setattr(h5py.Dataset, "__getitem__", lambda self, key: read.append(key) or original(self, key))
+    with pytest.raises(Exception, match=f"{MAX_CAPTURE_DATASETS + 1} datasets, at most {MAX_CAPTURE_DATASETS}"):
+        read_run(forged(MAX_CAPTURE_DATASETS + 1))
+    assert read == []
+    run = read_run(forged(MAX_CAPTURE_DATASETS))
+    assert len(run.signals) == MAX_CAPTURE_DATASETS and run.signals["s7"][63] == 7.0
