@@ -231,6 +231,8 @@ def run(args):
         template = _template_path(args.doc)
         if not os.path.exists(template):
             raise FftuneError(f"--doc {args.doc}: its template {template} is missing")
+        from fftune.host.config import regular_file
+        regular_file(template, "--doc template")      # (a FIFO would block at the very end)
     log = lambda s: print(s, flush=True)  # noqa: E731
     # a fresh run (the earlier directory kept as <out>.previous, put back on a failure before
     # the first experiment, with nothing left behind)

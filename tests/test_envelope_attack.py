@@ -438,3 +438,12 @@ def test_a_capture_with_too_many_datasets_is_refused_before_one_is_read(tmp_path
     assert read == []
     run = read_run(forged(MAX_CAPTURE_DATASETS))
     assert len(run.signals) == MAX_CAPTURE_DATASETS and run.signals["s7"][63] == 7.0
+
+
+def test_environment_and_doc_template_that_are_not_regular_files(work, capsys, monkeypatch):
+    os.mkfifo(work / "d.template.md")
+    _refused(capsys, ["paper", "--short", "--doc", "d.md"], "d.template.md: cannot read --doc template: is a FIFO",
+             cwd=work)
+    monkeypatch.setenv("FFTUNE_DRIVE_SIM", str(work / "adir"))       # a directory is "executable"
+    for argv in (["demo"], ["sim"], ["demo-track"]):
+        _refused(capsys, argv, "FFTUNE_DRIVE_SIM=", "adir: not an executable file", cwd=work)
