@@ -447,3 +447,43 @@ def test_environment_and_doc_template_that_are_not_regular_files(work, capsys, m
     monkeypatch.setenv("FFTUNE_DRIVE_SIM", str(work / "adir"))       # a directory is "executable"
     for argv in (["demo"], ["sim"], ["demo-track"]):
         _refused(capsys, argv, "FFTUNE_DRIVE_SIM=", "adir: not an executable file", cwd=work)
+
+
+# ---- a forged CAN log: values the drive never sends --------------------------------------
+def _logged_session(samples, *, with_period=True, command=b"\x01"):
+    import struct
+
+    from fftune.host.sdo_sniffer import SdoTransfer
+
+    def tr(t, direction, index, sub, data):
+        return SdoTransfer(timestamp=t, node_id=1, direction=direction, index=index, subindex=sub,
+                           data=data, mode="expedited")
+    out = [tr(0.1, "download", 0x2001, 8, struct.pack("<I", 2)),
+           tr(0.2, "download", 0x2001, 7, struct.pack("<I", 0)),
+           tr(0.3, "download", 0x2020, 1, struct.pack("<I", 0x03)),     # reference, plant_input
+           tr(0.4, "upload", 0x2000, 8, struct.pack("<f", 1000.0)),
+           tr(0.5, "download", 0x2010, 1, command),
+           tr(0.9, "upload", 0x2021, 0, np.asarray(samples, dtype="<f4").tobytes())]
+    if with_period:
+        out.insert(0, tr(0.0, "download", 0x2001, 5, struct.pack("<I", 32)))
+    return out
+
+
+def test_a_forged_can_log_is_one_line_per_damage():
+    from fftune.analysis.errors import FftuneError
+    from fftune.host.canlog import session_from_transfers
+    from fftune.host.odmap import DEFAULT_EDS
+
+    x = np.column_stack([np.arange(64.0), -np.arange(64.0) / 4])      # 64 samples x 2 signals
+    sess = session_from_transfers(_logged_session(x), DEFAULT_EDS)
+    (requested, rec), = sess.runs
+    assert rec.period_samples == 32 and rec.record_periods == 2 and rec.fs_hz == 1000.0
+    assert rec.signals["plant_input"][63] == -15.75 and rec.signals["reference"][5] == 5.0
+    bad = x.copy()
+    bad[5, 1] = np.nan
+    with pytest.raises(FftuneError, match=r"t=0.900: signal plant_input sample 5 is nan: not a finite number"):
+        session_from_transfers(_logged_session(bad), DEFAULT_EDS)
+    with pytest.raises(FftuneError, match="holds no exc_period of the run"):
+        session_from_transfers(_logged_session(x, with_period=False), DEFAULT_EDS)
+    with pytest.raises(FftuneError, match=r"SDO download of 0x2010:1 at t=0.500: cannot be replayed"):
+        session_from_transfers(_logged_session(x, command=b""), DEFAULT_EDS)
