@@ -90,6 +90,13 @@ def drive_sim_command(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node
                       interface="socketcand", channel=None, bitrate=None, realtime=False):
     """drive_sim's command line (see firmware_sim/port/main.c)."""
     check_bus(interface, channel, bitrate)
+    if interface == "socketcand":
+        import ipaddress
+        try:
+            ipaddress.IPv4Address(str(host))
+        except ValueError:
+            raise FftuneError(f"--host {str(host)[:60]!r}: the simulated drive binds its socketcand "
+                              f"server to an IPv4 address (127.0.0.1, 0.0.0.0 ...)") from None
     cmd = [drive_sim_path(), "--can", _bus_spec(interface, host, port, channel), "--config", plant_config,
            "--node-id", str(node_id)]
     if bitrate is not None:

@@ -487,3 +487,11 @@ def test_a_forged_can_log_is_one_line_per_damage():
         session_from_transfers(_logged_session(x, with_period=False), DEFAULT_EDS)
     with pytest.raises(FftuneError, match=r"SDO download of 0x2010:1 at t=0.500: cannot be replayed"):
         session_from_transfers(_logged_session(x, command=b""), DEFAULT_EDS)
+
+
+@pytest.mark.parametrize("command", ["sim", "demo", "demo-track"])
+def test_the_simulated_drives_address_is_checked_before_it_starts(work, capsys, command):
+    """drive_sim binds an IPv4 address (inet_pton): anything else was drive_sim's own error
+    line after fftune had made the output folder (or replaced itself by drive_sim)."""
+    for host in ("256.1.1.1", "localhost", "::1"):
+        _refused(capsys, [command, "--host", host], f"--host '{host}': the simulated drive binds", cwd=work)
