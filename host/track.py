@@ -105,9 +105,12 @@ def validate_track_config(raw, path):
         elif key in ("gain",):
             _number(cfg, path, f"{t}.limits.{key}", low=0.0, low_inclusive=False, high=2.0)
         elif key == "rollback_ratio":
-            _number(cfg, path, f"{t}.limits.{key}", low=1.0, low_inclusive=False)
+            _number(cfg, path, f"{t}.limits.{key}", low=1.0, low_inclusive=False, high=1000.0)
         else:
-            _number(cfg, path, f"{t}.limits.{key}", low=0.0)
+            # steps and sigmas relative (<= 10 x), absolute gain steps within the feed-forward
+            # objects' range (100 V, 100 V s/rad), rms in rad: a huge value (1e300) is a typo
+            _number(cfg, path, f"{t}.limits.{key}", low=0.0,
+                    high=10.0 if key.endswith("_rel") else 1000.0 if key.endswith("_rad") else 100.0)
     _number(cfg, path, f"{t}.poll_s", low=0.001, high=10.0)
     _number(cfg, path, f"{t}.write_deadband_rel", low=0.0, high=0.1)
     _bool(cfg, path, f"{t}.check.enabled")

@@ -495,3 +495,13 @@ def test_the_simulated_drives_address_is_checked_before_it_starts(work, capsys, 
     line after fftune had made the output folder (or replaced itself by drive_sim)."""
     for host in ("256.1.1.1", "localhost", "::1"):
         _refused(capsys, [command, "--host", host], f"--host '{host}': the simulated drive binds", cwd=work)
+
+
+@pytest.mark.parametrize("key, value, limit", [
+    ("max_step_rel", "1.0e+300", "10.0"), ("max_step_abs", "101", "100.0"), ("kv_max_step", "1.0e+9", "100.0"),
+    ("rms_limit_rad", "1.0e+4", "1000.0"), ("rollback_ratio", "1.0e+300", "1000.0"),
+])
+def test_track_limits_have_upper_bounds(work, capsys, key, value, limit):
+    (work / "t.yaml").write_text(f"track:\n  limits: {{{key}: {value}}}\n")
+    _refused(capsys, ["track", "--config", "t.yaml"],
+             f"key 'track.limits.{key}': expected a number <= {limit}", cwd=work)
