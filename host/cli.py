@@ -25,6 +25,20 @@ SUBCOMMAND_MODULES = [
 ]
 
 
+MAX_ERROR_CHARS = 2000
+
+
+def one_line(message, max_chars=MAX_ERROR_CHARS):
+    """``message`` as one terminal line: control characters a file name or a YAML key may
+    carry (a newline, an escape sequence that recolours the terminal) shown escaped
+    (``\\n``, ``\\x1b``), at most ``max_chars`` characters (its middle left out)."""
+    text = "".join(ch if ch.isprintable() or ch == " " else repr(ch)[1:-1] for ch in str(message))
+    if len(text) <= max_chars:
+        return text
+    half = (max_chars - 5) // 2      # (the start names the object, the end says what is wrong)
+    return text[:half] + " ... " + text[-half:]
+
+
 class Parser(argparse.ArgumentParser):
     """argparse's parser whose errors (a missing argument, ``--node-id abc``, an option out
     of range) are the one line of every fftune error: ``fftune: error: ...``, exit 2 (the
@@ -32,7 +46,7 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message):
         sub = self.prog[len("fftune"):].strip() if self.prog.startswith("fftune") else self.prog
-        self.exit(2, f"fftune: error: {sub + ': ' if sub else ''}{' '.join(str(message).split())}\n")
+        self.exit(2, f"fftune: error: {sub + ': ' if sub else ''}{one_line(' '.join(str(message).split()))}\n")
 
 
 def build_parser():
@@ -75,7 +89,7 @@ def main(argv=None):
         print("fftune: terminated", file=sys.stderr)
         return 143
     except FftuneError as exc:
-        print(f"fftune: error: {exc}", file=sys.stderr)
+        print(f"fftune: error: {one_line(exc)}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print("fftune: interrupted", file=sys.stderr)

@@ -505,3 +505,15 @@ def test_track_limits_have_upper_bounds(work, capsys, key, value, limit):
     (work / "t.yaml").write_text(f"track:\n  limits: {{{key}: {value}}}\n")
     _refused(capsys, ["track", "--config", "t.yaml"],
              f"key 'track.limits.{key}': expected a number <= {limit}", cwd=work)
+
+
+def test_an_error_line_stays_one_line_whatever_the_name(work, capsys):
+    """A file name or a YAML key with a newline or a terminal escape sequence was printed as
+    is: two lines, a recoloured terminal; a 5000-character name filled the screen."""
+    (work / "k.yaml").write_text('"a\\nb\\x1b[31mred": 1\n')
+    line = _refused(capsys, ["plan", "--offline", "--config", "k.yaml"], "key 'a\\nb\\x1b[31mred': unknown key",
+                    cwd=work)
+    assert "\x1b" not in line
+    _refused(capsys, ["run", "--config", "a\nb.yaml"], "a\\nb.yaml: cannot read configuration", cwd=work)
+    line = _refused(capsys, ["run", "--config", "x" * 5000], "File name too long", cwd=work)
+    assert len(line) <= 2000 + len("fftune: error: ") and " ... " in line
