@@ -586,7 +586,7 @@ def regular_file(path, what="configuration", max_bytes=None):
         raise FftuneError(f"{path}: cannot read {what}: is {_kind(mode)}, expected a file")
     size = os.stat(path).st_size
     if max_bytes is not None and size > max_bytes:
-        raise FftuneError(f"{path}: {size} bytes: a {what} holds at most {max_bytes}")
+        raise FftuneError(f"{path}: cannot read {what}: {size} bytes, at most {max_bytes}")
     return path
 
 

@@ -280,7 +280,7 @@ def test_canlog_non_finite_timestamp_and_size(work, capsys, monkeypatch):
     text = "(0.000000) can0 601#4000200000000000\n" * 3
     (work / "big.log").write_text(text)
     _refused(capsys, ["import-canlog", "big.log", "--out", "o"],
-             f"big.log: {len(text)} bytes: a CAN log holds at most 40", cwd=work)
+             f"big.log: cannot read CAN log: {len(text)} bytes, at most 40", cwd=work)
 
 
 def _npz_declaring(path, shape):
@@ -517,3 +517,13 @@ def test_an_error_line_stays_one_line_whatever_the_name(work, capsys):
     _refused(capsys, ["run", "--config", "a\nb.yaml"], "a\\nb.yaml: cannot read configuration", cwd=work)
     line = _refused(capsys, ["run", "--config", "x" * 5000], "File name too long", cwd=work)
     assert len(line) <= 2000 + len("fftune: error: ") and " ... " in line
+
+
+def test_an_eds_above_its_size_limit_is_refused_before_it_is_parsed(work, capsys):
+    from fftune.host.config import MAX_EDS_BYTES
+
+    (work / "big.eds").write_text("[DeviceInfo]\n;" + "x" * MAX_EDS_BYTES + "\n")
+    (work / "one.log").write_text("(0.000000) can0 601#4000200000000000\n")
+    size = os.path.getsize(work / "big.eds")
+    for argv in (["run", "--dry-run", "--eds", "big.eds"], ["import-canlog", "one.log", "--eds", "big.eds", "--out", "o"]):
+        _refused(capsys, argv, f"big.eds: cannot read EDS: {size} bytes, at most {MAX_EDS_BYTES}", cwd=work)
