@@ -97,14 +97,14 @@ def load_machine(path):
         ``name``, ``node_id``, ``cfg`` (validated configuration), ``plant``,
         ``plant_overrides``.
     """
-    from fftune.host.config import file_name, read_plant, read_yaml, safe_name, validate
+    from fftune.host.config import file_name, read_plant, read_yaml, safe_name, unknown_key_text, validate
 
     raw = read_yaml(path, "machine file")
     if not isinstance(raw, dict):
         raise FftuneError(f"{path}: expected a mapping with 'axes', got {show(raw)}")
     unknown = sorted(str(k) for k in set(raw) - _TOP_KEYS)
     if unknown:
-        raise FftuneError(f"{path}: unknown key '{show(unknown[0], 60)}' (expected {', '.join(sorted(_TOP_KEYS))})")
+        raise FftuneError(f"{path}: key '{unknown[0][:60]}': {unknown_key_text(unknown[0], sorted(_TOP_KEYS))}")
     axes_raw = raw.get("axes")
     if not isinstance(axes_raw, list) or not axes_raw:
         raise FftuneError(f"{path}: key 'axes': expected a list of at least one axis")
@@ -140,7 +140,7 @@ def load_machine(path):
             raise FftuneError(f"{where}: expected a mapping (name, node_id, ...), got {show(a)}")
         unknown = sorted(str(k) for k in set(a) - _AXIS_KEYS)
         if unknown:
-            raise FftuneError(f"{where}: unknown key '{show(unknown[0], 60)}' (expected {', '.join(sorted(_AXIS_KEYS))})")
+            raise FftuneError(f"{where}: key '{unknown[0][:60]}': {unknown_key_text(unknown[0], sorted(_AXIS_KEYS))}")
         aname = a.get("name")
         if not isinstance(aname, str) or not aname or len(aname) > 64 \
                 or not all(c.isascii() and (c.isalnum() or c in "-_") for c in aname):

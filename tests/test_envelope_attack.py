@@ -527,3 +527,13 @@ def test_an_eds_above_its_size_limit_is_refused_before_it_is_parsed(work, capsys
     size = os.path.getsize(work / "big.eds")
     for argv in (["run", "--dry-run", "--eds", "big.eds"], ["import-canlog", "one.log", "--eds", "big.eds", "--out", "o"]):
         _refused(capsys, argv, f"big.eds: cannot read EDS: {size} bytes, at most {MAX_EDS_BYTES}", cwd=work)
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("machine: m\naxis:\n  - {name: x, node_id: 1}\n", "m.yaml: key 'axis': unknown key (did you mean 'axes'?"),
+    ("machine: m\naxes:\n  - {name: x, node_id: 1, plnt: p.yaml}\n",
+     "m.yaml: axes[0]: key 'plnt': unknown key (did you mean 'plant'?"),
+])
+def test_a_machine_files_unknown_key_names_the_nearest_one(work, capsys, text, needle):
+    (work / "m.yaml").write_text(text)
+    _refused(capsys, ["run", "--machine", "m.yaml"], needle, cwd=work)
