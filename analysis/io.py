@@ -140,6 +140,11 @@ def load_csv(path):
         raise InputError(f"{path}: not a text (CSV) file") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    from fftune.analysis.capture import MAX_CAPTURE_SAMPLES
+    n_lines = text.count("\n")
+    if n_lines > MAX_CAPTURE_SAMPLES + 1000:      # (rows: samples of a signal; comments)
+        raise InputError(f"{path}: {n_lines} lines, at most {MAX_CAPTURE_SAMPLES} samples a signal "
+                         f"(fftune.analysis.capture.MAX_CAPTURE_SAMPLES); nothing was parsed")
     lines = text.splitlines()
     header_index = None
     for i, line in enumerate(lines):
@@ -260,7 +265,7 @@ def _from_mapping(path, items, matlab=False):
 # this many values (the capture files' limit), a file at most this many arrays, a CSV at
 # most this many bytes of text.
 _MAX_DECLARED_ARRAYS = 256
-_MAX_TEXT_BYTES = 1 << 30
+_MAX_TEXT_BYTES = 512 << 20
 
 
 def _check_declared(path, declared):

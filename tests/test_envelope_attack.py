@@ -537,3 +537,15 @@ def test_an_eds_above_its_size_limit_is_refused_before_it_is_parsed(work, capsys
 def test_a_machine_files_unknown_key_names_the_nearest_one(work, capsys, text, needle):
     (work / "m.yaml").write_text(text)
     _refused(capsys, ["run", "--machine", "m.yaml"], needle, cwd=work)
+
+
+def test_a_csv_with_more_rows_than_a_signal_holds_is_refused_before_parsing(work, capsys, monkeypatch):
+    import fftune.analysis.capture as capture
+
+    monkeypatch.setattr(capture, "MAX_CAPTURE_SAMPLES", 100)
+    (work / "long.csv").write_text("u,y\n" + "1,2\n" * 1200)
+    _refused(capsys, ["analyze", "bla", "long.csv", "--fs", "1000", "--period", "64"],
+             "long.csv: 1201 lines, at most 100 samples a signal", cwd=work)
+    from fftune.analysis.io import load_csv
+    (work / "ok.csv").write_text("u,y\n" + "".join(f"{i},{-i}\n" for i in range(1000)))
+    assert load_csv(work / "ok.csv").signals["y"][999] == -999.0
