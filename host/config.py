@@ -494,7 +494,6 @@ class ConfigLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
-
 ConfigLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
 ConfigLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
@@ -577,16 +576,15 @@ def regular_file(path, what="configuration", max_bytes=None):
     if not isinstance(path, (str, os.PathLike)) or not str(path) or "\0" in str(path):
         raise FftuneError(f"{what}: expected a file name, got {show(path)}")
     try:
-        mode = os.stat(path).st_mode
+        st = os.stat(path)
     except OSError as exc:
         raise FftuneError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
     except ValueError as exc:       # (an unencodable name)
         raise FftuneError(f"{what}: {show(str(path))}: {exc}") from None
-    if not stat.S_ISREG(mode):
-        raise FftuneError(f"{path}: cannot read {what}: is {_kind(mode)}, expected a file")
-    size = os.stat(path).st_size
-    if max_bytes is not None and size > max_bytes:
-        raise FftuneError(f"{path}: cannot read {what}: {size} bytes, at most {max_bytes}")
+    if not stat.S_ISREG(st.st_mode):
+        raise FftuneError(f"{path}: cannot read {what}: is {_kind(st.st_mode)}, expected a file")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise FftuneError(f"{path}: cannot read {what}: {st.st_size} bytes, at most {max_bytes}")
     return path
 
 
