@@ -236,11 +236,13 @@ def run(args):
     log = lambda s: print(s, flush=True)  # noqa: E731
     # a fresh run (the earlier directory kept as <out>.previous, put back on a failure before
     # the first experiment, with nothing left behind)
-    with output_session(args.out or cfg["output"], set_aside=True,
-                        log=lambda s: log(f"fftune paper: {s}")) as out:
+    kept = []
+    with output_session(args.out or cfg["output"], set_aside=True, log=kept.append) as out:
         log(f"fftune paper: set-up {os.path.relpath(plant)}, simulation {os.path.relpath(sim_plant)}")
         results, data, sim_results, sim_data, numbers = measure(
             cfg, plant, sim_plant, out, progress=not args.no_progress, log=log)
+    for line in kept:
+        log(f"fftune paper: {line}")
     numbers.update(rep.detect_numbers(results.get("detect")))
     # the Figure 3 rows whenever detect ran (a figure it did not report shows as n/a)
     claims = rep.PAPER_CLAIMS + (rep.DETECT_CLAIMS if "detect_level_v_rms" in numbers else [])
