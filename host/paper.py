@@ -233,6 +233,10 @@ def run(args):
             raise FftuneError(f"--doc {args.doc}: its template {template} is missing")
         from fftune.host.config import regular_file
         regular_file(template, "--doc template")      # (a FIFO would block at the very end)
+    # the simulation plant's values are checked by drive_sim itself (their one source) now,
+    # not after the set-up part has run: started on a free port and stopped again
+    from fftune.host.sim import start_drive_sim
+    start_drive_sim(sim_plant).stop()
     log = lambda s: print(s, flush=True)  # noqa: E731
     # a fresh run (the earlier directory kept as <out>.previous, put back on a failure before
     # the first experiment, with nothing left behind)

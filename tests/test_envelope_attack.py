@@ -549,3 +549,13 @@ def test_a_csv_with_more_rows_than_a_signal_holds_is_refused_before_parsing(work
     from fftune.analysis.io import load_csv
     (work / "ok.csv").write_text("u,y\n" + "".join(f"{i},{-i}\n" for i in range(1000)))
     assert load_csv(work / "ok.csv").signals["y"][999] == -999.0
+
+
+@needs_drive
+def test_paper_checks_the_simulation_plant_before_the_set_up_part_runs(work, capsys):
+    """A value out of drive_sim's range in ``--sim-plant`` failed only after the set-up part
+    had measured (its captures left behind); drive_sim, the one source of the ranges, is asked
+    first."""
+    (work / "p.yaml").write_text(open(TWOMASS).read().replace("  j1: 1.0e-4", "  j1: -1.0"))
+    _refused(capsys, ["paper", "--short", "--sim-plant", "p.yaml", "--no-progress"],
+             "p.yaml:18: plant.j1 = -1.0: out of range", cwd=work)
