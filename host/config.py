@@ -493,7 +493,18 @@ class ConfigLoader(yaml.SafeLoader):
                         key_node.start_mark)
         return super().construct_mapping(node, deep)
 
+    def construct_yaml_int(self, node):
+        # (an integer of 5000 digits: Python refuses to convert it, a ValueError; one of 400
+        # digits overflows every float comparison): no configuration needs more than 30
+        digits = sum(ch.isalnum() for ch in str(node.value)) if isinstance(node.value, str) else 0
+        if digits > MAX_INT_DIGITS:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"integer of {digits} digits (at most {MAX_INT_DIGITS})", node.start_mark)
+        return super().construct_yaml_int(node)
 
+
+MAX_INT_DIGITS = 30
+ConfigLoader.add_constructor("tag:yaml.org,2002:int", ConfigLoader.construct_yaml_int)
 ConfigLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
 ConfigLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),

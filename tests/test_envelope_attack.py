@@ -559,3 +559,15 @@ def test_paper_checks_the_simulation_plant_before_the_set_up_part_runs(work, cap
     (work / "p.yaml").write_text(open(TWOMASS).read().replace("  j1: 1.0e-4", "  j1: -1.0"))
     _refused(capsys, ["paper", "--short", "--sim-plant", "p.yaml", "--no-progress"],
              "p.yaml:18: plant.j1 = -1.0: out of range", cwd=work)
+
+
+@pytest.mark.parametrize("literal, digits", [("9" * 5000, 5000), ("0x" + "f" * 300, 302), ("-" + "1" * 31, 31)])
+def test_an_integer_literal_of_thousands_of_digits_is_one_line(work, capsys, literal, digits):
+    """5000 digits: Python's int() refuses them (a ValueError traceback); 300 hex digits
+    overflowed math.isfinite (an OverflowError traceback). The loader refuses more than 30."""
+    (work / "i.yaml").write_text(f"drive:\n  node_id: {literal}\n")
+    for argv in (["plan", "--offline", "--config", "i.yaml"], ["track", "--config", "i.yaml"]):
+        _refused(capsys, argv, f"i.yaml:2: invalid YAML: 'integer of {digits} digits (at most 30)'", cwd=work)
+    (work / "ok.yaml").write_text("drive:\n  node_id: 000000000000000000000000000003\n")
+    from fftune.host.config import load_config
+    assert load_config("ok.yaml")["drive"]["node_id"] == 3
