@@ -493,6 +493,17 @@ class ConfigLoader(yaml.SafeLoader):
                         key_node.start_mark)
         return super().construct_mapping(node, deep)
 
+    def construct_object(self, node, deep=False):
+        # a tagged or implicit scalar PyYAML cannot build (2001-13-45, !!int 'abc', !!bool
+        # 'maybe') raises ValueError / KeyError from inside the constructor: one line with
+        # its position instead of a traceback
+        try:
+            return super().construct_object(node, deep)
+        except (ValueError, TypeError, KeyError, OverflowError) as exc:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"cannot read {show(node.value, 40) if isinstance(node, yaml.ScalarNode) else 'a node'} "
+                            f"as {node.tag.rsplit(':', 1)[-1]}: {str(exc)[:80]}", node.start_mark) from None
+
     def construct_yaml_int(self, node):
         # (an integer of 5000 digits: Python refuses to convert it, a ValueError; one of 400
         # digits overflows every float comparison): no configuration needs more than 30
@@ -515,7 +526,8 @@ def _yaml_error(where, exc):
     mark = getattr(exc, "problem_mark", None)
     at = f"{where}:{mark.line + 1}" if mark is not None else where
     problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-    return FftuneError(f"{at}: invalid YAML: {show(problem, 160)}")
+    problem = str(problem)
+    return FftuneError(f"{at}: invalid YAML: {problem if len(problem) <= 160 else problem[:157] + '...'}")
 
 
 def safe_yaml_load(text, where, *, max_bytes=MAX_CONFIG_BYTES, max_depth=MAX_YAML_DEPTH,
@@ -566,6 +578,8 @@ def safe_yaml_load(text, where, *, max_bytes=MAX_CONFIG_BYTES, max_depth=MAX_YAM
         return yaml.load(text, Loader=ConfigLoader)
     except yaml.YAMLError as exc:
         raise _yaml_error(where, exc) from None
+    except (ValueError, TypeError, KeyError, OverflowError, RecursionError) as exc:
+        raise FftuneError(f"{where}: invalid YAML: {show(str(exc), 160)}") from None
 
 
 def _kind(mode):

@@ -139,7 +139,7 @@ def test_a_plant_of_the_wrong_shape_is_refused_before_drive_sim_starts(work, cap
 
 # ---- YAML: duplicate keys, unknown keys, numbers out of the drive's ranges ------------
 @pytest.mark.parametrize("text, needle", [
-    ("output: a\noutput: b\n", "dup.yaml:2: invalid YAML: \"duplicate key 'output' (first on line 1)\""),
+    ("output: a\noutput: b\n", "dup.yaml:2: invalid YAML: duplicate key 'output' (first on line 1)"),
     ("drive:\n  node_id: 2\n  heartbeat_ms: 100\n  node_id: 3\n", "dup.yaml:4:"),
     ("drive: {controller: {kp: 20, kp: 2}}\n", "duplicate key 'kp'"),
 ])
@@ -567,7 +567,23 @@ def test_an_integer_literal_of_thousands_of_digits_is_one_line(work, capsys, lit
     overflowed math.isfinite (an OverflowError traceback). The loader refuses more than 30."""
     (work / "i.yaml").write_text(f"drive:\n  node_id: {literal}\n")
     for argv in (["plan", "--offline", "--config", "i.yaml"], ["track", "--config", "i.yaml"]):
-        _refused(capsys, argv, f"i.yaml:2: invalid YAML: 'integer of {digits} digits (at most 30)'", cwd=work)
+        _refused(capsys, argv, f"i.yaml:2: invalid YAML: integer of {digits} digits (at most 30)", cwd=work)
     (work / "ok.yaml").write_text("drive:\n  node_id: 000000000000000000000000000003\n")
     from fftune.host.config import load_config
     assert load_config("ok.yaml")["drive"]["node_id"] == 3
+
+
+@pytest.mark.parametrize("value, needle", [
+    ("2001-13-45", "c.yaml:1: invalid YAML: cannot read '2001-13-45' as timestamp: month must be in 1..12"),
+    ("!!int 'abc'", "cannot read 'abc' as int"),
+    ("!!float 'abc'", "cannot read 'abc' as float"),
+    ("!!bool 'maybe'", "cannot read 'maybe' as bool"),
+    ("!!timestamp '2001-01-01T99:00:00'", "hour must be in 0..23"),
+])
+def test_a_scalar_yaml_cannot_build_is_one_line(work, capsys, value, needle):
+    """PyYAML's constructors raise ValueError / KeyError on these (a traceback before)."""
+    (work / "c.yaml").write_text(f"output: {value}\n")
+    for argv in (["plan", "--offline", "--config", "c.yaml"], ["track", "--config", "c.yaml"]):
+        _refused(capsys, argv, needle, cwd=work)
+    (work / "m.yaml").write_text(f"machine: m\noutput: {value}\naxes: [{{name: x, node_id: 1}}]\n")
+    _refused(capsys, ["run", "--machine", "m.yaml"], "m.yaml:2: invalid YAML: cannot read", cwd=work)
