@@ -16,6 +16,7 @@ import re
 import reprlib
 import shutil
 import stat
+import time
 
 import numpy as np
 import yaml
@@ -680,15 +681,21 @@ def read_plant(path, what="plant configuration"):
     return raw
 
 
-def _experimented(out, depth=2):
+def _experimented(out, since=0.0, depth=2):
     """True once the session wrote what it measured into ``out`` (a capture or results.yaml,
-    in ``out`` or, for a machine, in an axis' folder below it)."""
+    in ``out`` or, for a machine, in an axis' folder below it) at or after ``since`` (POSIX
+    time: an earlier session's files in the folder do not count)."""
+    def newer(path):
+        try:
+            return os.stat(path).st_mtime >= since
+        except OSError:
+            return False
     captures = os.path.join(out, "captures")
-    if os.path.exists(os.path.join(out, "results.yaml")) or \
-            (os.path.isdir(captures) and bool(os.listdir(captures))):
+    if newer(os.path.join(out, "results.yaml")) or \
+            (os.path.isdir(captures) and any(newer(os.path.join(captures, n)) for n in os.listdir(captures))):
         return True
     if depth > 1 and os.path.isdir(out):
-        return any(_experimented(os.path.join(out, name), depth - 1) for name in os.listdir(out)
+        return any(_experimented(os.path.join(out, name), since, depth - 1) for name in os.listdir(out)
                    if os.path.isdir(os.path.join(out, name)) and not os.path.islink(os.path.join(out, name)))
     return False
 
@@ -719,11 +726,12 @@ def output_session(path, *, set_aside=False, log=None):
         existed = False
         top = apath
     before = set(os.listdir(apath)) if existed else set()
+    started = time.time() - 1.0         # (file systems stamp mtimes coarsely)
     try:
         check_output_dir(apath)
         yield apath
     except BaseException:
-        if not _experimented(apath):
+        if not _experimented(apath, started):
             if existed:
                 for name in set(os.listdir(apath)) - before:
                     target = os.path.join(apath, name)

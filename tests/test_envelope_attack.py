@@ -256,6 +256,13 @@ def test_output_session_removes_what_it_made_and_puts_back_the_earlier(tmp_path)
         open(os.path.join(out, "x", "captures", "run0.h5"), "w").close()
         raise RuntimeError("failed after a run")
     assert (tmp_path / "m" / "x" / "captures" / "run0.h5").exists()
+    # an earlier session's results in the folder do not make this one "measured"
+    old = tmp_path / "m" / "x" / "captures" / "run0.h5"
+    os.utime(old, (1e9, 1e9))
+    with pytest.raises(RuntimeError), output_session(str(tmp_path / "m")) as out:
+        open(os.path.join(out, "drive_sim.log"), "w").close()
+        raise RuntimeError("refused")
+    assert not (tmp_path / "m" / "drive_sim.log").exists() and old.exists()
     with pytest.raises(Exception, match="exists and is not a directory"):
         with output_session(str(earlier / "results.yaml")):
             pass
