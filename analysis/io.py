@@ -293,6 +293,8 @@ def _npz_declared(path):
             if len(infos) > _MAX_DECLARED_ARRAYS:
                 return [(i.filename, ()) for i in infos]
             for info in infos:
+                if not info.filename.endswith(".npy"):
+                    continue            # (np.load reads other members as bytes: no signal)
                 with z.open(info) as fh:
                     version = np.lib.format.read_magic(fh)
                     reader = (np.lib.format.read_array_header_1_0 if version == (1, 0)
