@@ -306,6 +306,9 @@ def read_run(path):
 # dataset's shape, dtype and stored size, before a dataset is read: a forged file of a few kB
 # may declare gigabytes.
 MAX_CAPTURE_SAMPLES = 1 << 24
+# ... and a file at most this many datasets (the recorder's 5 signals and a few more): a
+# forged file of many compressed datasets, each within the limit, is refused before one is read.
+MAX_CAPTURE_DATASETS = 16
 
 
 def _check_dataset(ds, name, n_samples, file_bytes, where):
@@ -356,6 +359,9 @@ def _read_open(f, path, where):
                              f"record_periods) x n_period), at most {MAX_CAPTURE_SAMPLES} "
                              f"(fftune.analysis.capture.MAX_CAPTURE_SAMPLES)")
         file_bytes = os.path.getsize(path)
+        if len(f) > MAX_CAPTURE_DATASETS:
+            raise InputError(f"{where}: {len(f)} datasets, at most {MAX_CAPTURE_DATASETS} "
+                             f"(fftune.analysis.capture.MAX_CAPTURE_DATASETS)")
         signals = {}
         for name, ds in f.items():
             if not isinstance(ds, h5py.Dataset):

@@ -136,11 +136,19 @@ def load_csv(path):
     path = Path(path)
     meta = {}
     try:
+        if path.stat().st_size > _MAX_TEXT_BYTES:
+            raise InputError(f"{path}: {path.stat().st_size} bytes: a CSV file holds at most "
+                             f"{_MAX_TEXT_BYTES}")
         text = path.read_text()
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a text (CSV) file") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    from fftune.analysis.capture import MAX_CAPTURE_SAMPLES
+    n_lines = text.count("\n")
+    if n_lines > MAX_CAPTURE_SAMPLES + 1000:      # (rows: samples of a signal; comments)
+        raise InputError(f"{path}: {n_lines} lines, at most {MAX_CAPTURE_SAMPLES} samples a signal "
+                         f"(fftune.analysis.capture.MAX_CAPTURE_SAMPLES); nothing was parsed")
     lines = text.splitlines()
     header_index = None
     for i, line in enumerate(lines):
@@ -259,8 +267,55 @@ def _from_mapping(path, items, matlab=False):
                          matrices=matrices, matrix_order="F" if matlab else "C")
 
 
+# What a file may declare, checked from its headers before any array is read (a forged
+# .npz or .mat of a few kB may declare gigabytes, or inflate to them): a signal holds at most
+# this many values (the capture files' limit), a file at most this many arrays, a CSV at
+# most this many bytes of text.
+_MAX_DECLARED_ARRAYS = 256
+_MAX_TEXT_BYTES = 512 << 20
+
+
+def _check_declared(path, declared):
+    """``declared``: (name, shape) pairs read from the file's headers."""
+    from fftune.analysis.capture import MAX_CAPTURE_SAMPLES
+
+    if len(declared) > _MAX_DECLARED_ARRAYS:
+        raise InputError(f"{path}: {len(declared)} arrays, at most {_MAX_DECLARED_ARRAYS}")
+    for name, shape in declared:
+        n = int(np.prod([int(d) for d in shape], dtype=object)) if shape else 1
+        if n > MAX_CAPTURE_SAMPLES:
+            raise InputError(f"{path}: variable {_shown(name)} declares {n} values (shape "
+                             f"{_shown(tuple(shape))}), at most {MAX_CAPTURE_SAMPLES} a signal "
+                             f"(fftune.analysis.capture.MAX_CAPTURE_SAMPLES); nothing was read")
+
+
+def _npz_declared(path):
+    """(name, shape) of every array of an .npz from its .npy headers, without reading data."""
+    import zipfile
+
+    out = []
+    try:
+        with zipfile.ZipFile(path) as z:
+            infos = z.infolist()
+            if len(infos) > _MAX_DECLARED_ARRAYS:
+                return [(i.filename, ()) for i in infos]
+            for info in infos:
+                if not info.filename.endswith(".npy"):
+                    continue            # (np.load reads other members as bytes: no signal)
+                with z.open(info) as fh:
+                    version = np.lib.format.read_magic(fh)
+                    reader = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                              else np.lib.format.read_array_header_2_0)
+                    shape, _, _ = reader(fh)
+                out.append((info.filename.removesuffix(".npy"), shape))
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError, RuntimeError) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from None
+    return out
+
+
 def load_npz(path):
     """NumPy .npz: every array is a signal (flattened); scalars fs/fs_hz, n_period ... are layout."""
+    _check_declared(path, _npz_declared(path))
     try:
         with np.load(path, allow_pickle=False) as z:
             items = [(k, z[k]) for k in z.files]
@@ -274,6 +329,11 @@ def load_mat(path):
     a capture exported by :func:`fftune.analysis.capture.export_mat` (one struct) is read too."""
     import scipy.io
 
+    try:       # the declared shapes first (headers only): a forged file is refused unread
+        declared = [(name, shape) for name, shape, _ in scipy.io.whosmat(path)]
+    except (OSError, ValueError, NotImplementedError, TypeError) as exc:
+        raise InputError(f"{path}: not a readable .mat file ({exc})") from None
+    _check_declared(path, declared)
     try:
         content = scipy.io.loadmat(path, simplify_cells=True)
     except (OSError, ValueError, NotImplementedError, TypeError) as exc:

@@ -10,12 +10,14 @@ run's start command, the parameters read back after it, and the recorder data up
 experiment code of a live session (``fftune.host.experiments``) analyses a log and reaches the
 live result (same recorded bytes, same computation).
 """
+import math
 import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from fftune.analysis.errors import FftuneError
+from fftune.host.config import MAX_CANLOG_BYTES, MAX_EDS_BYTES, regular_file
 from fftune.host.drive import RunRecord
 from fftune.host.odmap import PARAMS, SIGNAL_BITS
 from fftune.host.sdo_sniffer import SdoSniffer
@@ -28,8 +30,9 @@ def read_transfers(path, node_id=1):
     """SDO transfers of ``node_id`` in the CAN log ``path`` (any python-can log format)."""
     import can
 
-    if not os.path.exists(path):
+    if not os.path.lexists(path):
         raise FftuneError(f"{path}: no such CAN log")
+    regular_file(path, "CAN log", MAX_CANLOG_BYTES)      # (a FIFO would wait for a writer)
     sniffer = SdoSniffer([node_id])
     n_frames = 0
     try:
@@ -42,7 +45,12 @@ def read_transfers(path, node_id=1):
             if msg.is_error_frame or msg.is_remote_frame:
                 continue
             n_frames += 1
+            if not math.isfinite(msg.timestamp):
+                raise FftuneError(f"{path}: frame {n_frames}: timestamp {msg.timestamp!r} is not a "
+                                  f"finite number")
             sniffer.feed(msg.arbitration_id, msg.data, msg.timestamp)
+    except FftuneError:
+        raise
     except Exception as exc:  # the reader's own parse errors
         raise FftuneError(f"{path}: cannot decode the CAN log after {n_frames} frames: "
                           f"{type(exc).__name__}: {exc}") from None
@@ -84,6 +92,8 @@ def session_from_transfers(transfers, eds_path, node_id=1):
     """Reassemble runs: writes before a start command, readback and recorder upload after."""
     import canopen
 
+    if eds_path and os.path.exists(eds_path):
+        regular_file(eds_path, "EDS", MAX_EDS_BYTES)
     try:
         od = canopen.import_od(eds_path, node_id)
     except FileNotFoundError:
@@ -95,58 +105,84 @@ def session_from_transfers(transfers, eds_path, node_id=1):
     requested = {}    # alias -> value written since the previous run
     started = None    # (requested, state at start, t)
     for tr in transfers:
-        if tr.abort_code is not None:
-            sess.aborts.append(tr)
-            continue
-        key = (tr.index, tr.subindex)
-        value = _decode(od, tr.index, tr.subindex, tr.data) if key != _RECORDER_DATA else None
-        alias = _BY_OBJ.get(key)
-        if tr.direction == "upload":
-            if key == (0x1018, 1):
-                sess.identity["vendor_id"] = int(value)
-            elif key == (0x1018, 2):
-                sess.identity["product_code"] = int(value)
-            elif key == (0x1018, 3):
-                sess.identity["revision"] = int(value)
-            elif key == (0x1018, 4):
-                sess.identity["serial"] = int(value)
-            elif key == (0x100A, 0):
-                sess.identity["firmware_version"] = str(value)
-            elif key == (0x1008, 0):
-                sess.identity["device_name"] = str(value)
-            elif alias and alias.startswith("sim_"):
-                sess.truth[alias] = float(value)
-            elif alias:
-                state[alias] = value
-            if key == _RECORDER_DATA and started is not None:
-                req, t_start = started
-                sess.runs.append((req, _record(tr, state, t_start)))
-                started = None
-            continue
-        # download
-        if alias is None:
-            continue
-        sess.writes += 1
-        if alias == "run_command":
-            if int(value) == 1:
-                started = (dict(requested), tr.timestamp)
-                requested = {}
-            continue
-        state[alias] = value
-        requested[alias] = value
+        try:
+            started, requested = _replay_transfer(sess, od, tr, state, requested, started)
+        except FftuneError:
+            raise
+        except (TypeError, ValueError, KeyError, OverflowError) as exc:
+            # a value the drive never sends (a forged or damaged log): one line naming it
+            raise FftuneError(f"logged SDO {tr.direction} of 0x{tr.index:04X}:{tr.subindex} at "
+                              f"t={tr.timestamp:.3f}: cannot be replayed ({type(exc).__name__}: "
+                              f"{str(exc)[:80]})") from None
     return sess
 
 
+def _replay_transfer(sess, od, tr, state, requested, started):
+    """One logged transfer into ``sess`` / ``state``; returns (started, requested)."""
+    if tr.abort_code is not None:
+        sess.aborts.append(tr)
+        return started, requested
+    key = (tr.index, tr.subindex)
+    value = _decode(od, tr.index, tr.subindex, tr.data) if key != _RECORDER_DATA else None
+    alias = _BY_OBJ.get(key)
+    if tr.direction == "upload":
+        if key == (0x1018, 1):
+            sess.identity["vendor_id"] = int(value)
+        elif key == (0x1018, 2):
+            sess.identity["product_code"] = int(value)
+        elif key == (0x1018, 3):
+            sess.identity["revision"] = int(value)
+        elif key == (0x1018, 4):
+            sess.identity["serial"] = int(value)
+        elif key == (0x100A, 0):
+            sess.identity["firmware_version"] = str(value)
+        elif key == (0x1008, 0):
+            sess.identity["device_name"] = str(value)
+        elif alias and alias.startswith("sim_"):
+            sess.truth[alias] = float(value)
+        elif alias:
+            state[alias] = value
+        if key == _RECORDER_DATA and started is not None:
+            req, t_start = started
+            sess.runs.append((req, _record(tr, state, t_start)))
+            started = None
+        return started, requested
+    # download
+    if alias is None:
+        return started, requested
+    sess.writes += 1
+    if alias == "run_command":
+        if int(value) == 1:
+            started = (dict(requested), tr.timestamp)
+            requested = {}
+        return started, requested
+    state[alias] = value
+    requested[alias] = value
+    return started, requested
+
+
 def _record(tr, state, t_start):
+    where = f"logged recorder upload at t={tr.timestamp:.3f}"
+    for alias in ("exc_period", "exc_record_periods", "exc_settle_periods"):
+        if alias not in state:
+            raise FftuneError(f"{where}: the log holds no {alias} of the run (a session cut short?)")
     mask = int(state.get("rec_signals", 0x07))
     order = [n for n, b in sorted(SIGNAL_BITS.items(), key=lambda kv: kv[1]) if mask >> b & 1]
     n = int(state["exc_period"])
     rec_periods = int(state["exc_record_periods"])
+    fs = float(state.get("fs", 0.0))
+    if not order or n < 1 or rec_periods < 1 or not (math.isfinite(fs) and fs >= 0):
+        raise FftuneError(f"{where}: signals mask {mask}, period {n}, {rec_periods} record periods, "
+                          f"fs {fs!r}: not a run the drive makes")
     expected = rec_periods * n * len(order) * 4
     if len(tr.data) != expected:
         raise FftuneError(f"logged recorder upload at t={tr.timestamp:.3f}: {len(tr.data)} bytes, "
                           f"expected {rec_periods * n} samples x {len(order)} signals x 4 = {expected}")
     arr = np.frombuffer(tr.data, dtype="<f4").reshape(rec_periods * n, len(order))
+    bad = np.argwhere(~np.isfinite(arr))
+    if bad.size:        # (the drive stops a run on a non-finite measurement: never uploaded)
+        raise FftuneError(f"{where}: signal {order[bad[0][1]]} sample {int(bad[0][0])} is "
+                          f"{arr[bad[0][0], bad[0][1]]}: not a finite number")
     params = {a: v for a, v in state.items()}
     return RunRecord(signals={s: arr[:, i].astype(np.float64) for i, s in enumerate(order)},
                      parameters=params, fs_hz=float(state.get("fs", 0.0)), period_samples=n,

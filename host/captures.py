@@ -6,10 +6,12 @@ the metadata the brief asks for, and finds it again on resume: a run whose file 
 with the same request is loaded instead of measured; a file with a different request
 stops the session (another configuration wrote into this directory).
 """
+import contextlib
 import datetime
 import glob
 import json
 import os
+import shutil
 
 import numpy as np
 
@@ -128,8 +130,16 @@ class CaptureStore:
             raise FftuneError(f"{self.path(key)}: exists; captures are never overwritten") from None
 
 
+# A statistics capture holds a few lines per harmonic or excited line: kB, at most a few MB.
+MAX_STATS_BYTES = 64 << 20
+
+
 def _load_stats(path, request):
-    """A RunRecord without samples from a ``.stats.json`` capture."""
+    """A RunRecord without samples from a ``.stats.json`` capture (a regular file of at most
+    MAX_STATS_BYTES: a FIFO or device under the name is refused, not waited on)."""
+    from fftune.host.config import regular_file
+
+    regular_file(path, "statistics capture", MAX_STATS_BYTES)
     try:
         with open(path, "r", encoding="utf-8") as fh:
             doc = json.load(fh)
@@ -139,22 +149,31 @@ def _load_stats(path, request):
         line_stats = None if lines is None else LineStats.from_dict(lines)
         if stats is None and line_stats is None:
             raise ValueError("neither harmonic nor line statistics in it")
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise FftuneError(f"{path}: not a readable statistics capture ({exc})") from None
-    extra = meta.get("metadata", {})
-    if not _same_request(extra.get("request", {}), _jsonable(request)):
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
+        raise FftuneError(f"{path}: not a readable statistics capture ({type(exc).__name__}: "
+                          f"{str(exc)[:120]})") from None
+    try:
+        extra = meta.get("metadata", {})
+        same = _same_request(extra.get("request", {}), _jsonable(request))
+    except (AttributeError, TypeError) as exc:
+        raise FftuneError(f"{path}: not a readable statistics capture (its metadata: {exc})") from None
+    if not same:
         raise FftuneError(f"{path}: captured with other parameters than this session asks "
                           f"for (another configuration?); use another --out or remove the file")
 
     def ts(s):
         return datetime.datetime.fromisoformat(s).timestamp() if s else 0.0
-    return RunRecord(signals={}, parameters=meta.get("parameters", {}), fs_hz=float(meta["fs_hz"]),
-                     period_samples=int(meta["n_period"]),
-                     settle_periods=int(extra.get("drive_settle_periods", 0)),
-                     record_periods=int(meta["record_periods"]),
-                     run_counter=int(extra.get("run_counter", 0)),
-                     t_start=ts(meta.get("started_at")), t_end=ts(meta.get("finished_at")), meta=meta,
-                     stats=stats, line_stats=line_stats)
+    try:
+        return RunRecord(signals={}, parameters=meta.get("parameters", {}), fs_hz=float(meta["fs_hz"]),
+                         period_samples=int(meta["n_period"]),
+                         settle_periods=int(extra.get("drive_settle_periods", 0)),
+                         record_periods=int(meta["record_periods"]),
+                         run_counter=int(extra.get("run_counter", 0)),
+                         t_start=ts(meta.get("started_at")), t_end=ts(meta.get("finished_at")), meta=meta,
+                         stats=stats, line_stats=line_stats)
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise FftuneError(f"{path}: not a readable statistics capture (its metadata: "
+                          f"{type(exc).__name__}: {str(exc)[:120]})") from None
 
 
 def _iso(t):
@@ -188,23 +207,36 @@ def export_captures(source, fmt, to_dir=None):
         files = [source]
     else:
         raise FftuneError(f"{source}: no such capture file or directory")
-    out = []
-    for f in files:
-        base = os.path.splitext(os.path.basename(f))[0]
-        d = to_dir or os.path.dirname(os.path.abspath(f))
-        made = not os.path.isdir(d)
-        os.makedirs(d, exist_ok=True)
-        target = os.path.join(d, f"{base}.{fmt}")
-        try:
-            if fmt == "mat":
-                _capture.export_mat(f, target)
-            else:
-                _capture.export_csv(f, target)
-        except FileExistsError:
-            raise FftuneError(f"{target}: exists; exports are never overwritten") from None
-        except BaseException:
-            if made and not os.listdir(d):      # (a refused capture leaves no empty folder)
-                os.rmdir(d)
-            raise
-        out.append(str(target))
+    if to_dir is not None:
+        from fftune.host.config import check_output_dir
+        check_output_dir(to_dir, create=False)      # (a file in the way: one line, nothing made)
+    out, made = [], []
+    try:
+        for f in files:
+            base = os.path.splitext(os.path.basename(f))[0]
+            d = to_dir or os.path.dirname(os.path.abspath(f))
+            if not os.path.isdir(d):
+                top = os.path.abspath(d)            # the highest folder made here
+                while not os.path.exists(os.path.dirname(top)):
+                    top = os.path.dirname(top)
+                made.append(top)
+                os.makedirs(d, exist_ok=True)
+            target = os.path.join(d, f"{base}.{fmt}")
+            try:
+                if fmt == "mat":
+                    _capture.export_mat(f, target)
+                else:
+                    _capture.export_csv(f, target)
+            except FileExistsError:
+                raise FftuneError(f"{target}: exists; exports are never overwritten") from None
+            out.append(str(target))
+    except BaseException:
+        # a refused capture: the exports of this call removed again, and the folders it made
+        # (all or nothing: a directory of captures is exported whole or not at all)
+        for target in out:
+            with contextlib.suppress(OSError):
+                os.remove(target)
+        for top in made:
+            shutil.rmtree(top, ignore_errors=True)
+        raise
     return out

@@ -25,8 +25,32 @@ SUBCOMMAND_MODULES = [
 ]
 
 
+MAX_ERROR_CHARS = 2000
+
+
+def one_line(message, max_chars=MAX_ERROR_CHARS):
+    """``message`` as one terminal line: control characters a file name or a YAML key may
+    carry (a newline, an escape sequence that recolours the terminal) shown escaped
+    (``\\n``, ``\\x1b``), at most ``max_chars`` characters (its middle left out)."""
+    text = "".join(ch if ch.isprintable() or ch == " " else repr(ch)[1:-1] for ch in str(message))
+    if len(text) <= max_chars:
+        return text
+    half = (max_chars - 5) // 2      # (the start names the object, the end says what is wrong)
+    return text[:half] + " ... " + text[-half:]
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors (a missing argument, ``--node-id abc``, an option out
+    of range) are the one line of every fftune error: ``fftune: error: ...``, exit 2 (the
+    usage is in ``--help``); subcommands' parsers are of this class too."""
+
+    def error(self, message):
+        sub = self.prog[len("fftune"):].strip() if self.prog.startswith("fftune") else self.prog
+        self.exit(2, f"fftune: error: {sub + ': ' if sub else ''}{one_line(' '.join(str(message).split()))}\n")
+
+
 def build_parser():
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="fftune",
         description="Measure how nonlinear a motion system is and tune its friction feed-forward.",
     )
@@ -48,7 +72,10 @@ def _raise_terminated(signum, frame):
 
 def main(argv=None):
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:       # --help, --version (0) or the one error line (2): printed
+        return exc.code if isinstance(exc.code, int) else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -62,7 +89,7 @@ def main(argv=None):
         print("fftune: terminated", file=sys.stderr)
         return 143
     except FftuneError as exc:
-        print(f"fftune: error: {exc}", file=sys.stderr)
+        print(f"fftune: error: {one_line(exc)}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print("fftune: interrupted", file=sys.stderr)

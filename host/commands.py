@@ -4,7 +4,7 @@ import sys
 
 from fftune.analysis.errors import FftuneError
 from fftune.host.config import check_output_dir, load_config
-from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
+from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments, int_in_range
 from fftune.host.resources import config_path
 
 DEFAULT_CONFIG = config_path("demo.yaml")
@@ -61,7 +61,8 @@ def add_parser(sub):
                                    "captures and analyse them as the live session did.")
     p.add_argument("file", help="CAN log file")
     p.add_argument("--eds", default=None, help="the drive's EDS (default: the firmware_sim build's)")
-    p.add_argument("--node-id", type=int, default=None, help="drive node id (default: config, else 1)")
+    p.add_argument("--node-id", type=int_in_range("node id", 1, 127), default=None,
+                   help="drive node id 1 .. 127 (default: config, else 1)")
     p.add_argument("--steps", default="detect,quantify,tune",
                    help="experiments the session ran (comma separated; default all)")
     _common(p)

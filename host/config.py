@@ -7,11 +7,16 @@ nested ``dict`` (JSON/YAML serialisable) so that it can be stored with every cap
 Units: frequencies in Hz, amplitudes in the units of the injection point (rad at the
 reference, V at the plant input), K_fc in V, K_v in V s/rad, times in s.
 """
+import contextlib
 import copy
+import functools
 import math
 import os
 import re
 import reprlib
+import shutil
+import stat
+import time
 
 import numpy as np
 import yaml
@@ -136,6 +141,17 @@ def _err(path, key, msg):
     return FftuneError(f"{where}: {msg}")
 
 
+def unknown_key_text(key, known):
+    """The words after an unknown key: the nearest known key as a suggestion (a typo, a
+    unit typed wrong: ``max_amplitude_deg`` -> ``max_amplitude_rad``), then every known key."""
+    import difflib
+
+    known = [str(k) for k in known]
+    near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6) if isinstance(key, str) else []
+    hint = f"did you mean '{near[0]}'? " if near else ""
+    return f"unknown key ({hint}expected one of: {', '.join(known)})"
+
+
 def _merge(defaults, user, path, prefix):
     """Defaults overlaid with the user's values; unknown keys refused."""
     if user is None:
@@ -146,7 +162,7 @@ def _merge(defaults, user, path, prefix):
     for key, value in user.items():
         full = f"{prefix}.{key}" if prefix else show(key, 60) if not isinstance(key, str) else key[:60]
         if not isinstance(key, str) or key not in defaults:
-            raise _err(path, full, f"unknown key (expected one of: {', '.join(map(str, defaults))})")
+            raise _err(path, full, unknown_key_text(key, defaults))
         default = defaults[key]
         if isinstance(default, dict) and default and set(default) != {"start", "stop", "count"} \
                 and set(default) != {"start", "stop", "step"}:
@@ -380,12 +396,16 @@ def validate_drive(cfg, path):
     # attempts per SDO request (python-canopen's MAX_RETRIES): 1 = no retry; 0 would send
     # nothing and was once raised to 1 without a word
     _number(cfg, path, "drive.sdo_retries", low=1, high=10, integer=True)
-    _number(cfg, path, "drive.run_timeout_s", low=0.1)
+    # (a day: longer is a typo, and 1e300 s overflows the waits: OverflowError)
+    _number(cfg, path, "drive.run_timeout_s", low=0.1, high=86400.0)
     file_name(cfg["drive"]["eds"], path, "drive.eds", allow_none=True)
     if not isinstance(cfg["drive"]["controller"], dict):
         raise _err(path, "drive.controller", f"expected a mapping, got {show(cfg['drive']['controller'])}")
     for name in cfg["drive"]["controller"]:
-        _number(cfg, path, f"drive.controller.{name}", low=0, allow_none=True)
+        # the drive's own range of the object (configs/od.yaml): a value above it would be
+        # refused by the drive mid-session, after it was enabled
+        _number(cfg, path, f"drive.controller.{name}", low=0, high=od_param_high(name.upper()),
+                allow_none=True)
     return cfg["drive"]
 
 
@@ -466,6 +486,7 @@ def _tune_model_keys(cfg, path, amp_high):
     _number(cfg, path, "tune.model.rtol", low=0, low_inclusive=False, high=1)
 
 
+@functools.lru_cache(maxsize=None)
 def od_param_high(param):
     """The upper limit of the drive object carrying ``param`` (configs/od.yaml, the one
     source of the object dictionary): values above it the drive refuses mid-experiment."""
@@ -481,9 +502,50 @@ def od_param_high(param):
 
 class ConfigLoader(yaml.SafeLoader):
     """PyYAML's SafeLoader that also reads ``1e-3`` and ``1e12`` as numbers (YAML 1.2; YAML
-    1.1, PyYAML's, wants a dot: ``1.0e-3``, and reads ``1e-3`` as a string)."""
+    1.1, PyYAML's, wants a dot: ``1.0e-3``, and reads ``1e-3`` as a string), and refuses a
+    key given twice in one mapping (PyYAML keeps the last one silently: ``kp: 2`` below
+    ``kp: 20`` would win unseen)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key_node, _ in node.value:
+                if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                    continue        # (a merge key's values may be overridden: YAML's own rule)
+                key = self.construct_object(key_node)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark)
+                except TypeError:
+                    continue
+                if first is not key_node.start_mark:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"duplicate key {show(key, 60)} (first on line {first.line + 1})",
+                        key_node.start_mark)
+        return super().construct_mapping(node, deep)
+
+    def construct_object(self, node, deep=False):
+        # a tagged or implicit scalar PyYAML cannot build (2001-13-45, !!int 'abc', !!bool
+        # 'maybe') raises ValueError / KeyError from inside the constructor: one line with
+        # its position instead of a traceback
+        try:
+            return super().construct_object(node, deep)
+        except (ValueError, TypeError, KeyError, OverflowError) as exc:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"cannot read {show(node.value, 40) if isinstance(node, yaml.ScalarNode) else 'a node'} "
+                            f"as {node.tag.rsplit(':', 1)[-1]}: {str(exc)[:80]}", node.start_mark) from None
+
+    def construct_yaml_int(self, node):
+        # (an integer of 5000 digits: Python refuses to convert it, a ValueError; one of 400
+        # digits overflows every float comparison): no configuration needs more than 30
+        digits = sum(ch.isalnum() for ch in str(node.value)) if isinstance(node.value, str) else 0
+        if digits > MAX_INT_DIGITS:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"integer of {digits} digits (at most {MAX_INT_DIGITS})", node.start_mark)
+        return super().construct_yaml_int(node)
 
 
+MAX_INT_DIGITS = 30
+ConfigLoader.add_constructor("tag:yaml.org,2002:int", ConfigLoader.construct_yaml_int)
 ConfigLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
 ConfigLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
@@ -494,7 +556,8 @@ def _yaml_error(where, exc):
     mark = getattr(exc, "problem_mark", None)
     at = f"{where}:{mark.line + 1}" if mark is not None else where
     problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-    return FftuneError(f"{at}: invalid YAML: {show(problem, 160)}")
+    problem = str(problem)
+    return FftuneError(f"{at}: invalid YAML: {problem if len(problem) <= 160 else problem[:157] + '...'}")
 
 
 def safe_yaml_load(text, where, *, max_bytes=MAX_CONFIG_BYTES, max_depth=MAX_YAML_DEPTH,
@@ -545,22 +608,56 @@ def safe_yaml_load(text, where, *, max_bytes=MAX_CONFIG_BYTES, max_depth=MAX_YAM
         return yaml.load(text, Loader=ConfigLoader)
     except yaml.YAMLError as exc:
         raise _yaml_error(where, exc) from None
+    except (ValueError, TypeError, KeyError, OverflowError, RecursionError) as exc:
+        raise FftuneError(f"{where}: invalid YAML: {show(str(exc), 160)}") from None
+
+
+def _kind(mode):
+    return ("a directory" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a character device" if stat.S_ISCHR(mode) else "a block device" if stat.S_ISBLK(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+
+
+# An EDS is a few tens of kB (the drive's: 38 kB); a CAN log may hold hours of a bus.
+MAX_EDS_BYTES = 4 << 20
+MAX_CANLOG_BYTES = 2 << 30
+
+
+def regular_file(path, what="configuration", max_bytes=None):
+    """``path`` if it names a regular file (after symbolic links); else one FftuneError line
+    naming it: a directory, a FIFO (reading it would wait for a writer forever), a device
+    (``/dev/zero`` never ends), a socket, a missing file or a symbolic link loop. The check
+    of every file a user names (configurations, machine, plant, EDS, CAN log, capture)."""
+    if not isinstance(path, (str, os.PathLike)) or not str(path) or "\0" in str(path):
+        raise FftuneError(f"{what}: expected a file name, got {show(path)}")
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise FftuneError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
+    except ValueError as exc:       # (an unencodable name)
+        raise FftuneError(f"{what}: {show(str(path))}: {exc}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise FftuneError(f"{path}: cannot read {what}: is {_kind(st.st_mode)}, expected a file")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise FftuneError(f"{path}: cannot read {what}: {st.st_size} bytes, at most {max_bytes}")
+    return path
 
 
 def read_text(path, what="configuration", *, max_bytes=MAX_CONFIG_BYTES):
     """The text of a file a user names (``what``: configuration, machine file, plant ...):
-    a regular file (a directory is refused), at most ``max_bytes``, UTF-8, without NUL
-    bytes; else one FftuneError line naming the file."""
-    if not isinstance(path, (str, os.PathLike)) or not str(path) or "\0" in str(path):
-        raise FftuneError(f"{what}: expected a file name, got {show(path)}")
+    a regular file (:func:`regular_file`: a directory, FIFO or device is refused), at most
+    ``max_bytes``, UTF-8, without NUL bytes; else one FftuneError line naming the file."""
+    regular_file(path, what)
     try:
-        if os.path.isdir(path):
-            raise FftuneError(f"{path}: cannot read {what}: is a directory, expected a file")
-        size = os.path.getsize(path)
-        if size > max_bytes:
-            raise FftuneError(f"{path}: {size} bytes: a {what} holds at most {max_bytes} "
-                              f"(fftune.host.config.MAX_CONFIG_BYTES)")
-        with open(path, "rb") as fh:
+        # O_NONBLOCK: a FIFO swapped in after the check opens without waiting, and is refused
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as fh:
+            st = os.fstat(fh.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise FftuneError(f"{path}: cannot read {what}: is {_kind(st.st_mode)}, expected a file")
+            if st.st_size > max_bytes:
+                raise FftuneError(f"{path}: {st.st_size} bytes: a {what} holds at most {max_bytes} "
+                                  f"(fftune.host.config.MAX_CONFIG_BYTES)")
             data = fh.read(max_bytes + 1)
     except OSError as exc:
         raise FftuneError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
@@ -576,12 +673,12 @@ def read_text(path, what="configuration", *, max_bytes=MAX_CONFIG_BYTES):
         raise FftuneError(f"{path}: cannot read {what}: not UTF-8 text (byte {exc.start})") from None
 
 
-def read_yaml(path, what="configuration"):
+def read_yaml(path, what="configuration", *, max_bytes=MAX_CONFIG_BYTES):
     """The YAML file ``path`` parsed within bounds (:func:`read_text`, then
     :func:`safe_yaml_load`: size, depth, aliases; ``1e-3`` a number): the one loader of every
     file a user gives (configuration, machine file, axis configuration, track configuration,
     plant). One FftuneError line on any problem."""
-    return safe_yaml_load(read_text(path, what), str(path))
+    return safe_yaml_load(read_text(path, what, max_bytes=max_bytes), str(path), max_bytes=max_bytes)
 
 
 def load_config(path):
@@ -590,6 +687,93 @@ def load_config(path):
     cfg = validate(raw, path)
     cfg["_source"] = os.path.abspath(path)
     return cfg
+
+
+def read_plant(path, what="plant configuration"):
+    """A plant file of the simulated drive (drive_sim's ``--config``) read by the one loader
+    (:func:`read_yaml`) and checked for drive_sim's shape: sections of ``key: number``.
+    Returns the parsed mapping; one FftuneError line naming the file and the key on any
+    problem, before drive_sim is started or any folder is made (drive_sim checks each
+    value's range itself and says which)."""
+    raw = read_yaml(path, what)
+    if not isinstance(raw, dict) or not raw:
+        raise FftuneError(f"{path}: {what}: expected sections of key: number, got {show(raw)}")
+    for section, values in raw.items():
+        if not isinstance(section, str) or not isinstance(values, dict) or not values:
+            raise FftuneError(f"{path}: {what}: key '{show(section, 40) if not isinstance(section, str) else section[:40]}': "
+                              f"expected a section of key: number, got {show(values)}")
+        for key, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                name = key[:40] if isinstance(key, str) else show(key, 40)
+                raise FftuneError(f"{path}: {what}: key '{section[:40]}.{name}': expected a finite "
+                                  f"number, got {show(value)}")
+    return raw
+
+
+def _experimented(out, since=0.0, depth=2):
+    """True once the session wrote what it measured into ``out`` (a capture or results.yaml,
+    in ``out`` or, for a machine, in an axis' folder below it) at or after ``since`` (POSIX
+    time: an earlier session's files in the folder do not count)."""
+    def newer(path):
+        try:
+            return os.stat(path).st_mtime >= since
+        except OSError:
+            return False
+    captures = os.path.join(out, "captures")
+    if newer(os.path.join(out, "results.yaml")) or \
+            (os.path.isdir(captures) and any(newer(os.path.join(captures, n)) for n in os.listdir(captures))):
+        return True
+    if depth > 1 and os.path.isdir(out):
+        return any(_experimented(os.path.join(out, name), since, depth - 1) for name in os.listdir(out)
+                   if os.path.isdir(os.path.join(out, name)) and not os.path.islink(os.path.join(out, name)))
+    return False
+
+
+@contextlib.contextmanager
+def output_session(path, *, set_aside=False, log=None):
+    """The output directory of a command that moves an axis, made on entry and, when the
+    command fails before it measured anything (no capture, no results.yaml), left as it
+    was: what the command made is removed (the directory itself, and any parent it had to
+    make), an earlier directory set aside is put back. Yields the absolute path.
+
+    ``set_aside``: a fresh run (``fftune demo``, ``paper``, ``demo --machine``): an earlier
+    non-empty directory is moved to ``<path>.previous`` (replacing an older one) first.
+    """
+    apath = check_output_dir(path, create=False)      # (a file in the way: refused here)
+    top = apath                                       # the highest folder this call makes
+    while not os.path.exists(os.path.dirname(top)):
+        top = os.path.dirname(top)
+    existed = os.path.isdir(apath)
+    previous = None
+    if set_aside and existed and os.listdir(apath):
+        previous = apath.rstrip(os.sep) + ".previous"
+        if os.path.isdir(previous):
+            shutil.rmtree(previous)
+        os.replace(apath, previous)
+        if log is not None:
+            log(f"the earlier {os.path.relpath(apath)} is kept as {os.path.relpath(previous)}")
+        existed = False
+        top = apath
+    before = set(os.listdir(apath)) if existed else set()
+    started = time.time() - 1.0         # (file systems stamp mtimes coarsely)
+    try:
+        check_output_dir(apath)
+        yield apath
+    except BaseException:
+        if not _experimented(apath, started):
+            if existed:
+                for name in set(os.listdir(apath)) - before:
+                    target = os.path.join(apath, name)
+                    if os.path.isdir(target) and not os.path.islink(target):
+                        shutil.rmtree(target, ignore_errors=True)
+                    else:
+                        with contextlib.suppress(OSError):
+                            os.remove(target)
+            else:
+                shutil.rmtree(top if os.path.exists(top) else apath, ignore_errors=True)
+                if previous is not None and not os.path.exists(apath):
+                    os.replace(previous, apath)
+        raise
 
 
 def check_output_dir(path, create=True):

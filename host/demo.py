@@ -8,12 +8,11 @@ run`` does, stops the drive (also on an error or Ctrl-C) and leaves everything i
 ``out/demo/``.
 """
 import os
-import shutil
 import time
 
 from fftune.analysis.errors import FftuneError
 from fftune.host.commands import DEFAULT_CONFIG
-from fftune.host.config import check_output_dir, load_config
+from fftune.host.config import load_config, output_session
 from fftune.host.drive import DriveClient, add_bus_arguments
 from fftune.host.fmu import is_fmu_plant, overrides_note
 from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
@@ -38,26 +37,6 @@ def add_parser(sub):
                    help="the simulated drive steps at its controller rate (default: as fast as it can)")
     add_bus_arguments(p, drive_side=True, port_default=0)
     p.set_defaults(func=run)
-
-
-def _set_aside_previous(out):
-    """The demo is always a fresh run: an earlier output directory (perhaps made with
-    another configuration, whose captures would not resume) is kept as ``<out>.previous``.
-    Returns that path when one was set aside (None otherwise)."""
-    if os.path.isdir(out) and os.listdir(out):
-        previous = out.rstrip(os.sep) + ".previous"
-        if os.path.isdir(previous):
-            shutil.rmtree(previous)
-        os.replace(out, previous)
-        return previous
-    return None
-
-
-def _experimented(out):
-    """True once a capture or the results are in ``out`` (the run got to its experiments)."""
-    captures = os.path.join(out, "captures")
-    return os.path.exists(os.path.join(out, "results.yaml")) or \
-        (os.path.isdir(captures) and bool(os.listdir(captures)))
 
 
 def resolve_plant(cfg, plant=None):
@@ -93,20 +72,13 @@ def run(args):
         if problem:
             raise FftuneError(f"-i socketcan -c {args.channel}: {problem}")
     preflight(cfg)                                    # what the configuration alone tells
-    out = check_output_dir(args.out or cfg["output"], create=False)
-    previous = _set_aside_previous(out)
-    try:
-        check_output_dir(out)
+    # a fresh run (an earlier directory kept as <out>.previous); failed before its first
+    # experiment: nothing left behind (not even a parent folder it made), the earlier one back
+    kept = []
+    with output_session(args.out or cfg["output"], set_aside=True, log=kept.append) as out:
         results = _run(args, cfg, out, bitrate)
-    except BaseException:
-        # failed before its first experiment: no directory left behind, the earlier one back
-        if not _experimented(out):
-            shutil.rmtree(out, ignore_errors=True)
-            if previous is not None and not os.path.exists(out):
-                os.replace(previous, out)
-        raise
-    if previous is not None:
-        print(f"fftune demo: the earlier {os.path.relpath(out)} is kept as {os.path.relpath(previous)}")
+    for line in kept:
+        print(f"fftune demo: {line}")
     print("\n".join(summary_lines(results, out)))
     print(_clock_note(results, args.realtime))
     print(f"fftune demo: done in {time.monotonic() - t0:.1f} s; open {os.path.relpath(out)}/report.html")

@@ -10,8 +10,10 @@ drive watches the host's (object 0x1016), the client watches the drive's and its
 Every failure a user can cause or meet (unreachable bus, wrong node id, SDO abort, timeout,
 run stopped by the drive) is raised as one :class:`fftune.analysis.errors.FftuneError` line.
 """
+import argparse
 import contextlib
 import logging
+import os
 import signal
 import socket
 import struct
@@ -52,6 +54,21 @@ def quiet_can_loggers():
     logging.getLogger("canopen").setLevel(logging.CRITICAL)
 
 
+def int_in_range(name, low, high, unit=""):
+    """An argparse ``type``: an integer ``low .. high`` (``0x`` hex allowed), else an error
+    naming the option and the range (one ``fftune: error:`` line, exit 2)."""
+    def parse(text):
+        try:
+            value = int(str(text).strip(), 0)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer {low} .. {high}{unit}, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{value}: expected {low} .. {high}{unit}")
+        return value
+    parse.__name__ = name
+    return parse
+
+
 def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_PORT):
     """python-can's option names (as in ``python -m can.logger``) plus the drive's.
 
@@ -68,15 +85,17 @@ def add_bus_arguments(parser, drive_side=False, port_default=DEFAULT_SOCKETCAND_
                    "else socketcand, the simulated drive)")
     g.add_argument("-c", "--channel", default=None,
                    help="channel (socketcand: the bus name served, default can0; socketcan: vcan0 ...)")
-    g.add_argument("-b", "--bitrate", type=int, default=None,
+    g.add_argument("-b", "--bitrate", type=int_in_range("bit rate", 10_000, 1_000_000, " bit/s"), default=None,
                    help="simulate a classic CAN bus of this bit rate (socketcand only; default: "
                         "frames pass at once)" if drive_side else "bit rate in bit/s")
     g.add_argument("--host", default=DEFAULT_SOCKETCAND_HOST,
                    help=f"socketcand address to bind (default {DEFAULT_SOCKETCAND_HOST})" if drive_side else
                    f"socketcand server (default {DEFAULT_SOCKETCAND_HOST}, the simulated drive)")
-    g.add_argument("--port", type=int, default=port_default,
+    g.add_argument("--port", type=int_in_range("port", 0 if drive_side else 1, 65535),  # (0: a free one)
+                   default=port_default,
                    help=f"socketcand TCP port (default {port_default if port_default else 'a free one'})")
-    g.add_argument("--node-id", type=int, default=None, help="drive node id (default: config, else 1)")
+    g.add_argument("--node-id", type=int_in_range("node id", 1, 127), default=None,
+                   help="drive node id 1 .. 127 (default: config, else 1)")
     if not drive_side:
         g.add_argument("--eds", default=None,
                        help="the drive's EDS (default: config, else the firmware_sim build's)")
@@ -132,6 +151,22 @@ class BusOptions:
                     # (python-can's socketcand keys; the command line's when given)
                     host = conf.get("host", host) if host == DEFAULT_SOCKETCAND_HOST else host
                     port = conf.get("port", port) if port == DEFAULT_SOCKETCAND_PORT else port
+        # python-can's configuration is text (CAN_BITRATE=abc, a port of 70000): the command
+        # line's ranges, one error line naming where it came from
+        for name, value, low, high in (("bitrate", bitrate, 10_000, 1_000_000), ("port", port, 1, 65535)):
+            if value is None or (isinstance(value, int) and not isinstance(value, bool) and low <= value <= high):
+                continue
+            try:
+                number = int(str(value).strip(), 0)
+            except ValueError:
+                number = None
+            if number is None or not low <= number <= high:
+                raise FftuneError(f"python-can configuration (CAN_BITRATE, CAN_CONFIG, ~/.canrc ...): "
+                                  f"{name} {str(value)[:40]!r}: expected an integer {low} .. {high}")
+            if name == "bitrate":
+                bitrate = number
+            else:
+                port = number
         return cls(interface=interface, channel=channel, bitrate=bitrate, host=host, port=port,
                    node_id=args.node_id if args.node_id is not None else cfg_drive.get("node_id", 1),
                    eds=args.eds or cfg_drive.get("eds") or DEFAULT_EDS)
@@ -482,6 +517,21 @@ class DriveClient:
         if isinstance(sdo_retries, bool) or not isinstance(sdo_retries, int) or sdo_retries < 1:
             raise ValueError(f"sdo_retries: attempts per SDO request must be an integer >= 1, "
                              f"got {sdo_retries!r}")
+        # the one place every command's client passes (--node-id overrides the configuration's
+        # node id after its checks): a drive whose node id is the host's heartbeat id would
+        # watch a COB-ID its own heartbeat uses (0x700 + id), fed after the host died
+        for name, value in (("node id", opts.node_id), ("host node id", host_node_id)):
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 127:
+                raise FftuneError(f"{name} {value!r}: expected 1 .. 127")
+        if opts.node_id == host_node_id:
+            raise FftuneError(f"node id {opts.node_id} is the host's heartbeat id (drive.host_node_id "
+                              f"= {host_node_id}): the drive's consumer would watch its own "
+                              f"heartbeat's COB-ID 0x{0x700 + host_node_id:03X}; give the host "
+                              f"another id")
+        if isinstance(heartbeat_ms, bool) or not isinstance(heartbeat_ms, int) \
+                or not 0 <= heartbeat_ms <= 0xFFFF // 4:
+            raise FftuneError(f"heartbeat_ms {heartbeat_ms!r}: expected 0 .. {0xFFFF // 4} ms (the "
+                              f"consumer time, 4 x the period, is a 16-bit ms field)")
         self.opts = opts
         self.sdo_timeout_s = sdo_timeout_s
         self.sdo_retries = sdo_retries
@@ -507,6 +557,9 @@ class DriveClient:
         self.bus_nodes = bus_nodes
         self.sdo_burst = sdo_burst_frames(self.bus_bitrate, heartbeat_ms, bus_nodes)
         self.cancel = None            # a threading.Event: set, the next SDO request raises Cancelled
+        if opts.eds and os.path.exists(opts.eds):     # (a directory, FIFO, device: one line)
+            from fftune.host.config import MAX_EDS_BYTES, regular_file
+            regular_file(opts.eds, "EDS", MAX_EDS_BYTES)
         try:
             self.node = canopen.BaseNode402(opts.node_id, opts.eds)
         except FileNotFoundError:

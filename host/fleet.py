@@ -319,16 +319,10 @@ def _node_id(v, where):
 def _read_results(path):
     """results.yaml as a dict through the project's one safe loader (size, depth, aliases);
     FftuneError naming the file when it is not one."""
-    from fftune.host.config import safe_yaml_load
+    from fftune.host.config import read_text, safe_yaml_load
 
-    if os.path.getsize(path) > RESULTS_MAX_BYTES:
-        raise FftuneError(f"{path}: {os.path.getsize(path)} bytes, more than a results.yaml "
-                          f"holds ({RESULTS_MAX_BYTES})")
-    try:
-        with open(path, "r", encoding="utf-8") as fh:
-            text = fh.read(RESULTS_MAX_BYTES + 1)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FftuneError(f"{path}: not readable as UTF-8 text ({type(exc).__name__})") from None
+    # the one reader of user files (a FIFO or device refused, not waited on; size; UTF-8)
+    text = read_text(path, "results file", max_bytes=RESULTS_MAX_BYTES)
     res = safe_yaml_load(text, path, max_bytes=RESULTS_MAX_BYTES, max_nodes=RESULTS_MAX_NODES)
     if res is None:
         return {}

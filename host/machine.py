@@ -97,14 +97,14 @@ def load_machine(path):
         ``name``, ``node_id``, ``cfg`` (validated configuration), ``plant``,
         ``plant_overrides``.
     """
-    from fftune.host.config import file_name, read_yaml, safe_name, validate
+    from fftune.host.config import file_name, read_plant, read_yaml, safe_name, unknown_key_text, validate
 
     raw = read_yaml(path, "machine file")
     if not isinstance(raw, dict):
         raise FftuneError(f"{path}: expected a mapping with 'axes', got {show(raw)}")
     unknown = sorted(str(k) for k in set(raw) - _TOP_KEYS)
     if unknown:
-        raise FftuneError(f"{path}: unknown key '{show(unknown[0], 60)}' (expected {', '.join(sorted(_TOP_KEYS))})")
+        raise FftuneError(f"{path}: key '{unknown[0][:60]}': {unknown_key_text(unknown[0], sorted(_TOP_KEYS))}")
     axes_raw = raw.get("axes")
     if not isinstance(axes_raw, list) or not axes_raw:
         raise FftuneError(f"{path}: key 'axes': expected a list of at least one axis")
@@ -140,7 +140,7 @@ def load_machine(path):
             raise FftuneError(f"{where}: expected a mapping (name, node_id, ...), got {show(a)}")
         unknown = sorted(str(k) for k in set(a) - _AXIS_KEYS)
         if unknown:
-            raise FftuneError(f"{where}: unknown key '{show(unknown[0], 60)}' (expected {', '.join(sorted(_AXIS_KEYS))})")
+            raise FftuneError(f"{where}: key '{unknown[0][:60]}': {unknown_key_text(unknown[0], sorted(_AXIS_KEYS))}")
         aname = a.get("name")
         if not isinstance(aname, str) or not aname or len(aname) > 64 \
                 or not all(c.isascii() and (c.isalnum() or c in "-_") for c in aname):
@@ -195,8 +195,12 @@ def load_machine(path):
         plant = None
         if a.get("plant") is not None:
             plant = _resolve(file_name(a["plant"], where, "plant"), path)
-            if not os.path.isfile(plant):
+            if not os.path.lexists(plant):
                 raise FftuneError(f"{where}.plant: {a['plant']}: no such plant file")
+            try:
+                read_plant(plant)           # (the one loader: a FIFO, bomb or wrong shape refused)
+            except FftuneError as exc:
+                raise FftuneError(f"{where}.plant: {exc}") from None
         axes.append({"name": aname, "node_id": nid, "cfg": cfg, "plant": plant, "plant_overrides": po})
     if bus_hb[0] in by_id:
         raise FftuneError(f"{path}: key 'drive.host_node_id': {bus_hb[0]} is the node id of axis "
@@ -671,7 +675,7 @@ def preflight_axes(machine, steps=("detect", "quantify", "tune")):
 
 def run_cli(args):
     """``fftune run --machine FILE`` (and detect|quantify|tune): against a running bus."""
-    from fftune.host.config import check_output_dir
+    from fftune.host.config import output_session
     from fftune.host.drive import BusOptions
     from fftune.host.odmap import DEFAULT_EDS
 
@@ -685,10 +689,11 @@ def run_cli(args):
     preflight_axes(machine, args.steps)
     opts = BusOptions.from_args(args, {"node_id": machine["axes"][0]["node_id"]})
     opts.eds = args.eds or DEFAULT_EDS
-    out = check_output_dir(args.out or machine["output"])
-    summary = run_machine(machine, opts, out, steps=args.steps, figures=not args.no_figures,
-                          log=lambda s: print(s, flush=True))
-    write_machine(out, summary)
+    # made now, removed again if no axis measured (an unreachable bus: nothing left behind)
+    with output_session(args.out or machine["output"]) as out:
+        summary = run_machine(machine, opts, out, steps=args.steps, figures=not args.no_figures,
+                              log=lambda s: print(s, flush=True))
+        write_machine(out, summary)
     print("\n".join(summary_lines(summary, out)))
     return exit_code(summary)
 
@@ -735,8 +740,7 @@ def sim_axis_args(machine, plant_dir=None, plant_path=None):
 
 def demo_cli(args):
     """``fftune demo --machine FILE``: one drive_sim serving every axis' node on one bus."""
-    from fftune.host.config import check_output_dir
-    from fftune.host.demo import _set_aside_previous
+    from fftune.host.config import output_session
     from fftune.host.drive import BusOptions
     from fftune.host.odmap import DEFAULT_EDS
     from fftune.host.sim import DEFAULT_PLANT, check_bus, start_drive_sim
@@ -753,26 +757,26 @@ def demo_cli(args):
         raise FftuneError("fftune demo --machine: the simulated machine serves its nodes over "
                           "socketcand (-i socketcand)")
     check_bus(args.interface, args.channel, bitrate)
-    out = args.out or machine["output"]
-    _set_aside_previous(out)            # (an earlier output directory kept as <out>.previous)
-    out = check_output_dir(out)
     for ax in machine["axes"]:
         ax["cfg"]["sim"]["bitrate"] = bitrate   # the steps' default capture follows it
-    extra = sim_axis_args(machine, out)
-    log_path = os.path.join(out, "drive_sim.log")
-    sim = start_drive_sim(machine["axes"][0]["plant"] or DEFAULT_PLANT, host=args.host, port=args.port,
-                          node_id=machine["axes"][0]["node_id"], extra=extra, log_path=log_path,
-                          bitrate=bitrate, realtime=args.realtime)
-    try:
-        print(f"fftune demo: drive_sim with {len(machine['axes'])} nodes "
-              f"({', '.join(str(a['node_id']) for a in machine['axes'])}) on {sim.describe()}"
-              + (f", CAN bus model {bitrate} bit/s" if bitrate else ""), flush=True)
-        opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
-                          node_id=machine["axes"][0]["node_id"], eds=DEFAULT_EDS, model_bitrate=bitrate)
-        summary = run_machine(machine, opts, out, figures=True, log=lambda s: print(s, flush=True),
-                              progress=False)
-    finally:
-        sim.stop()
+    # a fresh run: an earlier output directory is kept as <out>.previous; a failure before any
+    # axis measured leaves the folders as they were (the earlier one put back)
+    with output_session(args.out or machine["output"], set_aside=True) as out:
+        extra = sim_axis_args(machine, out)
+        log_path = os.path.join(out, "drive_sim.log")
+        sim = start_drive_sim(machine["axes"][0]["plant"] or DEFAULT_PLANT, host=args.host, port=args.port,
+                              node_id=machine["axes"][0]["node_id"], extra=extra, log_path=log_path,
+                              bitrate=bitrate, realtime=args.realtime)
+        try:
+            print(f"fftune demo: drive_sim with {len(machine['axes'])} nodes "
+                  f"({', '.join(str(a['node_id']) for a in machine['axes'])}) on {sim.describe()}"
+                  + (f", CAN bus model {bitrate} bit/s" if bitrate else ""), flush=True)
+            opts = BusOptions(interface="socketcand", channel="can0", host=sim.host, port=sim.port,
+                              node_id=machine["axes"][0]["node_id"], eds=DEFAULT_EDS, model_bitrate=bitrate)
+            summary = run_machine(machine, opts, out, figures=True, log=lambda s: print(s, flush=True),
+                                  progress=False)
+        finally:
+            sim.stop()
     if bitrate:
         model = _bus_model_figures(log_path, bitrate)
         if model:

@@ -27,7 +27,7 @@ import time
 
 from fftune.analysis.errors import FftuneError
 from fftune.host.atomic import write_atomic
-from fftune.host.config import check_output_dir, load_config
+from fftune.host.config import check_output_dir, load_config, output_session
 from fftune.host.resources import config_path
 
 DEFAULT_SETUP = config_path("paper_setup.yaml")
@@ -86,6 +86,8 @@ def _resolve_plant(path):
             return packaged
     if not os.path.exists(path):
         raise FftuneError(f"plant configuration not found: {path}")
+    from fftune.host.config import read_plant
+    read_plant(path)            # both plants checked before any folder is made or moved
     return path
 
 
@@ -239,11 +241,22 @@ def run(args):
             raise FftuneError(f"--doc {args.doc}: its template {template} is missing")
         if os.path.abspath(args.doc) == os.path.abspath(template):
             raise FftuneError(f"--doc {args.doc}: the page would overwrite its template")
-    out = check_output_dir(_set_aside_previous(args.out or cfg["output"]))
+        from fftune.host.config import regular_file
+        regular_file(template, "--doc template")      # (a FIFO would block at the very end)
+    # the simulation plant's values are checked by drive_sim itself (their one source) now,
+    # not after the set-up part has run: started on a free port and stopped again
+    from fftune.host.sim import start_drive_sim
+    start_drive_sim(sim_plant).stop()
     log = lambda s: print(s, flush=True)  # noqa: E731
-    log(f"fftune paper: set-up {os.path.relpath(plant)}, simulation {os.path.relpath(sim_plant)}")
-    results, data, sim_results, sim_data, numbers = measure(
-        cfg, plant, sim_plant, out, progress=not args.no_progress, log=log)
+    # a fresh run (the earlier directory kept as <out>.previous, put back on a failure before
+    # the first experiment, with nothing left behind)
+    kept = []
+    with output_session(args.out or cfg["output"], set_aside=True, log=kept.append) as out:
+        log(f"fftune paper: set-up {os.path.relpath(plant)}, simulation {os.path.relpath(sim_plant)}")
+        results, data, sim_results, sim_data, numbers = measure(
+            cfg, plant, sim_plant, out, progress=not args.no_progress, log=log)
+    for line in kept:
+        log(f"fftune paper: {line}")
     numbers.update(rep.detect_numbers(results.get("detect")))
     # the Figure 3 rows whenever detect ran (a figure it did not report shows as n/a)
     claims = rep.PAPER_CLAIMS + (rep.DETECT_CLAIMS if "detect_level_v_rms" in numbers else [])
@@ -278,19 +291,6 @@ def run(args):
     log(f"fftune paper: done in {time.monotonic() - t0:.1f} s; {os.path.relpath(out)}/reproduction.json, "
         f"{os.path.relpath(out)}/report.html")
     return 0
-
-
-def _set_aside_previous(out):
-    """A fresh run each time: an earlier output directory is kept as ``<out>.previous``."""
-    import shutil
-
-    if os.path.isdir(out) and os.listdir(out):
-        previous = out.rstrip(os.sep) + ".previous"
-        if os.path.isdir(previous):
-            shutil.rmtree(previous)
-        os.replace(out, previous)
-        print(f"fftune paper: the earlier {os.path.relpath(out)} is kept as {os.path.relpath(previous)}")
-    return out
 
 
 def _html_table(rows, notes):

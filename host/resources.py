@@ -29,7 +29,7 @@ def drive_sim_path():
     """Path of the ``drive_sim`` executable, or a one-line error that says how to get it."""
     env = os.environ.get("FFTUNE_DRIVE_SIM")
     if env:
-        if not os.access(env, os.X_OK):
+        if not os.path.isfile(env) or not os.access(env, os.X_OK):     # (a directory is X_OK)
             raise FftuneError(f"FFTUNE_DRIVE_SIM={env}: not an executable file")
         return env
     root = checkout_root()

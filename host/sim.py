@@ -105,6 +105,13 @@ def drive_sim_command(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node
     from fftune.host.fmu import drive_sim_plant
 
     check_bus(interface, channel, bitrate)
+    if interface == "socketcand":
+        import ipaddress
+        try:
+            ipaddress.IPv4Address(str(host))
+        except ValueError:
+            raise FftuneError(f"--host {str(host)[:60]!r}: the simulated drive binds its socketcand "
+                              f"server to an IPv4 address (127.0.0.1, 0.0.0.0 ...)") from None
     extra = list(extra)
     for i in range(len(extra) - 1):
         if extra[i] == "--axis" and ":" in extra[i + 1]:
@@ -123,11 +130,12 @@ def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_i
                     extra=(), startup_timeout_s=10.0, log_path=None, interface="socketcand",
                     channel=None, bitrate=None, realtime=False):
     """Start ``drive_sim`` and wait for its 'listening' line (the bound port)."""
+    from fftune.host.config import read_plant
+
     drive_sim_path()  # a one-line error when it is missing
     if not os.path.exists(plant_config):
         raise FftuneError(f"plant configuration not found: {plant_config}")
-    if not os.path.isfile(plant_config):
-        raise FftuneError(f"plant configuration {plant_config}: not a file (a directory?)")
+    read_plant(plant_config)    # the one plant loader: a directory, FIFO, bomb or wrong shape refused
     cmd = drive_sim_command(plant_config, host, port, node_id, extra, interface=interface,
                             channel=channel, bitrate=bitrate, realtime=realtime)
     log = open(log_path, "w") if log_path else subprocess.DEVNULL
@@ -280,6 +288,8 @@ def _run(args):
     plant = resolve_plant(cfg, args.plant)
     if not os.path.exists(plant):
         raise FftuneError(f"plant configuration not found: {plant}")
+    from fftune.host.config import read_plant
+    read_plant(plant)           # (before drive_sim replaces this process: one fftune error line)
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     node_id = args.node_id if args.node_id is not None else cfg["drive"]["node_id"]
     _bus_from_python_can(args)

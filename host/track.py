@@ -25,7 +25,7 @@ from fftune.analysis.track import (K_FC_MEANING, NotIdentifiable, Tracker, Track
                                    parse_task_stats, sensor_noise_gain)
 from fftune.host.atomic import write_atomic
 from fftune.host.config import DEFAULTS as _CFG_DEFAULTS
-from fftune.host.config import (_bool, _choice, _err, _merge, _number, check_output_dir, read_yaml,
+from fftune.host.config import (_bool, _choice, _err, _merge, _number, output_session, read_yaml,
                                  validate_drive, validate_limits, validate_sim)
 from fftune.host.drive import BusOptions, DriveClient, add_bus_arguments
 from fftune.host.drive import frame_bits  # (one definition: the bus load below, the SDO bursts)
@@ -105,9 +105,12 @@ def validate_track_config(raw, path):
         elif key in ("gain",):
             _number(cfg, path, f"{t}.limits.{key}", low=0.0, low_inclusive=False, high=2.0)
         elif key == "rollback_ratio":
-            _number(cfg, path, f"{t}.limits.{key}", low=1.0, low_inclusive=False)
+            _number(cfg, path, f"{t}.limits.{key}", low=1.0, low_inclusive=False, high=1000.0)
         else:
-            _number(cfg, path, f"{t}.limits.{key}", low=0.0)
+            # steps and sigmas relative (<= 10 x), absolute gain steps within the feed-forward
+            # objects' range (100 V, 100 V s/rad), rms in rad: a huge value (1e300) is a typo
+            _number(cfg, path, f"{t}.limits.{key}", low=0.0,
+                    high=10.0 if key.endswith("_rel") else 1000.0 if key.endswith("_rad") else 100.0)
     _number(cfg, path, f"{t}.poll_s", low=0.001, high=10.0)
     _number(cfg, path, f"{t}.write_deadband_rel", low=0.0, high=0.1)
     _bool(cfg, path, f"{t}.check.enabled")
@@ -605,8 +608,9 @@ def _track(args):
     preflight_track(cfg)                # (before the drive is contacted)
     opts = BusOptions.from_args(args, cfg["drive"])
     client = _client(cfg, opts, not args.no_progress)
-    out = check_output_dir(args.out or cfg["output"])
-    with client:
+    # made now; removed again when the session fails before it wrote its results (an
+    # unreachable drive, a refused preflight: nothing left behind)
+    with output_session(args.out or cfg["output"]) as out, client:
         preflight_track(cfg, client)    # the drive's own limits, before it is enabled
         client.enable()
         results = track_session(client, cfg, out, figures=not args.no_figures,
@@ -617,7 +621,7 @@ def _track(args):
 
 def _demo_track(args):
     from fftune.host.resources import config_path
-    from fftune.host.sim import DEFAULT_PLANT, check_bus, derived_plant, start_drive_sim
+    from fftune.host.sim import DEFAULT_PLANT, check_bus
 
     t0 = time.monotonic()
     # demo-track starts its own drive on a free port: python-can's configuration plays no part
@@ -626,12 +630,23 @@ def _demo_track(args):
     preflight_track(cfg)
     bitrate = args.bitrate if args.bitrate is not None else cfg["sim"]["bitrate"]
     check_bus(args.interface, args.channel, bitrate)
-    out = check_output_dir(args.out or cfg["output"])
     plant = args.plant or cfg["sim"]["plant"] or DEFAULT_PLANT
     if not os.path.isabs(plant) and not os.path.exists(plant):
         packaged = config_path(os.path.basename(plant))
         if os.path.exists(packaged):
             plant = packaged
+    with output_session(args.out or cfg["output"]) as out:
+        results = _demo_track_session(args, cfg, out, plant, bitrate)
+    print("\n".join(summary_lines(results, out)))
+    print(f"fftune demo-track: done in {time.monotonic() - t0:.1f} s")
+    return 0
+
+
+def _demo_track_session(args, cfg, out, plant, bitrate):
+    """drive_sim with ``plant`` (and the configuration's sim.overrides) and the tracking
+    session against it; ``out`` is made (and removed again on a failure before results)."""
+    from fftune.host.sim import derived_plant, start_drive_sim
+
     if cfg["sim"]["overrides"]:
         plant = derived_plant(plant, cfg["sim"]["overrides"], os.path.join(out, "plant.yaml"),
                               where=f"{args.config}: key 'sim.overrides'")
@@ -646,13 +661,10 @@ def _demo_track(args):
         with _client(cfg, opts, not args.no_progress) as client:
             preflight_track(cfg, client)
             client.enable()
-            results = track_session(client, cfg, out, figures=not args.no_figures,
-                                    log=lambda s: print(s, flush=True))
+            return track_session(client, cfg, out, figures=not args.no_figures,
+                                 log=lambda s: print(s, flush=True))
     finally:
         sim.stop()
-    print("\n".join(summary_lines(results, out)))
-    print(f"fftune demo-track: done in {time.monotonic() - t0:.1f} s")
-    return 0
 
 
 def add_parser(sub):

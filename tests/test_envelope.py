@@ -205,7 +205,7 @@ def test_plant_file_probes(tmp_path):
         derived_plant_text(_write(tmp_path / "p.yaml", ALIAS_BOMB), {})
     with pytest.raises(FftuneError, match=r"sim.overrides.plant.coulomb: expected a finite number, got \[1, 2\]"):
         derived_plant_text(TWOMASS, {"plant": {"coulomb": [1, 2]}})
-    with pytest.raises(FftuneError, match="not a file"):
+    with pytest.raises(FftuneError, match="is a directory, expected a file"):
         start_drive_sim(str(tmp_path))
 
 

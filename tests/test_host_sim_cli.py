@@ -37,7 +37,7 @@ def test_drive_sim_command_maps_the_bus_options():
                             "-i socketcan -c IFNAME), not -i pcan"),
     (["sim", "-i", "socketcan"], "the simulated drive on SocketCAN needs its interface: -c vcan0 "
                                  "(set up with: modprobe vcan; ip link add dev vcan0 type vcan; ip link set up vcan0)"),
-    (["sim", "-b", "5000"], "--bitrate 5000: a classic CAN bus runs at 10000 .. 1000000 bit/s"),
+    (["sim", "-b", "5000"], "sim: argument -b/--bitrate: 5000: expected 10000 .. 1000000 bit/s"),
     (["sim", "-i", "socketcan", "-c", "vcan0", "-b", "500000"],
      "--bitrate 500000: the bus model is part of drive_sim's socketcand server; a SocketCAN "
      "interface (vcan0) has its own bit rate"),
