@@ -218,3 +218,52 @@ def test_relative_levels_and_detect_numbers():
     assert n["detect_level_v_rms"] == 3.9 and n["detect_odd_re_even_db"] == pytest.approx(19.5)
     assert n["detect_noise_re_nl_db"] == pytest.approx(-27.3) and n["detect_nl_re_output_db"] == -3.9
     assert rep.detect_numbers({"levels": lv}, level_v_rms=1.2)["detect_level_v_rms"] == 1.0
+
+
+def test_phase_turn_edges():
+    """Harmonic 3 by default; H must hold the harmonic asked for; K_fc* on a sweep point
+    takes the neighbours on either side of it; an optimum outside the sweep names it."""
+    k = np.array([0.0, 0.04, 0.08, 0.1157, 0.15, 0.2])
+    H = sweep(k, 0.1157, {3: 0.0, 5: 0.004, 7: 0.002})
+    H[:, 1] = np.exp(1j * np.radians([0.0, 10, 20, 30, 40, 50]))       # H_2 and H_4 turn 20 deg
+    H[:, 3] = np.exp(1j * np.radians([0.0, 15, 30, 45, 60, 75]))
+    assert rep.phase_turn_deg(k, H, 0.1157) == pytest.approx(180.0)   # (H_3: not H_2's 20, not H_4's 30)
+    # on the sweep point 0.1157, H_3 is 0 there: the neighbours 0.08 and 0.15
+    want5 = turn_deg(k[k != 0.1157], 0.1157, 5, 0.004)
+    assert rep.phase_turn_deg(k, H, 0.1157, 5) == pytest.approx(want5, abs=1e-9)
+    assert rep.phase_turn_deg(k, H, 0.1157, 2) == pytest.approx(20.0)   # 20 deg (0.08) to 40 deg (0.15)
+    for bad in (H[:, :2], H[:, 0]):
+        with pytest.raises(InputError, match=r"H must be shaped \(n, K >= 3\)"):
+            rep.phase_turn_deg(k, bad, 0.1157)
+    with pytest.raises(InputError, match=r"K_fc\* = 0.25 V is not inside the sweep \[0, 0.2\] V"):
+        rep.phase_turn_deg(k[::-1], H[::-1], 0.25)
+    # three points are a sweep; two are not
+    assert rep.phase_turn_deg(k[2:5], H[2:5], 0.1, 3) == pytest.approx(180.0)
+    with pytest.raises(InputError, match="at least 3 K_fc values"):
+        rep.phase_turn_deg(k[:2], H[:2], 0.02)
+
+
+def test_min_rms_of_a_shallow_parabola_and_three_points():
+    """A curvature under 1 (a small rms change over a wide sweep) is refined too."""
+    k = np.array([0.0, 0.1, 0.2])
+    got, at_end = rep.min_rms_kfc(k, 0.2 + 0.3 * (k - 0.087) ** 2)
+    assert got == pytest.approx(0.087, abs=1e-12) and at_end is False
+
+
+def test_relative_levels_from_three_harmonics():
+    H = np.array([0.5 + 0.5j, 0.02j, -0.06, 0.3, 0.4])
+    odd, even = rep.relative_levels(H, n_harmonics=3)
+    assert odd == pytest.approx(0.06 / abs(0.5 + 0.5j)) and even == pytest.approx(0.02 / abs(0.5 + 0.5j))
+
+
+def test_turns_outside_a_sweep_are_none():
+    """An optimum outside a sweep gives no turn (None), for the set-up's sweep and for the
+    simulation's, and the other numbers still come."""
+    k = np.linspace(0.0, 0.1, 6)            # below K_fc* = 0.118 only
+    H = sweep(k, 0.118, {3: 0.0, 5: 0.0, 7: 0.0})
+    n = rep.reproduction_numbers(k_star=0.118, k_true=0.1157, k_sweep=k, H_sweep=H,
+                                 rms_sweep=0.02 + (k - 0.05) ** 2, H_at_0=H0, H_at_star=H0,
+                                 sim_k_star=0.3, sim_k_sweep=k, sim_H_sweep=H)
+    for h in (3, 5, 7):
+        assert n[f"h{h}_phase_turn_deg_setup"] is None and n[f"h{h}_phase_turn_deg"] is None
+    assert n["min_rms_kfc_v"] == pytest.approx(0.05) and n["sim_kfc_star_v"] == 0.3
