@@ -121,3 +121,9 @@ def test_conftest_check_refuses_when_the_rebuild_fails(tmp_path):
     os.utime(tmp_path / "src.txt", (future, future))
     with pytest.raises(RuntimeError, match=r"build/out failed .*no test runs them"):
         rebuild_stale(d, ("build/out",))
+
+
+def test_the_products_this_session_runs_are_fresh():
+    """conftest's check ran before this test: every product that exists is up to date with
+    its sources (a session that skipped the check after an edit of a C source fails here)."""
+    assert stale_products() == []
