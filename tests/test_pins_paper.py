@@ -267,3 +267,11 @@ def test_turns_outside_a_sweep_are_none():
     for h in (3, 5, 7):
         assert n[f"h{h}_phase_turn_deg_setup"] is None and n[f"h{h}_phase_turn_deg"] is None
     assert n["min_rms_kfc_v"] == pytest.approx(0.05) and n["sim_kfc_star_v"] == 0.3
+
+
+def test_min_rms_kfc_with_a_repeated_point_is_the_grid_minimum():
+    """A K_fc measured twice beside the minimum: no parabola through two equal K_fc (its
+    denominator is 0), the grid minimum is the answer, on either side."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        assert rep.min_rms_kfc([0.0, 0.1, 0.1, 0.2], [3.0, 2.0, 1.0, 2.0]) == (0.1, False)   # x0 = x1
+        assert rep.min_rms_kfc([0.0, 0.1, 0.1, 0.2], [2.0, 1.0, 1.5, 3.0]) == (0.1, False)   # x1 = x2
