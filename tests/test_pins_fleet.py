@@ -7,6 +7,7 @@ Dask: fast (the mutation selection of host/fleet.py runs this file first).
 import math
 
 import pytest
+import yaml
 
 from fftune.host import fleet
 
@@ -137,3 +138,21 @@ def test_the_table_keeps_each_column_apart():
         assert back[0][col] == want, col
         assert back[1][col] is None, col
     assert back[0]["runs"] == 31 and back[1]["status"] == "error" and back[1]["reason"].startswith("no readable")
+
+
+def test_runs_column_counts_resumed_and_measured_runs():
+    class Session:
+        counts = {"resumed": 3, "measured": 4}
+    row = fleet._run_steps(Session(), [], _row())
+    assert row["runs"] == 7 and row["status"] == "error" and row["reason"] == ""
+
+
+def test_names_from_the_folders_when_results_yaml_is_not_a_mapping(tmp_path):
+    d = tmp_path / "mach9" / "ax3" / "2026-03-04" / "captures"
+    d.mkdir(parents=True)
+    (d.parent / "results.yaml").write_text("- not\n- a mapping\n")
+    machine, axis, node_id, truth, out_dir = fleet._names_for(str(d))
+    assert (machine, axis, node_id, truth, out_dir) == ("mach9", "ax3", None, None, str(d.parent))
+    (d.parent / "results.yaml").write_text(yaml.safe_dump({"axis": {"name": "x", "machine": "m", "node_id": 4},
+                                                           "drive": {"plant_truth": {"sim_fc_volt": 0.2}}}))
+    assert fleet._names_for(str(d))[:4] == ("m", "x", 4, {"sim_fc_volt": 0.2})
