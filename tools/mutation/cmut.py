@@ -57,11 +57,12 @@ MODULES = {
     # the task generator is tested from Python through libfwsim.so (tests/test_track.py):
     # a "pytest:" program links the mutant into build/libfwsim.so of the scratch tree and
     # runs that test file there (its copy of tests/ finds the scratch firmware_sim)
-    "core/task.c": ["test_core", "pytest:tests/test_track.py"],
+    "core/task.c": ["test_core", "pytest:tests/test_pins_task.py tests/test_track.py"],
 }
 # the files a "pytest:" program reads (part of its module's tests digest)
-PYTEST_FILES = {"pytest:tests/test_track.py": ["tests/test_track.py", "tests/track_sim.py",
-                                               "tests/conftest.py", "firmware_sim/tests/fwsim.py"]}
+PYTEST_FILES = {"pytest:tests/test_pins_task.py tests/test_track.py": [
+    "tests/test_pins_task.py", "tests/test_track.py", "tests/track_sim.py", "tests/conftest.py",
+    "firmware_sim/tests/fwsim.py"]}
 
 # The compile flags of firmware_sim/Makefile and canopen.mk (kept in step with them; the
 # baseline build below fails loudly if the unmutated code does not pass these tests).
@@ -253,8 +254,8 @@ def _link(program, replace=None):
 
 
 def _run_pytest(prog, replace, timeout):
-    """A "pytest:FILE" program: build/libfwsim.so of the scratch tree linked from the PIC
-    objects (the module's rebuilt from its mutated source, in place), FILE run there."""
+    """A "pytest:FILE ..." program: build/libfwsim.so of the scratch tree linked from the PIC
+    objects (the module's rebuilt from its mutated source, in place), the FILEs run there."""
     fw = TREE / "firmware_sim"
     rels = [p.relative_to(fw).as_posix() for p in sorted(fw.glob("core/*.c")) + sorted(fw.glob("plant/*.c"))]
     objs = []
@@ -275,7 +276,7 @@ def _run_pytest(prog, replace, timeout):
     # this harness's own, made just above)
     env = dict(os.environ, FFTUNE_TEST_NO_REBUILD="1", PYTHONDONTWRITEBYTECODE="1")
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
-           "-W", "ignore", f"--rootdir={TREE}", str(TREE / prog.split(":", 1)[1])]
+           "-W", "ignore", f"--rootdir={TREE}"] + [str(TREE / f) for f in prog.split(":", 1)[1].split()]
     try:
         res = subprocess.run(cmd, cwd=TREE, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                              text=True, timeout=timeout)
