@@ -176,6 +176,11 @@ def _env(pkg_root):
     env = dict(os.environ)
     env["PYTHONPATH"] = str(pkg_root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env["PYTHONDONTWRITEBYTECODE"] = "1"
+    # the scratch package is no checkout (fftune.host.resources finds no firmware_sim
+    # beside it): the host's sessions use the checkout's drive_sim
+    drive_sim = ROOT / "firmware_sim" / "build" / "drive_sim"
+    if drive_sim.exists():
+        env.setdefault("FFTUNE_DRIVE_SIM", str(drive_sim))
     return env
 
 
