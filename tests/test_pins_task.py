@@ -49,6 +49,7 @@ CASES = [  # distance, v_max, a_max, jerk, dwell, branch
     (0.2, 3.0, 30.0, 600.0, 0.13, "short"),
     (0.01, 3.0, 30.0, 600.0, 0.09, "jerk only"),
     (0.013, 2.2, 17.0, 450.0, 0.3, "jerk only"),
+    (0.15, 1.0, 0.1, 0.05, 0.2, "jerk only"),      # t_j^3 = 1.5 s^3: the cube root of more than 1
 ]
 
 
