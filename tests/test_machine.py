@@ -137,9 +137,9 @@ def test_duplicate_node_ids_are_one_line_and_nothing_written(tmp_path, capsys):
 def _ctrl_c_session(monkeypatch, sim, f, out, second_run):
     """``fftune tune --machine f`` with a Ctrl-C when the second axis starts its run: that
     run is ``second_run(self, original, *a, **kw)``, called once the main thread has set the
-    machine's cancel. Returns (exit status, node ids of the runs started, of those started
-    after the cancel, figure process pids, the spy's SDO requests after the cancel
-    {node: [data]})."""
+    machine's cancel. Returns (exit status, node ids of the runs called, of the runs
+    called after the cancel that ran (did not end at once in Cancelled), figure process
+    pids, the spy's SDO requests after the cancel {node: [data]})."""
     import threading
 
     import can
@@ -155,15 +155,17 @@ def _ctrl_c_session(monkeypatch, sim, f, out, second_run):
                 after[nid].append(bytes(msg.data))
 
     def run(self, *a, **kw):
-        if cancelled.is_set():
-            started_after.append(self.opts.node_id)
+        late = cancelled.is_set()
         started.append(self.opts.node_id)
         if len(set(started)) == 2 and not fired:    # both axes are measuring: Ctrl-C
             fired.append(True)
             _thread.interrupt_main()
             assert cancelled.wait(30), "the main thread did not cancel within 30 s"
             return second_run(self, original, *a, **kw)
-        return original(self, *a, **kw)
+        result = original(self, *a, **kw)   # (Cancelled at its first SDO request after the cancel)
+        if late:
+            started_after.append(self.opts.node_id)     # a whole run after the cancel
+        return result
     monkeypatch.setattr(_drive.DriveClient, "run", run)
     from fftune.host import machine as _machine
     pools, terminate = [], _machine._FigurePool.terminate
@@ -226,7 +228,7 @@ def test_ctrl_c_stops_and_disables_every_axis(machine_sim, tmp_path, monkeypatch
         monkeypatch, sim, f, str(tmp_path / "o"),
         lambda self, original, *a, **kw: original(self, *a, **kw))
     assert code == 130
-    assert sorted(set(started)) == [5, 7] and started_after == []     # no run after the cancel
+    assert sorted(set(started)) == [5, 7] and started_after == []     # no run ran after the cancel
     cmd = PARAMS["run_command"]
     for nid, frames in after.items():
         sent = [(_sdo_download(x, cmd.index, cmd.subindex), _sdo_download(x, 0x6040, 0)) for x in frames]
