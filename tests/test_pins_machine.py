@@ -105,9 +105,10 @@ def test_bus_model_figures_from_the_drive_sims_line(tmp_path):
 def test_machine_summary_host_time_never_negative_and_budget_keys():
     axes = [{"name": "p", "time_budget_s": {"excitation": 20.0, "bus": 9.0, "drive_wait": 25.0}},
             {"name": "q", "time_budget_s": {"excitation": 12.0, "bus": 4.0, "drive_wait": 3.0}}]
-    t = mc.machine_summary({"name": "m"}, axes, 22.0, "t0")["time_budget_s"]["total"]
+    t = mc.machine_summary({"name": "m"}, axes, 22.0047, "t0")["time_budget_s"]["total"]
     # 22 - 9 (the longest SDO time) - 20 (p's wait, at most its excitation) < 0: 0
     assert t["host"] == 0.0 and t["bus"] == 9.0 and t["bus_sdo_wall"] == 13.0
+    assert t["wall"] == 22.005 and t["wall_re_longest_excitation"] == 1.1       # (ms, 1e-3)
     assert t["measure_wall"] is None and t["measure_re_longest_excitation"] is None
     t = mc.machine_summary({"name": "m"}, [{"name": "r", "time_budget_s": None}], 5.0, "t0")["time_budget_s"]["total"]
     assert (t["excitation"], t["bus"], t["wall_re_longest_excitation"], t["bus_re_longest_excitation"]) == \
