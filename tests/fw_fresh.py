@@ -6,10 +6,12 @@ checked against their sources with ``make -q`` when a pytest session starts (con
 nothing to do; a targeted ``pytest tests/test_host_cleanup.py`` after an edit of a C source
 (with ``make all``, which does not build the sanitizer build, or no make at all) rebuilds
 ``build/asan/drive_sim`` and the others before any test starts. Only products that exist are
-checked: a missing one is the tests' own skip ("not built (run `make setup`)").
+checked: a missing one is the tests' own skip ("not built (run `make setup`)"); without
+make (a test guest that has none) nothing is checked.
 """
 import fcntl
 import os
+import shutil
 import subprocess
 import sys
 
@@ -42,8 +44,8 @@ def rebuild_stale(fw_dir=FW_DIR, products=FW_PRODUCTS):
     checkout from building at once. Raises RuntimeError with make's last lines when the
     build fails (a C source that does not compile: no test may run the old binary)."""
     build = os.path.join(fw_dir, "build")
-    if not os.path.isdir(build):
-        return []
+    if not os.path.isdir(build) or shutil.which("make") is None:
+        return []           # (nothing built here, or no make: e.g. a test guest without one)
     with open(os.path.join(build, ".pytest-rebuild.lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         stale = stale_products(fw_dir, products)
