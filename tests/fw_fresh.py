@@ -46,6 +46,8 @@ def rebuild_stale(fw_dir=FW_DIR, products=FW_PRODUCTS):
     build = os.path.join(fw_dir, "build")
     if not os.path.isdir(build) or shutil.which("make") is None:
         return []           # (nothing built here, or no make: e.g. a test guest without one)
+    if not stale_products(fw_dir, products):
+        return []           # (the usual case: no lock file written, e.g. on a read-only share)
     with open(os.path.join(build, ".pytest-rebuild.lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         stale = stale_products(fw_dir, products)
