@@ -109,10 +109,10 @@ ASAN_TESTS  := $(ASAN_DIR)/test_core $(ASAN_DIR)/test_plant $(if $(REL_HAVE_CO),
 ASAN_REPLAY := $(if $(REL_HAVE_CO),$(ASAN_DIR)/replay_co_node)
 ASAN_BINS   := $(ASAN_TESTS) $(ASAN_REPLAY) $(if $(REL_HAVE_PORT),$(ASAN_DIR)/drive_sim)
 
-$(ASAN_DIR)/test_core: tests/test_core.c tests/th.h $(GEN)/ms_vectors.h $(CORE_SRC) $(PLANT_SRC) $(wildcard core/*.h plant/*.h)
+$(ASAN_DIR)/test_core: tests/test_core.c tests/th.h $(GEN)/ms_vectors.h $(GEN)/od_params.h $(CORE_SRC) $(PLANT_SRC) $(wildcard core/*.h plant/*.h)
 	@mkdir -p $(@D)
 	$(ASAN_CC) $(CSTD) $(WARN) $(ASAN_FLAGS) -D_DEFAULT_SOURCE $(FW_INC) -Itests $< $(CORE_SRC) $(PLANT_SRC) -lm -o $@
-$(ASAN_DIR)/test_plant: tests/test_plant.c tests/th.h $(CORE_SRC) $(PLANT_SRC) $(wildcard core/*.h plant/*.h)
+$(ASAN_DIR)/test_plant: tests/test_plant.c tests/th.h $(GEN)/od_params.h $(CORE_SRC) $(PLANT_SRC) $(wildcard core/*.h plant/*.h)
 	@mkdir -p $(@D)
 	$(ASAN_CC) $(CSTD) $(WARN) $(ASAN_FLAGS) -D_DEFAULT_SOURCE $(FW_INC) -Itests $< $(CORE_SRC) $(PLANT_SRC) -lm -o $@
 $(ASAN_DIR)/co_test: $(CO_SRC) $(CO_TEST_SRC) $(wildcard canopen/tests/*.h) $(CO_HDR) $(GEN)/od_table.c $(CO_DOUBLE)/drv.h
@@ -123,7 +123,7 @@ $(ASAN_DIR)/replay_co_node: fuzz/replay_main.c fuzz/fuzz_co_node.c $(CORE_SRC) $
 	@mkdir -p $(@D)
 	$(ASAN_CC) $(CSTD) -Wall -Wextra $(ASAN_FLAGS) -D_GNU_SOURCE -DCO_SIM_BUILD -Icore -Iplant -Icanopen -Iport -I$(GEN) \
 	    fuzz/replay_main.c fuzz/fuzz_co_node.c $(CORE_SRC) $(PLANT_SRC) $(CO_SRC) $(GEN)/od_table.c -lm -o $@
-$(ASAN_DIR)/drive_sim: $(CO_SRC) $(PORT_SRC) $(PORT_HDR) $(CO_HDR) $(GEN)/od_table.c $(CORE_SRC) $(PLANT_SRC)
+$(ASAN_DIR)/drive_sim: $(CO_SRC) $(PORT_SRC) $(PORT_HDR) $(CO_HDR) $(GEN)/od_table.c $(CORE_SRC) $(PLANT_SRC) $(wildcard core/*.h plant/*.h)
 	@mkdir -p $(@D)
 	$(ASAN_CC) $(CO_CFLAGS) $(ASAN_FLAGS) -D_GNU_SOURCE -DCO_SIM_BUILD -Icore -Iplant -Iport \
 	    $(CO_SRC) $(PORT_SRC) $(GEN)/od_table.c $(CORE_SRC) $(PLANT_SRC) -lm -o $@

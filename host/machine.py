@@ -490,12 +490,14 @@ def run_machine(machine, bus_opts, out, *, steps=("detect", "quantify", "tune"),
                                             f"not converged: {tune['search']['stop_reason']}")
             except Cancelled:
                 entries[name] = _axis_entry(ax, status="cancelled", error="cancelled (Ctrl-C / SIGTERM)")
-            except FftuneError as exc:
-                log_error(f"fftune: error: axis '{name}' (node {ax['node_id']}): {exc}")
-                entries[name] = _axis_entry(ax, error=str(exc))
             except Exception as exc:  # an axis' own failure never takes the machine down
-                log_error(f"fftune: error: axis '{name}' (node {ax['node_id']}): {type(exc).__name__}: {exc}")
-                entries[name] = _axis_entry(ax, error=f"{type(exc).__name__}: {exc}")
+                if cancel.is_set():     # (the bus closed under an axis late to see the cancel:
+                    # the cancel's doing, no line; it could outlive this session's output)
+                    entries[name] = _axis_entry(ax, status="cancelled", error="cancelled (Ctrl-C / SIGTERM)")
+                else:
+                    text = str(exc) if isinstance(exc, FftuneError) else f"{type(exc).__name__}: {exc}"
+                    log_error(f"fftune: error: axis '{name}' (node {ax['node_id']}): {text}")
+                    entries[name] = _axis_entry(ax, error=text)
             finally:
                 if not waited:
                     done_measuring()        # (failed before its figures: no longer measuring)

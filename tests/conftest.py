@@ -192,6 +192,27 @@ def _module_fixture_group(item):
     return f"{path}:{'+'.join(names)}" if names else None
 
 
+# --------------------------------------------------------------------------- fresh binaries
+def pytest_configure(config):
+    """No test runs a stale binary (tests/fw_fresh.py): the firmware_sim products the tests
+    run are rebuilt here when older than their sources, once per session (in the xdist
+    controller, before any worker starts)."""
+    if hasattr(config, "workerinput") or os.environ.get("FFTUNE_TEST_NO_REBUILD") == "1":
+        return          # (the C mutation harness: it links the binaries it tests itself)
+    from fw_fresh import rebuild_stale
+    try:
+        config._fftune_rebuilt = rebuild_stale()
+    except RuntimeError as exc:
+        pytest.exit(f"conftest: {exc}", returncode=2)
+
+
+def pytest_report_header(config):
+    rebuilt = getattr(config, "_fftune_rebuilt", None)
+    if rebuilt:
+        return [f"firmware_sim: rebuilt {', '.join(rebuilt)} (older than their sources)"]
+    return None
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     vm_items = [item for item in items if item.get_closest_marker("vm")]

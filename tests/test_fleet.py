@@ -82,6 +82,41 @@ def test_local_scheduler_table_matches_the_live_sessions(fleet_dir, local_rows):
     assert abs(by["m1/y"]["k_fc_star"] / 0.5 - 1) < 0.02
 
 
+def test_every_column_is_the_live_sessions_value(fleet_dir, local_rows):
+    """Each column of the table against the field of the live session's results.yaml it
+    reports (the even levels are not the odd ones there: one filled from the other fails)."""
+    by = {os.path.relpath(os.path.dirname(r["source"]), fleet_dir): r for r in local_rows}
+    for rel in ("m1/x/2026-01-01", "m1/x/2026-02-01", "m1/y"):
+        live, row = _live(fleet_dir / rel), by[rel]
+        det, q, t = live["detect"], live["quantify"], live["tune"]
+        s = t["search"]
+        summ = [lv["summary_db"] for lv in det["levels"]]
+        want = {
+            "detect_verdict": det["verdict"],
+            "bla_rms_levels": [lv["rms_requested"] for lv in det["levels"]],
+            "bla_nl_re_output_db": [x["nl_re_output_db"] for x in summ],
+            "bla_noise_re_output_db": [x["noise_re_output_db"] for x in summ],
+            "bla_odd_re_output_db": [x["odd_re_output_db"] for x in summ],
+            "bla_even_re_output_db": [x["even_re_output_db"] for x in summ],
+            "bla_max_change_db": det["bla_max_change_over_levels_db"],
+            "hosidf_max_odd_rel": q["max_odd_relative_level"],
+            "hosidf_max_even_rel": q["max_even_relative_level"],
+            "k_fc_star": t["k_fc_star"], "k_fc_sigma": s["sigma_v"], "k_fc_converged": s["converged"],
+            "tune_stop_reason": s["stop_reason"], "ratio_at_zero": t["ratio_at_zero"],
+            "ratio_at_k_fc_star": t["ratio_at_k_fc_star"], "tune_experiments": s["experiments"],
+            "k_fc_true": t["true_coulomb_v"], "runs": live["experiments"]["measured"],
+        }
+        for col, value in want.items():
+            assert row[col] == value, (rel, col)
+        # the pairs a mix-up would confuse differ in the data
+        assert q["max_even_relative_level"] != q["max_odd_relative_level"]
+        assert want["bla_even_re_output_db"] != want["bla_odd_re_output_db"]
+        assert want["bla_noise_re_output_db"] != want["bla_nl_re_output_db"]
+        assert t["ratio_at_zero"] != t["ratio_at_k_fc_star"] and row["ratio_at_zero_std"] != row["ratio_at_k_fc_star_std"]
+        assert row["k_fc_true"] == pytest.approx({"m1/x/2026-01-01": 0.3,
+                                                 "m1/x/2026-02-01": 0.35, "m1/y": 0.5}[rel])
+
+
 def test_damaged_and_partial_captures_are_rows_with_their_reason(fleet_dir, local_rows):
     by = {os.path.relpath(os.path.dirname(r["source"]), fleet_dir): r for r in local_rows}
     dmg = by["m2/damaged"]

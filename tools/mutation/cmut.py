@@ -54,7 +54,15 @@ MODULES = {
     "core/rec.c": CORE_TESTS, "core/run.c": CORE_TESTS,
     "canopen/co_sdo.c": ["co_test"], "canopen/co_nmt.c": ["co_test"], "canopen/co_pdo.c": ["co_test"],
     "plant/plant.c": ["test_plant"],
+    # the task generator is tested from Python through libfwsim.so (tests/test_track.py):
+    # a "pytest:" program links the mutant into build/libfwsim.so of the scratch tree and
+    # runs that test file there (its copy of tests/ finds the scratch firmware_sim)
+    "core/task.c": ["test_core", "pytest:tests/test_pins_task.py tests/test_track.py"],
 }
+# the files a "pytest:" program reads (part of its module's tests digest)
+PYTEST_FILES = {"pytest:tests/test_pins_task.py tests/test_track.py": [
+    "tests/test_pins_task.py", "tests/test_track.py", "tests/track_sim.py", "tests/conftest.py",
+    "firmware_sim/tests/fwsim.py"]}
 
 # The compile flags of firmware_sim/Makefile and canopen.mk (kept in step with them; the
 # baseline build below fails loudly if the unmutated code does not pass these tests).
@@ -179,10 +187,11 @@ def _prepare_tree():
     """Scratch copy of firmware_sim (+ the configs and vectors its tests read), built."""
     if TREE.exists():
         shutil.rmtree(TREE)
-    (TREE / "tests").mkdir(parents=True)
+    TREE.mkdir(parents=True)
     shutil.copytree(FW, TREE / "firmware_sim", ignore=shutil.ignore_patterns("build", "__pycache__"))
     shutil.copytree(ROOT / "configs", TREE / "configs", ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copytree(ROOT / "tests" / "vectors", TREE / "tests" / "vectors")
+    # (the vectors the C tests read, and the Python tests of the "pytest:" programs)
+    shutil.copytree(ROOT / "tests", TREE / "tests", ignore=shutil.ignore_patterns("__pycache__", "vm"))
     fw = TREE / "firmware_sim"
     res = _run(["make", "--no-print-directory", f"PYTHON={sys.executable}", "gen", "canopen-gen",
                 "build/gen/ms_vectors.h", "build/co_double/drv.h"], fw)
@@ -197,6 +206,8 @@ def _prepare_tree():
             [fw / "build/gen/od_table.c", fw / "tests/test_core.c", fw / "tests/test_plant.c"]:
         rel = src.relative_to(fw).as_posix()
         err = _compile(rel, fw / rel, _obj(rel))
+        if not err and rel.startswith(("core/", "plant/")):
+            err = _compile(rel, fw / rel, _obj(rel, pic=True), pic=True)
         if err:
             raise MutationError(f"mutation: unmutated {rel} does not compile: {err}")
 
@@ -211,12 +222,13 @@ def _flags_for(rel):
     return FLAGS["canopen"]
 
 
-def _obj(rel):
-    return WORK / "obj" / (rel.replace("/", "__") + ".o")
+def _obj(rel, pic=False):
+    return WORK / "obj" / (rel.replace("/", "__") + (".pic.o" if pic else ".o"))
 
 
-def _compile(rel, src, obj):
-    res = _run([CC] + _flags_for(rel) + ["-c", str(src), "-o", str(obj)], TREE / "firmware_sim")
+def _compile(rel, src, obj, pic=False):
+    res = _run([CC] + _flags_for(rel) + (["-fPIC"] if pic else []) + ["-c", str(src), "-o", str(obj)],
+               TREE / "firmware_sim")
     if res.returncode != 0:
         first = [ln for ln in res.stdout.splitlines() if "error" in ln][:1]
         return (first[0] if first else res.stdout.strip()[-200:]).split("error: ")[-1]
@@ -241,9 +253,51 @@ def _link(program, replace=None):
     return out, None
 
 
+def _run_pytest(prog, replace, timeout):
+    """A "pytest:FILE ..." program: build/libfwsim.so of the scratch tree linked from the PIC
+    objects (the module's rebuilt from its mutated source, in place), the FILEs run there."""
+    fw = TREE / "firmware_sim"
+    rels = [p.relative_to(fw).as_posix() for p in sorted(fw.glob("core/*.c")) + sorted(fw.glob("plant/*.c"))]
+    objs = []
+    for rel in rels:
+        if replace and rel == replace[0]:
+            obj = WORK / "mutant.pic.o"
+            err = _compile(rel, fw / rel, obj, pic=True)
+            if err:
+                return "not-viable", f"compiler (-fPIC): {err}"
+            objs.append(str(obj))
+        else:
+            objs.append(str(_obj(rel, pic=True)))
+    lib = fw / "build" / "libfwsim.so"
+    res = _run([CC, "-shared", "-o", str(lib)] + objs + ["-lm"], fw)
+    if res.returncode != 0:
+        return "not-viable", f"link: {res.stdout.strip()[-200:]}"
+    # (tests/conftest.py would rebuild the scratch tree's products with make: they are
+    # this harness's own, made just above)
+    env = dict(os.environ, FFTUNE_TEST_NO_REBUILD="1", PYTHONDONTWRITEBYTECODE="1")
+    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
+           "-W", "ignore", f"--rootdir={TREE}"] + [str(TREE / f) for f in prog.split(":", 1)[1].split()]
+    try:
+        res = subprocess.run(cmd, cwd=TREE, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return "killed", f"{prog}: timeout"
+    if res.returncode == 0:
+        return "survived", ""
+    if res.returncode in (1, 2) or res.returncode < 0:     # a failure, an error, a crash
+        return "killed", f"{prog}: {'crash' if res.returncode < 0 else 'failed'}"
+    raise MutationError(f"mutation: {prog}: pytest exit status {res.returncode}: "
+                        f"{res.stdout.strip().splitlines()[-1:]}")
+
+
 def _run_tests(programs, replace, timeout):
     """'killed' / 'survived' (+ detail) / 'not-viable' (link failure)."""
     for prog in programs:
+        if prog.startswith("pytest:"):
+            verdict, detail = _run_pytest(prog, replace, timeout)
+            if verdict != "survived":
+                return verdict, detail
+            continue
         exe, err = _link(prog, replace)
         if exe is None:
             return "not-viable", f"link: {err}"
@@ -272,6 +326,7 @@ def _digest(module):
         test_globs = ["tests/test_core.c", "tests/test_plant.c", "tests/th.h"]
         code_extra = [ROOT / "configs" / "od.yaml"]
         test_extra = [ROOT / "tests" / "vectors" / "multisine_vectors.json"]
+        test_extra += [ROOT / f for prog in MODULES[module] for f in PYTEST_FILES.get(prog, [])]
 
     def digest(globs, extra):
         h = hashlib.sha256()

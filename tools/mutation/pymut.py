@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Mutation testing of the analysis package with cosmic-ray (pinned in
+"""Mutation testing of the analysis and host packages with cosmic-ray (pinned in
 tools/mutation/requirements.txt; `make mutation` installs it into .venv).
 
 For each module a fast, focused test selection runs against every mutant (pytest -x: the
@@ -47,6 +47,16 @@ MODULES = {
     "tuning": ("analysis/tuning.py", ["tests/test_analysis_tuning_mutants.py",
                                       "tests/test_analysis_tuning.py"]),
     "multisine": ("analysis/multisine.py", ["tests/test_analysis_multisine.py"]),
+    # the paper's verdicts: without the shortened `make paper` run (minutes; its numbers
+    # come from the functions the fast tests pin)
+    "reproduction": ("analysis/reproduction.py", ["tests/test_pins_paper.py", "tests/test_paper.py",
+                                                  "--deselect=tests/test_paper.py::test_short_run_reproduces_the_paper",
+                                                  "--deselect=tests/test_paper.py::"
+                                                  "test_doc_table_is_generated_from_reproduction_json"]),
+    "fleet": ("host/fleet.py", ["tests/test_pins_fleet.py", "tests/test_fleet.py"]),
+    # the machine's summary, exit status and file checks without a bus first, then the
+    # sessions on drive_sim (seconds each: a surviving mutant costs tens of seconds)
+    "machine": ("host/machine.py", ["tests/test_pins_machine.py", "tests/test_machine.py"]),
 }
 
 # The operators kept: one natural mutation per site, as a reader would write it. cosmic-ray
@@ -97,12 +107,13 @@ def _rerun_survivors(session):
 
 
 def _refresh_scratch(mod_dir):
-    """A fresh copy of src/fftune + analysis/ as the package fftune (undoes any leftover)."""
+    """A fresh copy of src/fftune + analysis/ + host/ as the package fftune (undoes any leftover)."""
     pkg = mod_dir / "pkg" / "fftune"
     if pkg.exists():
         shutil.rmtree(pkg)
     shutil.copytree(ROOT / "src" / "fftune", pkg, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copytree(ROOT / "analysis", pkg / "analysis", ignore=shutil.ignore_patterns("__pycache__"))
+    for sub in ("analysis", "host"):
+        shutil.copytree(ROOT / sub, pkg / sub, ignore=shutil.ignore_patterns("__pycache__"))
     return mod_dir / "pkg"
 
 
@@ -165,6 +176,11 @@ def _env(pkg_root):
     env = dict(os.environ)
     env["PYTHONPATH"] = str(pkg_root) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env["PYTHONDONTWRITEBYTECODE"] = "1"
+    # the scratch package is no checkout (fftune.host.resources finds no firmware_sim
+    # beside it): the host's sessions use the checkout's drive_sim
+    drive_sim = ROOT / "firmware_sim" / "build" / "drive_sim"
+    if drive_sim.exists():
+        env.setdefault("FFTUNE_DRIVE_SIM", str(drive_sim))
     return env
 
 
@@ -179,7 +195,7 @@ def _prepare(name, force=False):
     tree = _snapshot_tests(mod_dir)
     digest = _digest([module]) + "\n" + _digest(tests, tree)
     pkg_root = _refresh_scratch(mod_dir)
-    target = pkg_root / "fftune" / "analysis" / Path(module).name
+    target = pkg_root / "fftune" / Path(module).parent.name / Path(module).name
     sock = mod_dir / "fork.sock"
     kept = None if force or not session.exists() or not stamp.exists() else stamp.read_text()
     if kept == digest:
