@@ -248,6 +248,31 @@ def case_out_of_band(seed):
             and "no distortion above the band either" in linear["text"]), cubic["text"]
 
 
+def case_above_narrow_band(seed):
+    """An odd grid whose band (lines 41 .. 59, every odd one excited) holds no line a
+    square or a cube reaches (their products fall on excited lines, under 19 or over
+    81): the band's detection lines see nothing, the lines above it (60 .. 177) do; a
+    linear plant: 'linear', none above the band either."""
+    from fftune.analysis import level_verdict
+    rng = np.random.default_rng(seed)
+    lines = np.arange(41, 60, 2)
+    xs = []
+    for _ in range(4):
+        X = np.zeros(N // 2 + 1, complex)
+        X[lines] = np.exp(2j * np.pi * rng.random(lines.size))
+        x = np.fft.irfft(X, N)
+        xs.append(np.tile(x / x.std(), (P, 1)))
+    u = np.array(xs)
+    out = []
+    for f in (lambda v: v + 0.05 * v ** 2, lambda v: v - 0.03 * v ** 3, lambda v: 0.7 * v):
+        res = run_bla(u, f(u) + 1e-3 * rng.standard_normal(u.shape))
+        out.append((res.summary["nl_detected"], res.summary["above_band_detected"],
+                    level_verdict(res.summary)["causes"]))
+    nl = ["nonlinear distortion (above the band)"]
+    return (out[0] == (False, True, nl) and out[1] == (False, True, nl)
+            and out[2] == (False, False, ["linear"])), str(out)
+
+
 def case_sine_gap_and_step(seed):
     out = []
     for make in (lambda u: u * ((np.arange(u.size) < 3000) | (np.arange(u.size) >= 5000)),
@@ -299,6 +324,7 @@ CASES = {
     "sine levels as repeats": case_sine_levels,
     "sine gap / level step": case_sine_gap_and_step,
     "out-of-band distortion": case_out_of_band,
+    "distortion above a narrow band": case_above_narrow_band,
     "sine drift 10 % (LPM)": case_sine_drift,
 }
 
@@ -562,3 +588,33 @@ def test_hosidf_cli_drops_a_burst_and_says_so_in_the_json(tmp_path, capsys):
     doc = json.loads((tmp_path / "b.json").read_text())
     assert code == 0 and doc["amplitude"] == pytest.approx(1.0, rel=1e-9)
     assert "stops at sample 7430" in doc["notes"][0] and "stops at sample 7430" in out
+
+
+def test_above_the_band_with_a_reference_leaves_out_the_measured_inputs_content():
+    """Closed-loop form: r clean above the band, the measured u carrying content there
+    (a loop's feedback, here a known periodic signal at lines 125 .. 160) that the plant
+    passes on linearly: those lines are left out (counted), not read as distortion
+    (without the accounting 30 % or more of them stand 6 dB over the output's noise);
+    an output distortion at lines where u is clean (215 .. 245) is seen."""
+    rng = np.random.default_rng(11)
+    u, y = bla_data(11)
+    r = u.copy()
+    X = np.zeros(N // 2 + 1, complex)
+    X[125:161] = 0.05 * N * np.exp(2j * np.pi * rng.random(36))
+    _, h = signal.sosfreqz(SOS, worN=np.arange(N // 2 + 1) * 2 * np.pi / N)
+    um, ylin = u + np.fft.irfft(X, N), y + np.fft.irfft(X * h, N)
+    res = run_bla(um, ylin, r=r, settle_periods=1)
+    s = res.summary
+    assert s["above_band_lines_input_content"] == 36
+    assert s["above_band_lines"] + s["above_band_lines_input_content"] + \
+        s["above_band_lines_excitation_not_clean"] == 249 - 119
+    assert s["above_band_detected"] is False
+    # the same lines without the accounting: many 6 dB over the output's noise
+    Y = np.fft.rfft(ylin[:, 1:], axis=-1)[..., 125:161]
+    dev = Y - Y.mean(axis=1, keepdims=True)
+    noise = (np.abs(dev) ** 2).sum(1).mean(0) / (P * (P - 1))
+    assert np.mean((np.abs(Y.mean(1)) ** 2).mean(0) > 4 * noise) >= 0.3
+    Z = np.zeros(N // 2 + 1, complex)
+    Z[215:246] = 0.01 * N * np.exp(2j * np.pi * rng.random(31))
+    res = run_bla(um, ylin + np.fft.irfft(Z, N), r=r, settle_periods=1)
+    assert res.summary["above_band_detected"] is True
