@@ -267,7 +267,8 @@ def _otsu(values):
     return (v[i - 1] + v[i]) / 2, float(np.median(v[i:]) - np.median(v[:i]))
 
 
-def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False):
+def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False,
+                         _spectrum=None):
     """Find the excited lines of a periodic excitation from its spectrum.
 
     The power of the period-averaged spectrum (mean over realizations) at bins
@@ -304,7 +305,9 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False
     """
     x = _as_layout("excitation", x)
     n = x.shape[2]
-    spectrum = np.fft.rfft(x[:, settle_periods:, :].sum(axis=1), axis=-1)
+    # (_spectrum: that of the period sums, computed by the caller's checks already)
+    spectrum = (np.fft.rfft(x[:, settle_periods:, :].sum(axis=1), axis=-1)
+                if _spectrum is None else _spectrum)
     k_max = (n + 1) // 2
     if spectrum.dtype == np.complex128:
         v = spectrum[:, 1:k_max].view(np.float64)
@@ -1081,7 +1084,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     # the layout and the steady state of the excitation, before anything is averaged
     layout = check_blocks(r if r is not None else u, kind="multisine", settle_periods=settle,
                           name="reference r" if r is not None else "input u", fs=fs,
-                          mixed_levels="note")
+                          mixed_levels="note", want_mean_spectrum=excited_bins is None)
     if layout.changed:
         u, y = layout.apply(u), layout.apply(y)
         r = None if r is None else layout.apply(r)
@@ -1092,7 +1095,11 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     line_note = None
     strays = None
     if detected_here:
-        excited, info = detect_excited_lines(excitation, settle, return_info=True)
+        # the spectrum of the period sums: the checks' (of the period means) reused
+        sums = (None if layout.mean_spectrum is None or excitation.dtype != np.float64 else
+                layout.mean_spectrum * (n_total - settle))
+        excited, info = detect_excited_lines(excitation, settle, return_info=True,
+                                             _spectrum=sums)
         line_note = info["note"]
         strays = info.get("stray_bins")
     else:

@@ -95,6 +95,8 @@ class BlockLayout:
         ``index`` differs from the layout given.
     levels : ndarray, shape (M',)
         rms of each new group's excitation (its kept blocks).
+    mean_spectrum : ndarray of complex, shape (M', N // 2 + 1), or None
+        ``rfft`` of each new group's mean over its kept blocks (when computed).
     """
 
     index: np.ndarray
@@ -102,6 +104,7 @@ class BlockLayout:
     notes: list = field(default_factory=list)
     changed: bool = False
     levels: np.ndarray = None
+    mean_spectrum: np.ndarray = None
 
     def apply(self, a):
         """The array ``a`` (shaped like the checked one, (G, B, N)) in the new layout."""
@@ -137,7 +140,8 @@ def _last_above(block, thr):
 
 
 def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group="realization",
-                 block="period", fs=None, infer=True, mixed_levels="refuse"):
+                 block="period", fs=None, infer=True, mixed_levels="refuse",
+                 want_mean_spectrum=False):
     """Check, before averaging, that every block of every group carries the same
     excitation, and say how the blocks are to be taken.
 
@@ -189,6 +193,10 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
     mixed_levels : {'refuse', 'note', 'keep'}
         Groups at different levels: refused, kept with a note, kept silently (the
         caller splits them).
+    want_mean_spectrum : bool
+        Also return the spectrum of every group's mean over its kept blocks in the new
+        layout (``BlockLayout.mean_spectrum``; float64 records): the one the checks
+        compute anyway for realizations, which the line finder then reuses.
 
     Returns
     -------
@@ -257,14 +265,21 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
         return amp_cache[0]
 
     dropped_groups = []
-    for g in range(n_groups):
+    # (all groups at once: the medians of their kept blocks; a group whose blocks are
+    # all alive and within STEP_DB of its median needs nothing more)
+    kept_lv = level[index[:, settle:]]
+    med_g = np.median(kept_lv, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        quiet = ~(dead[index[:, settle:]].any(axis=1)
+                  | (np.abs(_db(kept_lv / med_g[:, None])) > STEP_DB).any(axis=1))
+    for g in np.flatnonzero(~quiet):
         ks = index[g, settle:]
         live = ~dead[ks]
         if not live.any():
             dropped_groups.append(g)
             continue
         # steps re the group's own level (groups at different levels: checked below)
-        ref_g = float(np.median(level[ks[live]]))
+        ref_g = float(med_g[g]) if live.all() else float(np.median(level[ks[live]]))
         rel_g = _db(level[ks] / ref_g)
         bad = dead[ks] | (np.abs(rel_g) > STEP_DB)
         if not bad.any():
@@ -364,7 +379,7 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
             notes.append(f"{count} {block}(s) kept in every {group} (the same number in each)")
     n_groups = index.shape[0]
     # --- groups at different levels --------------------------------------------------
-    glev = np.array([float(np.median(level[index[g, settle:]])) for g in range(n_groups)])
+    glev = np.median(level[index[:, settle:]], axis=1)
     tol = GROUP_DB.get(kind, 1.5)
     groups = amplitude_levels(glev, tol_db=tol) if n_groups > 1 else [np.arange(n_groups)]
     if len(groups) > 1 and mixed_levels != "keep":
@@ -407,16 +422,19 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                 changed = True
                 settle = settle_new
     # --- groups that share one excitation (multisine realizations) ----------------
-    if kind == "multisine" and index.shape[0] >= 2:
-        # the group means: those of the screen when the layout stayed, else one group
-        # at a time (no copy of the record)
+    mean_spectrum = None
+
+    def group_means():
+        # those of the screen when the layout stayed, else one group at a time (no copy
+        # of the record)
         if screen_means is not None and np.array_equal(screen_means[0], index):
-            means = screen_means[1]
-        else:
-            means = np.stack([np.add.reduce(flat[index[g, settle:]], axis=0,
-                                            dtype=np.float64) / (index.shape[1] - settle)
-                              for g in range(index.shape[0])])
-        lines, spec = _strong_lines(np.fft.rfft(means, axis=-1))
+            return screen_means[1]
+        return np.stack([np.add.reduce(flat[index[g, settle:]], axis=0,
+                                       dtype=np.float64) / (index.shape[1] - settle)
+                         for g in range(index.shape[0])])
+    if kind == "multisine" and index.shape[0] >= 2:
+        mean_spectrum = np.fft.rfft(group_means(), axis=-1)
+        lines, spec = _strong_lines(mean_spectrum)
         if lines.size >= 2:
             c = _corr(spec[:-1], spec[1:])
             if np.all(c.real > SAME_CORR):
@@ -429,13 +447,17 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                                  f"random phases)")
                     index = index.reshape(1, -1)
                     changed = True
+                    mean_spectrum = None
                 else:
                     notes.append(f"{same}: not independent {group}s (a {group} needs its own "
                                  f"random phases), so the spread over them is noise only: the "
                                  f"total and nonlinear variances say nothing about distortion")
-    levels = np.array([float(np.median(level[index[g, settle:]])) for g in range(index.shape[0])])
+    if mean_spectrum is None and want_mean_spectrum and index.shape[1] > settle \
+            and x.dtype == np.float64:
+        mean_spectrum = np.fft.rfft(group_means(), axis=-1)
+    levels = np.median(level[index[:, settle:]], axis=1)
     return BlockLayout(index=index, settle_periods=settle, notes=notes, changed=changed,
-                       levels=levels)
+                       levels=levels, mean_spectrum=mean_spectrum)
 
 
 def _ranges(idx):
