@@ -562,11 +562,14 @@ def _transient(Y_exc, settle, n_periods):
     return check
 
 
-def _locate_bad(arrays):
-    """After a non-finite result: which input holds NaN/inf (time domain check)."""
+def _locate_bad(arrays, fs=None):
+    """After a non-finite result: which input holds NaN/inf and where (time domain)."""
+    from fftune.analysis.checks import locate_nonfinite
     for name, arr in arrays:
-        if arr is not None and not np.isfinite(arr).all():
-            raise InputError(f"{name}: contains NaN or inf")
+        if arr is not None:
+            text = locate_nonfinite(name, arr, fs=fs)
+            if text:
+                raise InputError(text)
 
 
 def classify_grid(excited_bins, n_period):
@@ -1098,8 +1101,13 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
         # the spectrum of the period sums: the checks' (of the period means) reused
         sums = (None if layout.mean_spectrum is None or excitation.dtype != np.float64 else
                 layout.mean_spectrum * (n_total - settle))
-        excited, info = detect_excited_lines(excitation, settle, return_info=True,
-                                             _spectrum=sums)
+        try:
+            excited, info = detect_excited_lines(excitation, settle, return_info=True,
+                                                 _spectrum=sums)
+        except InputError as exc:
+            if "NaN" in str(exc):
+                _locate_bad((("reference r" if r is not None else "input u", excitation),), fs)
+            raise
         line_note = info["note"]
         strays = info.get("stray_bins")
     else:
@@ -1219,7 +1227,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                                  _before=before_estimate)
     except InputError as exc:
         if "non-finite" in str(exc) or "zero power" in str(exc):
-            _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
+            _locate_bad((("input u", u), ("output y", y), ("reference r", r)), fs)
         raise
     if detected_here:
         margin = info.get("margin_db")

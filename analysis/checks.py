@@ -22,11 +22,13 @@ import numpy as np
 
 from fftune.analysis.errors import InputError
 
-__all__ = ["BlockLayout", "check_arguments", "check_blocks", "amplitude_levels"]
+__all__ = ["BlockLayout", "check_arguments", "check_blocks", "amplitude_levels",
+           "locate_nonfinite"]
 
 # thresholds (dB re the median block of the record, or re its median level)
 DEAD_DB = -20.0          # a block this far under the median carries no excitation
 STEP_DB = 1.0            # a block's level off by more: a level step / partial block
+STEP_MIN_DB = 0.2        # a step between consecutive blocks that stays (and 10x their scatter)
 GROUP_DB = {"multisine": 1.5, "sine": 0.5}   # realizations / repeats at one level
 SAME_CORR = 0.9          # consecutive blocks this correlated at the lines: the same
 NEW_CORR = 0.5           # under this: a different excitation (new phases)
@@ -272,6 +274,8 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
     with np.errstate(divide="ignore", invalid="ignore"):
         quiet = ~(dead[index[:, settle:]].any(axis=1)
                   | (np.abs(_db(kept_lv / med_g[:, None])) > STEP_DB).any(axis=1))
+    if quiet.any() and n_blocks - settle >= 2:
+        _level_step(level, index[quiet][:, settle:], name, where, at, block)
     for g in np.flatnonzero(~quiet):
         ks = index[g, settle:]
         live = ~dead[ks]
@@ -460,6 +464,31 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                        levels=levels, mean_spectrum=mean_spectrum)
 
 
+def _level_step(level, ks, name, where, at, block):
+    """A level that steps between two consecutive blocks by less than STEP_DB re the
+    median (half the blocks at each level: each 0.5 dB off it) and stays: the step
+    from one block to the next against the scatter of the blocks' levels. Refused when
+    it exceeds STEP_MIN_DB and 10 times that scatter (the robust standard deviation of
+    the steps between consecutive blocks, over every group) and the blocks on each
+    side agree among themselves within a third of it."""
+    lv = _db(level[ks])                                   # (G, B)
+    d = np.diff(lv, axis=1)
+    flat = d.reshape(-1)
+    scatter = 1.4826 * float(np.median(np.abs(flat - np.median(flat))))
+    thr = max(STEP_MIN_DB, 10.0 * scatter)
+    for g, b in zip(*np.nonzero(np.abs(d) > thr)):
+        before, after = lv[g, :b + 1], lv[g, b + 1:]
+        if np.ptp(before) <= abs(d[g, b]) / 3 and np.ptp(after) <= abs(d[g, b]) / 3:
+            k = ks[g, b + 1]
+            raise InputError(
+                f"{name}: the excitation level changes at {where(k)} ({at(k)}): "
+                f"{d[g, b]:+.1f} dB (rms {level[k - 1]:.4g} -> {level[k]:.4g}) and stays "
+                f"(the {before.size} {block}(s) before and {after.size} after agree within "
+                f"{max(np.ptp(before), np.ptp(after)):.2g} dB; steps from {block} to {block} "
+                f"scatter by {scatter:.2g} dB): {block}s at different levels cannot be "
+                f"averaged; record each level on its own")
+
+
 def _ranges(idx):
     idx = list(int(i) for i in idx)
     if len(idx) > 2 and idx == list(range(idx[0], idx[-1] + 1)):
@@ -511,13 +540,31 @@ def _waveform(flat, index, settle, n_blocks, name, group, block, kind, fs, infer
     if np.all(mag[:, settle:] > SAME_CORR):
         g, b = np.unravel_index(np.argmin(kept_c.real), kept_c.shape)
         b = b + settle
-        a0, a1 = s[g, b], s[g, b + 1]
-        phase = np.unwrap(np.angle(a1 * np.conj(a0)))
+        # the shift of every block re the one before (all pairs at once): one shift
+        # throughout is a period that is not N; a shift that changes steadily is a
+        # frequency that drifts
+        a0, a1 = s[:, settle:-1], s[:, settle + 1:]
+        phase = np.unwrap(np.angle(a1 * np.conj(a0)), axis=-1)
         w = np.abs(a0) * np.abs(a1)
-        slope = float(np.sum(w * lines * phase) / np.sum(w * lines * lines))
-        shift = -slope * n / (2 * np.pi)
+        shifts = -(np.sum(w * lines * phase, axis=-1) / np.sum(w * lines * lines, axis=-1)
+                   * n / (2 * np.pi))                               # (G, B' - 1 - T)
+        shift = float(shifts[g, b - settle])
         what = ("the sine is off the DFT grid of the blocks" if kind == "sine" else
                 "the excitation does not repeat every N samples")
+        sg = shifts[g]
+        if sg.size >= 3:
+            steps = np.diff(sg)
+            spread = float(sg.max() - sg.min())
+            if spread > max(0.5, 0.2 * float(np.abs(sg).max())) and \
+                    (np.all(steps > 0) or np.all(steps < 0)):
+                period = n + sg
+                raise InputError(
+                    f"{name}: the excitation's frequency drifts: the period moves steadily "
+                    f"from {period[0]:.6g} to {period[-1]:.6g} samples over {block}s "
+                    f"{settle}..{settle + sg.size} of {group} {g} (N = {n}; the shift "
+                    f"between consecutive {block}s grows from {sg[0]:+.3g} to {sg[-1]:+.3g} "
+                    f"samples): no N holds whole periods; lock the generator to the sample "
+                    f"clock, or analyse shorter stretches")
         raise InputError(
             f"{name}: {what}: {block} {b + 1} of {group} {g} is the one before shifted by "
             f"{shift:+.3g} samples (N = {n}: the period would be {n + shift:.6g} samples, "
@@ -602,3 +649,34 @@ def amplitude_levels(levels, tol_db=0.5):
     steps = _db(lv[order][1:] / lv[order][:-1])
     cuts = np.flatnonzero(steps > tol_db) + 1
     return [np.sort(part) for part in np.split(order, cuts)]
+
+
+def locate_nonfinite(name, x, *, group="realization", block="period", fs=None):
+    """The one-line message for a record holding NaN or inf, naming where: the first
+    such sample (group, block, sample index in the record and in seconds) and how many
+    samples and blocks are affected. None when every sample is finite.
+
+    Parameters
+    ----------
+    name : str
+        The signal ("input u").
+    x : array_like, shape (G, B, N)
+    group, block : str
+        Words for the messages.
+    fs : float, optional
+        Sample rate (Hz), for the time.
+    """
+    x = np.asarray(x)
+    bad = ~np.isfinite(x)
+    if not bad.any():
+        return None
+    g_n, b_n, n = x.shape
+    first = int(np.flatnonzero(bad.reshape(-1))[0])
+    g, rest = divmod(first, b_n * n)
+    b, k = divmod(rest, n)
+    blocks = int(bad.any(axis=-1).sum())
+    at = f"sample {rest}" + (f" ({rest / fs:.4g} s)" if fs else "")
+    where = (f"{group} {g}, {block} {b}" if g_n > 1 else f"{block} {b}")
+    return (f"{name}: contains NaN or inf: {int(bad.sum())} sample(s) in {blocks} {block}(s), "
+            f"the first at {where} ({at} of the {group if g_n > 1 else 'record'}); cut the "
+            f"record there or repair the samples")
