@@ -1154,6 +1154,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                if x is not None and x.dtype == np.float64 else None for x in signals]
 
     dc_y = np.empty((n_real, n_total))     # the output's DC per period (drift check)
+    dc_u = np.empty((n_real, n_total))     # the input's (a drift of the input is named)
     # detection lines above the band (every grid; a full grid has none inside it): up to
     # 3 times the highest excited line, inside fs/2; their moments are read from the same
     # spectra (one slice per realization). With a reference, the measured input's too
@@ -1192,6 +1193,8 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                 out.append(spec[:, lo:hi].astype(np.complex128))
         if buffers[1] is not None:
             dc_y[m] = buffers[1][:, 0].real
+        dc_u[m] = (np.add.reduce(u[m], axis=-1, dtype=np.float64) if buffers[0] is None
+                   else buffers[0][:, 0].real)
         if above is not None:
             for key, x in zip(above_keys, (y, r if r is not None else u, u)):
                 part = np.array(full[id(x)][settle:, a_lo:a_hi], dtype=np.complex128)
@@ -1249,6 +1252,23 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                     else float(np.nanmean(np.square(excitation[:, settle:]))))
     if lpm_note:
         res.notes.append(lpm_note[0])
+    drift_u = _drift_test(dc_u[:, settle:])
+    rms_u = float(np.sqrt(np.mean(np.square(layout.levels)))) \
+        if layout.levels is not None and r is None else float(np.sqrt(np.mean(np.square(
+            u[:, settle:].reshape(-1)[::97])))) if drift_u is not None else 0.0
+    # (a drift under 0.1 % of the input's rms over the kept periods is not said)
+    if drift_u is not None and \
+            abs(drift_u[1] / n) * (n_total - settle) > 1e-3 * rms_u:
+        m_d, slope, t_d = drift_u
+        res.summary["input_drift_per_period"] = slope / n
+        res.notes.append(
+            f"input u drifts: its mean moves {slope / n:+.3g} per period in realization {m_d} "
+            f"(t = {t_d:+.3g}; {100 * abs(slope / n) * (n_total - settle) / rms_u:.2g} % of "
+            f"its rms over the kept periods): a slow drift of the input (an offset that "
+            f"moves, a sensor warming up), not periodic; its leakage lies at every line of "
+            f"u" + ("; the 'distorted' figures of u above count it" if res.summary.get(
+                "excitation_distorted") and r is None else "")
+            + "; G at the excited lines holds when the plant received the same input")
     if res.transient.suspect and warn_transient:
         warnings.warn(res.transient.message, TransientWarning, stacklevel=2)
     return res
