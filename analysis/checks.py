@@ -470,7 +470,7 @@ def _level_step(level, ks, name, where, at, block):
     from one block to the next against the scatter of the blocks' levels. Refused when
     it exceeds STEP_MIN_DB and 10 times that scatter (the robust standard deviation of
     the steps between consecutive blocks, over every group) and the blocks on each
-    side agree among themselves within a third of it."""
+    side (two or more) agree among themselves within a third of it."""
     lv = _db(level[ks])                                   # (G, B)
     d = np.diff(lv, axis=1)
     flat = d.reshape(-1)
@@ -478,7 +478,10 @@ def _level_step(level, ks, name, where, at, block):
     thr = max(STEP_MIN_DB, 10.0 * scatter)
     for g, b in zip(*np.nonzero(np.abs(d) > thr)):
         before, after = lv[g, :b + 1], lv[g, b + 1:]
-        if np.ptp(before) <= abs(d[g, b]) / 3 and np.ptp(after) <= abs(d[g, b]) / 3:
+        # (at least 2 blocks on each side: one block off at the start is a transient
+        # the estimator handles, one at the end a partial block)
+        if before.size >= 2 and after.size >= 2 and np.ptp(before) <= abs(d[g, b]) / 3 \
+                and np.ptp(after) <= abs(d[g, b]) / 3:
             k = ks[g, b + 1]
             raise InputError(
                 f"{name}: the excitation level changes at {where(k)} ({at(k)}): "
