@@ -301,6 +301,17 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
             raise InputError(f"{name}: no {block} of {group} {g} at a common level (levels "
                              f"{rel_g.min():+.1f} .. {rel_g.max():+.1f} dB re its median, from "
                              f"{at(ks[0])}): the level changes {block} by {block}")
+        # blocks off the level because the input was clipped: named as such
+        off_lv = ks[bad & ~dead[ks]]
+        clip = _clipped(flat, off_lv)
+        if clip is not None:
+            k, limit, count = clip
+            raise InputError(
+                f"{name}: the excitation is clipped at +-{limit:.4g} in {where(k)} ({at(k)}) "
+                f"and {int(off_lv.size) - 1} other {block}(s) off the level of the rest "
+                f"({count} samples at the limit in that one): a saturated input (an output "
+                f"limit) changes the level and the spectrum of those {block}s; lower the "
+                f"excitation level or cut them out")
         first, last = good[0], good[-1]
         inner = bad[first:last + 1]
         if inner.any():
@@ -462,6 +473,19 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
     levels = np.median(level[index[:, settle:]], axis=1)
     return BlockLayout(index=index, settle_periods=settle, notes=notes, changed=changed,
                        levels=levels, mean_spectrum=mean_spectrum)
+
+
+def _clipped(flat, blocks, min_samples=3):
+    """The first of ``blocks`` (indices into the rows of ``flat``) whose largest |value|
+    is held by ``min_samples`` or more samples (a limit, not a peak of the waveform),
+    as (block, limit, count), or None."""
+    for k in blocks:
+        a = np.abs(flat[int(k)])
+        top = float(a.max())
+        count = int(np.sum(a >= top * (1.0 - 1e-9)))
+        if top > 0 and count >= min_samples:
+            return int(k), top, count
+    return None
 
 
 def _level_step(level, ks, name, where, at, block):

@@ -409,12 +409,16 @@ def case_sample_slip(seed):
 def case_clipped_u(seed):
     """The measured input clipped at 1.5 (1.5 times its rms) in two periods of
     realization 1, the plant driven by the clipped input: G as the clean one (u is
-    what the plant received)."""
+    what the plant received), or, where the clipping moves those periods' level by
+    1 dB or more (the waveform's peaks differ by seed), refused naming the clipping."""
     u, _ = bla_data(seed)
     u[1, 3:5] = np.clip(u[1, 3:5], -1.5, 1.5)
     y = np.array([plant(u[m].reshape(-1), seed * 100 + m).reshape(u.shape[1:])
                   for m in range(M)])
-    return agrees(run_bla(u, y, settle_periods=1), clean(seed))
+    try:
+        return agrees(run_bla(u, y, settle_periods=1), clean(seed))
+    except InputError as exc:
+        return "clipped at +-1.5 in realization 1, period 3" in str(exc), str(exc)
 
 
 def case_sine_frequency_drift(seed):
