@@ -475,16 +475,17 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                        levels=levels, mean_spectrum=mean_spectrum)
 
 
-def _clipped(flat, blocks, min_samples=3):
+def _clipped(flat, blocks):
     """The first of ``blocks`` (indices into the rows of ``flat``) whose largest |value|
-    is held by ``min_samples`` or more samples (a limit, not a peak of the waveform),
-    as (block, limit, count), or None."""
+    is held by 3 or more consecutive samples (a flat top: a limit; a sampled smooth
+    waveform holds its peak at 2 samples at most), as (block, limit, samples at the
+    limit), or None."""
     for k in blocks:
         a = np.abs(flat[int(k)])
         top = float(a.max())
-        count = int(np.sum(a >= top * (1.0 - 1e-9)))
-        if top > 0 and count >= min_samples:
-            return int(k), top, count
+        at = a >= top * (1.0 - 1e-9)
+        if top > 0 and np.any(at[:-2] & at[1:-1] & at[2:]):
+            return int(k), top, int(at.sum())
     return None
 
 
