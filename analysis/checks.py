@@ -303,7 +303,7 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                              f"{at(ks[0])}): the level changes {block} by {block}")
         # blocks off the level because the input was clipped: named as such
         off_lv = ks[bad & ~dead[ks]]
-        clip = _clipped(flat, off_lv)
+        clip = _clipped(flat, off_lv, ks[~bad])
         if clip is not None:
             k, limit, count = clip
             raise InputError(
@@ -475,17 +475,25 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                        levels=levels, mean_spectrum=mean_spectrum)
 
 
-def _clipped(flat, blocks):
+def _at_peak(row):
+    """Samples of a block at its largest |value| (within 1e-9 of it), and that value."""
+    a = np.abs(row)
+    top = float(a.max())
+    return int(np.sum(a >= top * (1.0 - 1e-9))), top
+
+
+def _clipped(flat, blocks, others):
     """The first of ``blocks`` (indices into the rows of ``flat``) whose largest |value|
-    is held by 3 or more consecutive samples (a flat top: a limit; a sampled smooth
-    waveform holds its peak at 2 samples at most), as (block, limit, samples at the
-    limit), or None."""
+    is held by 3 or more samples and by 4 times as many as in the median block of
+    ``others`` (a limit, where a waveform that repeats reaches its peak as often in
+    every block), as (block, limit, samples at the limit), or None."""
+    if not len(blocks) or not len(others):
+        return None
+    usual = float(np.median([_at_peak(flat[int(k)])[0] for k in others]))
     for k in blocks:
-        a = np.abs(flat[int(k)])
-        top = float(a.max())
-        at = a >= top * (1.0 - 1e-9)
-        if top > 0 and np.any(at[:-2] & at[1:-1] & at[2:]):
-            return int(k), top, int(at.sum())
+        count, top = _at_peak(flat[int(k)])
+        if top > 0 and count >= 3 and count >= 4 * usual:
+            return int(k), top, count
     return None
 
 
