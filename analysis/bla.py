@@ -267,7 +267,8 @@ def _otsu(values):
     return (v[i - 1] + v[i]) / 2, float(np.median(v[i:]) - np.median(v[:i]))
 
 
-def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False):
+def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False,
+                         _spectrum=None):
     """Find the excited lines of a periodic excitation from its spectrum.
 
     The power of the period-averaged spectrum (mean over realizations) at bins
@@ -304,7 +305,9 @@ def detect_excited_lines(x, settle_periods=0, min_gap_db=10.0, return_info=False
     """
     x = _as_layout("excitation", x)
     n = x.shape[2]
-    spectrum = np.fft.rfft(x[:, settle_periods:, :].sum(axis=1), axis=-1)
+    # (_spectrum: that of the period sums, computed by the caller's checks already)
+    spectrum = (np.fft.rfft(x[:, settle_periods:, :].sum(axis=1), axis=-1)
+                if _spectrum is None else _spectrum)
     k_max = (n + 1) // 2
     if spectrum.dtype == np.complex128:
         v = spectrum[:, 1:k_max].view(np.float64)
@@ -559,11 +562,14 @@ def _transient(Y_exc, settle, n_periods):
     return check
 
 
-def _locate_bad(arrays):
-    """After a non-finite result: which input holds NaN/inf (time domain check)."""
+def _locate_bad(arrays, fs=None):
+    """After a non-finite result: which input holds NaN/inf and where (time domain)."""
+    from fftune.analysis.checks import locate_nonfinite
     for name, arr in arrays:
-        if arr is not None and not np.isfinite(arr).all():
-            raise InputError(f"{name}: contains NaN or inf")
+        if arr is not None:
+            text = locate_nonfinite(name, arr, fs=fs)
+            if text:
+                raise InputError(text)
 
 
 def classify_grid(excited_bins, n_period):
@@ -1081,7 +1087,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     # the layout and the steady state of the excitation, before anything is averaged
     layout = check_blocks(r if r is not None else u, kind="multisine", settle_periods=settle,
                           name="reference r" if r is not None else "input u", fs=fs,
-                          mixed_levels="note")
+                          mixed_levels="note", want_mean_spectrum=excited_bins is None)
     if layout.changed:
         u, y = layout.apply(u), layout.apply(y)
         r = None if r is None else layout.apply(r)
@@ -1092,7 +1098,16 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     line_note = None
     strays = None
     if detected_here:
-        excited, info = detect_excited_lines(excitation, settle, return_info=True)
+        # the spectrum of the period sums: the checks' (of the period means) reused
+        sums = (None if layout.mean_spectrum is None or excitation.dtype != np.float64 else
+                layout.mean_spectrum * (n_total - settle))
+        try:
+            excited, info = detect_excited_lines(excitation, settle, return_info=True,
+                                                 _spectrum=sums)
+        except InputError as exc:
+            if "NaN" in str(exc):
+                _locate_bad((("reference r" if r is not None else "input u", excitation),), fs)
+            raise
         line_note = info["note"]
         strays = info.get("stray_bins")
     else:
@@ -1139,13 +1154,17 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                if x is not None and x.dtype == np.float64 else None for x in signals]
 
     dc_y = np.empty((n_real, n_total))     # the output's DC per period (drift check)
-    # detection lines above the band (a full grid has none inside it): up to 3 times the
-    # highest excited line, inside fs/2; their moments are read from the same spectra
+    dc_u = np.empty((n_real, n_total))     # the input's (a drift of the input is named)
+    # detection lines above the band (every grid; a full grid has none inside it): up to
+    # 3 times the highest excited line, inside fs/2; their moments are read from the same
+    # spectra (one slice per realization). With a reference, the measured input's too
+    # (what its own content there explains through the plant is accounted for)
     a_lo, a_hi = hi, min(3 * int(excited[-1]), (n + 1) // 2 - 1) + 1
     above = None
-    if classify_grid(excited, n)["grid"] == "full" and a_hi > a_lo and n_total - settle >= 2:
+    above_keys = ("y", "x", "u") if r is not None else ("y", "x")
+    if a_hi > a_lo and n_total - settle >= 2:
         above = {key: (np.empty((n_real, a_hi - a_lo), np.complex128),
-                       np.empty((n_real, a_hi - a_lo))) for key in ("y", "x")}
+                       np.empty((n_real, a_hi - a_lo))) for key in above_keys}
 
     def one_realization(m):
         scan(u, m, extremes["u"], False)
@@ -1174,8 +1193,10 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                 out.append(spec[:, lo:hi].astype(np.complex128))
         if buffers[1] is not None:
             dc_y[m] = buffers[1][:, 0].real
+        dc_u[m] = (np.add.reduce(u[m], axis=-1, dtype=np.float64) if buffers[0] is None
+                   else buffers[0][:, 0].real)
         if above is not None:
-            for key, x in (("y", y), ("x", r if r is not None else u)):
+            for key, x in zip(above_keys, (y, r if r is not None else u, u)):
                 part = np.array(full[id(x)][settle:, a_lo:a_hi], dtype=np.complex128)
                 above[key][0][m], above[key][1][m] = _spread2_inplace(part)
         return tuple(out)
@@ -1209,7 +1230,7 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
                                  _before=before_estimate)
     except InputError as exc:
         if "non-finite" in str(exc) or "zero power" in str(exc):
-            _locate_bad((("input u", u), ("output y", y), ("reference r", r)))
+            _locate_bad((("input u", u), ("output y", y), ("reference r", r)), fs)
         raise
     if detected_here:
         margin = info.get("margin_db")
@@ -1227,21 +1248,45 @@ def robust_bla(u, y, r=None, *, fs=1.0, settle_periods=0, excited_bins=None,
     if above is not None:
         _above_band(res, above, a_lo, n, n_total - settle, rounding("y"),
                     "reference r" if r is not None else "input u",
-                    float(np.mean(np.square(layout.levels))))
+                    float(np.mean(np.square(layout.levels))) if layout.levels is not None
+                    else float(np.nanmean(np.square(excitation[:, settle:]))))
     if lpm_note:
         res.notes.append(lpm_note[0])
+    drift_u = _drift_test(dc_u[:, settle:])
+    rms_u = float(np.sqrt(np.mean(np.square(layout.levels)))) \
+        if layout.levels is not None and r is None else float(np.sqrt(np.mean(np.square(
+            u[:, settle:].reshape(-1)[::97])))) if drift_u is not None else 0.0
+    # (a drift under 0.1 % of the input's rms over the kept periods is not said)
+    if drift_u is not None and \
+            abs(drift_u[1] / n) * (n_total - settle) > 1e-3 * rms_u:
+        m_d, slope, t_d = drift_u
+        res.summary["input_drift_per_period"] = slope / n
+        res.notes.append(
+            f"input u drifts: its mean moves {slope / n:+.3g} per period in realization {m_d} "
+            f"(t = {t_d:+.3g}; {100 * abs(slope / n) * (n_total - settle) / rms_u:.2g} % of "
+            f"its rms over the kept periods): a slow drift of the input (an offset that "
+            f"moves, a sensor warming up), not periodic; its leakage lies at every line of "
+            f"u" + ("; the 'distorted' figures of u above count it" if res.summary.get(
+                "excitation_distorted") and r is None else "")
+            + "; G at the excited lines holds when the plant received the same input")
     if res.transient.suspect and warn_transient:
         warnings.warn(res.transient.message, TransientWarning, stacklevel=2)
     return res
 
 
 def _above_band(res, above, a_lo, n, n_per, y_rounding, xname, x_power):
-    """Detection lines above the band (a full grid): the lines up to 3 times the highest
+    """Detection lines above the band (every grid): the lines up to 3 times the highest
     excited one (inside fs/2) where the excitation is clean (its period mean not 6 dB
-    over its noise, or 100 dB under its power ``x_power``: what the input's own content
-    explains there cannot be told from plant distortion without G there). The output's
-    level there against its noise, by the class test of the non-excited lines; the
-    ``above_band_*`` keys and a note. A full grid's verdict then comes from them."""
+    over its noise, or 100 dB under its power ``x_power``: where the excitation itself
+    has content, G there would be needed to tell it from plant distortion). With a
+    reference r, the measured input u can still have content at those lines (the loop
+    feeds the output back): what it explains through the plant is added to what is
+    expected there, bounded by the largest |G| of the highest tenth of the excited
+    lines (a plant that falls off above the band; the plant-referred levels in the
+    band subtract the interpolated G U likewise). The output's level there against its
+    noise, by the class test of the non-excited lines; the ``above_band_*`` keys and a
+    note. A full grid's verdict comes from them; on other grids they are detection
+    lines beside those in the band (:func:`level_verdict`)."""
     scale2 = (2.0 / n) ** 2
     n_real = above["y"][0].shape[0]
     k = n_per * (n_per - 1)
@@ -1251,6 +1296,17 @@ def _above_band(res, above, a_lo, n, n_per, y_rounding, xname, x_power):
     x_level = scale2 * _mean0(_abs2(above["x"][0]))
     x_noise = scale2 * _mean0(above["x"][1]) / k
     clean = (x_level <= 4.0 * x_noise) | (x_level <= 1e-10 * x_power)
+    explained = np.zeros(clean.shape, dtype=bool)
+    if "u" in above:
+        # the measured input's own content where it stands over its noise, through the
+        # plant (|G| extrapolated from the highest tenth of the excited lines by a power
+        # law that does not rise): where it reaches a quarter of the output's noise the
+        # line cannot be told from distortion without G there, and is left out
+        u_level = scale2 * _mean0(_abs2(above["u"][0]))
+        u_noise = scale2 * _mean0(above["u"][1]) / k
+        g_ext2 = _g_extrapolated2(res.freq, res.G, (a_lo + np.arange(clean.size)) * res.fs / n)
+        explained = clean & (u_level > 4.0 * u_noise) & (g_ext2 * u_level > 0.25 * y_noise)
+        clean = clean & ~explained
     # output lines 100 dB or more under its strongest excited line: rounding, not distortion
     top = float(np.nanmax(10 ** (np.asarray(res.output_db, dtype=float) / 10)))
     y_level = np.where(y_level <= 1e-10 * top, 0.0, y_level)
@@ -1261,19 +1317,39 @@ def _above_band(res, above, a_lo, n, n_per, y_rounding, xname, x_power):
     res.summary.update(st)
     res.summary["above_band_hz"] = (None if not bins.size else
                                     [float(bins[0] * res.fs / n), float(bins[-1] * res.fs / n)])
-    res.summary["above_band_lines_excitation_not_clean"] = int(np.sum(~clean))
+    res.summary["above_band_lines_excitation_not_clean"] = int(np.sum(~clean & ~explained))
+    res.summary["above_band_lines_input_content"] = int(np.sum(explained))
     if st["above_band_detected"] is None:
         return
     res.notes.append(
         f"above the band: {bins.size} line(s) {bins[0] * res.fs / n:g} .. "
         f"{bins[-1] * res.fs / n:g} Hz where the {xname} is clean (at its noise; "
-        f"{int(np.sum(~clean))} others left out), output "
+        f"{int(np.sum(~clean))} others left out"
+        + (f", {int(np.sum(explained))} of them for the measured input's own content"
+           if explained.any() else "") + "), output "
         + (f"{st['above_band_line_median_re_noise_db']:+.1f} dB re its noise (median), "
            if st["above_band_line_median_re_noise_db"] is not None else "")
         + f"{st['above_band_lines_over_noise_6db']} of {bins.size} lines 6 dB over "
         f"({st['above_band_lines_needed']} needed): "
         + ("nonlinear distortion above the band" if st["above_band_detected"] else
            "no distortion above the band"))
+
+
+def _g_extrapolated2(freq, G, f_at):
+    """|G|^2 at ``f_at`` above the band: a power law in the frequency fitted (least
+    squares in log-log) to the highest tenth (at least 3) of the excited lines, its
+    slope capped at 0 (a plant does not rise above its band here)."""
+    g = np.abs(np.asarray(G))
+    f = np.asarray(freq, dtype=float)
+    top = max(3, g.size // 10)
+    lf, lg = np.log(f[-top:]), np.log(np.maximum(g[-top:], 1e-300))
+    if g.size >= 2:
+        slope = float(np.polyfit(lf, lg, 1)[0]) if np.ptp(lf) > 0 else 0.0
+    else:
+        slope = 0.0
+    slope = min(slope, 0.0)
+    at_top = float(np.mean(lg) + slope * (np.log(f[-1]) - np.mean(lf)))
+    return np.exp(2.0 * (at_top + slope * (np.log(np.asarray(f_at)) - np.log(f[-1]))))
 
 
 def _drift_test(dc, t_limit=6.0):
@@ -1968,8 +2044,9 @@ def level_verdict(summary, saturation_fraction=None, level=None):
     dict
         ``causes``: list of 'linear', 'plant odd nonlinearity', 'plant even
         nonlinearity', 'plant nonlinearity (parity not classifiable with this grid)',
-        'nonlinear distortion (above the band)' (a full grid: the lines up to 3 times
-        the highest excited one where the excitation is clean),
+        'nonlinear distortion (above the band)' (the lines up to 3 times the highest
+        excited one where the excitation is clean: a full grid's only detection lines;
+        on other grids when the band's detection lines show nothing and these do),
         'nonlinear distortion (excited lines)' (no detection line: the excited lines'
         var_total vs var_noise test), 'unmeasured inputs' (the excited lines spread over
         realizations, the detection lines are clean), 'unmeasured inputs or a scale-free
@@ -2041,7 +2118,11 @@ def level_verdict(summary, saturation_fraction=None, level=None):
         tail = ""
         if above is False:
             tail = (f"; no distortion above the band either ({summary.get('above_band_lines')} "
-                    f"lines where the excitation is clean)")
+                    f"lines where the excitation is clean"
+                    + (f"; {summary['above_band_lines_input_content']} others left out: the "
+                       f"measured input's own content there, whose linear response reaches "
+                       f"the output's noise" if summary.get("above_band_lines_input_content")
+                       else "") + ")")
         elif summary.get("above_band_lines_excitation_not_clean"):
             tail = (f"; above the band the excitation itself has content at "
                     f"{summary['above_band_lines_excitation_not_clean']} lines (give the "
@@ -2072,6 +2153,19 @@ def level_verdict(summary, saturation_fraction=None, level=None):
                          f"{summary[f'plant_{cls}_lines_needed']} needed (more detection lines: "
                          f"a longer period or a wider band)")
     plant_yes = any(s == "yes" for s in states.values())
+    if not loop and not plant_yes and summary.get("above_band_detected") is True:
+        # the band's detection lines at their noise, the lines above it not: a distortion
+        # whose harmonics fall above the band (the in-band lines are too few or the
+        # distortion's lines miss them)
+        return {"causes": ["nonlinear distortion (above the band)"],
+                "text": f"nonlinear distortion{at} above the band: "
+                        f"{summary.get('above_band_lines_over_noise_6db')} of "
+                        f"{summary.get('above_band_lines')} lines up to 3 times the highest "
+                        f"excited line, where the excitation is clean, 6 dB over the "
+                        f"output's noise ({summary.get('above_band_lines_needed')} needed, or "
+                        f"one line alone at n p <= 1e-3), while the "
+                        f"{summary.get('nonexcited_lines')} non-excited lines in the band "
+                        f"show none above the noise"}
     if not loop and not plant_yes and exc is True \
             and (summary.get("excited_line_median_re_noise_db") or 0.0) >= 3.0:
         return {"causes": ["unmeasured inputs"],

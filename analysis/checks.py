@@ -22,11 +22,13 @@ import numpy as np
 
 from fftune.analysis.errors import InputError
 
-__all__ = ["BlockLayout", "check_arguments", "check_blocks", "amplitude_levels"]
+__all__ = ["BlockLayout", "check_arguments", "check_blocks", "amplitude_levels",
+           "locate_nonfinite"]
 
 # thresholds (dB re the median block of the record, or re its median level)
 DEAD_DB = -20.0          # a block this far under the median carries no excitation
 STEP_DB = 1.0            # a block's level off by more: a level step / partial block
+STEP_MIN_DB = 0.2        # a step between consecutive blocks that stays (and 10x their scatter)
 GROUP_DB = {"multisine": 1.5, "sine": 0.5}   # realizations / repeats at one level
 SAME_CORR = 0.9          # consecutive blocks this correlated at the lines: the same
 NEW_CORR = 0.5           # under this: a different excitation (new phases)
@@ -95,6 +97,8 @@ class BlockLayout:
         ``index`` differs from the layout given.
     levels : ndarray, shape (M',)
         rms of each new group's excitation (its kept blocks).
+    mean_spectrum : ndarray of complex, shape (M', N // 2 + 1), or None
+        ``rfft`` of each new group's mean over its kept blocks (when computed).
     """
 
     index: np.ndarray
@@ -102,6 +106,7 @@ class BlockLayout:
     notes: list = field(default_factory=list)
     changed: bool = False
     levels: np.ndarray = None
+    mean_spectrum: np.ndarray = None
 
     def apply(self, a):
         """The array ``a`` (shaped like the checked one, (G, B, N)) in the new layout."""
@@ -137,7 +142,8 @@ def _last_above(block, thr):
 
 
 def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group="realization",
-                 block="period", fs=None, infer=True, mixed_levels="refuse"):
+                 block="period", fs=None, infer=True, mixed_levels="refuse",
+                 want_mean_spectrum=False):
     """Check, before averaging, that every block of every group carries the same
     excitation, and say how the blocks are to be taken.
 
@@ -189,6 +195,10 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
     mixed_levels : {'refuse', 'note', 'keep'}
         Groups at different levels: refused, kept with a note, kept silently (the
         caller splits them).
+    want_mean_spectrum : bool
+        Also return the spectrum of every group's mean over its kept blocks in the new
+        layout (``BlockLayout.mean_spectrum``; float64 records): the one the checks
+        compute anyway for realizations, which the line finder then reuses.
 
     Returns
     -------
@@ -257,14 +267,23 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
         return amp_cache[0]
 
     dropped_groups = []
-    for g in range(n_groups):
+    # (all groups at once: the medians of their kept blocks; a group whose blocks are
+    # all alive and within STEP_DB of its median needs nothing more)
+    kept_lv = level[index[:, settle:]]
+    med_g = np.median(kept_lv, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        quiet = ~(dead[index[:, settle:]].any(axis=1)
+                  | (np.abs(_db(kept_lv / med_g[:, None])) > STEP_DB).any(axis=1))
+    if quiet.any() and n_blocks - settle >= 2:
+        _level_step(level, index[quiet][:, settle:], name, where, at, block)
+    for g in np.flatnonzero(~quiet):
         ks = index[g, settle:]
         live = ~dead[ks]
         if not live.any():
             dropped_groups.append(g)
             continue
         # steps re the group's own level (groups at different levels: checked below)
-        ref_g = float(np.median(level[ks[live]]))
+        ref_g = float(med_g[g]) if live.all() else float(np.median(level[ks[live]]))
         rel_g = _db(level[ks] / ref_g)
         bad = dead[ks] | (np.abs(rel_g) > STEP_DB)
         if not bad.any():
@@ -282,6 +301,17 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
             raise InputError(f"{name}: no {block} of {group} {g} at a common level (levels "
                              f"{rel_g.min():+.1f} .. {rel_g.max():+.1f} dB re its median, from "
                              f"{at(ks[0])}): the level changes {block} by {block}")
+        # blocks off the level because the input was clipped: named as such
+        off_lv = ks[bad & ~dead[ks]]
+        clip = _clipped(flat, off_lv, ks[~bad])
+        if clip is not None:
+            k, limit, count = clip
+            raise InputError(
+                f"{name}: the excitation is clipped at +-{limit:.4g} in {where(k)} ({at(k)}) "
+                f"and {int(off_lv.size) - 1} other {block}(s) off the level of the rest "
+                f"({count} samples at the limit in that one): a saturated input (an output "
+                f"limit) changes the level and the spectrum of those {block}s; lower the "
+                f"excitation level or cut them out")
         first, last = good[0], good[-1]
         inner = bad[first:last + 1]
         if inner.any():
@@ -364,7 +394,7 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
             notes.append(f"{count} {block}(s) kept in every {group} (the same number in each)")
     n_groups = index.shape[0]
     # --- groups at different levels --------------------------------------------------
-    glev = np.array([float(np.median(level[index[g, settle:]])) for g in range(n_groups)])
+    glev = np.median(level[index[:, settle:]], axis=1)
     tol = GROUP_DB.get(kind, 1.5)
     groups = amplitude_levels(glev, tol_db=tol) if n_groups > 1 else [np.arange(n_groups)]
     if len(groups) > 1 and mixed_levels != "keep":
@@ -407,16 +437,19 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                 changed = True
                 settle = settle_new
     # --- groups that share one excitation (multisine realizations) ----------------
-    if kind == "multisine" and index.shape[0] >= 2:
-        # the group means: those of the screen when the layout stayed, else one group
-        # at a time (no copy of the record)
+    mean_spectrum = None
+
+    def group_means():
+        # those of the screen when the layout stayed, else one group at a time (no copy
+        # of the record)
         if screen_means is not None and np.array_equal(screen_means[0], index):
-            means = screen_means[1]
-        else:
-            means = np.stack([np.add.reduce(flat[index[g, settle:]], axis=0,
-                                            dtype=np.float64) / (index.shape[1] - settle)
-                              for g in range(index.shape[0])])
-        lines, spec = _strong_lines(np.fft.rfft(means, axis=-1))
+            return screen_means[1]
+        return np.stack([np.add.reduce(flat[index[g, settle:]], axis=0,
+                                       dtype=np.float64) / (index.shape[1] - settle)
+                         for g in range(index.shape[0])])
+    if kind == "multisine" and index.shape[0] >= 2:
+        mean_spectrum = np.fft.rfft(group_means(), axis=-1)
+        lines, spec = _strong_lines(mean_spectrum)
         if lines.size >= 2:
             c = _corr(spec[:-1], spec[1:])
             if np.all(c.real > SAME_CORR):
@@ -429,13 +462,67 @@ def check_blocks(x, *, kind="multisine", settle_periods=0, name="input u", group
                                  f"random phases)")
                     index = index.reshape(1, -1)
                     changed = True
+                    mean_spectrum = None
                 else:
                     notes.append(f"{same}: not independent {group}s (a {group} needs its own "
                                  f"random phases), so the spread over them is noise only: the "
                                  f"total and nonlinear variances say nothing about distortion")
-    levels = np.array([float(np.median(level[index[g, settle:]])) for g in range(index.shape[0])])
+    if mean_spectrum is None and want_mean_spectrum and index.shape[1] > settle \
+            and x.dtype == np.float64:
+        mean_spectrum = np.fft.rfft(group_means(), axis=-1)
+    levels = np.median(level[index[:, settle:]], axis=1)
     return BlockLayout(index=index, settle_periods=settle, notes=notes, changed=changed,
-                       levels=levels)
+                       levels=levels, mean_spectrum=mean_spectrum)
+
+
+def _at_peak(row):
+    """Samples of a block at its largest |value| (within 1e-9 of it), and that value."""
+    a = np.abs(row)
+    top = float(a.max())
+    return int(np.sum(a >= top * (1.0 - 1e-9))), top
+
+
+def _clipped(flat, blocks, others):
+    """The first of ``blocks`` (indices into the rows of ``flat``) whose largest |value|
+    is held by 3 or more samples and by 4 times as many as in the median block of
+    ``others`` (a limit, where a waveform that repeats reaches its peak as often in
+    every block), as (block, limit, samples at the limit), or None."""
+    if not len(blocks) or not len(others):
+        return None
+    usual = float(np.median([_at_peak(flat[int(k)])[0] for k in others]))
+    for k in blocks:
+        count, top = _at_peak(flat[int(k)])
+        if top > 0 and count >= 3 and count >= 4 * usual:
+            return int(k), top, count
+    return None
+
+
+def _level_step(level, ks, name, where, at, block):
+    """A level that steps between two consecutive blocks by less than STEP_DB re the
+    median (half the blocks at each level: each 0.5 dB off it) and stays: the step
+    from one block to the next against the scatter of the blocks' levels. Refused when
+    it exceeds STEP_MIN_DB and 10 times that scatter (the robust standard deviation of
+    the steps between consecutive blocks, over every group) and the blocks on each
+    side (two or more) agree among themselves within a third of it."""
+    lv = _db(level[ks])                                   # (G, B)
+    d = np.diff(lv, axis=1)
+    flat = d.reshape(-1)
+    scatter = 1.4826 * float(np.median(np.abs(flat - np.median(flat))))
+    thr = max(STEP_MIN_DB, 10.0 * scatter)
+    for g, b in zip(*np.nonzero(np.abs(d) > thr)):
+        before, after = lv[g, :b + 1], lv[g, b + 1:]
+        # (at least 2 blocks on each side: one block off at the start is a transient
+        # the estimator handles, one at the end a partial block)
+        if before.size >= 2 and after.size >= 2 and np.ptp(before) <= abs(d[g, b]) / 3 \
+                and np.ptp(after) <= abs(d[g, b]) / 3:
+            k = ks[g, b + 1]
+            raise InputError(
+                f"{name}: the excitation level changes at {where(k)} ({at(k)}): "
+                f"{d[g, b]:+.1f} dB (rms {level[k - 1]:.4g} -> {level[k]:.4g}) and stays "
+                f"(the {before.size} {block}(s) before and {after.size} after agree within "
+                f"{max(np.ptp(before), np.ptp(after)):.2g} dB; steps from {block} to {block} "
+                f"scatter by {scatter:.2g} dB): {block}s at different levels cannot be "
+                f"averaged; record each level on its own")
 
 
 def _ranges(idx):
@@ -489,13 +576,31 @@ def _waveform(flat, index, settle, n_blocks, name, group, block, kind, fs, infer
     if np.all(mag[:, settle:] > SAME_CORR):
         g, b = np.unravel_index(np.argmin(kept_c.real), kept_c.shape)
         b = b + settle
-        a0, a1 = s[g, b], s[g, b + 1]
-        phase = np.unwrap(np.angle(a1 * np.conj(a0)))
+        # the shift of every block re the one before (all pairs at once): one shift
+        # throughout is a period that is not N; a shift that changes steadily is a
+        # frequency that drifts
+        a0, a1 = s[:, settle:-1], s[:, settle + 1:]
+        phase = np.unwrap(np.angle(a1 * np.conj(a0)), axis=-1)
         w = np.abs(a0) * np.abs(a1)
-        slope = float(np.sum(w * lines * phase) / np.sum(w * lines * lines))
-        shift = -slope * n / (2 * np.pi)
+        shifts = -(np.sum(w * lines * phase, axis=-1) / np.sum(w * lines * lines, axis=-1)
+                   * n / (2 * np.pi))                               # (G, B' - 1 - T)
+        shift = float(shifts[g, b - settle])
         what = ("the sine is off the DFT grid of the blocks" if kind == "sine" else
                 "the excitation does not repeat every N samples")
+        sg = shifts[g]
+        if sg.size >= 3:
+            steps = np.diff(sg)
+            spread = float(sg.max() - sg.min())
+            if spread > max(0.5, 0.2 * float(np.abs(sg).max())) and \
+                    (np.all(steps > 0) or np.all(steps < 0)):
+                period = n + sg
+                raise InputError(
+                    f"{name}: the excitation's frequency drifts: the period moves steadily "
+                    f"from {period[0]:.6g} to {period[-1]:.6g} samples over {block}s "
+                    f"{settle}..{settle + sg.size} of {group} {g} (N = {n}; the shift "
+                    f"between consecutive {block}s grows from {sg[0]:+.3g} to {sg[-1]:+.3g} "
+                    f"samples): no N holds whole periods; lock the generator to the sample "
+                    f"clock, or analyse shorter stretches")
         raise InputError(
             f"{name}: {what}: {block} {b + 1} of {group} {g} is the one before shifted by "
             f"{shift:+.3g} samples (N = {n}: the period would be {n + shift:.6g} samples, "
@@ -580,3 +685,34 @@ def amplitude_levels(levels, tol_db=0.5):
     steps = _db(lv[order][1:] / lv[order][:-1])
     cuts = np.flatnonzero(steps > tol_db) + 1
     return [np.sort(part) for part in np.split(order, cuts)]
+
+
+def locate_nonfinite(name, x, *, group="realization", block="period", fs=None):
+    """The one-line message for a record holding NaN or inf, naming where: the first
+    such sample (group, block, sample index in the record and in seconds) and how many
+    samples and blocks are affected. None when every sample is finite.
+
+    Parameters
+    ----------
+    name : str
+        The signal ("input u").
+    x : array_like, shape (G, B, N)
+    group, block : str
+        Words for the messages.
+    fs : float, optional
+        Sample rate (Hz), for the time.
+    """
+    x = np.asarray(x)
+    bad = ~np.isfinite(x)
+    if not bad.any():
+        return None
+    g_n, b_n, n = x.shape
+    first = int(np.flatnonzero(bad.reshape(-1))[0])
+    g, rest = divmod(first, b_n * n)
+    b, k = divmod(rest, n)
+    blocks = int(bad.any(axis=-1).sum())
+    at = f"sample {rest}" + (f" ({rest / fs:.4g} s)" if fs else "")
+    where = (f"{group} {g}, {block} {b}" if g_n > 1 else f"{block} {b}")
+    return (f"{name}: contains NaN or inf: {int(bad.sum())} sample(s) in {blocks} {block}(s), "
+            f"the first at {where} ({at} of the {group if g_n > 1 else 'record'}); cut the "
+            f"record there or repair the samples")

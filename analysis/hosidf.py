@@ -151,7 +151,10 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2, other_line
 
     U = scipy.fft.rfft(u.sum(axis=-2), axis=-1)
     if not np.isfinite(U).all():
-        raise InputError("input u: contains NaN or inf")
+        from fftune.analysis.checks import locate_nonfinite
+        raise InputError(locate_nonfinite("input u", np.reshape(u, (-1,) + u.shape[-2:]),
+                                          group="repeat", block="block")
+                         or "input u: contains NaN or inf")
     lead = U.shape[:-1]                       # (..., R)
 
     if f0 is None:
@@ -202,6 +205,12 @@ def hosidf(u, y, *, fs=1.0, n_harmonics=7, f0=None, leakage_tol=1e-2, other_line
     Y = scipy.fft.rfft(y.sum(axis=-2), axis=-1)
     Yk = np.take_along_axis(Y, k0[..., None] * np.arange(1, n_harmonics + 1), axis=-1)
     del Y
+    if not np.isfinite(Yk).all():
+        from fftune.analysis.checks import locate_nonfinite
+        text = locate_nonfinite("output y", np.reshape(y, (-1,) + y.shape[-2:]),
+                                group="repeat", block="block")
+        if text:
+            raise InputError(text)
     if u.ndim == 3 and n_blocks >= 4:
         Yk = _without_drift(u, y, Yk, int(k0.reshape(-1)[0]), n_harmonics, notes)
     res = hosidf_from_lines(U1, Yk, k0[..., 0], n=n, n_blocks=n_blocks, fs=fs)

@@ -248,6 +248,31 @@ def case_out_of_band(seed):
             and "no distortion above the band either" in linear["text"]), cubic["text"]
 
 
+def case_above_narrow_band(seed):
+    """An odd grid whose band (lines 41 .. 59, every odd one excited) holds no line a
+    square or a cube reaches (their products fall on excited lines, under 19 or over
+    81): the band's detection lines see nothing, the lines above it (60 .. 177) do; a
+    linear plant: 'linear', none above the band either."""
+    from fftune.analysis import level_verdict
+    rng = np.random.default_rng(seed)
+    lines = np.arange(41, 60, 2)
+    xs = []
+    for _ in range(4):
+        X = np.zeros(N // 2 + 1, complex)
+        X[lines] = np.exp(2j * np.pi * rng.random(lines.size))
+        x = np.fft.irfft(X, N)
+        xs.append(np.tile(x / x.std(), (P, 1)))
+    u = np.array(xs)
+    out = []
+    for f in (lambda v: v + 0.05 * v ** 2, lambda v: v - 0.03 * v ** 3, lambda v: 0.7 * v):
+        res = run_bla(u, f(u) + 1e-3 * rng.standard_normal(u.shape))
+        out.append((res.summary["nl_detected"], res.summary["above_band_detected"],
+                    level_verdict(res.summary)["causes"]))
+    nl = ["nonlinear distortion (above the band)"]
+    return (out[0] == (False, True, nl) and out[1] == (False, True, nl)
+            and out[2] == (False, False, ["linear"])), str(out)
+
+
 def case_sine_gap_and_step(seed):
     out = []
     for make in (lambda u: u * ((np.arange(u.size) < 3000) | (np.arange(u.size) >= 5000)),
@@ -284,6 +309,130 @@ def case_sine_drift(seed):
     return bool(ok), f"LPM {np.round(np.abs(res.H - ref.H) / se, 1)}"
 
 
+def case_burst_middle(seed):
+    """Realization 0 excited in periods 2 .. 5 only (a burst in the middle): its empty
+    periods at both ends dropped (then the realization, shorter than the others)."""
+    u, y = bla_data(seed)
+    u[0, :2] = 0.0
+    u[0, 6:] = 0.0
+    y[0] = plant(u[0].reshape(-1), seed * 100).reshape(u.shape[1:])
+    res = run_bla(u, y, settle_periods=1)
+    ok, text = agrees(res, clean(seed))
+    said = any("excitation starts at sample 1000" in n for n in res.notes) and \
+        any("excitation stops at sample 3000" in n for n in res.notes)
+    return ok and said and res.n_realizations == M - 1, text
+
+
+def case_small_level_step(seed):
+    """A step of 0.5 dB that stays (realization 2 from period 4): under the 1 dB re the
+    median (each half of the periods is 0.25 dB off it), caught as a step between
+    consecutive periods (0.2 dB and 10 times their scatter, here 0)."""
+    u, y = bla_data(seed)
+    u[2, 4:] *= 10 ** (0.5 / 20)
+    y[2] = plant(u[2].reshape(-1), seed * 100 + 2).reshape(u.shape[1:])
+    try:
+        run_bla(u, y, settle_periods=1)
+    except InputError as exc:
+        return "level changes at realization 2, period 4" in str(exc) and "+0.5 dB" in str(exc), \
+            str(exc)
+    return False, "accepted"
+
+
+def case_levels_one_record(seed):
+    """Four realizations with the same phases at four levels, one record, no
+    --realizations: refused as a level change (not averaged into one level)."""
+    x = multisine(seed * 100)
+    us = [np.tile(a * x, P + 1) for a in (1.0, 1.5, 2.0, 2.5)]
+    ys = [plant(v, seed * 100 + i) for i, v in enumerate(us)]
+    try:
+        run_bla(np.concatenate(us).reshape(1, -1, N), np.concatenate(ys).reshape(1, -1, N),
+                settle_periods=1)
+    except InputError as exc:
+        return "level changes at period" in str(exc) and "record each level" in str(exc), \
+            str(exc)
+    return False, "accepted"
+
+
+def case_drift_in_u(seed):
+    """A ramp of 10 % of its rms on the measured input (the plant sees it too): G as
+    the clean one, and the input's drift named."""
+    u, _ = bla_data(seed)
+    u = u + 0.1 * u.std() * np.linspace(0, 1, u[0].size).reshape(u.shape[1:])
+    y = np.array([plant(u[m].reshape(-1), seed * 100 + m).reshape(u.shape[1:])
+                  for m in range(M)])
+    res = run_bla(u, y, settle_periods=1)
+    ok, text = agrees(res, clean(seed))
+    return ok and any(n.startswith("input u drifts") for n in res.notes), text
+
+
+def case_transient_in_u(seed):
+    """A decaying oscillation on the input at the start (the plant from rest sees it),
+    no settle period: the LPM, G as the clean one."""
+    u, _ = bla_data(seed)
+    t = np.arange(u[0].size)
+    u = u + (0.5 * np.exp(-t / 300.0) * np.cos(0.2 * t)).reshape(u.shape[1:])
+    y = np.array([plant_from_rest(u[m].reshape(-1), seed * 100 + m).reshape(u.shape[1:])
+                  for m in range(M)])
+    res = run_bla(u, y)
+    ok, text = agrees(res, clean(seed))
+    return ok and "lpm" in res.summary, text
+
+
+def case_nan_in_a_period(seed):
+    """A NaN in the input's period 3 of realization 1, an inf in the output's period 5
+    of realization 2: refused naming the signal, realization, period and sample."""
+    out = []
+    for which, (m, b, k) in (("u", (1, 3, 17)), ("y", (2, 5, 100))):
+        u, y = bla_data(seed)
+        (u if which == "u" else y)[m, b, k] = np.nan if which == "u" else np.inf
+        try:
+            run_bla(u, y, settle_periods=1)
+            out.append("accepted")
+        except InputError as exc:
+            out.append(str(exc))
+    return ("input u: contains NaN" in out[0] and "realization 1, period 3" in out[0]
+            and "sample 1517" in out[0] and "output y: contains NaN or inf" in out[1]
+            and "realization 2, period 5" in out[1]), " | ".join(out)
+
+
+def case_sample_slip(seed):
+    """One period a sample short (realization 0, period 3): the later periods shift by
+    one sample, in u and y alike; G as the clean one."""
+    u, y = bla_data(seed)
+    k = 3 * N + 250
+    uf, yf = np.delete(u.reshape(-1), k), np.delete(y.reshape(-1), k)
+    uf, yf = np.append(uf, uf[-1]), np.append(yf, yf[-1])
+    res = run_bla(uf.reshape(u.shape), yf.reshape(y.shape), settle_periods=1)
+    return agrees(res, clean(seed))
+
+
+def case_clipped_u(seed):
+    """The measured input clipped at 1.5 (1.5 times its rms) in two periods of
+    realization 1, the plant driven by the clipped input: G as the clean one (u is
+    what the plant received), or, where the clipping moves those periods' level by
+    1 dB or more (the waveform's peaks differ by seed), refused naming the clipping."""
+    u, _ = bla_data(seed)
+    u[1, 3:5] = np.clip(u[1, 3:5], -1.5, 1.5)
+    y = np.array([plant(u[m].reshape(-1), seed * 100 + m).reshape(u.shape[1:])
+                  for m in range(M)])
+    try:
+        return agrees(run_bla(u, y, settle_periods=1), clean(seed))
+    except InputError as exc:
+        return "clipped at +-1.5 in realization 1, period 3" in str(exc), str(exc)
+
+
+def case_sine_frequency_drift(seed):
+    """A sine whose frequency drifts from 20 to 20.2 Hz over 10 s: refused naming the
+    drift (the period moving from 999 to 991.05 samples)."""
+    t = np.arange(10000) / FS
+    u = np.sin(2 * np.pi * (20.0 * t + 0.01 * t ** 2))
+    try:
+        hosidf(u.reshape(1, 10, 1000), (u + 0.2 * u ** 3).reshape(1, 10, 1000), fs=FS)
+    except InputError as exc:
+        return "frequency drifts" in str(exc) and "to 991.052 samples" in str(exc), str(exc)
+    return False, "accepted"
+
+
 CASES = {
     "burst (periods dropped)": case_burst,
     "gap (refused)": case_gap,
@@ -299,7 +448,17 @@ CASES = {
     "sine levels as repeats": case_sine_levels,
     "sine gap / level step": case_sine_gap_and_step,
     "out-of-band distortion": case_out_of_band,
+    "distortion above a narrow band": case_above_narrow_band,
     "sine drift 10 % (LPM)": case_sine_drift,
+    "burst in the middle": case_burst_middle,
+    "level step 0.5 dB (refused)": case_small_level_step,
+    "levels in one record": case_levels_one_record,
+    "drift in u (named)": case_drift_in_u,
+    "transient in u (LPM)": case_transient_in_u,
+    "NaN / inf in a period": case_nan_in_a_period,
+    "one period 1 sample short": case_sample_slip,
+    "u clipped in 2 periods": case_clipped_u,
+    "sine frequency drift": case_sine_frequency_drift,
 }
 
 
@@ -562,3 +721,33 @@ def test_hosidf_cli_drops_a_burst_and_says_so_in_the_json(tmp_path, capsys):
     doc = json.loads((tmp_path / "b.json").read_text())
     assert code == 0 and doc["amplitude"] == pytest.approx(1.0, rel=1e-9)
     assert "stops at sample 7430" in doc["notes"][0] and "stops at sample 7430" in out
+
+
+def test_above_the_band_with_a_reference_leaves_out_the_measured_inputs_content():
+    """Closed-loop form: r clean above the band, the measured u carrying content there
+    (a loop's feedback, here a known periodic signal at lines 125 .. 160) that the plant
+    passes on linearly: those lines are left out (counted), not read as distortion
+    (without the accounting 30 % or more of them stand 6 dB over the output's noise);
+    an output distortion at lines where u is clean (215 .. 245) is seen."""
+    rng = np.random.default_rng(11)
+    u, y = bla_data(11)
+    r = u.copy()
+    X = np.zeros(N // 2 + 1, complex)
+    X[125:161] = 0.05 * N * np.exp(2j * np.pi * rng.random(36))
+    _, h = signal.sosfreqz(SOS, worN=np.arange(N // 2 + 1) * 2 * np.pi / N)
+    um, ylin = u + np.fft.irfft(X, N), y + np.fft.irfft(X * h, N)
+    res = run_bla(um, ylin, r=r, settle_periods=1)
+    s = res.summary
+    assert s["above_band_lines_input_content"] == 36
+    assert s["above_band_lines"] + s["above_band_lines_input_content"] + \
+        s["above_band_lines_excitation_not_clean"] == 249 - 119
+    assert s["above_band_detected"] is False
+    # the same lines without the accounting: many 6 dB over the output's noise
+    Y = np.fft.rfft(ylin[:, 1:], axis=-1)[..., 125:161]
+    dev = Y - Y.mean(axis=1, keepdims=True)
+    noise = (np.abs(dev) ** 2).sum(1).mean(0) / (P * (P - 1))
+    assert np.mean((np.abs(Y.mean(1)) ** 2).mean(0) > 4 * noise) >= 0.3
+    Z = np.zeros(N // 2 + 1, complex)
+    Z[215:246] = 0.01 * N * np.exp(2j * np.pi * rng.random(31))
+    res = run_bla(um, ylin + np.fft.irfft(Z, N), r=r, settle_periods=1)
+    assert res.summary["above_band_detected"] is True
