@@ -691,13 +691,20 @@ def load_config(path):
 
 def read_plant(path, what="plant configuration"):
     """A plant file of the simulated drive (drive_sim's ``--config``) read by the one loader
-    (:func:`read_yaml`) and checked for drive_sim's shape: sections of ``key: number``.
+    (:func:`read_yaml`) and checked for drive_sim's shape: sections of ``key: number`` (an
+    FMU plant: checked by :func:`fftune.host.fmu.drive_sim_plant`).
     Returns the parsed mapping; one FftuneError line naming the file and the key on any
     problem, before drive_sim is started or any folder is made (drive_sim checks each
     value's range itself and says which)."""
     raw = read_yaml(path, what)
     if not isinstance(raw, dict) or not raw:
         raise FftuneError(f"{path}: {what}: expected sections of key: number, got {show(raw)}")
+    if "fmu" in raw:
+        # an FMU plant (docs/fmu.md): its fmu section holds names and nested start values,
+        # checked with the rest of the file against the FMU's modelDescription.xml
+        from fftune.host.fmu import drive_sim_plant
+        drive_sim_plant(path)
+        return raw
     for section, values in raw.items():
         if not isinstance(section, str) or not isinstance(values, dict) or not values:
             raise FftuneError(f"{path}: {what}: key '{show(section, 40) if not isinstance(section, str) else section[:40]}': "
