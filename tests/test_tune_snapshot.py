@@ -5,9 +5,9 @@ ctypes (tests/fwsim_drive.py, fixed seeds) and the Python test double of the dri
 The rows cover a converged search (raw samples and the drive's statistics), a frequency
 halving (the loop does not repeat at 0.625 Hz), a drift inside the tune (the repeated
 first experiment), the drive's smoothed sign, a sine the loop cannot follow and a stop in
-the checks (no motion). tests/data/tune_snapshot.json holds
+the checks (no motion); and the model-based tune (`tune.method: model`). tests/data/tune_snapshot.json holds
 the results from before the move; ``python tests/test_tune_snapshot.py --write`` rewrites it
-(only when a change of the results is intended)."""
+(the rows not in it; with --all every row: only when a change of the results is intended)."""
 import json
 import os
 import sys
@@ -44,9 +44,27 @@ def _fake_tune():
         return ex.tune(session)[0]
 
 
+def _model_tune(plant, tune):
+    """`tune.method: model` (tests/test_ffmodel_host.py's configuration)."""
+    import pathlib
+
+    import test_ffmodel_host as tm
+    with tempfile.TemporaryDirectory() as tmp:
+        return tm.run_model(pathlib.Path(tmp), plant, tune)[0]
+
+
+MODEL = {
+    "model coulomb stats": ({"plant": {"viscous": 2e-3}}, {"terms": ["coulomb"], "capture": "stats"}),
+    "model asymmetry raw": ({"plant": {"coulomb_asymmetry": 0.3, "static": 7.6e-3}},
+                            {"terms": ["coulomb", "asymmetry", "viscous"], "capture": "raw"}),
+}
+
+
 def run(name):
     if name == "fake sweep+kv":
         return _fake_tune()
+    if name in MODEL:
+        return _model_tune(*MODEL[name])
     row, capture = ROWS[name]
     plant, tune = MATRIX[row]
     return bench_tune_matrix.run_row(plant, tune, capture)
@@ -57,7 +75,7 @@ def _plain(x):
     return json.loads(json.dumps(x))
 
 
-NAMES = list(ROWS) + ["fake sweep+kv"]
+NAMES = list(ROWS) + ["fake sweep+kv"] + list(MODEL)
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +92,12 @@ def test_tune_results_are_those_from_before_the_move(snapshot, name):
 if __name__ == "__main__":
     if "--write" in sys.argv:
         sys.path.insert(0, os.path.join(REPO, "tests"))
-        out = {name: _plain(run(name)) for name in NAMES}
+        # the rows not in the file yet (every row with --all)
+        out = {}
+        if os.path.exists(SNAPSHOT) and "--all" not in sys.argv:
+            with open(SNAPSHOT, encoding="utf-8") as fh:
+                out = json.load(fh)
+        out = {name: out[name] if name in out else _plain(run(name)) for name in NAMES}
         with open(SNAPSHOT, "w", encoding="utf-8") as fh:
             json.dump(out, fh, indent=1, sort_keys=False)
             fh.write("\n")
