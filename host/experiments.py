@@ -514,7 +514,10 @@ def check_tune_plan(session):
     bracket within what the drive allows), before any experiment is made."""
     c = session.cfg["tune"]
     src = session.cfg.get("_source", "config")
-    _ts.check_plan(session.cfg, session.fs_hz, session.capture_mode("tune"))
+    if c.get("method") == "model":       # the lines the model tune reads (not tune.harmonics)
+        _ts.check_model_lines(c, session.fs_hz, src)
+    else:
+        _ts.check_plan(session.cfg, session.fs_hz, session.capture_mode("tune"))
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
     limit = k_fc_limit(session)
     if k_hi > limit:
@@ -588,10 +591,10 @@ def tune_at_frequency(session):
 
 
 def _tune(session, max_halvings):
+    check_tune_plan(session)
     if session.cfg["tune"].get("method") == "model":   # every term at once (issue 35): fftune.analysis.ffmodel
         from fftune.host.ffmodel_tune import run_model_tune
         return run_model_tune(session)
-    check_tune_plan(session)
     session.cfg_of_record = session.cfg
     session.tune_experiments = 0
     results, data = execute(session, _strategy(session, max_halvings))

@@ -44,11 +44,11 @@ def _tune_on_drive(row, capture, out):
     return cfg, results, facts
 
 
-def _replay(cfg, out_dir, facts, capture):
-    """The strategy driven by the captures in ``out_dir`` alone."""
+def _replay(cfg, out_dir, facts, capture, strategy=None):
+    """The strategy (default: the search's) driven by the captures in ``out_dir`` alone."""
     store = CaptureStore(out_dir)
-    strategy = ts.SearchTune(cfg, fs_hz=facts["fs_hz"], k_fc_limit_v=facts["k_fc_limit_v"], capture=capture,
-                             drive_settings=facts["drive_settings"])
+    strategy = strategy or ts.SearchTune(cfg, fs_hz=facts["fs_hz"], k_fc_limit_v=facts["k_fc_limit_v"],
+                                         capture=capture, drive_settings=facts["drive_settings"])
     used = []
 
     def load(request):
@@ -78,6 +78,32 @@ def test_a_tune_replays_from_its_captures_to_the_same_result(tmp_path, row, capt
         assert live["frequency_changes"] and any("-f" in k for k in used)
     if row.startswith("step"):
         assert s["cause"] == "non-stationary" and any(k.endswith("-repeat") for k in used)
+
+
+def test_the_model_tune_replays_through_the_same_protocol(tmp_path):
+    """`tune.method: model` (ModelTune around FeedForwardModelTune): the same replay."""
+    import yaml
+    from fftune.host.config import validate
+    from fftune.host.ffmodel_tune import _controller
+    from fwsim_drive import FwSimDrive, plant_file
+    import test_ffmodel_host as tm
+    path = plant_file({"plant": {"coulomb_asymmetry": 0.2, "static": 7.0e-3, "viscous": 2e-3}},
+                      directory=str(tmp_path))
+    with open(path) as fh:
+        ctl = yaml.safe_load(fh)["controller"]
+    cfg = validate({"output": "unused", "tune": dict(tm.TUNE, terms=["coulomb", "asymmetry", "viscous"])}, "test")
+    cfg["drive"]["controller"].update({k: ctl[k] for k in ("kp", "kd", "tau_d", "u_max")})
+    with FwSimDrive(path) as drive:
+        drive.enable()
+        session = ex.Session(drive, cfg, str(tmp_path / "out"), log=lambda s: None)
+        live, _ = ex.tune(session)
+        fc = session.truth["sim_fc_volt"]
+        facts = {"controller": session.controller, "truth": (fc, fc)}
+        strategy = ts.ModelTune(cfg, fs_hz=session.fs_hz, capture="raw", controller=_controller(session))
+    replayed, used = _replay(cfg, str(tmp_path / "out"), facts, "raw", strategy)
+    assert replayed["terms"] == live["terms"] and replayed["experiments"] == live["experiments"]
+    assert replayed == live and live["model"]["converged"]
+    assert used == [e["key"] for e in live["model"]["experiments"]]
 
 
 def test_a_replay_without_the_capture_of_an_experiment_names_it(tmp_path):
