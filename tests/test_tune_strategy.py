@@ -129,3 +129,20 @@ def test_the_protocol_refuses_a_measurement_of_another_request():
         strategy.tell(other, None)
     with pytest.raises(ValueError, match="not finished"):
         strategy.result()
+
+
+def test_the_model_tune_asks_through_the_protocol_and_refuses_misuse():
+    """ModelTune's first request: the identification at the auto amplitude (1 rad without the
+    position term) with every gain 0, the lines k = 0 .. 8 asked of the drive's statistics."""
+    from fftune.host.config import validate
+    import test_ffmodel_host as tm
+    cfg = validate({"output": "unused", "tune": dict(tm.TUNE, terms=["coulomb", "viscous"])}, "test")
+    strategy = ts.ModelTune(cfg, fs_hz=2560.0, capture="stats")
+    first = strategy.ask()
+    assert first.tag == "identify" and first.amplitude_rad == 1.0 and first.index == 0
+    assert first.gains == {"kfc": 0.0, "kv": 0.0, "kfa": 0.0, "kps": 0.0, "kpc": 0.0}
+    assert first.stats["harmonics"] == ts.N_LINES == 8 and strategy.ask() is first
+    with pytest.raises(ValueError, match="told 'tune-x', but asked 'tune-model-0-identify-a1-"):
+        strategy.tell(ts.ExperimentRequest(**dict(vars(first), key="tune-x")), None)
+    with pytest.raises(ValueError, match="not finished"):
+        strategy.result()
