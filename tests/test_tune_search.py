@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from fftune.analysis.errors import FftuneError
+from fftune.analysis import tune_strategy as ts
 from fftune.analysis.tuning import harmonic_orders, odd_ratio
 from fftune.host import experiments as ex
 from fftune.host.cli import main
@@ -105,8 +106,8 @@ def test_demo_plant_budget_is_small_and_corrects_the_lag(tmp_path, monkeypatch):
     assert v["k_v_in_search"] == pytest.approx(0.04, rel=0.2)
     assert abs(v["lag_deg"]) < ex.LAG_MIN_DEG and not v["applied"]
     assert s["k_v_in_search"] == v["k_v_in_search"]
-    monkeypatch.setattr(ex, "KV_MIN_SHARE", math.inf)
-    monkeypatch.setattr(ex, "LAG_MIN_DEG", math.inf)
+    monkeypatch.setattr(ts, "KV_MIN_SHARE", math.inf)
+    monkeypatch.setattr(ts, "LAG_MIN_DEG", math.inf)
     plain = bench_tune.run_row({"plant": {"viscous": 2e-3}}, {}, str(tmp_path / "b"))
     assert plain["search"]["budget"]["viscous"]["lag_deg"] > 3
     assert plain["k_fc_star_error_re_truth"] > t["k_fc_star_error_re_truth"] + 0.005
@@ -115,7 +116,7 @@ def test_demo_plant_budget_is_small_and_corrects_the_lag(tmp_path, monkeypatch):
 def test_lag_at_k_fc_star_is_corrected_after_the_search(tmp_path, monkeypatch):
     """With the viscous estimate kept out of the search, the lag at K_fc* (4.8 deg on the
     demo plant) triggers the correction experiment(s) at K_v read there."""
-    monkeypatch.setattr(ex, "KV_MIN_SHARE", math.inf)
+    monkeypatch.setattr(ts, "KV_MIN_SHARE", math.inf)
     t = bench_tune.run_row({"plant": {"viscous": 2e-3}}, {}, str(tmp_path))
     v = t["search"]["budget"]["viscous"]
     assert v["applied"] and v["lag_deg"] > 3 and abs(v["lag_after_deg"]) < 1.5
@@ -128,7 +129,7 @@ def test_lead_at_k_fc_star_is_corrected_too(tmp_path, monkeypatch):
     2.5x here, as on configs/plant_paper.yaml) makes the motor LEAD the reference at K_fc*,
     which moves the criterion's optimum low; the correction at K_v read at K_fc* acts on
     |lag| (issue 24 after issue 22: the paper set-up's K_fc* was 2.5 % low)."""
-    real = ex._viscous_estimate
+    real = ts._viscous_estimate
     calls = []
 
     def too_large_at_zero(probe, p):
@@ -136,7 +137,7 @@ def test_lead_at_k_fc_star_is_corrected_too(tmp_path, monkeypatch):
         calls.append(p["kfc"])
         return (2.5 * kv, share) if p["kfc"] == 0.0 else (kv, share)
 
-    monkeypatch.setattr(ex, "_viscous_estimate", too_large_at_zero)
+    monkeypatch.setattr(ts, "_viscous_estimate", too_large_at_zero)
     t = bench_tune.run_row({"plant": {"viscous": 2e-3}}, {}, str(tmp_path))
     assert calls[0] == 0.0 and len(calls) >= 2
     v = t["search"]["budget"]["viscous"]
