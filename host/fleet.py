@@ -773,6 +773,34 @@ def drift_figure(rs, machine, axis):
     return fig
 
 
+def summary_items(rows):
+    """The fleet's summary, one line per axis with an analysed K_fc* (its latest value, what
+    to set, and its change over the analyses in sigma) and one for the rows not analysed:
+    the first thing the page shows."""
+    from fftune.host.report import _object_of, gain_text, sigma_text
+
+    obj = _object_of("kfc")[0]
+    out = []
+    for (machine, axis), rs in sorted(_groups(rows).items()):
+        last, first = rs[-1], rs[0]
+        name = last.get("_display") or f"{machine} / {axis}"
+        text = (f"{name}: K_fc* = {gain_text(last['k_fc_star'])} +- {sigma_text(last['k_fc_sigma'])} "
+                f"on object {obj} (latest analysis, {last['date']})")
+        if len(rs) > 1:
+            d = last["k_fc_star"] - first["k_fc_star"]
+            sig = math.hypot(first["k_fc_sigma"] or 0.0, last["k_fc_sigma"] or 0.0)
+            text += (f"; {100 * d / first['k_fc_star']:+.1f} % since {first['date']} over {len(rs)} analyses"
+                     + (f" ({abs(d) / sig:.1f} sigma)" if sig > 0 else "")
+                     if first["k_fc_star"] else "")
+        out.append(text)
+    bad = [r for r in rows if r["status"] == "error" or r["k_fc_star"] is None]
+    if bad:
+        out.append(f"{len(bad)} of {len(rows)} rows without a K_fc* (the table says why)")
+    if not out:
+        out.append("no rows")
+    return out
+
+
 def write_summary_html(rows, out_dir, tables, plots, items):
     """``<out_dir>/report.html``: the fleet at a glance (counts, one line per axis and date
     with K_fc* +- sigma, the truth where known, the odd ratios, the reason of a row not
@@ -792,6 +820,8 @@ def write_summary_html(rows, out_dir, tables, plots, items):
              f"{n['error']} not analysed; tables: "
              + ", ".join(f"<a href='{_html.escape(os.path.basename(t))}'>{_html.escape(os.path.basename(t))}</a>"
                          for t in tables) + "</p>",
+             "<h2>Summary</h2><ul class='rec'>"
+             + "".join(f"<li>{_html.escape(x)}</li>" for x in summary_items(rows)) + "</ul>",
              "<h2>K_fc* per axis and date</h2><table><tr><th>axis</th><th>node</th><th>date</th>"
              "<th>status</th><th>K_fc* (1 sigma)</th><th>true (simulation)</th>"
              "<th>odd ratio at 0 -> at K_fc*</th><th>reason / source</th></tr>"]

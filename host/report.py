@@ -83,6 +83,8 @@ def recommendation(results):
         return None
     node = ((results.get("drive") or {}).get("identity") or {}).get("node_id")
     on = f" of node {node}" if node is not None else ""
+    if t.get("method") == "model":
+        return _model_recommendation(t, node, on)
     if not t["search"].get("converged") or t.get("k_fc_star") is None:
         best = t.get("k_fc_best_measured")
         return {"set": False, "node_id": node,
@@ -113,6 +115,44 @@ def recommendation(results):
     return rec
 
 
+# the drive gains of `tune.method: model` (fftune.analysis.ffmodel.TERM_INFO): alias ->
+# (symbol, term, unit)
+_MODEL_GAINS = (("kfc", "K_fc", "coulomb", "V"), ("kfa", "K_fa", "asymmetry", "V"),
+                ("kv", "K_v", "viscous", "V s/rad"), ("kps", "K_ps", "position", "V"),
+                ("kpc", "K_pc", "position", "V"))
+
+
+def _model_recommendation(t, node, on):
+    """:func:`recommendation` of ``tune.method: model``: every gain of the converged model
+    (``tune.model.gains``: the viscous one always, the requested terms' others) with its
+    object and the 1 sigma of its term (the position term's two gains share the sigma of
+    its amplitude). Keys as :func:`recommendation`'s plus ``gains`` ({alias: {symbol,
+    term, value, sigma, unit, object}})."""
+    m = t.get("model") or {}
+    if not m.get("converged") or not m.get("gains"):
+        return {"set": False, "node_id": node,
+                "text": f"Nothing to set: the feed-forward model did not converge "
+                        f"({m.get('stop_reason')})."}
+    terms = t.get("terms") or {}
+    gains = {}
+    for alias, sym, term, unit in _MODEL_GAINS:
+        if alias not in m["gains"] or (term not in terms and alias != "kv"):
+            continue
+        sig = (terms.get(term) or {}).get("sigma")
+        gains[alias] = {"symbol": sym, "term": term, "value": round_sig(m["gains"][alias]),
+                        "sigma": round_sig(sig, 2), "unit": unit, "object": _object_of(alias)[0]}
+    parts = [f"{g['symbol']} = {gain_text(g['value'], g['unit'])}"
+             + (f" (1 sigma {sigma_text(g['sigma'], g['unit'])})" if g["sigma"] is not None else "")
+             + f" on object {g['object']}" for g in gains.values()]
+    text = "Set " + (", ".join(parts[:-1]) + " and " + parts[-1] if len(parts) > 1 else parts[0])
+    kfc, kv = gains.get("kfc"), gains.get("kv")
+    return {"set": True, "node_id": node, "method": "model",
+            "k_fc_v": kfc["value"] if kfc else None, "sigma_v": kfc["sigma"] if kfc else None,
+            "k_fc_object": kfc["object"] if kfc else None,
+            "k_v_v_s_per_rad": kv["value"] if kv else None, "k_v_object": kv["object"] if kv else None,
+            "gains": gains, "text": f"{text}{on} (tune.method: model, every term at once)."}
+
+
 def loop_comparison(results):
     """The rms tracking errors and odd-harmonic ratios of the tune step, each row with the
     feed-forward that was in the loop: a list of dicts (``what``, ``k_fc_v``, ``k_v``,
@@ -121,6 +161,8 @@ def loop_comparison(results):
     t = results.get("tune")
     if not t:
         return []
+    if t.get("method") == "model":
+        return _model_loop_rows(t)
     s, e = t["search"], t["rms_error_rad"]
     # the K_v the search's runs had in the loop: the evaluation's own (k_v), else the one
     # read at K_fc = 0 (search.budget.viscous; search.k_v_in_search is the corrected value a
@@ -152,6 +194,28 @@ def loop_comparison(results):
     if v:
         rows.append({"what": "recommended: K_fc* and K_v*", "k_fc_v": t.get("k_fc_star"),
                      "k_v": v.get("k_v_star"), "rms_error_rad": v.get("rms_error_rad"), "ratio": None})
+    return rows
+
+
+def _model_loop_rows(t):
+    """:func:`loop_comparison` of ``tune.method: model``: its first experiment (no
+    feed-forward) and every experiment at the verifying one's amplitude, each with the
+    K_fc, K_v and amplitude it ran with (rows at another amplitude than the first say so)."""
+    exps = (t.get("model") or {}).get("experiments") or []
+    if not exps:
+        return []
+    first = exps[0]
+    rows = []
+    for i, x in enumerate(exps):
+        if i and x.get("tag") != ((t["model"].get("verification") or {}).get("tag")):
+            continue
+        g = x.get("gains") or {}
+        what = ("no feed-forward" if i == 0 and not any(g.values()) else
+                f"experiment {i + 1} ({x.get('tag')}), the gains of the estimate before it")
+        if x.get("amplitude_rad") != first.get("amplitude_rad"):
+            what += f" (at {x['amplitude_rad']:g} rad, not {first['amplitude_rad']:g} rad: not like for like)"
+        rows.append({"what": what, "k_fc_v": g.get("kfc"), "k_v": g.get("kv"),
+                     "rms_error_rad": x.get("rms_error_rad"), "ratio": x.get("odd_ratio")})
     return rows
 
 
@@ -352,8 +416,9 @@ def key_numbers(results):
         rows.append(("feed-forward terms (tune.method model)", "converged" if m["converged"]
                      else f"not converged: {m['stop_reason']}"))
         for name, term in t["terms"].items():
-            rows.append((f"{name} ({term['object']})", f"{_fmt(term['value'], ' ' + term['unit'])} +- "
-                                                      f"{_fmt(term['sigma'], ' ' + term['unit'])}"))
+            rows.append((f"{name} term", f"{gain_text(term['value'], term['unit'])} +- "
+                                         f"{sigma_text(term['sigma'], term['unit'])}"))
+        rows.append(("on the drive", (results.get("recommendation") or recommendation(results))["text"]))
         rows += [("closed-loop experiments", t["experiments"]),
                  ("odd / even level at the verifying experiment (re |H_1|)",
                   f"{_fmt(t['odd_ratio_at_optimum'], level=True)} / {_fmt(t['even_ratio_at_optimum'], level=True)}"),
@@ -530,12 +595,24 @@ def _config_text(results):
         return None
 
 
-def write_html(out_dir, results, figures, title="fftune report", sections=()):
-    """``report.html``, a decision page: the recommendation first (what to set, on which
-    object, :func:`recommendation`), ``sections`` ((heading, HTML) pairs), the like-for-like
-    comparison (:func:`loop_comparison`), the key numbers, the figures (titled by what they
-    show, the paper's figure number as a subtitle) in a grid, then the configuration and
-    the full results (dB floors printed as such) collapsed."""
+def _figure_html(name, fname, caption):
+    head, sub, text = _figure_heading(caption)
+    return (f"<figure><h3>{html.escape(head)}</h3>"
+            + (f"<p class='sub'>{html.escape(sub)}</p>" if sub else "")
+            + f"<a href='{html.escape(fname)}'><img src='{html.escape(fname)}' "
+              f"alt='{html.escape(name)}'></a>"
+              f"<figcaption>{html.escape(text)}</figcaption></figure>")
+
+
+def write_html(out_dir, results, figures, title="fftune report", sections=(), first=(),
+               more_figures=(), collapse_numbers=False):
+    """``report.html``, a decision page: ``first`` ((heading, HTML) pairs: a verdict
+    before everything, e.g. the paper's reproduction), the recommendation (what to set, on
+    which object, :func:`recommendation`), ``sections`` ((heading, HTML) pairs), the
+    like-for-like comparison (:func:`loop_comparison`), the key numbers (collapsed with
+    ``collapse_numbers``), the figures (titled by what they show, the paper's figure
+    number as a subtitle) in a grid, those named in ``more_figures`` collapsed under it,
+    then the configuration and the full results (dB floors printed as such) collapsed."""
     ident = results.get("drive", {}).get("identity", {})
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
@@ -547,6 +624,8 @@ def write_html(out_dir, results, figures, title="fftune report", sections=()):
         f"{html.escape(str(ident.get('bus', '')))}; configuration "
         f"{html.escape(str(results.get('config_file', '')))}</p>",
     ]
+    for heading, body in first:
+        parts += [f"<h2>{html.escape(heading)}</h2>", body]
     rec = results.get("recommendation") or recommendation(results)
     if rec is not None:
         parts.append(f"<h2>Recommendation</h2><p class='rec'>{html.escape(rec['text'])}</p>")
@@ -561,17 +640,23 @@ def write_html(out_dir, results, figures, title="fftune report", sections=()):
     # (the recommendation and the rms errors are above: not twice)
     keys = [(k, v) for k, v in key_numbers(results)
             if not (cmp_html and k.startswith("rms tracking error")) and k != "on the drive"]
-    parts += ["<h2>Key numbers</h2>", _table(keys + detail_rows(results))]
-    if figures:
+    if collapse_numbers:
+        parts += [f"<details><summary>Key numbers ({len(keys) + len(detail_rows(results))} rows)</summary>",
+                  _table(keys + detail_rows(results)), "</details>"]
+    else:
+        parts += ["<h2>Key numbers</h2>", _table(keys + detail_rows(results))]
+    main = {k: v for k, v in (figures or {}).items() if k not in more_figures}
+    more = {k: v for k, v in (figures or {}).items() if k in more_figures}
+    if main:
         parts.append("<h2>Figures</h2><div class='figs'>")
-        for name, (fname, caption) in figures.items():
-            head, sub, text = _figure_heading(caption)
-            parts.append(f"<figure><h3>{html.escape(head)}</h3>"
-                         + (f"<p class='sub'>{html.escape(sub)}</p>" if sub else "")
-                         + f"<a href='{html.escape(fname)}'><img src='{html.escape(fname)}' "
-                           f"alt='{html.escape(name)}'></a>"
-                           f"<figcaption>{html.escape(text)}</figcaption></figure>")
+        parts += [_figure_html(name, fname, caption) for name, (fname, caption) in main.items()]
         parts.append("</div>")
+    if more:
+        parts.append(f"<details><summary>More figures ({len(more)}: "
+                     + html.escape(", ".join(_figure_heading(c)[0] for _, c in more.values()))
+                     + ")</summary><div class='figs'>")
+        parts += [_figure_html(name, fname, caption) for name, (fname, caption) in more.items()]
+        parts.append("</div></details>")
     cfg_text = _config_text(results)
     if cfg_text is not None:
         parts.append(f"<details><summary>Configuration ({html.escape(str(results.get('config_file')))})"

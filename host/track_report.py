@@ -113,7 +113,7 @@ def write_track_report(out, results, cfg=None, figures=True):
         head = (f"The drive runs K_fc = {gain_text(s['k_fc_final'])}{truth} on object {obj_fc}{on} "
                 f"and K_v = {gain_text(s['k_v_final'], 'V s/rad')} on object {obj_kv}, written by "
                 f"the tracker after task {rows[-1]['task'] if rows else '-'}.")
-    parts.append(f"<h2>Result</h2><p class='rec'>{html.escape(head)}</p>")
+    parts.append(f"<h2>On the drive</h2><p class='rec'>{html.escape(head)}</p>")
     big = large_updates(rows)
     parts.append(f"<h2>Updates larger than {LARGE_UPDATE_SIGMA:g} sigma ({len(big)})</h2>")
     if big:
