@@ -179,17 +179,21 @@ def loop_comparison(results):
     rows.append({"what": "the search's run nearest K_fc*", "k_fc_v": ver, "k_v": kv_at(ver),
                  "rms_error_rad": e.get("k_fc_star"), "ratio": t.get("ratio_at_k_fc_star")})
     sw = t.get("sweep")
+    ratio_min = None
     if sw and sw.get("k_fc") and sw.get("rms_error_rad") and t.get("k_fc_star") is not None:
         i = min(range(len(sw["k_fc"])), key=lambda j: abs(sw["k_fc"][j] - t["k_fc_star"]))
-        rows.append({"what": "the sweep's point nearest K_fc*", "k_fc_v": sw["k_fc"][i], "k_v": 0.0,
-                     "rms_error_rad": sw["rms_error_rad"][i], "ratio": sw["ratio"][i]})
+        if sw["k_fc"][i] != e.get("sweep_min_at_k_fc"):     # (else: the smallest row below)
+            rows.append({"what": "the sweep's point nearest K_fc*", "k_fc_v": sw["k_fc"][i], "k_v": 0.0,
+                         "rms_error_rad": sw["rms_error_rad"][i], "ratio": sw["ratio"][i]})
+        else:
+            ratio_min = sw["ratio"][i]
     same_as_run = (not sw and e.get("sweep_min_at_k_fc") == ver and e.get("sweep_min") == e.get("k_fc_star"))
     if e.get("sweep_min") is not None and not same_as_run:
         rows.append({"what": "the sweep's smallest rms error" if sw else
                      "the search's smallest rms error",
                      "k_fc_v": e.get("sweep_min_at_k_fc"),
                      "k_v": 0.0 if sw else kv_at(e.get("sweep_min_at_k_fc")),
-                     "rms_error_rad": e.get("sweep_min"), "ratio": None})
+                     "rms_error_rad": e.get("sweep_min"), "ratio": ratio_min})
     v = t.get("viscous")
     if v:
         rows.append({"what": "recommended: K_fc* and K_v*", "k_fc_v": t.get("k_fc_star"),
@@ -205,9 +209,13 @@ def _model_loop_rows(t):
     if not exps:
         return []
     first = exps[0]
+    ver_tag = (t["model"].get("verification") or {}).get("tag")
+    same = [i for i, x in enumerate(exps) if i and x.get("amplitude_rad") == first.get("amplitude_rad")]
+    ver = [i for i, x in enumerate(exps) if i and x.get("tag") == ver_tag]
     rows = []
     for i, x in enumerate(exps):
-        if i and x.get("tag") != ((t["model"].get("verification") or {}).get("tag")):
+        # the first, the last at its amplitude (like for like) and the verifying one
+        if i and i not in same[-1:] + ver[-1:]:
             continue
         g = x.get("gains") or {}
         what = ("no feed-forward" if i == 0 and not any(g.values()) else
@@ -272,6 +280,10 @@ def figure_conclusions(results, detect_levels=None, tune_data=None):
             text += (f"; with K_v = 0 (like for like) the sweep's smallest is "
                      f"{rms_text(rmin['rms_error_rad'])} at K_fc = {gain_text(rmin['k_fc_v'])}, "
                      f"{rms_text(near['rms_error_rad'])} at its point nearest K_fc*")
+        elif rmin:
+            text += (f"; with K_v = 0 (like for like) the sweep's smallest is "
+                     f"{rms_text(rmin['rms_error_rad'])} at K_fc = {gain_text(rmin['k_fc_v'])}, "
+                     f"its point nearest K_fc*")
         rec = rows.get("recommended: K_fc* and K_v*")
         if rec:
             text += f"; {rms_text(rec['rms_error_rad'])} with the recommended K_fc* and K_v*"
@@ -468,12 +480,11 @@ def detail_rows(results):
     t = results.get("tune")
     if t:
         s = t["search"]
-        rows += [
-            ("sigma_total(K_fc*) parts", ", ".join(f"{k} {sigma_text(v)}" for k, v in
-                                                   (s.get("sigma_parts_v") or {}).items()) or "-"),
-            ("K_v in the loop during the search", _search_kv_text(s)),
-            ("tune amplitude, frequency", f"{t['amplitude_rad']:.3g} rad, {t['frequency_hz']:g} Hz"),
-        ]
+        rows.append(("sigma_total(K_fc*) parts", ", ".join(f"{k} {sigma_text(v)}" for k, v in
+                                                           (s.get("sigma_parts_v") or {}).items()) or "-"))
+        if t.get("method") != "model":
+            rows.append(("K_v in the loop during the search", _search_kv_text(s)))
+        rows.append(("tune amplitude, frequency", f"{t['amplitude_rad']:.3g} rad, {t['frequency_hz']:g} Hz"))
     d = results.get("detect")
     if d:
         for tag, lv in (("lowest", d["levels"][0]), ("highest", d["levels"][-1])):
@@ -510,8 +521,12 @@ def comparison_table(results):
             r["what"], gain_text(r["k_fc_v"]), gain_text(r["k_v"], "V s/rad"),
             rms_text(r["rms_error_rad"]), _fmt(r["ratio"], level=True) if r["ratio"] is not None
             else "-")) + "</tr>")
-    out.append("</table><p class='note'>Compare rows with the same K_v: the sweep runs with "
-               "K_v = 0; the search runs with the K_v shown.</p>")
+    if (results["tune"].get("method") == "model"):
+        out.append("</table><p class='note'>Compare rows at the same amplitude: each row ran with "
+                   "the gains shown (and the position term's) at the amplitude its name says.</p>")
+    else:
+        out.append("</table><p class='note'>Compare rows with the same K_v: the sweep runs with "
+                   "K_v = 0; the search runs with the K_v shown.</p>")
     return "\n".join(out)
 
 

@@ -283,12 +283,14 @@ def test_model_recommendation_sets_every_term_on_its_object():
                            "0.00046 V) on object 0x2000:0A and K_pc = 0.008765 V (1 sigma 0.00046 V) on "
                            "object 0x2000:0B of node 7 (tune.method: model, every term at once).")
     assert rec["k_fc_v"] == 0.1235 and rec["k_v_v_s_per_rad"] == 0.04568
-    # the comparison: no feed-forward and the verifying run, the latter's other amplitude said
+    # the comparison: no feed-forward, the last run at its amplitude (like for like) and the
+    # verifying run, whose other amplitude is said
     rows = report.loop_comparison(res)
     assert [r["what"] for r in rows] == [
-        "no feed-forward",
+        "no feed-forward", "experiment 2 (identify), the gains of the estimate before it",
         "experiment 3 (verify), the gains of the estimate before it (at 0.5 rad, not 1 rad: not like for like)"]
-    assert rows[1]["k_fc_v"] == 0.1234567 and rows[1]["rms_error_rad"] == 0.008
+    assert [r["rms_error_rad"] for r in rows] == [0.05, 0.01, 0.008]
+    assert rows[2]["k_fc_v"] == 0.1234567 and rows[0]["k_fc_v"] == 0.0
     res["tune"]["model"]["converged"] = False
     res["tune"]["model"]["stop_reason"] = "uncertain: the position term"
     rec = report.recommendation(res)
@@ -314,3 +316,17 @@ def test_track_and_fleet_figures_keep_legends_off_the_data(pages, tmp_path):
     # fftune track's own PNG is that figure
     plot_track(rows, str(tmp_path / "track_kfc.png"))
     assert (tmp_path / "track_kfc.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_sweep_point_is_one_row_when_nearest_and_smallest():
+    res = _results()
+    res["tune"]["rms_error_rad"].update(sweep_min=0.031, sweep_min_at_k_fc=0.1)   # nearest 0.1235 V
+    rows = report.loop_comparison(res)
+    whats = [r["what"] for r in rows]
+    assert "the sweep's point nearest K_fc*" not in whats
+    row = rows[whats.index("the sweep's smallest rms error")]
+    assert (row["k_fc_v"], row["k_v"], row["rms_error_rad"], row["ratio"]) == (0.1, 0.0, 0.031, 0.006)
+    # apart: both rows, the smallest without a ratio (the sweep's row at 0.15 V is not recorded here)
+    res["tune"]["rms_error_rad"].update(sweep_min=0.024, sweep_min_at_k_fc=0.15)
+    by = {r["what"]: r for r in report.loop_comparison(res)}
+    assert by["the sweep's point nearest K_fc*"]["k_fc_v"] == 0.1 and by["the sweep's smallest rms error"]["ratio"] is None
