@@ -10,6 +10,7 @@ from the suffix, PNG by default) and returns the path.
   :func:`plot_bla` -- one BLA with its standard deviations (and confidence band).
 * :func:`figure_error_spectrum` -- tracking-error spectra (the loop without / with
   feed-forward).
+* :func:`figure_sensitivity` -- the measured sensitivity |S| of the loop (its peak M_s).
 * :func:`legend_outside_data` -- the rule every figure keeps: no legend over an axes.
 * :func:`plot_hosidf_amplitude` -- Figure 5: HOSIDFs vs amplitude with std.
   :func:`plot_hosidf_harmonics` -- one experiment's |H_k| and phases.
@@ -26,7 +27,7 @@ from matplotlib.figure import Figure
 from fftune.analysis.errors import InputError
 
 __all__ = ["figure3", "figure4", "figure5", "figure7", "figure8", "figure9", "figure_bla",
-           "figure_error_spectrum", "legend_outside_data",
+           "figure_error_spectrum", "figure_sensitivity", "legend_outside_data",
            "figure_hosidf_harmonics", "plot_output_spectrum", "plot_bla", "plot_bla_levels",
            "plot_hosidf_amplitude", "plot_hosidf_harmonics", "plot_tuning",
            "plot_time_response"]
@@ -519,3 +520,31 @@ def figure9(fs, reference, outputs, errors=None, title=None, rms_in_legend=True)
 def plot_time_response(fs, reference, outputs, path, errors=None, title=None, rms_in_legend=True):
     """:func:`figure9` written to ``path``."""
     return _save(figure9(fs, reference, outputs, errors, title, rms_in_legend), path)
+
+
+def figure_sensitivity(curves, title=None):
+    """The measured sensitivity |S| (dB) vs frequency, one line per curve, with 0 dB and
+    each curve's peak (M_s) marked.
+
+    Parameters
+    ----------
+    curves : dict of str -> (freq, S)
+        Label -> the lines (Hz) and the complex sensitivity there
+        (:func:`fftune.analysis.loop.sensitivity`).
+    """
+    fig, (ax,) = _figure(height=3.4)
+    if not curves:
+        raise InputError("figure_sensitivity: no curve")
+    for i, (label, (f, S)) in enumerate(curves.items()):
+        db = _db20(np.asarray(S))
+        k = int(np.nanargmax(db))
+        line, = ax.plot(f, db, lw=1.0, label=f"{label}: peak {db[k]:+.1f} dB at {f[k]:.3g} Hz")
+        ax.plot([f[k]], [db[k]], "o", mfc="none", color=line.get_color())
+    ax.axhline(0.0, color="k", lw=0.6)
+    _plain_log_axis(ax)
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("|S| (dB)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=7)
+    ax.set_title(title or "Measured sensitivity of the loop")
+    return fig

@@ -289,7 +289,8 @@ def _set_aside_previous(out):
 
 # the pipeline's figures the paper page shows collapsed (the paper's own are open)
 MORE_FIGURES = ("figure3_output_spectrum_lowest", "figure3_output_spectrum_highest", "figure4_bla_vs_level",
-                "bla_confidence", "figure5_hosidf_vs_amplitude", "figure7_tuning", "error_spectrum")
+                "bla_confidence", "sensitivity", "figure5_hosidf_vs_amplitude", "figure7_tuning",
+                "error_spectrum")
 
 
 def write_report(out, results, figures, rows, notes):

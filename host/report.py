@@ -291,6 +291,37 @@ def figure_conclusions(results, detect_levels=None, tune_data=None):
     return out
 
 
+def measured_sensitivity(out_dir, results):
+    """The loop's sensitivity at each detect level from the detect step's captures with
+    samples (``<out_dir>/captures``, :func:`fftune.analysis.loop.sensitivity`): a list of
+    (rms, (freq, S)), empty when the captures hold no samples (``capture: stats``) or are
+    not there."""
+    from fftune.analysis.capture import load_experiment
+    from fftune.analysis.errors import InputError
+    from fftune.analysis.loop import sensitivity
+
+    d = results.get("detect") or {}
+    cap = os.path.join(out_dir, "captures")
+    if not d.get("levels") or d.get("capture") == "stats" or not os.path.isdir(cap):
+        return []
+    out = []
+    for i, lv in enumerate(d["levels"]):
+        try:
+            ex = load_experiment(cap, experiment="detect", level_index=i)
+        except (InputError, OSError, KeyError, ValueError):
+            return []
+        sig, p = ex.signals, ex.record_periods
+        try:
+            if d.get("inject") == "reference":
+                x, r = sig["reference"] - sig["motor_angle"], sig["reference"]
+            else:
+                x, r = sig["plant_input"], sig["excitation"]
+            out.append((lv["rms_requested"], sensitivity(x[:, -p:], r[:, -p:], fs=ex.fs_hz)[:2]))
+        except (KeyError, InputError):
+            return []
+    return out
+
+
 def save_figure(out_dir, name, fig, caption):
     """``fig`` written atomically as ``<out_dir>/<name>.png``; returns (file name, caption)."""
     fname = f"{name}.png"
@@ -310,6 +341,7 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
     Returns ``{figure name: (file name, caption)}`` for the figures the data allow.
     """
     import matplotlib
+    import numpy as np
     matplotlib.use("Agg")
     from fftune.analysis import plots
 
@@ -350,6 +382,18 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
                 f"level ({rms:.3g} {unit_in} rms), the 95 % band from its total variance "
                 f"(noise and nonlinear distortion over the realizations), and the two standard "
                 f"deviations.")
+        sens = measured_sensitivity(out_dir, results)
+        if sens:
+            curves = {f"{rms:g} {unit_in} rms": fs_ for rms, fs_ in sens}
+            peaks = [20 * np.log10(np.max(np.abs(S))) for _, (_, S) in sens]
+            made["sensitivity"] = save_figure(out_dir, "sensitivity", plots.figure_sensitivity(
+                curves, title="Measured sensitivity of the loop at each excitation level"),
+                f"Measured sensitivity of the loop (the detect step, no feed-forward): "
+                + ("|U/D|, the plant input over the excitation added to it (input sensitivity "
+                   "1/(1 + C G))" if results["detect"].get("inject") != "reference" else
+                   "|E/R|, the tracking error over the reference (1/(1 + G C))")
+                + f" at the excited lines; peak |S| (M_s) {peaks[0]:+.1f} dB at the lowest level, "
+                  f"{peaks[-1]:+.1f} dB at the highest (a linear loop: the same at every level).")
     if hos is not None:
         q_in = "V" if (results.get("quantify") or {}).get("inject") == "plant_input" else "rad"
         save("figure5_hosidf_vs_amplitude", plots.figure5(hos, unit=q_in, h_unit=f"rad/{q_in}"),
@@ -619,8 +663,13 @@ def _figure_html(name, fname, caption):
               f"<figcaption>{html.escape(text)}</figcaption></figure>")
 
 
+# the figures a session's page shows collapsed ("More figures") unless told otherwise: the
+# lowest level's output spectrum (the highest level's shows the nonlinearity)
+MORE_FIGURES = ("figure3_output_spectrum_lowest",)
+
+
 def write_html(out_dir, results, figures, title="fftune report", sections=(), first=(),
-               more_figures=(), collapse_numbers=False):
+               more_figures=MORE_FIGURES, collapse_numbers=False):
     """``report.html``, a decision page: ``first`` ((heading, HTML) pairs: a verdict
     before everything, e.g. the paper's reproduction), the recommendation (what to set, on
     which object, :func:`recommendation`), ``sections`` ((heading, HTML) pairs), the

@@ -221,6 +221,8 @@ def _figures():
         "figure8": plots.figure8(k, H, abs(H) * 0.01, k_star=0.1157),
         "figure9": plots.figure9(fs, ref, outs),
         "error_spectrum": plots.figure_error_spectrum(fs, {lb: ref - o for lb, o in outs.items()}, f0=2.0),
+        "sensitivity": plots.figure_sensitivity(
+            {f"{a} V rms": (lv.results[-1].freq, 1.0 / (1.0 + a * lv.results[-1].G)) for a in (0.3, 3.0)}),
     }
 
 

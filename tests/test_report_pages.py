@@ -75,6 +75,7 @@ PAPER_FIGURES = {"figure3_output_spectrum_lowest": "figure3", "figure3_output_sp
                  "figure4_bla_vs_level": "figure4", "bla_confidence": "figure_bla",
                  "figure5_hosidf_vs_amplitude": "figure5", "figure7_tuning": "figure7",
                  "figure9_time_response": "figure9", "error_spectrum": "error_spectrum",
+                 "sensitivity": "sensitivity",
                  "figure3_output_spectrum_paper_level": "figure3", "figure7_simulation": "figure7",
                  "figure8_setup_sweep": "figure8"}
 
