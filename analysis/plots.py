@@ -53,7 +53,7 @@ def _save(fig, path):
 def _legend_outside(ax, **kw):
     """The legend of ``ax`` to the right of its data area (never over the data): anchored
     at the axes' top-right corner, outside it; the constrained layout makes room."""
-    kw.setdefault("fontsize", 7)
+    kw.setdefault("fontsize", 8)
     return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, **kw)
 
 
@@ -243,7 +243,7 @@ def figure_error_spectrum(fs, errors, title=None, unit="rad", f0=None, n_harmoni
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel(f"tracking error amplitude (dB re 1 {unit})")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=7)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=9)
     ax.set_title(title or "Tracking-error spectrum")
     return fig
 
@@ -278,7 +278,7 @@ def figure4(levels, title=None, g_unit="unit/unit", level_unit="unit"):
     for ax in (ax_m, ax_p):
         _plain_log_axis(ax)
         ax.grid(True, which="both", alpha=0.3)
-    _legend_outside(ax_m, fontsize=6, title="excitation", title_fontsize=6)
+    _legend_outside(ax_m, fontsize=8, title="excitation", title_fontsize=8)
     ax_m.set_title(title or "BLA vs frequency and excitation level")
     return fig
 
@@ -512,7 +512,7 @@ def figure9(fs, reference, outputs, errors=None, title=None, rms_in_legend=True)
     # (the feed-forward in the loop) take the page's width, not the plots'
     handles, labels = ax_y.get_legend_handles_labels()
     ax_e.legend(handles, labels, loc="upper left", bbox_to_anchor=(0.0, -0.25),
-                borderaxespad=0.0, fontsize=7)
+                borderaxespad=0.0, fontsize=9)
     ax_y.set_title(title or "Closed-loop response for several K_fc")
     return fig
 
@@ -545,6 +545,6 @@ def figure_sensitivity(curves, title=None):
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel("|S| (dB)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=7)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=9)
     ax.set_title(title or "Measured sensitivity of the loop")
     return fig
