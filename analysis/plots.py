@@ -58,7 +58,8 @@ def _legend_outside(ax, **kw):
 
 
 def legend_outside_data(fig):
-    """The legends of ``fig`` that overlap an axes' data area (display boxes after a draw):
+    """The legends of ``fig`` that overlap an axes' data area or its axis labels (display
+    boxes after a draw):
     a list of (axes title or index, legend) pairs, empty when every legend is outside.
     The report's rule: a legend never covers data (tests check every figure with it)."""
     fig.canvas.draw()
@@ -70,9 +71,14 @@ def legend_outside_data(fig):
             continue
         box = lg.get_window_extent(renderer)
         for i, ax in enumerate(fig.axes):
-            a = ax.get_window_extent(renderer)
-            if box.x0 < a.x1 - 0.5 and box.x1 > a.x0 + 0.5 and box.y0 < a.y1 - 0.5 and box.y1 > a.y0 + 0.5:
-                bad.append((ax.get_title() or i, lg))
+            # the data area and the axis labels (a legend under the axes must clear its
+            # x label)
+            for a in [ax.get_window_extent(renderer)] + [
+                    lab.get_window_extent(renderer) for lab in (ax.xaxis.label, ax.yaxis.label)
+                    if lab.get_text() and lab.get_visible()]:
+                if box.x0 < a.x1 - 0.5 and box.x1 > a.x0 + 0.5 and box.y0 < a.y1 - 0.5 and box.y1 > a.y0 + 0.5:
+                    bad.append((ax.get_title() or i, lg))
+                    break
     return bad
 
 
@@ -241,9 +247,9 @@ def figure_error_spectrum(fs, errors, title=None, unit="rad", f0=None, n_harmoni
         ax.set_ylim(bottom=floor)
     _plain_log_axis(ax)
     ax.set_xlabel("frequency (Hz)")
-    ax.set_ylabel(f"tracking error amplitude (dB re 1 {unit})")
+    ax.set_ylabel(f"error amplitude (dB re 1 {unit})")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=9)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.3), borderaxespad=0.0, fontsize=9)
     ax.set_title(title or "Tracking-error spectrum")
     return fig
 
@@ -545,6 +551,6 @@ def figure_sensitivity(curves, title=None):
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel("|S| (dB)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=9)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.3), borderaxespad=0.0, fontsize=9)
     ax.set_title(title or "Measured sensitivity of the loop")
     return fig

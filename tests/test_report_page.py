@@ -276,3 +276,15 @@ def test_terminal_summary_is_short_and_the_budget_names_its_clocks(page):
     assert "simulated time" in sim and "293 s of excitation" in sim and "wall: real time" in sim
     real = _clock_note({"time_budget_s": {"total": {"excitation": 292.8}}}, realtime=True)
     assert "real time (--realtime)" in real and "simulated" not in real
+
+
+def test_the_legend_rule_sees_a_legend_over_an_axis_label():
+    fs, n = 1000.0, 2000
+    e = 0.02 * np.sin(2 * np.pi * 2 * np.arange(n) / fs)
+    fig = plots.figure_error_spectrum(fs, {"e": e, "e2": 0.5 * e}, f0=2.0, n_harmonics=4)
+    assert plots.legend_outside_data(fig) == []
+    # under the axes but on its x label ("frequency (Hz)"), not on the data
+    ax = fig.axes[0]
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), borderaxespad=0.0)
+    bad = plots.legend_outside_data(fig)
+    assert len(bad) == 1 and bad[0][0] == ax.get_title()
