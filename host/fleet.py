@@ -750,8 +750,8 @@ def drift_figure(rs, machine, axis):
     a1.set_ylabel("K_fc* [V]")
     a1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8)
     name = rs[-1].get("_display") or f"{machine} / {axis}"
-    a1.set_title(f"K_fc* and the odd-harmonic ratio over time: {name} "
-                 f"({len(rs)} analys{'is' if len(rs) == 1 else 'es'})", fontsize=10)
+    a1.set_title(f"{name} ({len(rs)} analys{'is' if len(rs) == 1 else 'es'})\n"
+                 f"K_fc* and the odd-harmonic ratio over time", fontsize=10)
     for key, fmt, label in (("ratio_at_zero", "s-", "odd ratio at K_fc = 0"),
                             ("ratio_at_k_fc_star", "o-", "odd ratio at K_fc* (verification run)")):
         vals = [r[key] if r[key] is not None and r[key] > 0 else math.nan for r in rs]
@@ -773,6 +773,12 @@ def drift_figure(rs, machine, axis):
     return fig
 
 
+def _when(text):
+    """A row's date as the summary shows it: UTC to the minute."""
+    t = _date(text)
+    return t.strftime("%Y-%m-%d %H:%M UTC") if t else str(text)
+
+
 def summary_items(rows):
     """The fleet's summary, one line per axis with an analysed K_fc* (its latest value, what
     to set, and its change over the analyses in sigma) and one for the rows not analysed:
@@ -781,15 +787,18 @@ def summary_items(rows):
 
     obj = _object_of("kfc")[0]
     out = []
-    for (machine, axis), rs in sorted(_groups(rows).items()):
+    groups = sorted(_groups(rows).items())
+    names = [rs[-1].get("_display") or f"{m} / {a}" for (m, a), rs in groups]
+    for ((machine, axis), rs), name in zip(groups, names):
         last, first = rs[-1], rs[0]
-        name = last.get("_display") or f"{machine} / {axis}"
+        if names.count(name) > 1:       # one drive in several folders: which one (as the plots)
+            name = f"{name} [{machine}/{axis}]"
         text = (f"{name}: K_fc* = {gain_text(last['k_fc_star'])} +- {sigma_text(last['k_fc_sigma'])} "
-                f"on object {obj} (latest analysis, {last['date']})")
+                f"on object {obj} (latest analysis, {_when(last['date'])})")
         if len(rs) > 1:
             d = last["k_fc_star"] - first["k_fc_star"]
             sig = math.hypot(first["k_fc_sigma"] or 0.0, last["k_fc_sigma"] or 0.0)
-            text += (f"; {100 * d / first['k_fc_star']:+.1f} % since {first['date']} over {len(rs)} analyses"
+            text += (f"; {100 * d / first['k_fc_star']:+.1f} % since {_when(first['date'])} over {len(rs)} analyses"
                      + (f" ({abs(d) / sig:.1f} sigma)" if sig > 0 else "")
                      if first["k_fc_star"] else "")
         out.append(text)

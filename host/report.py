@@ -627,7 +627,7 @@ _CSS = ("body{font-family:sans-serif;max-width:1200px;margin:auto;padding:0 8px;
         "figure{margin:0}img{width:100%}.sub{margin:0 0 2px}"
         "pre{background:#f4f4f4;padding:8px;white-space:pre-wrap;overflow-wrap:anywhere;font-size:12px}"
         "details{margin:6px 0}summary{cursor:pointer;font-weight:bold}"
-        "td details{margin:0}td summary{font-weight:normal;color:#258}")
+        "ul.rec{padding-left:28px}td details{margin:0}td summary{font-weight:normal;color:#258}")
 
 
 def _figure_heading(caption):

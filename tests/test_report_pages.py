@@ -166,7 +166,7 @@ def pages(tmp_path_factory, figure_pngs):
     fleet.write_summary_html(frows, str(f), [], drift, ["a", "b", "c"])
     out["fleet"] = (f / "report.html", "Summary",
                     "mill / x: K_fc* = 0.1305 V +- 0.0013 V on object 0x2000:04 (latest analysis, "
-                    "2026-03-05T10:00:00); +5.7 % since 2026-01-05T10:00:00 over 2 analyses (4.0 sigma)")
+                    "2026-03-05 10:00 UTC); +5.7 % since 2026-01-05 10:00 UTC over 2 analyses (4.0 sigma)")
     return out
 
 
@@ -331,3 +331,18 @@ def test_a_sweep_point_is_one_row_when_nearest_and_smallest():
     res["tune"]["rms_error_rad"].update(sweep_min=0.024, sweep_min_at_k_fc=0.15)
     by = {r["what"]: r for r in report.loop_comparison(res)}
     assert by["the sweep's point nearest K_fc*"]["k_fc_v"] == 0.1 and by["the sweep's smallest rms error"]["ratio"] is None
+
+
+def test_fleet_summary_tells_one_drive_in_two_folders_apart():
+    rows = []
+    for folder, k in (("out/demo", 0.1156), ("out/fmu", 0.1166)):
+        r = fleet._empty_row(folder, "captures")
+        r.update(machine=folder, axis="node1", date="2026-11-27T15:27:02.301+00:00", status="ok",
+                 k_fc_star=k, k_fc_sigma=0.0006, _display="fftune drive_sim, node 1")
+        rows.append(r)
+    items = fleet.summary_items(rows)
+    assert items == [
+        "fftune drive_sim, node 1 [out/demo/node1]: K_fc* = 0.1156 V +- 0.0006 V on object 0x2000:04 "
+        "(latest analysis, 2026-11-27 15:27 UTC)",
+        "fftune drive_sim, node 1 [out/fmu/node1]: K_fc* = 0.1166 V +- 0.0006 V on object 0x2000:04 "
+        "(latest analysis, 2026-11-27 15:27 UTC)"]
