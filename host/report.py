@@ -392,8 +392,10 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
                 + ("|U/D|, the plant input over the excitation added to it (input sensitivity "
                    "1/(1 + C G))" if results["detect"].get("inject") != "reference" else
                    "|E/R|, the tracking error over the reference (1/(1 + G C))")
-                + f" at the excited lines; peak |S| (M_s) {peaks[0]:+.1f} dB at the lowest level, "
-                  f"{peaks[-1]:+.1f} dB at the highest (a linear loop: the same at every level).")
+                + f" at the excited lines; largest |S| {peaks[0]:+.1f} dB at the lowest level, "
+                  f"{peaks[-1]:+.1f} dB at the highest (a linear loop: the same at every level)"
+                + ("; at the band's lowest line: the peak M_s may lie below the band"
+                   if any(np.argmax(np.abs(S)) == 0 for _, (_, S) in sens) else "") + ".")
     if hos is not None:
         q_in = "V" if (results.get("quantify") or {}).get("inject") == "plant_input" else "rad"
         save("figure5_hosidf_vs_amplitude", plots.figure5(hos, unit=q_in, h_unit=f"rad/{q_in}"),
