@@ -171,7 +171,7 @@ def loop_comparison(results):
                  or s.get("k_v_in_search") or 0.0)
 
     def kv_at(k):
-        ev = [x for x in s.get("evaluations") or [] if x.get("k_fc") == k and "k_v" in x]
+        ev = [x for x in s.get("evaluations") or [] if _same_k(x.get("k_fc"), k) and "k_v" in x]
         return ev[0]["k_v"] if ev else (kv_search if k else 0.0)
     rows = [{"what": "no feed-forward", "k_fc_v": 0.0, "k_v": 0.0,
              "rms_error_rad": e.get("k_fc_0"), "ratio": t.get("ratio_at_zero")}]
@@ -187,7 +187,8 @@ def loop_comparison(results):
                          "rms_error_rad": sw["rms_error_rad"][i], "ratio": sw["ratio"][i]})
         else:
             ratio_min = sw["ratio"][i]
-    same_as_run = (not sw and e.get("sweep_min_at_k_fc") == ver and e.get("sweep_min") == e.get("k_fc_star"))
+    same_as_run = (not sw and _same_k(e.get("sweep_min_at_k_fc"), ver)
+                   and e.get("sweep_min") == e.get("k_fc_star"))
     if e.get("sweep_min") is not None and not same_as_run:
         rows.append({"what": "the sweep's smallest rms error" if sw else
                      "the search's smallest rms error",
@@ -199,6 +200,13 @@ def loop_comparison(results):
         rows.append({"what": "recommended: K_fc* and K_v*", "k_fc_v": t.get("k_fc_star"),
                      "k_v": v.get("k_v_star"), "rms_error_rad": v.get("rms_error_rad"), "ratio": None})
     return rows
+
+
+def _same_k(a, b):
+    """The same gain, read once in float64 and once through the drive's float32 (a
+    statistics capture): equal to 1e-6 relative."""
+    import math
+    return a is not None and b is not None and math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-12)
 
 
 def _model_loop_rows(t):

@@ -346,3 +346,20 @@ def test_fleet_summary_tells_one_drive_in_two_folders_apart():
         "(latest analysis, 2026-11-27 15:27 UTC)",
         "fftune drive_sim, node 1 [out/fmu/node1]: K_fc* = 0.1166 V +- 0.0006 V on object 0x2000:04 "
         "(latest analysis, 2026-11-27 15:27 UTC)"]
+
+
+def test_the_search_run_is_one_row_also_through_float32():
+    """A statistics capture reads the verifying K_fc back through the drive's float32: the
+    search's smallest rms error at that run is the run itself, one row (not two equal
+    ones), with the K_v of its evaluation."""
+    res = _results()
+    t = res["tune"]
+    t["sweep"] = None
+    k64 = 0.11559891034863183
+    k32 = float(np.float32(k64))
+    t["search"].update(verification_k_fc=k64, evaluations=[{"k_fc": 0.0, "k_v": 0.0}, {"k_fc": k32, "k_v": 0.0399}])
+    t["rms_error_rad"].update(k_fc_star=0.01754, sweep_min=0.01754, sweep_min_at_k_fc=k32)
+    rows = report.loop_comparison(res)
+    assert [r["what"] for r in rows] == ["no feed-forward", "the search's run nearest K_fc*",
+                                         "recommended: K_fc* and K_v*"]
+    assert rows[1]["k_v"] == 0.0399
