@@ -75,7 +75,8 @@ def recommendation(results):
     """What to set on the drive, from the tune step: a dict (results.yaml's
     ``recommendation``; numbers rounded as every output shows them) or None without a tune
     step. Keys: ``set`` (bool: a K_fc to set), ``text`` (the sentence), ``k_fc_v``,
-    ``sigma_v`` (1 sigma_total), ``k_fc_object``, ``k_v_v_s_per_rad``, ``k_v_object``,
+    ``sigma_v`` (1 sigma_total), ``k_fc_object``, ``k_v_v_s_per_rad`` (K_v*, else the K_v
+    the search ran with when it had one), ``k_v_object``,
     ``node_id``, ``torque_constant_n_m_per_v`` and ``k_fc_n_m`` / ``k_v_n_m_s_per_rad``
     when the drive tells its torque constant (simulation)."""
     t = results.get("tune")
@@ -96,6 +97,11 @@ def recommendation(results):
     obj_fc, _ = _object_of("kfc")
     obj_kv, _ = _object_of("kv")
     kv = round_sig((t.get("viscous") or {}).get("k_v_star"))
+    # without a K_v step, the K_v the search read K_fc* with (its viscous feed-forward): K_fc*
+    # holds with that K_v in the loop, so it is part of what to set
+    kv_search = round_sig(t["search"].get("k_v_in_search")) or None
+    if kv is None and kv_search:
+        kv = kv_search
     km = torque_constant(results)
     rec = {"set": True, "node_id": node, "k_fc_v": kfc, "sigma_v": sig, "k_fc_object": obj_fc,
            "k_v_v_s_per_rad": kv, "k_v_object": obj_kv if kv is not None else None}
@@ -108,7 +114,9 @@ def recommendation(results):
     if kv is not None:
         text += (f" and K_v = {gain_text(kv, 'V s/rad')}"
                  + (f" (= {round_sig(1e3 * kv * km):g} mN m s/rad)" if km is not None else "")
-                 + f" on object {obj_kv}")
+                 + f" on object {obj_kv}"
+                 + (" (the K_v the search read K_fc* with; tune.viscous.enabled false)"
+                    if (t.get("viscous") or {}).get("k_v_star") is None else ""))
     else:
         text += " (K_v not tuned: tune.viscous.enabled false)"
     rec["text"] = text + "."

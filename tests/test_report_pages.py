@@ -363,3 +363,16 @@ def test_the_search_run_is_one_row_also_through_float32():
     assert [r["what"] for r in rows] == ["no feed-forward", "the search's run nearest K_fc*",
                                          "recommended: K_fc* and K_v*"]
     assert rows[1]["k_v"] == 0.0399
+
+
+def test_without_a_kv_step_the_search_kv_is_part_of_the_recommendation():
+    res = _results()
+    res["tune"]["viscous"] = None
+    res["tune"]["search"]["k_v_in_search"] = 0.0462134
+    rec = report.recommendation(res)
+    assert rec["k_v_v_s_per_rad"] == 0.04621 and rec["k_v_object"] == "0x2000:05"
+    assert rec["text"].endswith("and K_v = 0.04621 V s/rad (= 2.311 mN m s/rad) on object 0x2000:05 "
+                                "(the K_v the search read K_fc* with; tune.viscous.enabled false).")
+    res["tune"]["search"]["k_v_in_search"] = 0.0           # no viscous feed-forward in the search
+    rec = report.recommendation(res)
+    assert rec["k_v_v_s_per_rad"] is None and rec["text"].endswith("(K_v not tuned: tune.viscous.enabled false).")
