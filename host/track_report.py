@@ -40,10 +40,16 @@ def large_updates(rows, n_sigma=LARGE_UPDATE_SIGMA):
     return out
 
 
+def _pct(x):
+    """A relative value in % to 0.1 % (no "-0.0 %")."""
+    v = round(100 * x, 1)
+    return f"{v + 0.0:+.1f} %"
+
+
 def note_text(u):
     """One note line of :func:`large_updates`' item."""
-    rel = f" ({100 * u['step_rel']:+.1f} %)" if u["step_rel"] is not None else ""
-    truth = (f"; the new value is {100 * u['off_truth_rel']:+.1f} % off the simulated truth"
+    rel = f" ({_pct(u['step_rel'])})" if u["step_rel"] is not None else ""
+    truth = (f"; the new value is {_pct(u['off_truth_rel'])} off the simulated truth"
              if u["off_truth_rel"] is not None else "")
     from fftune.host.report import gain_text
 
