@@ -288,3 +288,18 @@ def test_the_legend_rule_sees_a_legend_over_an_axis_label():
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), borderaxespad=0.0)
     bad = plots.legend_outside_data(fig)
     assert len(bad) == 1 and bad[0][0] == ax.get_title()
+
+
+def test_every_figure_function_of_plots_is_checked():
+    """figure_hosidf_harmonics (not drawn in a session's report) keeps the rule too, and no
+    figure function of plots is left out of these tests."""
+    n, r = 512, 3
+    t = np.arange(n)
+    u = np.array([0.3, 1.0])[:, None, None] * np.sin(2 * np.pi * 5 * t / n) * np.ones((2, r, 1))
+    y = np.clip(u, -0.5, 0.6) + 1e-3 * np.random.default_rng(2).standard_normal(u.shape)
+    hos = hosidf(u[:, :, None, :], y[:, :, None, :], fs=512.0, n_harmonics=5)
+    fig = plots.figure_hosidf_harmonics(hos)
+    assert fig.axes[0].get_legend() is not None and plots.legend_outside_data(fig) == []
+    drawn = {"figure3", "figure4", "figure5", "figure7", "figure8", "figure9", "figure_bla",
+             "figure_error_spectrum", "figure_sensitivity", "figure_hosidf_harmonics"}
+    assert {n for n in plots.__all__ if n.startswith("figure")} == drawn
