@@ -10,6 +10,7 @@ from the suffix, PNG by default) and returns the path.
   :func:`plot_bla` -- one BLA with its standard deviations (and confidence band).
 * :func:`figure_error_spectrum` -- tracking-error spectra (the loop without / with
   feed-forward).
+* :func:`figure_sensitivity` -- the measured sensitivity |S| of the loop (its peak M_s).
 * :func:`legend_outside_data` -- the rule every figure keeps: no legend over an axes.
 * :func:`plot_hosidf_amplitude` -- Figure 5: HOSIDFs vs amplitude with std.
   :func:`plot_hosidf_harmonics` -- one experiment's |H_k| and phases.
@@ -26,7 +27,7 @@ from matplotlib.figure import Figure
 from fftune.analysis.errors import InputError
 
 __all__ = ["figure3", "figure4", "figure5", "figure7", "figure8", "figure9", "figure_bla",
-           "figure_error_spectrum", "legend_outside_data",
+           "figure_error_spectrum", "figure_sensitivity", "legend_outside_data",
            "figure_hosidf_harmonics", "plot_output_spectrum", "plot_bla", "plot_bla_levels",
            "plot_hosidf_amplitude", "plot_hosidf_harmonics", "plot_tuning",
            "plot_time_response"]
@@ -52,12 +53,13 @@ def _save(fig, path):
 def _legend_outside(ax, **kw):
     """The legend of ``ax`` to the right of its data area (never over the data): anchored
     at the axes' top-right corner, outside it; the constrained layout makes room."""
-    kw.setdefault("fontsize", 7)
+    kw.setdefault("fontsize", 8)
     return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, **kw)
 
 
 def legend_outside_data(fig):
-    """The legends of ``fig`` that overlap an axes' data area (display boxes after a draw):
+    """The legends of ``fig`` that overlap an axes' data area or its axis labels (display
+    boxes after a draw):
     a list of (axes title or index, legend) pairs, empty when every legend is outside.
     The report's rule: a legend never covers data (tests check every figure with it)."""
     fig.canvas.draw()
@@ -69,9 +71,14 @@ def legend_outside_data(fig):
             continue
         box = lg.get_window_extent(renderer)
         for i, ax in enumerate(fig.axes):
-            a = ax.get_window_extent(renderer)
-            if box.x0 < a.x1 - 0.5 and box.x1 > a.x0 + 0.5 and box.y0 < a.y1 - 0.5 and box.y1 > a.y0 + 0.5:
-                bad.append((ax.get_title() or i, lg))
+            # the data area and the axis labels (a legend under the axes must clear its
+            # x label)
+            for a in [ax.get_window_extent(renderer)] + [
+                    lab.get_window_extent(renderer) for lab in (ax.xaxis.label, ax.yaxis.label)
+                    if lab.get_text() and lab.get_visible()]:
+                if box.x0 < a.x1 - 0.5 and box.x1 > a.x0 + 0.5 and box.y0 < a.y1 - 0.5 and box.y1 > a.y0 + 0.5:
+                    bad.append((ax.get_title() or i, lg))
+                    break
     return bad
 
 
@@ -240,9 +247,9 @@ def figure_error_spectrum(fs, errors, title=None, unit="rad", f0=None, n_harmoni
         ax.set_ylim(bottom=floor)
     _plain_log_axis(ax)
     ax.set_xlabel("frequency (Hz)")
-    ax.set_ylabel(f"tracking error amplitude (dB re 1 {unit})")
+    ax.set_ylabel(f"error amplitude (dB re 1 {unit})")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.2), borderaxespad=0.0, fontsize=7)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.3), borderaxespad=0.0, fontsize=9)
     ax.set_title(title or "Tracking-error spectrum")
     return fig
 
@@ -277,7 +284,7 @@ def figure4(levels, title=None, g_unit="unit/unit", level_unit="unit"):
     for ax in (ax_m, ax_p):
         _plain_log_axis(ax)
         ax.grid(True, which="both", alpha=0.3)
-    _legend_outside(ax_m, fontsize=6, title="excitation", title_fontsize=6)
+    _legend_outside(ax_m, fontsize=8, title="excitation", title_fontsize=8)
     ax_m.set_title(title or "BLA vs frequency and excitation level")
     return fig
 
@@ -511,7 +518,7 @@ def figure9(fs, reference, outputs, errors=None, title=None, rms_in_legend=True)
     # (the feed-forward in the loop) take the page's width, not the plots'
     handles, labels = ax_y.get_legend_handles_labels()
     ax_e.legend(handles, labels, loc="upper left", bbox_to_anchor=(0.0, -0.25),
-                borderaxespad=0.0, fontsize=7)
+                borderaxespad=0.0, fontsize=9)
     ax_y.set_title(title or "Closed-loop response for several K_fc")
     return fig
 
@@ -519,3 +526,31 @@ def figure9(fs, reference, outputs, errors=None, title=None, rms_in_legend=True)
 def plot_time_response(fs, reference, outputs, path, errors=None, title=None, rms_in_legend=True):
     """:func:`figure9` written to ``path``."""
     return _save(figure9(fs, reference, outputs, errors, title, rms_in_legend), path)
+
+
+def figure_sensitivity(curves, title=None):
+    """The measured sensitivity |S| (dB) vs frequency, one line per curve, with 0 dB and
+    each curve's peak (M_s) marked.
+
+    Parameters
+    ----------
+    curves : dict of str -> (freq, S)
+        Label -> the lines (Hz) and the complex sensitivity there
+        (:func:`fftune.analysis.loop.sensitivity`).
+    """
+    fig, (ax,) = _figure(height=3.4)
+    if not curves:
+        raise InputError("figure_sensitivity: no curve")
+    for i, (label, (f, S)) in enumerate(curves.items()):
+        db = _db20(np.asarray(S))
+        k = int(np.nanargmax(db))
+        line, = ax.plot(f, db, lw=1.0, label=f"{label}: peak {db[k]:+.1f} dB at {f[k]:.3g} Hz")
+        ax.plot([f[k]], [db[k]], "o", mfc="none", color=line.get_color())
+    ax.axhline(0.0, color="k", lw=0.6)
+    _plain_log_axis(ax)
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("|S| (dB)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.3), borderaxespad=0.0, fontsize=9)
+    ax.set_title(title or "Measured sensitivity of the loop")
+    return fig

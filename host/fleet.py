@@ -744,8 +744,8 @@ def drift_figure(rs, machine, axis):
     a1.set_ylabel("K_fc* [V]")
     a1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8)
     name = rs[-1].get("_display") or f"{machine} / {axis}"
-    a1.set_title(f"K_fc* and the odd-harmonic ratio over time: {name} "
-                 f"({len(rs)} analys{'is' if len(rs) == 1 else 'es'})", fontsize=10)
+    a1.set_title(f"{name} ({len(rs)} analys{'is' if len(rs) == 1 else 'es'})\n"
+                 f"K_fc* and the odd-harmonic ratio over time", fontsize=10)
     for key, fmt, label in (("ratio_at_zero", "s-", "odd ratio at K_fc = 0"),
                             ("ratio_at_k_fc_star", "o-", "odd ratio at K_fc* (verification run)")):
         vals = [r[key] if r[key] is not None and r[key] > 0 else math.nan for r in rs]
@@ -767,6 +767,43 @@ def drift_figure(rs, machine, axis):
     return fig
 
 
+def _when(text):
+    """A row's date as the summary shows it: UTC to the minute."""
+    t = _date(text)
+    return t.strftime("%Y-%m-%d %H:%M UTC") if t else str(text)
+
+
+def summary_items(rows):
+    """The fleet's summary, one line per axis with an analysed K_fc* (its latest value, what
+    to set, and its change over the analyses in sigma) and one for the rows not analysed:
+    the first thing the page shows."""
+    from fftune.host.report import _object_of, gain_text, sigma_text
+
+    obj = _object_of("kfc")[0]
+    out = []
+    groups = sorted(_groups(rows).items())
+    names = [rs[-1].get("_display") or f"{m} / {a}" for (m, a), rs in groups]
+    for ((machine, axis), rs), name in zip(groups, names):
+        last, first = rs[-1], rs[0]
+        if names.count(name) > 1:       # one drive in several folders: which one (as the plots)
+            name = f"{name} [{machine}/{axis}]"
+        text = (f"{name}: K_fc* = {gain_text(last['k_fc_star'])} +- {sigma_text(last['k_fc_sigma'])} "
+                f"on object {obj} (latest analysis, {_when(last['date'])})")
+        if len(rs) > 1:
+            d = last["k_fc_star"] - first["k_fc_star"]
+            sig = math.hypot(first["k_fc_sigma"] or 0.0, last["k_fc_sigma"] or 0.0)
+            text += (f"; {100 * d / first['k_fc_star']:+.1f} % since {_when(first['date'])} over {len(rs)} analyses"
+                     + (f" ({abs(d) / sig:.1f} sigma)" if sig > 0 else "")
+                     if first["k_fc_star"] else "")
+        out.append(text)
+    bad = [r for r in rows if r["status"] == "error" or r["k_fc_star"] is None]
+    if bad:
+        out.append(f"{len(bad)} of {len(rows)} rows without a K_fc* (the table says why)")
+    if not out:
+        out.append("no rows")
+    return out
+
+
 def write_summary_html(rows, out_dir, tables, plots, items):
     """``<out_dir>/report.html``: the fleet at a glance (counts, one line per axis and date
     with K_fc* +- sigma, the truth where known, the odd ratios, the reason of a row not
@@ -786,6 +823,8 @@ def write_summary_html(rows, out_dir, tables, plots, items):
              f"{n['error']} not analysed; tables: "
              + ", ".join(f"<a href='{_html.escape(os.path.basename(t))}'>{_html.escape(os.path.basename(t))}</a>"
                          for t in tables) + "</p>",
+             "<h2>Summary</h2><ul class='rec'>"
+             + "".join(f"<li>{_html.escape(x)}</li>" for x in summary_items(rows)) + "</ul>",
              "<h2>K_fc* per axis and date</h2><table><tr><th>axis</th><th>node</th><th>date</th>"
              "<th>status</th><th>K_fc* (1 sigma)</th><th>true (simulation)</th>"
              "<th>odd ratio at 0 -> at K_fc*</th><th>reason / source</th></tr>"]

@@ -592,34 +592,41 @@ def machine_summary(machine, axes, wall_s, started, bus_model=None, measure_wall
 
 def write_machine(out, summary):
     """``<out>/results.yaml`` (the summary) and ``<out>/report.html`` (one page)."""
-    from fftune.host.report import _object_of
+    from fftune.host.report import gain_text, sigma_text
     write_atomic(os.path.join(out, "results.yaml"),
                  yaml.safe_dump(summary, sort_keys=False, default_flow_style=None, width=100))
 
-    def f(x, unit="", pct=False):
+    def f(x, unit="", pct=False, sig=False):
         if x is None:
             return "&ndash;"
-        return f"{100 * x:+.2f} %" if pct else f"{x:.4g}{unit}"
-    rows = []
+        return f"{100 * x:+.2f} %" if pct else html.escape((sigma_text if sig else gain_text)(x, unit.strip()))
+    rows, recs = [], []
     for a in summary["axes"]:
+        rec = None
+        if a.get("results") and os.path.isfile(os.path.join(out, a["results"])):
+            with open(os.path.join(out, a["results"]), encoding="utf-8") as fh:
+                rec = (yaml.safe_load(fh) or {}).get("recommendation")
+        text = rec["text"] if rec else f"nothing to set ({a['status']}: {a.get('error') or a.get('stop_reason')})"
+        recs.append(f"<li><b>{html.escape(a['name'])}</b>: {html.escape(text)}</li>")
         link = (f"<a href='{html.escape(a['name'])}/report.html'>{html.escape(a['name'])}</a>"
                 if a.get("results") else html.escape(a["name"]))
         note = a.get("error") or a.get("verdict") or ""
         rows.append(f"<tr><td>{link}</td><td>{a['node_id']}</td><td>{html.escape(a['status'])}</td>"
-                    f"<td>{f(a['k_fc_star'], ' V')}</td><td>{f(a['sigma'], ' V')}</td>"
+                    f"<td>{f(a['k_fc_star'], ' V')}</td><td>{f(a['sigma'], ' V', sig=True)}</td>"
                     f"<td>{f(a['k_fc_true'], ' V')}</td><td>{f(a['k_fc_error_re_truth'], pct=True)}</td>"
                     f"<td>{f((a.get('time_budget_s') or {}).get('excitation'), ' s')}</td>"
                     f"<td>{html.escape(str(note))}</td></tr>")
     tot = summary["time_budget_s"]["total"]
     page = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>fftune machine report</title>"
             "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:"
-            "collapse}th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}</style></head><body>"
+            "collapse}th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}"
+            ".rec{border:2px solid #2a7;background:#eefaf2;padding:4px 8px 4px 24px}</style></head><body>"
             f"<h1>fftune machine {html.escape(summary['machine'])}</h1>"
+            "<h2>Recommendation</h2><ul class='rec'>" + "".join(recs) + "</ul>"
             f"<p>{html.escape(summary['started'])} .. {html.escape(summary['finished'])}; "
-            f"{len(summary['axes'])} axes tuned concurrently on one bus.</p>"
-            f"<p><b>What to set:</b> each axis' K_fc* below on object {_object_of('kfc')[0]} of its node; its "
-            "K_v and the loop with and without the feed-forward: the axis' report (the link).</p>"
-            "<table><tr><th>axis</th><th>node</th><th>status</th><th>K_fc*</th><th>sigma</th>"
+            f"{len(summary['axes'])} axes tuned concurrently on one bus; the loop with and without "
+            "the feed-forward: each axis' report (the link).</p>"
+            "<h2>Axes</h2><table><tr><th>axis</th><th>node</th><th>status</th><th>K_fc*</th><th>sigma</th>"
             "<th>true (sim)</th><th>error re truth</th><th>excitation</th><th>verdict / error</th></tr>"
             + "".join(rows) + "</table>"
             f"<h2>Time budget</h2><p>wall {tot['wall']:.1f} s; longest axis' excitation "

@@ -272,18 +272,12 @@ def run(args):
     }
     write_atomic(os.path.join(out, "reproduction.json"), json.dumps(doc, indent=2) + "\n")
     figs = paper_figures(out, results, data, sim_data, numbers)
-    from fftune.host.report import write_html
     table = rep.markdown_table(rows, notes)
-    write_html(out, results, dict(data.get("figures") or {}, **figs), title="fftune: the paper reproduced",
-               sections=[("The paper's results reproduced (reproduction.json)", _html_table(rows, notes))])
+    write_report(out, results, dict(data.get("figures") or {}, **figs), rows, notes)
     if args.doc:
         write_doc(args.doc, table, doc, template=template)
         log(f"fftune paper: wrote {args.doc}")
-    judged = [r for r in rows if r.get("verdict", "yes" if r["agrees"] else "no") != "other set-up"]
-    agree = sum(r["agrees"] for r in judged)
-    log(f"fftune paper: {agree} of {len(judged)} results agree with the paper"
-        + (f"; {len(rows) - len(judged)} more the paper measured on another set-up (shown, not compared)"
-           if len(judged) < len(rows) else ""))
+    log(f"fftune paper: {verdict_text(rows)}")
     for r in rows:
         mark = {"yes": "ok ", "no": "NO "}.get(r.get("verdict", "yes" if r["agrees"] else "no"), "-- ")
         log(f"  {mark} {r['claim']}: paper {r['paper']}, measured "
@@ -293,15 +287,61 @@ def run(args):
     return 0
 
 
+# the pipeline's figures the paper page shows collapsed (the paper's own are open)
+MORE_FIGURES = ("figure3_output_spectrum_lowest", "figure3_output_spectrum_highest", "figure4_bla_vs_level",
+                "bla_confidence", "sensitivity", "figure5_hosidf_vs_amplitude", "figure7_tuning",
+                "error_spectrum")
+
+
+def write_report(out, results, figures, rows, notes):
+    """``<out>/report.html`` of the reproduction: the verdict and K_fc* first, the
+    recommendation, the table "paper / measured / agrees?" (each note collapsed), the key
+    numbers collapsed, the paper's figures open and the pipeline's others collapsed
+    (:data:`MORE_FIGURES`)."""
+    from fftune.host.report import write_html
+
+    return write_html(out, results, figures, title="fftune: the paper reproduced",
+                      first=[("Reproduction", f"<p class='rec'>{html.escape(verdict_text(rows))}; "
+                                              f"{html.escape(kfc_text(results))}.</p>")],
+                      sections=[("The paper's results reproduced (reproduction.json)", _html_table(rows, notes))],
+                      more_figures=MORE_FIGURES, collapse_numbers=True)
+
+
+def verdict_text(rows):
+    """The reproduction's verdict: how many of the compared results agree, and how many
+    the paper measured on another set-up (shown, not compared)."""
+    judged = [r for r in rows if r.get("verdict", "yes" if r["agrees"] else "no") != "other set-up"]
+    agree = sum(r["agrees"] for r in judged)
+    return (f"{agree} of {len(judged)} results agree with the paper"
+            + (f"; {len(rows) - len(judged)} more the paper measured on another set-up (shown, not compared)"
+               if len(judged) < len(rows) else ""))
+
+
+def kfc_text(results):
+    """K_fc* of the set-up as every output shows it (fftune.host.report's rounding)."""
+    from fftune.host.report import gain_text, sigma_text
+
+    t = results.get("tune") or {}
+    if t.get("k_fc_star") is None:
+        return "no K_fc* (the search did not converge)"
+    text = f"K_fc* = {gain_text(t['k_fc_star'])} +- {sigma_text(t['search'].get('sigma_v'))} (1 sigma_total)"
+    if t.get("true_coulomb_v"):
+        text += (f", {100 * t['k_fc_star_error_re_truth']:+.2f} % off the simulated Coulomb level "
+                 f"{gain_text(t['true_coulomb_v'])}")
+    return text
+
+
 def _html_table(rows, notes):
     out = ["<table><tr><th>claim</th><th>paper</th><th>measured</th><th>accepted</th>"
            "<th>agrees?</th><th>note</th></tr>"]
     for r in rows:
+        note = notes.get(r["key"], "")
         out.append("<tr>" + "".join(f"<td>{html.escape(str(x))}</td>" for x in (
             r["claim"], r["paper"], r["measured_text"], r["accepted"],
             {"yes": "yes", "no": "NO"}.get(r.get("verdict", "yes" if r["agrees"] else "no"),
-                                          f"not compared (the paper: {r.get('setup')})"),
-            notes.get(r["key"], ""))) + "</tr>")
+                                          f"not compared (the paper: {r.get('setup')})")))
+                   + (f"<td><details><summary>why</summary>{html.escape(note)}</details></td>" if note
+                      else "<td></td>") + "</tr>")
     out.append("</table>")
     return "\n".join(out)
 

@@ -5,13 +5,12 @@ the figures and ``report.html`` into the output directory (captures are written 
 session as the runs arrive).
 """
 import datetime
-import math
 import os
 import time
 
 from fftune.host import __version__
 from fftune.host import experiments as ex
-from fftune.host.report import make_figures, write_html, write_results
+from fftune.host.report import _fmt, gain_text, make_figures, sigma_text, write_html, write_results
 
 STEPS = ("detect", "quantify", "tune")
 BUDGET_KEYS = ("excitation", "bus", "host", "wall", "drive_wait")
@@ -102,10 +101,12 @@ def run_pipeline(drive, cfg, out_dir, steps=STEPS, log=print, figures=True, pref
             tr = results["tune"]
             srch = tr["search"]
             if srch["converged"]:
-                log(f"tune: K_fc* = {tr['k_fc_star']:.4g} V +- {srch['sigma_v']:.2g} V (sigma_total: "
+                # (the report's rounding: one value per quantity in every output)
+                log(f"tune: K_fc* = {gain_text(tr['k_fc_star'])} +- {sigma_text(srch['sigma_v'])} (sigma_total: "
                     "noise and the measured systematic parts, results.yaml tune.search.sigma_parts_v) "
                     f"after {srch['experiments']} experiments at {tr['amplitude_rad']:.3g} rad; "
-                    f"ratio {tr['ratio_at_zero'] or math.inf:.3g} -> {tr['ratio_at_k_fc_star']:.3g}")
+                    f"odd-harmonic ratio {_fmt(tr['ratio_at_zero'], level=True)} -> "
+                    f"{_fmt(tr['ratio_at_k_fc_star'], level=True)}")
             else:
                 log(f"tune: not converged after {srch['experiments']} experiments: "
                     f"{srch['stop_reason']}")

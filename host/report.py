@@ -75,7 +75,8 @@ def recommendation(results):
     """What to set on the drive, from the tune step: a dict (results.yaml's
     ``recommendation``; numbers rounded as every output shows them) or None without a tune
     step. Keys: ``set`` (bool: a K_fc to set), ``text`` (the sentence), ``k_fc_v``,
-    ``sigma_v`` (1 sigma_total), ``k_fc_object``, ``k_v_v_s_per_rad``, ``k_v_object``,
+    ``sigma_v`` (1 sigma_total), ``k_fc_object``, ``k_v_v_s_per_rad`` (K_v*, else the K_v
+    the search ran with when it had one), ``k_v_object``,
     ``node_id``, ``torque_constant_n_m_per_v`` and ``k_fc_n_m`` / ``k_v_n_m_s_per_rad``
     when the drive tells its torque constant (simulation)."""
     t = results.get("tune")
@@ -83,6 +84,8 @@ def recommendation(results):
         return None
     node = ((results.get("drive") or {}).get("identity") or {}).get("node_id")
     on = f" of node {node}" if node is not None else ""
+    if t.get("method") == "model":
+        return _model_recommendation(t, node, on)
     if not t["search"].get("converged") or t.get("k_fc_star") is None:
         best = t.get("k_fc_best_measured")
         return {"set": False, "node_id": node,
@@ -94,6 +97,11 @@ def recommendation(results):
     obj_fc, _ = _object_of("kfc")
     obj_kv, _ = _object_of("kv")
     kv = round_sig((t.get("viscous") or {}).get("k_v_star"))
+    # without a K_v step, the K_v the search read K_fc* with (its viscous feed-forward): K_fc*
+    # holds with that K_v in the loop, so it is part of what to set
+    kv_search = round_sig(t["search"].get("k_v_in_search")) or None
+    if kv is None and kv_search:
+        kv = kv_search
     km = torque_constant(results)
     rec = {"set": True, "node_id": node, "k_fc_v": kfc, "sigma_v": sig, "k_fc_object": obj_fc,
            "k_v_v_s_per_rad": kv, "k_v_object": obj_kv if kv is not None else None}
@@ -106,11 +114,51 @@ def recommendation(results):
     if kv is not None:
         text += (f" and K_v = {gain_text(kv, 'V s/rad')}"
                  + (f" (= {round_sig(1e3 * kv * km):g} mN m s/rad)" if km is not None else "")
-                 + f" on object {obj_kv}")
+                 + f" on object {obj_kv}"
+                 + (" (the K_v the search read K_fc* with; tune.viscous.enabled false)"
+                    if (t.get("viscous") or {}).get("k_v_star") is None else ""))
     else:
         text += " (K_v not tuned: tune.viscous.enabled false)"
     rec["text"] = text + "."
     return rec
+
+
+# the drive gains of `tune.method: model` (fftune.analysis.ffmodel.TERM_INFO): alias ->
+# (symbol, term, unit)
+_MODEL_GAINS = (("kfc", "K_fc", "coulomb", "V"), ("kfa", "K_fa", "asymmetry", "V"),
+                ("kv", "K_v", "viscous", "V s/rad"), ("kps", "K_ps", "position", "V"),
+                ("kpc", "K_pc", "position", "V"))
+
+
+def _model_recommendation(t, node, on):
+    """:func:`recommendation` of ``tune.method: model``: every gain of the converged model
+    (``tune.model.gains``: the viscous one always, the requested terms' others) with its
+    object and the 1 sigma of its term (the position term's two gains share the sigma of
+    its amplitude). Keys as :func:`recommendation`'s plus ``gains`` ({alias: {symbol,
+    term, value, sigma, unit, object}})."""
+    m = t.get("model") or {}
+    if not m.get("converged") or not m.get("gains"):
+        return {"set": False, "node_id": node,
+                "text": f"Nothing to set: the feed-forward model did not converge "
+                        f"({m.get('stop_reason')})."}
+    terms = t.get("terms") or {}
+    gains = {}
+    for alias, sym, term, unit in _MODEL_GAINS:
+        if alias not in m["gains"] or (term not in terms and alias != "kv"):
+            continue
+        sig = (terms.get(term) or {}).get("sigma")
+        gains[alias] = {"symbol": sym, "term": term, "value": round_sig(m["gains"][alias]),
+                        "sigma": round_sig(sig, 2), "unit": unit, "object": _object_of(alias)[0]}
+    parts = [f"{g['symbol']} = {gain_text(g['value'], g['unit'])}"
+             + (f" (1 sigma {sigma_text(g['sigma'], g['unit'])})" if g["sigma"] is not None else "")
+             + f" on object {g['object']}" for g in gains.values()]
+    text = "Set " + (", ".join(parts[:-1]) + " and " + parts[-1] if len(parts) > 1 else parts[0])
+    kfc, kv = gains.get("kfc"), gains.get("kv")
+    return {"set": True, "node_id": node, "method": "model",
+            "k_fc_v": kfc["value"] if kfc else None, "sigma_v": kfc["sigma"] if kfc else None,
+            "k_fc_object": kfc["object"] if kfc else None,
+            "k_v_v_s_per_rad": kv["value"] if kv else None, "k_v_object": kv["object"] if kv else None,
+            "gains": gains, "text": f"{text}{on} (tune.method: model, every term at once)."}
 
 
 def loop_comparison(results):
@@ -121,6 +169,8 @@ def loop_comparison(results):
     t = results.get("tune")
     if not t:
         return []
+    if t.get("method") == "model":
+        return _model_loop_rows(t)
     s, e = t["search"], t["rms_error_rad"]
     # the K_v the search's runs had in the loop: the evaluation's own (k_v), else the one
     # read at K_fc = 0 (search.budget.viscous; search.k_v_in_search is the corrected value a
@@ -129,7 +179,7 @@ def loop_comparison(results):
                  or s.get("k_v_in_search") or 0.0)
 
     def kv_at(k):
-        ev = [x for x in s.get("evaluations") or [] if x.get("k_fc") == k and "k_v" in x]
+        ev = [x for x in s.get("evaluations") or [] if _same_k(x.get("k_fc"), k) and "k_v" in x]
         return ev[0]["k_v"] if ev else (kv_search if k else 0.0)
     rows = [{"what": "no feed-forward", "k_fc_v": 0.0, "k_v": 0.0,
              "rms_error_rad": e.get("k_fc_0"), "ratio": t.get("ratio_at_zero")}]
@@ -137,21 +187,59 @@ def loop_comparison(results):
     rows.append({"what": "the search's run nearest K_fc*", "k_fc_v": ver, "k_v": kv_at(ver),
                  "rms_error_rad": e.get("k_fc_star"), "ratio": t.get("ratio_at_k_fc_star")})
     sw = t.get("sweep")
+    ratio_min = None
     if sw and sw.get("k_fc") and sw.get("rms_error_rad") and t.get("k_fc_star") is not None:
         i = min(range(len(sw["k_fc"])), key=lambda j: abs(sw["k_fc"][j] - t["k_fc_star"]))
-        rows.append({"what": "the sweep's point nearest K_fc*", "k_fc_v": sw["k_fc"][i], "k_v": 0.0,
-                     "rms_error_rad": sw["rms_error_rad"][i], "ratio": sw["ratio"][i]})
-    same_as_run = (not sw and e.get("sweep_min_at_k_fc") == ver and e.get("sweep_min") == e.get("k_fc_star"))
+        if sw["k_fc"][i] != e.get("sweep_min_at_k_fc"):     # (else: the smallest row below)
+            rows.append({"what": "the sweep's point nearest K_fc*", "k_fc_v": sw["k_fc"][i], "k_v": 0.0,
+                         "rms_error_rad": sw["rms_error_rad"][i], "ratio": sw["ratio"][i]})
+        else:
+            ratio_min = sw["ratio"][i]
+    same_as_run = (not sw and _same_k(e.get("sweep_min_at_k_fc"), ver)
+                   and e.get("sweep_min") == e.get("k_fc_star"))
     if e.get("sweep_min") is not None and not same_as_run:
         rows.append({"what": "the sweep's smallest rms error" if sw else
                      "the search's smallest rms error",
                      "k_fc_v": e.get("sweep_min_at_k_fc"),
                      "k_v": 0.0 if sw else kv_at(e.get("sweep_min_at_k_fc")),
-                     "rms_error_rad": e.get("sweep_min"), "ratio": None})
+                     "rms_error_rad": e.get("sweep_min"), "ratio": ratio_min})
     v = t.get("viscous")
     if v:
         rows.append({"what": "recommended: K_fc* and K_v*", "k_fc_v": t.get("k_fc_star"),
                      "k_v": v.get("k_v_star"), "rms_error_rad": v.get("rms_error_rad"), "ratio": None})
+    return rows
+
+
+def _same_k(a, b):
+    """The same gain, read once in float64 and once through the drive's float32 (a
+    statistics capture): equal to 1e-6 relative."""
+    import math
+    return a is not None and b is not None and math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-12)
+
+
+def _model_loop_rows(t):
+    """:func:`loop_comparison` of ``tune.method: model``: its first experiment (no
+    feed-forward) and every experiment at the verifying one's amplitude, each with the
+    K_fc, K_v and amplitude it ran with (rows at another amplitude than the first say so)."""
+    exps = (t.get("model") or {}).get("experiments") or []
+    if not exps:
+        return []
+    first = exps[0]
+    ver_tag = (t["model"].get("verification") or {}).get("tag")
+    same = [i for i, x in enumerate(exps) if i and x.get("amplitude_rad") == first.get("amplitude_rad")]
+    ver = [i for i, x in enumerate(exps) if i and x.get("tag") == ver_tag]
+    rows = []
+    for i, x in enumerate(exps):
+        # the first, the last at its amplitude (like for like) and the verifying one
+        if i and i not in same[-1:] + ver[-1:]:
+            continue
+        g = x.get("gains") or {}
+        what = ("no feed-forward" if i == 0 and not any(g.values()) else
+                f"experiment {i + 1} ({x.get('tag')}), the gains of the estimate before it")
+        if x.get("amplitude_rad") != first.get("amplitude_rad"):
+            what += f" (at {x['amplitude_rad']:g} rad, not {first['amplitude_rad']:g} rad: not like for like)"
+        rows.append({"what": what, "k_fc_v": g.get("kfc"), "k_v": g.get("kv"),
+                     "rms_error_rad": x.get("rms_error_rad"), "ratio": x.get("odd_ratio")})
     return rows
 
 
@@ -208,10 +296,45 @@ def figure_conclusions(results, detect_levels=None, tune_data=None):
             text += (f"; with K_v = 0 (like for like) the sweep's smallest is "
                      f"{rms_text(rmin['rms_error_rad'])} at K_fc = {gain_text(rmin['k_fc_v'])}, "
                      f"{rms_text(near['rms_error_rad'])} at its point nearest K_fc*")
+        elif rmin:
+            text += (f"; with K_v = 0 (like for like) the sweep's smallest is "
+                     f"{rms_text(rmin['rms_error_rad'])} at K_fc = {gain_text(rmin['k_fc_v'])}, "
+                     f"its point nearest K_fc*")
         rec = rows.get("recommended: K_fc* and K_v*")
         if rec:
             text += f"; {rms_text(rec['rms_error_rad'])} with the recommended K_fc* and K_v*"
         out["figure9"] = text
+    return out
+
+
+def measured_sensitivity(out_dir, results):
+    """The loop's sensitivity at each detect level from the detect step's captures with
+    samples (``<out_dir>/captures``, :func:`fftune.analysis.loop.sensitivity`): a list of
+    (rms, (freq, S)), empty when the captures hold no samples (``capture: stats``) or are
+    not there."""
+    from fftune.analysis.capture import load_experiment
+    from fftune.analysis.errors import InputError
+    from fftune.analysis.loop import sensitivity
+
+    d = results.get("detect") or {}
+    cap = os.path.join(out_dir, "captures")
+    if not d.get("levels") or d.get("capture") == "stats" or not os.path.isdir(cap):
+        return []
+    out = []
+    for i, lv in enumerate(d["levels"]):
+        try:
+            ex = load_experiment(cap, experiment="detect", level_index=i)
+        except (InputError, OSError, KeyError, ValueError):
+            return []
+        sig, p = ex.signals, ex.record_periods
+        try:
+            if d.get("inject") == "reference":
+                x, r = sig["reference"] - sig["motor_angle"], sig["reference"]
+            else:
+                x, r = sig["plant_input"], sig["excitation"]
+            out.append((lv["rms_requested"], sensitivity(x[:, -p:], r[:, -p:], fs=ex.fs_hz)[:2]))
+        except (KeyError, InputError):
+            return []
     return out
 
 
@@ -234,6 +357,7 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
     Returns ``{figure name: (file name, caption)}`` for the figures the data allow.
     """
     import matplotlib
+    import numpy as np
     matplotlib.use("Agg")
     from fftune.analysis import plots
 
@@ -274,6 +398,20 @@ def make_figures(out_dir, detect_levels=None, hos=None, tune_data=None, results=
                 f"level ({rms:.3g} {unit_in} rms), the 95 % band from its total variance "
                 f"(noise and nonlinear distortion over the realizations), and the two standard "
                 f"deviations.")
+        sens = measured_sensitivity(out_dir, results)
+        if sens:
+            curves = {f"{rms:g} {unit_in} rms": fs_ for rms, fs_ in sens}
+            peaks = [20 * np.log10(np.max(np.abs(S))) for _, (_, S) in sens]
+            made["sensitivity"] = save_figure(out_dir, "sensitivity", plots.figure_sensitivity(
+                curves, title="Measured sensitivity of the loop at each excitation level"),
+                f"Measured sensitivity of the loop (the detect step, no feed-forward): "
+                + ("|U/D|, the plant input over the excitation added to it (input sensitivity "
+                   "1/(1 + C G))" if results["detect"].get("inject") != "reference" else
+                   "|E/R|, the tracking error over the reference (1/(1 + G C))")
+                + f" at the excited lines; largest |S| {peaks[0]:+.1f} dB at the lowest level, "
+                  f"{peaks[-1]:+.1f} dB at the highest (a linear loop: the same at every level)"
+                + ("; at the band's lowest line: the peak M_s may lie below the band"
+                   if any(np.argmax(np.abs(S)) == 0 for _, (_, S) in sens) else "") + ".")
     if hos is not None:
         q_in = "V" if (results.get("quantify") or {}).get("inject") == "plant_input" else "rad"
         save("figure5_hosidf_vs_amplitude", plots.figure5(hos, unit=q_in, h_unit=f"rad/{q_in}"),
@@ -352,8 +490,9 @@ def key_numbers(results):
         rows.append(("feed-forward terms (tune.method model)", "converged" if m["converged"]
                      else f"not converged: {m['stop_reason']}"))
         for name, term in t["terms"].items():
-            rows.append((f"{name} ({term['object']})", f"{_fmt(term['value'], ' ' + term['unit'])} +- "
-                                                      f"{_fmt(term['sigma'], ' ' + term['unit'])}"))
+            rows.append((f"{name} term", f"{gain_text(term['value'], term['unit'])} +- "
+                                         f"{sigma_text(term['sigma'], term['unit'])}"))
+        rows.append(("on the drive", (results.get("recommendation") or recommendation(results))["text"]))
         rows += [("closed-loop experiments", t["experiments"]),
                  ("odd / even level at the verifying experiment (re |H_1|)",
                   f"{_fmt(t['odd_ratio_at_optimum'], level=True)} / {_fmt(t['even_ratio_at_optimum'], level=True)}"),
@@ -403,12 +542,11 @@ def detail_rows(results):
     t = results.get("tune")
     if t:
         s = t["search"]
-        rows += [
-            ("sigma_total(K_fc*) parts", ", ".join(f"{k} {sigma_text(v)}" for k, v in
-                                                   (s.get("sigma_parts_v") or {}).items()) or "-"),
-            ("K_v in the loop during the search", _search_kv_text(s)),
-            ("tune amplitude, frequency", f"{t['amplitude_rad']:.3g} rad, {t['frequency_hz']:g} Hz"),
-        ]
+        rows.append(("sigma_total(K_fc*) parts", ", ".join(f"{k} {sigma_text(v)}" for k, v in
+                                                           (s.get("sigma_parts_v") or {}).items()) or "-"))
+        if t.get("method") != "model":
+            rows.append(("K_v in the loop during the search", _search_kv_text(s)))
+        rows.append(("tune amplitude, frequency", f"{t['amplitude_rad']:.3g} rad, {t['frequency_hz']:g} Hz"))
     d = results.get("detect")
     if d:
         for tag, lv in (("lowest", d["levels"][0]), ("highest", d["levels"][-1])):
@@ -445,8 +583,12 @@ def comparison_table(results):
             r["what"], gain_text(r["k_fc_v"]), gain_text(r["k_v"], "V s/rad"),
             rms_text(r["rms_error_rad"]), _fmt(r["ratio"], level=True) if r["ratio"] is not None
             else "-")) + "</tr>")
-    out.append("</table><p class='note'>Compare rows with the same K_v: the sweep runs with "
-               "K_v = 0; the search runs with the K_v shown.</p>")
+    if (results["tune"].get("method") == "model"):
+        out.append("</table><p class='note'>Compare rows at the same amplitude: each row ran with "
+                   "the gains shown (and the position term's) at the amplitude its name says.</p>")
+    else:
+        out.append("</table><p class='note'>Compare rows with the same K_v: the sweep runs with "
+                   "K_v = 0; the search runs with the K_v shown.</p>")
     return "\n".join(out)
 
 
@@ -502,7 +644,8 @@ _CSS = ("body{font-family:sans-serif;max-width:1200px;margin:auto;padding:0 8px;
         ".figs{display:grid;grid-template-columns:repeat(auto-fill,minmax(560px,1fr));gap:10px}"
         "figure{margin:0}img{width:100%}.sub{margin:0 0 2px}"
         "pre{background:#f4f4f4;padding:8px;white-space:pre-wrap;overflow-wrap:anywhere;font-size:12px}"
-        "details{margin:6px 0}summary{cursor:pointer;font-weight:bold}")
+        "details{margin:6px 0}summary{cursor:pointer;font-weight:bold}"
+        "ul.rec{padding-left:28px}td details{margin:0}td summary{font-weight:normal;color:#258}")
 
 
 def _figure_heading(caption):
@@ -530,12 +673,29 @@ def _config_text(results):
         return None
 
 
-def write_html(out_dir, results, figures, title="fftune report", sections=()):
-    """``report.html``, a decision page: the recommendation first (what to set, on which
-    object, :func:`recommendation`), ``sections`` ((heading, HTML) pairs), the like-for-like
-    comparison (:func:`loop_comparison`), the key numbers, the figures (titled by what they
-    show, the paper's figure number as a subtitle) in a grid, then the configuration and
-    the full results (dB floors printed as such) collapsed."""
+def _figure_html(name, fname, caption):
+    head, sub, text = _figure_heading(caption)
+    return (f"<figure><h3>{html.escape(head)}</h3>"
+            + (f"<p class='sub'>{html.escape(sub)}</p>" if sub else "")
+            + f"<a href='{html.escape(fname)}'><img src='{html.escape(fname)}' "
+              f"alt='{html.escape(name)}'></a>"
+              f"<figcaption>{html.escape(text)}</figcaption></figure>")
+
+
+# the figures a session's page shows collapsed ("More figures") unless told otherwise: the
+# lowest level's output spectrum (the highest level's shows the nonlinearity)
+MORE_FIGURES = ("figure3_output_spectrum_lowest",)
+
+
+def write_html(out_dir, results, figures, title="fftune report", sections=(), first=(),
+               more_figures=MORE_FIGURES, collapse_numbers=False):
+    """``report.html``, a decision page: ``first`` ((heading, HTML) pairs: a verdict
+    before everything, e.g. the paper's reproduction), the recommendation (what to set, on
+    which object, :func:`recommendation`), ``sections`` ((heading, HTML) pairs), the
+    like-for-like comparison (:func:`loop_comparison`), the key numbers (collapsed with
+    ``collapse_numbers``), the figures (titled by what they show, the paper's figure
+    number as a subtitle) in a grid, those named in ``more_figures`` collapsed under it,
+    then the configuration and the full results (dB floors printed as such) collapsed."""
     ident = results.get("drive", {}).get("identity", {})
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
@@ -547,6 +707,8 @@ def write_html(out_dir, results, figures, title="fftune report", sections=()):
         f"{html.escape(str(ident.get('bus', '')))}; configuration "
         f"{html.escape(str(results.get('config_file', '')))}</p>",
     ]
+    for heading, body in first:
+        parts += [f"<h2>{html.escape(heading)}</h2>", body]
     rec = results.get("recommendation") or recommendation(results)
     if rec is not None:
         parts.append(f"<h2>Recommendation</h2><p class='rec'>{html.escape(rec['text'])}</p>")
@@ -561,17 +723,23 @@ def write_html(out_dir, results, figures, title="fftune report", sections=()):
     # (the recommendation and the rms errors are above: not twice)
     keys = [(k, v) for k, v in key_numbers(results)
             if not (cmp_html and k.startswith("rms tracking error")) and k != "on the drive"]
-    parts += ["<h2>Key numbers</h2>", _table(keys + detail_rows(results))]
-    if figures:
+    if collapse_numbers:
+        parts += [f"<details><summary>Key numbers ({len(keys) + len(detail_rows(results))} rows)</summary>",
+                  _table(keys + detail_rows(results)), "</details>"]
+    else:
+        parts += ["<h2>Key numbers</h2>", _table(keys + detail_rows(results))]
+    main = {k: v for k, v in (figures or {}).items() if k not in more_figures}
+    more = {k: v for k, v in (figures or {}).items() if k in more_figures}
+    if main:
         parts.append("<h2>Figures</h2><div class='figs'>")
-        for name, (fname, caption) in figures.items():
-            head, sub, text = _figure_heading(caption)
-            parts.append(f"<figure><h3>{html.escape(head)}</h3>"
-                         + (f"<p class='sub'>{html.escape(sub)}</p>" if sub else "")
-                         + f"<a href='{html.escape(fname)}'><img src='{html.escape(fname)}' "
-                           f"alt='{html.escape(name)}'></a>"
-                           f"<figcaption>{html.escape(text)}</figcaption></figure>")
+        parts += [_figure_html(name, fname, caption) for name, (fname, caption) in main.items()]
         parts.append("</div>")
+    if more:
+        parts.append(f"<details><summary>More figures ({len(more)}: "
+                     + html.escape(", ".join(_figure_heading(c)[0] for _, c in more.values()))
+                     + ")</summary><div class='figs'>")
+        parts += [_figure_html(name, fname, caption) for name, (fname, caption) in more.items()]
+        parts.append("</div></details>")
     cfg_text = _config_text(results)
     if cfg_text is not None:
         parts.append(f"<details><summary>Configuration ({html.escape(str(results.get('config_file')))})"

@@ -534,31 +534,13 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
 
 
 def plot_track(rows, path):
-    """K_fc applied, its estimates +- sigma and (simulation) the truth over time."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
+    """The K_fc path (applied, estimates +- sigma, the truth where known) over the tracking
+    error per task (:func:`fftune.host.track_report.track_figure`: legends beside the axes)."""
+    from fftune.host.track_report import track_figure
 
-    t = np.array([r["t_s"] for r in rows], dtype=float)
-    k = np.array([r["k_fc"] for r in rows], dtype=float)
-    est = np.array([np.nan if r["k_fc_estimate"] is None else r["k_fc_estimate"] for r in rows])
-    sig = np.array([np.nan if r["k_fc_sigma"] is None else r["k_fc_sigma"] for r in rows])
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    ax.fill_between(t, est - sig, est + sig, color="C0", alpha=0.15, label="estimate +- sigma")
-    ax.plot(t, est, ".", color="C0", ms=3, label="estimate per task")
-    ax.step(t, k, where="pre", color="C1", label="K_fc applied (during the task)")
-    if "k_fc_true" in rows[0]:
-        ax.plot(t, [r["k_fc_true"] for r in rows], "k--", lw=1, label="truth (simulated plant)")
-    ax.set_xlabel("time [s] (task end)")
-    ax.set_ylabel("K_fc [V]")
-    ax.set_title("fftune track: Coulomb feed-forward from the repeated task")
-    ax.legend(loc="best", fontsize=8)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
+    fig = track_figure(rows)
     tmp = path + ".tmp.png"
     fig.savefig(tmp, dpi=110)
-    plt.close(fig)
     os.replace(tmp, path)
 
 

@@ -40,13 +40,21 @@ def large_updates(rows, n_sigma=LARGE_UPDATE_SIGMA):
     return out
 
 
+def _pct(x):
+    """A relative value in % to 0.1 % (no "-0.0 %")."""
+    v = round(100 * x, 1)
+    return f"{v + 0.0:+.1f} %"
+
+
 def note_text(u):
     """One note line of :func:`large_updates`' item."""
-    rel = f" ({100 * u['step_rel']:+.1f} %)" if u["step_rel"] is not None else ""
-    truth = (f"; the new value is {100 * u['off_truth_rel']:+.1f} % off the simulated truth"
+    rel = f" ({_pct(u['step_rel'])})" if u["step_rel"] is not None else ""
+    truth = (f"; the new value is {_pct(u['off_truth_rel'])} off the simulated truth"
              if u["off_truth_rel"] is not None else "")
-    return (f"task {u['task']} (t {u['t_s']:.1f} s): K_fc moved from {u['from_v']:.4g} V to "
-            f"{u['to_v']:.4g} V{rel}, {u['sigmas']:.1f} sigma of its estimate"
+    from fftune.host.report import gain_text
+
+    return (f"task {u['task']} (t {u['t_s']:.1f} s): K_fc moved from {gain_text(u['from_v'])} to "
+            f"{gain_text(u['to_v'])}{rel}, {u['sigmas']:.1f} sigma of its estimate"
             f" ({u['action']}){truth}")
 
 
@@ -89,7 +97,7 @@ def track_figure(rows, title=None):
 def write_track_report(out, results, cfg=None, figures=True):
     """``<out>/report.html`` (and ``<out>/track_path.png`` with ``figures``) of a track
     session's results; returns the page's path."""
-    from fftune.host.report import _CSS, _object_of, gain_text
+    from fftune.host.report import _CSS, _object_of, gain_text, rms_text, round_sig
 
     rows = results["track"]
     s = results["track_summary"]
@@ -113,7 +121,7 @@ def write_track_report(out, results, cfg=None, figures=True):
         head = (f"The drive runs K_fc = {gain_text(s['k_fc_final'])}{truth} on object {obj_fc}{on} "
                 f"and K_v = {gain_text(s['k_v_final'], 'V s/rad')} on object {obj_kv}, written by "
                 f"the tracker after task {rows[-1]['task'] if rows else '-'}.")
-    parts.append(f"<h2>Result</h2><p class='rec'>{html.escape(head)}</p>")
+    parts.append(f"<h2>On the drive</h2><p class='rec'>{html.escape(head)}</p>")
     big = large_updates(rows)
     parts.append(f"<h2>Updates larger than {LARGE_UPDATE_SIGMA:g} sigma ({len(big)})</h2>")
     if big:
@@ -124,12 +132,13 @@ def write_track_report(out, results, cfg=None, figures=True):
     errs = [r["rms_error"] for r in rows if r.get("rms_error") is not None]
     facts = [("tasks", s["tasks"]),
              ("rms tracking error, first / last task",
-              f"{errs[0]:.4g} / {errs[-1]:.4g} rad" if errs else "n/a"),
+              f"{round_sig(errs[0]):g} / {rms_text(errs[-1])}" if errs else "n/a"),
              ("rollbacks", sum(1 for r in rows if r.get("action") == "rollback")),
              ("bus: largest task", f"{s['bus']['bits_per_task_max']} bits = "
                                    f"{100 * s['bus']['task_traffic_load']:.2f} % of {s['bus']['bitrate']} bit/s")]
     if s.get("check"):
-        facts.append(("odd-ratio check", f"{s['check']['odd_ratio']} at K_fc {s['check']['k_fc']} V"))
+        facts.append(("odd-harmonic ratio re |H_1| (check at the tracked gains)",
+                      f"{100 * s['check']['odd_ratio']:.3g} % at K_fc = {gain_text(s['check']['k_fc'])}"))
     parts.append("<h2>Key numbers</h2><table>" + "".join(
         f"<tr><th>{html.escape(str(a))}</th><td>{html.escape(str(b))}</td></tr>" for a, b in facts)
         + "</table>")

@@ -42,7 +42,7 @@ def test_report_page(tmp_path):
     rows = _rows()
     path = tr.write_track_report(str(tmp_path), _results(rows), {"drive": {"node_id": 7}, "_source": "t.yaml"})
     text = open(path).read()
-    i_res, i_notes = text.index("<h2>Result</h2>"), text.index("Updates larger than 2 sigma (2)")
+    i_res, i_notes = text.index("<h2>On the drive</h2>"), text.index("Updates larger than 2 sigma (2)")
     assert i_res < i_notes < text.index("<details><summary>All results (results.yaml)</summary>")
     assert "K_fc = 0.1795 V (simulated truth 0.18 V) on object 0x2000:04 of node 7" in text
     assert "task 0 (t 1.5 s): K_fc moved from 0.2 V to 0.17 V (-15.0 %), 3.0 sigma" in text
