@@ -96,6 +96,14 @@ VISC_SEEN_FRACTION = 0.67
 VISC_SETTLED_REL = 0.005
 VISC_SHIFT_MIN_ABS = 2e-4
 NOTE_VISCOUS_CHANGE = "viscous_change_detected"
+# A viscous change below the watch's threshold (with sensor noise the free coefficient
+# scatters as much as a +60 % change moves it: 0.6 against 0.5 mV s/rad at 1e-2 rad) is
+# still folded into K_fc: K_fc's sigma carries, on every task with K_v held, the effect of
+# the viscous change the data cannot rule out: the mean shift of the free coefficient over
+# the last VISC_RECENT_N tasks from its baseline and that shift's standard error (their
+# scatter) in quadrature, over VISC_SEEN_FRACTION (:func:`viscous_unresolved`); the row's
+# ``k_fc_sigma_viscous``.
+VISC_RECENT_N = 8
 # What a task's K_fc is (results.yaml track_summary.k_fc_meaning).
 K_FC_MEANING = (
     "the Coulomb friction averaged over the task's path and speeds: the friction the "
@@ -213,6 +221,8 @@ class TaskEstimate:
     ``k_fc_noise_correction`` [V], from the smallest recent ``sensor_noise_rad``, each task's
     bound rms_residual / noise gain). ``k_v_free`` [V s/rad]: the
     viscous coefficient of the unconstrained fit (NaN when the task cannot tell it).
+    ``k_fc_sigma_viscous`` [V] (a part of ``k_fc_sigma_sys``, K_v held): what a viscous change
+    the tasks cannot rule out moves K_fc by (detected or not; :func:`viscous_unresolved`).
     """
 
     k_fc: float
@@ -235,6 +245,7 @@ class TaskEstimate:
     k_v_shift: float = 0.0
     sensor_noise_rad: float = math.nan
     k_fc_noise_correction: float = 0.0
+    k_fc_sigma_viscous: float = 0.0
 
 
 def _check_identifiable(A):
@@ -329,6 +340,25 @@ def viscous_shift(k_v_free, k_v_hold, k_fc=None, latched=False):
     return 0.0, False
 
 
+def viscous_unresolved(k_v_free):
+    """The viscous change [V s/rad] the free coefficient's estimates (oldest first, this task
+    last) cannot rule out, as the free fit sees it: the mean of the last ``VISC_RECENT_N`` minus
+    the baseline (the median of estimates VISC_BASELINE_FROM .. + VISC_BASELINE_N - 1) and
+    the standard error of that difference added in quadrature, from their task-to-task scatter
+    (:func:`scatter_sigma` of those after the baseline's first). 0 before the baseline and
+    one more task exist or when a value is not finite."""
+    x = np.asarray([v for v in k_v_free], dtype=float)
+    end = VISC_BASELINE_FROM + VISC_BASELINE_N
+    if x.size < end + 1 or not np.all(np.isfinite(x[VISC_BASELINE_FROM:])):
+        return 0.0
+    base = float(np.median(x[VISC_BASELINE_FROM:end]))
+    recent = x[-VISC_RECENT_N:]
+    d = np.diff(x[VISC_BASELINE_FROM:])
+    scat = float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+    se = scat * math.sqrt(1.0 / recent.size + 1.0 / VISC_BASELINE_N)
+    return math.hypot(float(np.mean(recent)) - base, se)
+
+
 def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_UNIQUE_MIN, hold_k_v=False,
                   recent_k_fc=(), noise_gain=None, recent=None):
     """Estimate K_fc (and K_v, K_a) with sigmas from one task run's statistics.
@@ -385,8 +415,10 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         except np.linalg.LinAlgError:
             k_v_free = math.nan
     k_v_shift, shifted = 0.0, False
+    k_v_unresolved = 0.0
     recent = list(recent) if recent is not None else None
     if not kv_ok and recent is not None:
+        k_v_unresolved = viscous_unresolved([e.k_v_free for e in recent] + [k_v_free])
         fc_free_held = 0.5 * sum(_solve(A, c - k_v_hold * A[:, 2], cols)[:2])
         k_v_shift, shifted = viscous_shift([e.k_v_free for e in recent] + [k_v_free], k_v_hold,
                                            [e.k_fc - e.k_fc_noise_correction for e in recent]
@@ -406,9 +438,14 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     shift_effect = 0.0
     if not kv_ok:
         theta[2] = k_v_hold
+        # K_fc per V s/rad of viscous coefficient in the held fit
+        g_b = _solve(A, A[:, 2], cols)
+        g_fc = 0.5 * float(g_b[0] + g_b[1])
         if shifted:   # how far the detected shift would move K_fc: a part of its sigma
             th_shift = _solve(A, c_shift, cols)
             shift_effect = 0.5 * (th_shift[0] + th_shift[1]) - 0.5 * (theta[0] + theta[1])
+        # and the change the data cannot rule out (detected or not)
+        shift_effect = max(abs(shift_effect), abs(g_fc * k_v_unresolved))
     n = stats.total_samples
     k = len(cols)
     # residual sum of squares per block, u - Phi theta (theta with the held K_v: the
@@ -451,7 +488,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         fc = fc + corr
         if abs(corr) > 0.1 * SYS_FLOOR_REL * abs(fc):
             notes.append(NOTE_NOISE_CORRECTED)
-    fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + (shift_effect / VISC_SEEN_FRACTION) ** 2)
+    fc_visc = abs(shift_effect) / VISC_SEEN_FRACTION
+    fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + fc_visc ** 2)
     notes = tuple(notes)
     return TaskEstimate(
         k_fc=float(fc), k_fc_sigma=math.hypot(fc_stat, fc_sys),
@@ -463,7 +501,7 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         condition=cond, k_v_identified=bool(kv_ok), samples=n,
         k_fc_sigma_stat=fc_stat, k_fc_sigma_sys=fc_sys, notes=notes,
         k_v_free=k_v_free, k_v_shift=float(k_v_shift), sensor_noise_rad=sigma_n,
-        k_fc_noise_correction=float(corr))
+        k_fc_noise_correction=float(corr), k_fc_sigma_viscous=float(fc_visc))
 
 
 def _block_samples(stats):

@@ -453,6 +453,8 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
             row["k_fc_noise_correction"] = _f(est.k_fc_noise_correction)
         if ok and est.k_v_shift:
             row["k_v_shift"] = _f(est.k_v_shift)
+        if ok and est.k_fc_sigma_viscous:
+            row["k_fc_sigma_viscous"] = _f(est.k_fc_sigma_viscous)
         if decision.cause:
             row["cause"] = decision.cause
         if fc_true is not None:
