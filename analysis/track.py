@@ -111,8 +111,10 @@ K_FC_MEANING = (
     "there (block sums over the repetition); fftune tune reads it over its sine's path (+- the "
     "amplitude around where the axis stands) and speeds, so with friction that depends on "
     "position (run-out, a contaminated stretch) the two differ by the friction's variation "
-    "between the two paths, and with a Stribeck rise at low speed the task's value lies above "
-    "the Coulomb level by the share of its time spent slow")
+    "between the two paths, and with a Stribeck rise at low speed it is the friction the "
+    "task's own motion meets (higher where the motor slides slowly, the holding torque where "
+    "it sticks), above the Coulomb level by what its slow phases add; the sigma covers that "
+    "value, not the Coulomb level")
 
 
 class NotIdentifiable(FftuneError):
@@ -516,7 +518,9 @@ def _block_samples(stats):
 
 TREND_TASKS = 3            # successive changes of the estimate that make a trend
 TREND_MIN_Z = 3.0          # their mean beyond this many times the estimate's scatter
-TREND_MIN_SHARE = 0.5      # each change at least this share of their mean
+TREND_MIN_SHARE = 0.5      # each change at least this share of their mean ...
+TREND_NOISE_Z = 2.0        # ... less this many times a change's noise
+TREND_KEEP_Z = 2.0         # a trend already seen continues while its mean is beyond this
 
 
 def curvature_scatter(values):
@@ -532,26 +536,43 @@ def curvature_scatter(values):
     return float(1.4826 * np.median(np.abs(c - np.median(c))) / math.sqrt(6.0))
 
 
-def drift_trend(estimates, scatter_floor=0.0):
+def drift_trend(estimates, scatter_floor=0.0, active=False):
     """The drift per task [V] of a series of K_fc estimates (newest last), or 0.
 
-    A trend is TREND_TASKS successive changes d of one sign, each at least half their mean
-    (a step of the friction gives one or two changes, the mixed task and the next, then
-    none: no trend), with |mean d| above TREND_MIN_Z x the estimate's scatter
-    (:func:`curvature_scatter`, at least ``scatter_floor``); its value is the last change
-    (the latest rate: a drift that slows, as an exponential; a ramp that ends, whose last
-    change is its partial task)."""
+    A trend is TREND_TASKS successive changes d of one sign, each at least TREND_MIN_SHARE
+    of their mean m less TREND_NOISE_Z times a change's noise (sqrt 2 times the estimate's
+    scatter s, :func:`curvature_scatter`, at least ``scatter_floor``: a noisy estimate
+    makes one change of a drift small), with |m| above TREND_MIN_Z s (a step of the
+    friction gives one or two changes, the mixed task and the next, then none: no trend).
+    ``active`` (the last update had a trend): it continues while |m| > TREND_KEEP_Z s,
+    without the share rule (a noisy estimate would make the trend flicker, and each lost
+    task lags by the drift's rate).
+    Its value is their mean m (the noise of one change would be extrapolated), unless the
+    last change falls short of the mean of the ones before by more than TREND_NOISE_Z times
+    the noise of that difference (the drift slows or stops: an exponential's tail, a ramp's
+    end, whose last change is its partial task): then the last change times its ratio to
+    that mean (within 0 .. 1), a rate that decays as the changes do."""
     x = np.asarray(estimates, dtype=float)
     if x.size < TREND_TASKS + 1 or not np.all(np.isfinite(x[-(TREND_TASKS + 1):])):
         return 0.0
     d = np.diff(x[-(TREND_TASKS + 1):])
     m = float(np.mean(d))
-    if not (np.all(np.sign(d) == np.sign(m)) and np.all(np.abs(d) >= TREND_MIN_SHARE * abs(m))):
-        return 0.0
     noise = curvature_scatter(x)
-    if noise is None or not abs(m) > TREND_MIN_Z * max(noise, float(scatter_floor)):
+    if noise is None or m == 0.0:
         return 0.0
-    return float(d[-1])
+    s = max(noise, float(scatter_floor))
+    sg = math.copysign(1.0, m)
+    tol = TREND_NOISE_Z * math.sqrt(2.0) * s
+    if active:   # a trend seen before continues while its mean change stands out
+        if not abs(m) > TREND_KEEP_Z * s:
+            return 0.0
+    elif not (np.all(d * sg >= TREND_MIN_SHARE * abs(m) - tol) and abs(m) > TREND_MIN_Z * s):
+        return 0.0
+    before = float(np.mean(d[:-1]))
+    # var(d_last - mean(before)) for white estimates: 2 + 2 / (n - 1) + 2 (n - 2) / (n - 1) ... ~ (2 + 1) s^2
+    if (before - d[-1]) * sg > TREND_NOISE_Z * math.sqrt(3.0) * s:
+        return float(d[-1] * min(1.0, max(0.0, float(d[-1] / before))))
+    return m
 
 
 @dataclass
@@ -635,6 +656,7 @@ class Tracker:
     _rollbacks: int = 0
     _uncertain: int = 0
     _estimates: list = field(default_factory=list)
+    _trend: bool = False
 
     def _stop(self, cause, reason):
         self._last_action = "stop"
@@ -684,7 +706,8 @@ class Tracker:
                             f"K_fc sigma {est.k_fc_sigma:.3g} V > {s.max_sigma_rel:.0%} of {est.k_fc:.4g} V: held")
         lim_fc = max(s.max_step_rel * self.k_fc, s.max_step_abs)
         self._estimates.append(float(est.k_fc))
-        trend = drift_trend(self._estimates) * s.trend_lead_tasks
+        trend = drift_trend(self._estimates, active=self._trend) * s.trend_lead_tasks
+        self._trend = bool(trend)
         target = self.k_fc + s.gain * (est.k_fc + trend - self.k_fc)
         self.k_fc = max(0.0, _bounded(self.k_fc, target, lim_fc))
         if trend:
