@@ -100,10 +100,15 @@ NOTE_VISCOUS_CHANGE = "viscous_change_detected"
 # scatters as much as a +60 % change moves it: 0.6 against 0.5 mV s/rad at 1e-2 rad) is
 # still folded into K_fc: K_fc's sigma carries, on every task with K_v held, the effect of
 # the viscous change the data cannot rule out: the mean shift of the free coefficient over
-# the last VISC_RECENT_N tasks from its baseline and that shift's standard error (their
-# scatter) in quadrature, over VISC_SEEN_FRACTION (:func:`viscous_unresolved`); the row's
-# ``k_fc_sigma_viscous``.
-VISC_RECENT_N = 8
+# the last n tasks (n in VISC_RECENT_N: the longer window resolves a small shift, the
+# shorter follows a ramp) from its baseline and that shift's standard error (their
+# scatter) in quadrature, the larger of the two, over VISC_SEEN_FRACTION
+# (:func:`viscous_unresolved`); the row's ``k_fc_sigma_viscous``.
+VISC_RECENT_N = (8, 4)
+# tasks whose estimate is within this fraction of the K_fc they ran with (the loop at its
+# fixed point): after a Coulomb step the free coefficient jumps for the two tasks the
+# feed-forward is wrong (1.5 -> 5.7, 9.8 mV s/rad on plant_twomass), then returns
+VISC_FIXED_REL = 0.02
 # What a task's K_fc is (results.yaml track_summary.k_fc_meaning).
 K_FC_MEANING = (
     "the Coulomb friction averaged over the task's path and speeds: the friction the "
@@ -248,6 +253,7 @@ class TaskEstimate:
     sensor_noise_rad: float = math.nan
     k_fc_noise_correction: float = 0.0
     k_fc_sigma_viscous: float = 0.0
+    k_fc_applied: float = math.nan
 
 
 def _check_identifiable(A):
@@ -342,27 +348,54 @@ def viscous_shift(k_v_free, k_v_hold, k_fc=None, latched=False):
     return 0.0, False
 
 
-def viscous_unresolved(k_v_free):
+def viscous_unresolved(k_v_free, fixed_point=None):
     """The viscous change [V s/rad] the free coefficient's estimates (oldest first, this task
-    last) cannot rule out, as the free fit sees it: the mean of the last ``VISC_RECENT_N`` minus
-    the baseline (the median of estimates VISC_BASELINE_FROM .. + VISC_BASELINE_N - 1) and
-    the standard error of that difference added in quadrature, from their task-to-task scatter
-    (:func:`scatter_sigma` of those after the baseline's first). 0 before the baseline and
-    one more task exist or when a value is not finite."""
+    last) cannot rule out, as the free fit sees it: the mean of the last n minus the
+    baseline (the median of estimates VISC_BASELINE_FROM .. + VISC_BASELINE_N - 1) and the
+    standard error of that difference added in quadrature, the largest over n in
+    ``VISC_RECENT_N``, from their task-to-task scatter
+    (:func:`scatter_sigma` of those after the baseline's first). Values not finite or not at
+    the fixed point are left out; 0 before the baseline and one more task exist, or with
+    fewer than two usable values."""
     x = np.asarray([v for v in k_v_free], dtype=float)
     end = VISC_BASELINE_FROM + VISC_BASELINE_N
-    if x.size < end + 1 or not np.all(np.isfinite(x[VISC_BASELINE_FROM:])):
+    if x.size < end + 1:
         return 0.0
-    base = float(np.median(x[VISC_BASELINE_FROM:end]))
-    recent = x[-VISC_RECENT_N:]
+    if fixed_point is not None:   # the closed loop away from its fixed point moves it
+        ok = np.asarray(fixed_point, dtype=bool)
+        if ok.size == x.size:
+            x = np.where(ok, x, np.nan)
+    base_win = x[VISC_BASELINE_FROM:end]
+    base_win = base_win[np.isfinite(base_win)]
+    if base_win.size < 2:
+        return 0.0
+    base = float(np.median(base_win))
     d = np.diff(x[VISC_BASELINE_FROM:])
+    d = d[np.isfinite(d)]
+    if d.size < 2:
+        return 0.0
     scat = float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
-    se = scat * math.sqrt(1.0 / recent.size + 1.0 / VISC_BASELINE_N)
-    return math.hypot(float(np.mean(recent)) - base, se)
+    out = 0.0
+    for n in VISC_RECENT_N:
+        recent = x[-n:]
+        recent = recent[np.isfinite(recent)]
+        if recent.size == 0:
+            continue
+        se = scat * math.sqrt(1.0 / recent.size + 1.0 / base_win.size)
+        out = max(out, math.hypot(float(np.mean(recent)) - base, se))
+    return out
+
+
+def _at_fixed_point(applied, estimate):
+    """Whether a task ran with the feed-forward at its estimate (within VISC_FIXED_REL; True
+    when the applied value is not known)."""
+    if applied is None or not math.isfinite(applied):
+        return True
+    return abs(applied - estimate) <= VISC_FIXED_REL * abs(estimate)
 
 
 def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_UNIQUE_MIN, hold_k_v=False,
-                  recent_k_fc=(), noise_gain=None, recent=None):
+                  recent_k_fc=(), noise_gain=None, recent=None, k_fc_applied=None):
     """Estimate K_fc (and K_v, K_a) with sigmas from one task run's statistics.
 
     Parameters
@@ -393,6 +426,10 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         sensor noise is the smallest of their residual bounds and this one's over the last
         ``SCATTER_WINDOW`` tasks (a model error, e.g. while a gain is still wrong, only
         adds to a residual; with no earlier task no correction). None: neither.
+    k_fc_applied : float or None
+        The K_fc [V] the drive ran this task with: a task whose estimate differs from it by
+        more than VISC_FIXED_REL (the loop away from its fixed point: the closed loop moves
+        the free viscous coefficient) is left out of :func:`viscous_unresolved`.
 
     Returns
     -------
@@ -420,7 +457,11 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     k_v_unresolved = 0.0
     recent = list(recent) if recent is not None else None
     if not kv_ok and recent is not None:
-        k_v_unresolved = viscous_unresolved([e.k_v_free for e in recent] + [k_v_free])
+        fc_now = 0.5 * sum(_solve(A, c - k_v_hold * A[:, 2], [0, 1, 3])[:2])
+        k_v_unresolved = viscous_unresolved(
+            [e.k_v_free for e in recent] + [k_v_free],
+            [_at_fixed_point(e.k_fc_applied, e.k_fc - e.k_fc_noise_correction) for e in recent]
+            + [_at_fixed_point(k_fc_applied, fc_now)])
         fc_free_held = 0.5 * sum(_solve(A, c - k_v_hold * A[:, 2], cols)[:2])
         k_v_shift, shifted = viscous_shift([e.k_v_free for e in recent] + [k_v_free], k_v_hold,
                                            [e.k_fc - e.k_fc_noise_correction for e in recent]
@@ -503,7 +544,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         condition=cond, k_v_identified=bool(kv_ok), samples=n,
         k_fc_sigma_stat=fc_stat, k_fc_sigma_sys=fc_sys, notes=notes,
         k_v_free=k_v_free, k_v_shift=float(k_v_shift), sensor_noise_rad=sigma_n,
-        k_fc_noise_correction=float(corr), k_fc_sigma_viscous=float(fc_visc))
+        k_fc_noise_correction=float(corr), k_fc_sigma_viscous=float(fc_visc),
+        k_fc_applied=math.nan if k_fc_applied is None else float(k_fc_applied))
 
 
 def _block_samples(stats):

@@ -65,6 +65,10 @@ def test_coulomb_step_is_no_viscous_change(tmp_path):
     err = [abs(r["k_fc"] / r["k_fc_true"] - 1) for r in rows]
     assert max(err[step + 3:]) < 0.02                  # no trend overshoot after a step
     assert not any(r["cause"] == "trend" for r in rows)
+    # the free viscous coefficient jumps while the feed-forward is wrong (the step's task and
+    # the next); those tasks are left out of the viscous part of the sigma: it stays below
+    # 1 % of K_fc (with them: 8 .. 12 %, and the tracker held K_fc as uncertain)
+    assert max(r["k_fc_sigma_viscous"] for r in rows[step:]) < 0.01 * rows[-1]["k_fc_true"]
 
 
 def test_fast_exponential_drift_is_followed_from_three_tasks_after_its_start(tmp_path):
@@ -244,7 +248,7 @@ def test_viscous_unresolved_against_its_definition():
     base = np.median(x[4:9])
     d = np.diff(x[4:])
     scat = 1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2)
-    want = math.hypot(np.mean(x[-8:]) - base, scat * math.sqrt(1 / 8 + 1 / 5))
+    want = max(math.hypot(np.mean(x[-n:]) - base, scat * math.sqrt(1 / n + 1 / 5)) for n in (8, 4))
     assert viscous_unresolved(kv) == pytest.approx(want, rel=1e-12)
     assert viscous_unresolved(kv[:9]) == 0.0                  # no task after the baseline yet
     shifted = kv + [0.0024] * 8

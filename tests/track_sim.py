@@ -107,7 +107,7 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
             try:
                 est = estimate_task(task_stats(sim), k_v_hold=tr.k_v, hold_k_v=not track_k_v,
                                     recent_k_fc=recent, noise_gain=gain,
-                                    recent=recent_est if watch_viscous else None)
+                                    recent=recent_est if watch_viscous else None, k_fc_applied=applied)
                 recent.append(est.k_fc)
                 recent_est.append(est)
             except NotIdentifiable as exc:
