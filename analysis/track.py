@@ -96,6 +96,19 @@ VISC_SEEN_FRACTION = 0.67
 VISC_SETTLED_REL = 0.005
 VISC_SHIFT_MIN_ABS = 2e-4
 NOTE_VISCOUS_CHANGE = "viscous_change_detected"
+# A viscous change below the watch's threshold (with sensor noise the free coefficient
+# scatters as much as a +60 % change moves it: 0.6 against 0.5 mV s/rad at 1e-2 rad) is
+# still folded into K_fc: K_fc's sigma carries, on every task with K_v held, the effect of
+# the viscous change the data cannot rule out: the mean shift of the free coefficient over
+# the last n tasks (n in VISC_RECENT_N: the longer window resolves a small shift, the
+# shorter follows a ramp) from its baseline and that shift's standard error (their
+# scatter) in quadrature, the larger of the two, over VISC_SEEN_FRACTION
+# (:func:`viscous_unresolved`); the row's ``k_fc_sigma_viscous``.
+VISC_RECENT_N = (8, 4)
+# tasks whose estimate is within this fraction of the K_fc they ran with (the loop at its
+# fixed point): after a Coulomb step the free coefficient jumps for the two tasks the
+# feed-forward is wrong (1.5 -> 5.7, 9.8 mV s/rad on plant_twomass), then returns
+VISC_FIXED_REL = 0.02
 # What a task's K_fc is (results.yaml track_summary.k_fc_meaning).
 K_FC_MEANING = (
     "the Coulomb friction averaged over the task's path and speeds: the friction the "
@@ -103,8 +116,10 @@ K_FC_MEANING = (
     "there (block sums over the repetition); fftune tune reads it over its sine's path (+- the "
     "amplitude around where the axis stands) and speeds, so with friction that depends on "
     "position (run-out, a contaminated stretch) the two differ by the friction's variation "
-    "between the two paths, and with a Stribeck rise at low speed the task's value lies above "
-    "the Coulomb level by the share of its time spent slow")
+    "between the two paths, and with a Stribeck rise at low speed it is the friction the "
+    "task's own motion meets (higher where the motor slides slowly, the holding torque where "
+    "it sticks), above the Coulomb level by what its slow phases add; the sigma covers that "
+    "value, not the Coulomb level")
 
 
 class NotIdentifiable(FftuneError):
@@ -213,6 +228,8 @@ class TaskEstimate:
     ``k_fc_noise_correction`` [V], from the smallest recent ``sensor_noise_rad``, each task's
     bound rms_residual / noise gain). ``k_v_free`` [V s/rad]: the
     viscous coefficient of the unconstrained fit (NaN when the task cannot tell it).
+    ``k_fc_sigma_viscous`` [V] (a part of ``k_fc_sigma_sys``, K_v held): what a viscous change
+    the tasks cannot rule out moves K_fc by (detected or not; :func:`viscous_unresolved`).
     """
 
     k_fc: float
@@ -235,6 +252,8 @@ class TaskEstimate:
     k_v_shift: float = 0.0
     sensor_noise_rad: float = math.nan
     k_fc_noise_correction: float = 0.0
+    k_fc_sigma_viscous: float = 0.0
+    k_fc_applied: float = math.nan
 
 
 def _check_identifiable(A):
@@ -329,8 +348,54 @@ def viscous_shift(k_v_free, k_v_hold, k_fc=None, latched=False):
     return 0.0, False
 
 
+def viscous_unresolved(k_v_free, fixed_point=None):
+    """The viscous change [V s/rad] the free coefficient's estimates (oldest first, this task
+    last) cannot rule out, as the free fit sees it: the mean of the last n minus the
+    baseline (the median of estimates VISC_BASELINE_FROM .. + VISC_BASELINE_N - 1) and the
+    standard error of that difference added in quadrature, the largest over n in
+    ``VISC_RECENT_N``, from their task-to-task scatter
+    (:func:`scatter_sigma` of those after the baseline's first). Values not finite or not at
+    the fixed point are left out; 0 before the baseline and one more task exist, or with
+    fewer than two usable values."""
+    x = np.asarray([v for v in k_v_free], dtype=float)
+    end = VISC_BASELINE_FROM + VISC_BASELINE_N
+    if x.size < end + 1:
+        return 0.0
+    if fixed_point is not None:   # the closed loop away from its fixed point moves it
+        ok = np.asarray(fixed_point, dtype=bool)
+        if ok.size == x.size:
+            x = np.where(ok, x, np.nan)
+    base_win = x[VISC_BASELINE_FROM:end]
+    base_win = base_win[np.isfinite(base_win)]
+    if base_win.size < 2:
+        return 0.0
+    base = float(np.median(base_win))
+    d = np.diff(x[VISC_BASELINE_FROM:])
+    d = d[np.isfinite(d)]
+    if d.size < 2:
+        return 0.0
+    scat = float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+    out = 0.0
+    for n in VISC_RECENT_N:
+        recent = x[-n:]
+        recent = recent[np.isfinite(recent)]
+        if recent.size == 0:
+            continue
+        se = scat * math.sqrt(1.0 / recent.size + 1.0 / base_win.size)
+        out = max(out, math.hypot(float(np.mean(recent)) - base, se))
+    return out
+
+
+def _at_fixed_point(applied, estimate):
+    """Whether a task ran with the feed-forward at its estimate (within VISC_FIXED_REL; True
+    when the applied value is not known)."""
+    if applied is None or not math.isfinite(applied):
+        return True
+    return abs(applied - estimate) <= VISC_FIXED_REL * abs(estimate)
+
+
 def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_UNIQUE_MIN, hold_k_v=False,
-                  recent_k_fc=(), noise_gain=None, recent=None):
+                  recent_k_fc=(), noise_gain=None, recent=None, k_fc_applied=None):
     """Estimate K_fc (and K_v, K_a) with sigmas from one task run's statistics.
 
     Parameters
@@ -361,6 +426,10 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         sensor noise is the smallest of their residual bounds and this one's over the last
         ``SCATTER_WINDOW`` tasks (a model error, e.g. while a gain is still wrong, only
         adds to a residual; with no earlier task no correction). None: neither.
+    k_fc_applied : float or None
+        The K_fc [V] the drive ran this task with: a task whose estimate differs from it by
+        more than VISC_FIXED_REL (the loop away from its fixed point: the closed loop moves
+        the free viscous coefficient) is left out of :func:`viscous_unresolved`.
 
     Returns
     -------
@@ -385,8 +454,14 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         except np.linalg.LinAlgError:
             k_v_free = math.nan
     k_v_shift, shifted = 0.0, False
+    k_v_unresolved = 0.0
     recent = list(recent) if recent is not None else None
     if not kv_ok and recent is not None:
+        fc_now = 0.5 * sum(_solve(A, c - k_v_hold * A[:, 2], [0, 1, 3])[:2])
+        k_v_unresolved = viscous_unresolved(
+            [e.k_v_free for e in recent] + [k_v_free],
+            [_at_fixed_point(e.k_fc_applied, e.k_fc - e.k_fc_noise_correction) for e in recent]
+            + [_at_fixed_point(k_fc_applied, fc_now)])
         fc_free_held = 0.5 * sum(_solve(A, c - k_v_hold * A[:, 2], cols)[:2])
         k_v_shift, shifted = viscous_shift([e.k_v_free for e in recent] + [k_v_free], k_v_hold,
                                            [e.k_fc - e.k_fc_noise_correction for e in recent]
@@ -406,9 +481,14 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     shift_effect = 0.0
     if not kv_ok:
         theta[2] = k_v_hold
+        # K_fc per V s/rad of viscous coefficient in the held fit
+        g_b = _solve(A, A[:, 2], cols)
+        g_fc = 0.5 * float(g_b[0] + g_b[1])
         if shifted:   # how far the detected shift would move K_fc: a part of its sigma
             th_shift = _solve(A, c_shift, cols)
             shift_effect = 0.5 * (th_shift[0] + th_shift[1]) - 0.5 * (theta[0] + theta[1])
+        # and the change the data cannot rule out (detected or not)
+        shift_effect = max(abs(shift_effect), abs(g_fc * k_v_unresolved))
     n = stats.total_samples
     k = len(cols)
     # residual sum of squares per block, u - Phi theta (theta with the held K_v: the
@@ -451,7 +531,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         fc = fc + corr
         if abs(corr) > 0.1 * SYS_FLOOR_REL * abs(fc):
             notes.append(NOTE_NOISE_CORRECTED)
-    fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + (shift_effect / VISC_SEEN_FRACTION) ** 2)
+    fc_visc = abs(shift_effect) / VISC_SEEN_FRACTION
+    fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + fc_visc ** 2)
     notes = tuple(notes)
     return TaskEstimate(
         k_fc=float(fc), k_fc_sigma=math.hypot(fc_stat, fc_sys),
@@ -463,7 +544,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         condition=cond, k_v_identified=bool(kv_ok), samples=n,
         k_fc_sigma_stat=fc_stat, k_fc_sigma_sys=fc_sys, notes=notes,
         k_v_free=k_v_free, k_v_shift=float(k_v_shift), sensor_noise_rad=sigma_n,
-        k_fc_noise_correction=float(corr))
+        k_fc_noise_correction=float(corr), k_fc_sigma_viscous=float(fc_visc),
+        k_fc_applied=math.nan if k_fc_applied is None else float(k_fc_applied))
 
 
 def _block_samples(stats):
@@ -478,7 +560,9 @@ def _block_samples(stats):
 
 TREND_TASKS = 3            # successive changes of the estimate that make a trend
 TREND_MIN_Z = 3.0          # their mean beyond this many times the estimate's scatter
-TREND_MIN_SHARE = 0.5      # each change at least this share of their mean
+TREND_MIN_SHARE = 0.5      # each change at least this share of their mean ...
+TREND_NOISE_Z = 2.0        # ... less this many times a change's noise
+TREND_KEEP_Z = 2.0         # a trend already seen continues while its mean is beyond this
 
 
 def curvature_scatter(values):
@@ -494,26 +578,43 @@ def curvature_scatter(values):
     return float(1.4826 * np.median(np.abs(c - np.median(c))) / math.sqrt(6.0))
 
 
-def drift_trend(estimates, scatter_floor=0.0):
+def drift_trend(estimates, scatter_floor=0.0, active=False):
     """The drift per task [V] of a series of K_fc estimates (newest last), or 0.
 
-    A trend is TREND_TASKS successive changes d of one sign, each at least half their mean
-    (a step of the friction gives one or two changes, the mixed task and the next, then
-    none: no trend), with |mean d| above TREND_MIN_Z x the estimate's scatter
-    (:func:`curvature_scatter`, at least ``scatter_floor``); its value is the last change
-    (the latest rate: a drift that slows, as an exponential; a ramp that ends, whose last
-    change is its partial task)."""
+    A trend is TREND_TASKS successive changes d of one sign, each at least TREND_MIN_SHARE
+    of their mean m less TREND_NOISE_Z times a change's noise (sqrt 2 times the estimate's
+    scatter s, :func:`curvature_scatter`, at least ``scatter_floor``: a noisy estimate
+    makes one change of a drift small), with |m| above TREND_MIN_Z s (a step of the
+    friction gives one or two changes, the mixed task and the next, then none: no trend).
+    ``active`` (the last update had a trend): it continues while |m| > TREND_KEEP_Z s,
+    without the share rule (a noisy estimate would make the trend flicker, and each lost
+    task lags by the drift's rate).
+    Its value is their mean m (the noise of one change would be extrapolated), unless the
+    last change falls short of the mean of the ones before by more than TREND_NOISE_Z times
+    the noise of that difference (the drift slows or stops: an exponential's tail, a ramp's
+    end, whose last change is its partial task): then the last change times its ratio to
+    that mean (within 0 .. 1), a rate that decays as the changes do."""
     x = np.asarray(estimates, dtype=float)
     if x.size < TREND_TASKS + 1 or not np.all(np.isfinite(x[-(TREND_TASKS + 1):])):
         return 0.0
     d = np.diff(x[-(TREND_TASKS + 1):])
     m = float(np.mean(d))
-    if not (np.all(np.sign(d) == np.sign(m)) and np.all(np.abs(d) >= TREND_MIN_SHARE * abs(m))):
-        return 0.0
     noise = curvature_scatter(x)
-    if noise is None or not abs(m) > TREND_MIN_Z * max(noise, float(scatter_floor)):
+    if noise is None or m == 0.0:
         return 0.0
-    return float(d[-1])
+    s = max(noise, float(scatter_floor))
+    sg = math.copysign(1.0, m)
+    tol = TREND_NOISE_Z * math.sqrt(2.0) * s
+    if active:   # a trend seen before continues while its mean change stands out
+        if not abs(m) > TREND_KEEP_Z * s:
+            return 0.0
+    elif not (np.all(d * sg >= TREND_MIN_SHARE * abs(m) - tol) and abs(m) > TREND_MIN_Z * s):
+        return 0.0
+    before = float(np.mean(d[:-1]))
+    # var(d_last - mean(before)) for white estimates: 2 + 2 / (n - 1) + 2 (n - 2) / (n - 1) ... ~ (2 + 1) s^2
+    if (before - d[-1]) * sg > TREND_NOISE_Z * math.sqrt(3.0) * s:
+        return float(d[-1] * min(1.0, max(0.0, float(d[-1] / before))))
+    return m
 
 
 @dataclass
@@ -597,6 +698,7 @@ class Tracker:
     _rollbacks: int = 0
     _uncertain: int = 0
     _estimates: list = field(default_factory=list)
+    _trend: bool = False
 
     def _stop(self, cause, reason):
         self._last_action = "stop"
@@ -646,7 +748,8 @@ class Tracker:
                             f"K_fc sigma {est.k_fc_sigma:.3g} V > {s.max_sigma_rel:.0%} of {est.k_fc:.4g} V: held")
         lim_fc = max(s.max_step_rel * self.k_fc, s.max_step_abs)
         self._estimates.append(float(est.k_fc))
-        trend = drift_trend(self._estimates) * s.trend_lead_tasks
+        trend = drift_trend(self._estimates, active=self._trend) * s.trend_lead_tasks
+        self._trend = bool(trend)
         target = self.k_fc + s.gain * (est.k_fc + trend - self.k_fc)
         self.k_fc = max(0.0, _bounded(self.k_fc, target, lim_fc))
         if trend:

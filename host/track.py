@@ -420,7 +420,8 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
             t_s += drive.run_s
         try:
             est = estimate_task(stats, k_v_hold=tracker.k_v, hold_k_v=not tc["track_k_v"],
-                                recent_k_fc=recent_k_fc, noise_gain=noise_gain, recent=recent)
+                                recent_k_fc=recent_k_fc, noise_gain=noise_gain, recent=recent,
+                                k_fc_applied=gains[0])
             recent_k_fc.append(est.k_fc)
             recent.append(est)
         except NotIdentifiable as exc:
@@ -456,6 +457,8 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
             row["k_fc_noise_correction"] = _f(est.k_fc_noise_correction)
         if ok and est.k_v_shift:
             row["k_v_shift"] = _f(est.k_v_shift)
+        if ok and est.k_fc_sigma_viscous:
+            row["k_fc_sigma_viscous"] = _f(est.k_fc_sigma_viscous)
         if decision.cause:
             row["cause"] = decision.cause
         if fc_true is not None:

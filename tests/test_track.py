@@ -337,7 +337,7 @@ def test_tracking_sigma_covers_the_truth_and_is_the_size_of_the_error(tmp_path):
     # settled tasks (from task 5) of 5 noisy seeds and the noise-free plant: the truth within
     # 2 sigma; sigma not ~30x the error (the block jackknife was 4 mV for errors of 0.2 mV)
     # nor below the seed-to-seed spread; the statistical part is the task-to-task scatter
-    finals, stats_ = [], []
+    finals, stats_, viscs = [], [], []
     for seed in (None, 1, 2, 3, 4, 5):
         plant = TWOMASS if seed is None else plant_file(
             str(tmp_path), name=f"n{seed}.yaml", sensor={"noise_std": 2.0e-3, "seed": seed})
@@ -347,9 +347,13 @@ def test_tracking_sigma_covers_the_truth_and_is_the_size_of_the_error(tmp_path):
         if seed is not None:
             finals.append(rows[-1]["k_fc_estimate"] - rows[-1]["k_fc_true"])
             stats_.append(rows[-1]["k_fc_sigma_stat"])
+            viscs.append(rows[-1]["k_fc_sigma_viscous"])
     rms = math.sqrt(np.mean(np.square(finals)))
     sig = rows[-1]["k_fc_sigma"]
-    assert 1.0 < sig / rms < 3.5
+    # without the part for a viscous change the tasks cannot rule out (issue 32: it covers
+    # what the task cannot see, not this error) the sigma is the size of the error
+    assert 1.0 < math.sqrt(sig ** 2 - viscs[-1] ** 2) / rms < 3.5
+    assert sig / rms < 5.0
     spread = np.std(finals, ddof=1)
     assert 0.3 < np.mean(stats_) / spread < 3.0
 

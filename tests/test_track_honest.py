@@ -9,7 +9,7 @@ import pytest
 
 from fftune.analysis.track import (K_FC_MEANING, NOISE_BIAS_PER_RAD2, NOTE_NOISE_CORRECTED,
                                    NOTE_VISCOUS_CHANGE, curvature_scatter, drift_trend, sensor_noise_gain,
-                                   viscous_shift)
+                                   viscous_shift, viscous_unresolved)
 
 from track_sim import TWOMASS, plant_file, run_tracking
 
@@ -65,6 +65,10 @@ def test_coulomb_step_is_no_viscous_change(tmp_path):
     err = [abs(r["k_fc"] / r["k_fc_true"] - 1) for r in rows]
     assert max(err[step + 3:]) < 0.02                  # no trend overshoot after a step
     assert not any(r["cause"] == "trend" for r in rows)
+    # the free viscous coefficient jumps while the feed-forward is wrong (the step's task and
+    # the next); those tasks are left out of the viscous part of the sigma: it stays below
+    # 1 % of K_fc (with them: 8 .. 12 %, and the tracker held K_fc as uncertain)
+    assert max(r["k_fc_sigma_viscous"] for r in rows[step:]) < 0.01 * rows[-1]["k_fc_true"]
 
 
 def test_fast_exponential_drift_is_followed_from_three_tasks_after_its_start(tmp_path):
@@ -128,13 +132,31 @@ def test_drift_trend_rules():
     rng = np.random.default_rng(5)
     base = 0.12 + 2e-5 * rng.standard_normal(12)
     ramp = base - 1.5e-3 * np.arange(12)
-    assert drift_trend(ramp) == pytest.approx(np.diff(ramp)[-1])
+    assert drift_trend(ramp) == pytest.approx(np.mean(np.diff(ramp)[-3:]))   # the mean change
     step = base + np.where(np.arange(12) >= 9, 0.03, 0.0)
     step[9] -= 0.015                                         # the mixed task
     assert drift_trend(step) == 0.0 and drift_trend(step[:11]) == 0.0
     assert drift_trend(base) == 0.0                          # noise is no trend
+    # a ramp that ends: its last change the partial task (0.4 of the rate): it leads by
+    # that change times its ratio to the changes before, not by their mean
+    end = ramp.copy()
+    end[-1] = end[-2] - 0.4 * 1.5e-3
+    d = np.diff(end)[-3:]
+    assert drift_trend(end) == pytest.approx(d[-1] * d[-1] / np.mean(d[:2]))
+    # a noisy estimate makes one change of a drift small: with the estimate's scatter at
+    # 3e-4 (a floor here) a change of 0.3 of the rate still belongs to it, without it not
+    x = 0.12 - 1.5e-3 * np.arange(12.0)
+    x[-3:] += 1.05e-3                                        # changes 0.3, 1, 1 of the rate
+    assert drift_trend(x) == 0.0
+    assert drift_trend(x, scatter_floor=3e-4) == pytest.approx(np.mean(np.diff(x)[-3:]))
+    # a trend already seen continues through a small change while its mean stands out
+    flat = x.copy()
+    flat[-1] = flat[-2] - 0.2 * 1.5e-3
+    d = np.diff(flat)[-3:]
+    assert drift_trend(flat) == 0.0
+    assert drift_trend(flat, active=True) == pytest.approx(d[-1] * d[-1] / np.mean(d[:2]))
     tau = 0.12 * (1 - 0.3 * (1 - np.exp(-np.arange(12) / 12.0)))
-    assert drift_trend(tau + 2e-5 * rng.standard_normal(12)) == pytest.approx(np.diff(tau)[-1], rel=0.1)
+    assert drift_trend(tau + 2e-5 * rng.standard_normal(12)) == pytest.approx(np.diff(tau)[-1], rel=0.15)
     # the scatter from second differences ignores the curvature of the approach
     w = 0.12 + 3e-4 * rng.standard_normal((300, 10))
     assert np.mean([curvature_scatter(x + tau[:10]) for x in w]) == pytest.approx(3e-4, rel=0.15)
@@ -151,3 +173,112 @@ def test_viscous_shift_rules():
     assert viscous_shift(shifted, 0.002, fc[:10] + [0.13, 0.15]) == (0.0, False)
     # one task is not a change
     assert viscous_shift(kv + [0.00151, 0.00236], 0.002, fc) == (0.0, False)
+
+
+def test_stribeck_estimate_covers_the_friction_the_task_met(tmp_path):
+    # static x2, Stribeck velocity 0.2 rad/s: the task's K_fc lies above the Coulomb level
+    # (today +4.7 % with a 0.4 % sigma: "confidently wrong" for the Coulomb level). What it
+    # tracks is the friction the task's motion meets (K_FC_MEANING), computed here from
+    # the plant's state sample by sample (friction_met_v): covered within 2 sigma
+    from fwsim_drive import plant_file as derived
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"static": 2 * fc0, "stribeck_velocity": 0.2}}, directory=str(tmp_path))
+    rows, _ = run_tracking(plant, 14, k_fc=0.1157, k_v=0.002, k_a=0.0, friction_met=True)
+    sel = rows[3:]
+    met = np.array([r["k_fc_met"] for r in sel])
+    assert np.all((met > 1.03 * 0.1157) & (met < 1.08 * 0.1157))   # above the Coulomb level
+    assert all(abs(r["k_fc_estimate"] - r["k_fc_met"]) <= 2 * r["k_fc_sigma"] for r in sel)
+    assert "Stribeck" in K_FC_MEANING and "sticks" in K_FC_MEANING
+
+
+def test_friction_met_against_a_hand_projection():
+    # sliding everywhere: the friction law at the motor's velocity, projected on p, n, a_r;
+    # the reference's velocity v = 2 sin(w t) (asymmetric speeds via a 0.3 offset)
+    from track_sim import friction_met_v
+    fs = 1000.0
+    t = np.arange(2000) / fs
+    ref = 0.3 * t - 2.0 / (2 * np.pi) * np.cos(2 * np.pi * t)       # v_r = 0.3 + 2 sin(2 pi t)
+    v = np.gradient(ref) * fs
+    plant = {"coulomb": 4e-3, "static": 7e-3, "stribeck_velocity": 0.5, "k": 0.5, "c": 0.0, "km": 0.05}
+    w1 = 0.9 * v                                                    # the motor slightly slower
+    states = np.column_stack([ref, w1, ref, w1])
+    modes = np.sign(w1).astype(int)
+    got = friction_met_v(plant, states, modes, ref, np.zeros_like(t), fs)
+    s = np.sign(np.round(v, 6))
+    f = modes * (4e-3 + 3e-3 * np.exp(-(w1 / 0.5) ** 2)) / 0.05
+    a = np.gradient(v) * fs
+    X = np.column_stack([(s > 0).astype(float), -(s < 0).astype(float), a])
+    th = np.linalg.solve(X.T @ X, X.T @ f)
+    assert got == pytest.approx(0.5 * (th[0] + th[1]), rel=1e-9)
+    assert 0.08 < got < 0.14                                        # between Coulomb and static
+    # stuck samples: the holding torque k_m u - spring enters instead of the law
+    modes2 = modes.copy()
+    modes2[:100] = 0
+    u = np.full_like(t, 0.06)
+    got2 = friction_met_v(plant, states, modes2, ref, u, fs)
+    f2 = f.copy()
+    f2[:100] = (0.05 * 0.06 - 0.0) / 0.05
+    th2 = np.linalg.solve(X.T @ X, X.T @ f2)
+    assert got2 == pytest.approx(0.5 * (th2[0] + th2[1]), rel=1e-9)
+
+
+def test_viscous_step_under_noise_1e_2_is_covered(tmp_path):
+    # +60 % viscous friction at 12 s with K_v held and 1e-2 rad of sensor noise: the free
+    # coefficient scatters as much as the change moves it, the watch does not flag it;
+    # today K_fc +2.9 % at z ~ +2.5 on most tasks. The sigma carries the viscous change
+    # the tasks cannot rule out: the truth within 2 sigma from the task after the change's
+    for seed in (1, 2):
+        plant = plant_file(str(tmp_path), drift={"viscous_step": 0.6, "viscous_step_time_s": 12.0},
+                           sensor={"noise_std": 1e-2, "seed": seed})
+        rows, _ = run_tracking(plant, 22, k_fc=0.1157, k_v=0.002, k_a=0.0)
+        step = next(r["task"] for r in rows if r["t_s"] > 12.0)
+        after = rows[step + 1:]
+        assert np.mean([r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in after]) > 0.02   # K_fc took it
+        assert all(abs(r["k_fc_estimate"] - r["k_fc_true"]) <= 2 * r["k_fc_sigma"] for r in after)
+        assert all(r["k_fc_sigma_viscous"] > 0 for r in after)
+        # and before the change the sigma stays below 2.5 % (the part is what the data allow)
+        assert all(r["k_fc_sigma"] < 0.025 * r["k_fc_true"] for r in rows[5:step])
+
+
+def test_viscous_unresolved_against_its_definition():
+    rng = np.random.default_rng(7)
+    kv = list(0.0015 + 1e-4 * rng.standard_normal(16))
+    kv[:4] = [0.08, 0.01, 0.003, 0.002]                       # the first tasks (K_a learnt)
+    x = np.array(kv)
+    base = np.median(x[4:9])
+    d = np.diff(x[4:])
+    scat = 1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2)
+    want = max(math.hypot(np.mean(x[-n:]) - base, scat * math.sqrt(1 / n + 1 / 5)) for n in (8, 4))
+    assert viscous_unresolved(kv) == pytest.approx(want, rel=1e-12)
+    assert viscous_unresolved(kv[:9]) == 0.0                  # no task after the baseline yet
+    shifted = kv + [0.0024] * 8
+    assert viscous_unresolved(shifted) > 0.0024 - 0.0015 - 0.0002
+
+
+def test_fast_drift_under_noise_1e_2_trend_does_not_extrapolate_one_change(tmp_path):
+    # -30 % with tau 15 s under 1e-2 rad noise: today the update leads by 1.5 x the last
+    # change (its noise x 1.5) and the share rule loses the trend on a noisy change:
+    # 3.6 % off after the start. The mean change, a noise-aware share rule and a trend that
+    # continues while it stands out: within 3 %
+    plant = plant_file(str(tmp_path), drift={"coulomb_exp": -0.3, "coulomb_exp_start_s": 12.0,
+                                             "coulomb_exp_tau_s": 15.0},
+                       sensor={"noise_std": 1e-2, "seed": 5})
+    rows, _ = run_tracking(plant, 40, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    start = next(r["task"] for r in rows if r["t_s"] > 12.0)
+    err = [abs(r["k_fc"] / r["k_fc_true"] - 1) for r in rows]
+    assert max(err[start + 3:]) < 0.03
+    assert sum(r["cause"] == "trend" for r in rows) >= 5
+
+
+def test_ramp_end_trend_stops(tmp_path):
+    # -30 % over 24 s (ends with task 29): the task after the end is overshot by the lead
+    # (the end is not in the data yet); the one after that no more: the partial last change
+    # leads by its ratio to the ones before (today 2.4 % over, the full last change again)
+    plant = plant_file(str(tmp_path), drift={"coulomb_ramp": -0.3, "coulomb_ramp_start_s": 12.0,
+                                             "coulomb_ramp_end_s": 36.0})
+    rows, _ = run_tracking(plant, 36, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    end = next(r["task"] for r in rows if r["t_s"] >= 36.0 - 1e-9)
+    err = [r["k_fc"] / r["k_fc_true"] - 1 for r in rows]
+    assert max(abs(e) for e in err[end + 2:]) < 0.02
+    assert max(abs(e) for e in err[13:end + 1]) < 0.01         # the ramp itself followed
+    assert not any(r["cause"] == "trend" for r in rows[end + 2:])

@@ -5,6 +5,9 @@ import ctypes
 import os
 import sys
 
+import numpy as np
+import yaml
+
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "firmware_sim", "tests"))
 from fwsim import FwSim  # noqa: E402
 
@@ -62,15 +65,20 @@ def plant_file(tmp_dir, name="plant.yaml", base=TWOMASS, sensor=None, drift=None
 
 
 def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mode=1,
-                 settings=None, track_k_v=False, settle=0, correct_noise=True, watch_viscous=True):
+                 settings=None, track_k_v=False, settle=0, correct_noise=True, watch_viscous=True,
+                 friction_met=False):
     """Track over ``tasks`` repetitions; rows of dicts (k_fc in effect, estimate, sigma,
     truth at the task's end, action) and the last decision. ``correct_noise``: the sensor
     noise's bias removed (the drive's PD gains give the noise gain); ``watch_viscous``: a
-    viscous change with K_v held detected and taken into the fit (as ``fftune track``)."""
+    viscous change with K_v held detected and taken into the fit (as ``fftune track``).
+    ``friction_met``: each row also has ``k_fc_met``, the friction the task met
+    (:func:`friction_met_v`, from the plant's state sample by sample; slower)."""
     rows = []
+    with open(plant, encoding="utf-8") as fh:
+        plant_params = yaml.safe_load(fh)["plant"]
     with FwSim(plant) as sim:
         sim.configure(task_mode=mode, exc_kind=0, exc_settle_periods=settle, exc_record_periods=1,
-                      rec_signals=0, **(task or DEMO_TASK))
+                      rec_signals=0x03 if friction_met else 0, **(task or DEMO_TASK))
         sim.enable()
         tr = Tracker(k_fc=k_fc, k_v=k_v, k_a=k_a, settings=settings or TrackSettings(update_kv=track_k_v))
         n = sim.get("TASK_PERIOD")
@@ -84,11 +92,22 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
             sim.set("TASK_KA", tr.k_a)
             applied = tr.k_fc
             sim.start()
+            met = None
+            if friction_met:
+                states, modes = [], []
+                for _ in range(n * (1 + settle)):
+                    states.append(sim.plant_state())
+                    modes.append(sim.plant_mode())
+                    sim.run(1)
             sim.run_until_idle()
+            if friction_met:
+                rec, _ = sim.record()
+                met = friction_met_v(plant_params, np.array(states[-n:]), np.array(modes[-n:]),
+                                     rec[-n:, 0], rec[-n:, 1], fs)
             try:
                 est = estimate_task(task_stats(sim), k_v_hold=tr.k_v, hold_k_v=not track_k_v,
                                     recent_k_fc=recent, noise_gain=gain,
-                                    recent=recent_est if watch_viscous else None)
+                                    recent=recent_est if watch_viscous else None, k_fc_applied=applied)
                 recent.append(est.k_fc)
                 recent_est.append(est)
             except NotIdentifiable as exc:
@@ -99,6 +118,7 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
                          "k_fc_estimate": est.k_fc if ok else None,
                          "k_fc_sigma": est.k_fc_sigma if ok else None,
                          "k_fc_sigma_stat": est.k_fc_sigma_stat if ok else None,
+                         "k_fc_sigma_viscous": est.k_fc_sigma_viscous if ok else None,
                          "notes": list(est.notes) if ok else [],
                          "cause": decision.cause,
                          "k_v_shift": est.k_v_shift if ok else None,
@@ -106,7 +126,37 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
                          "sensor_noise_rad": est.sensor_noise_rad if ok else None,
                          "rms_error": est.rms_error if ok else None,
                          "rms_residual": est.rms_residual if ok else None,
-                         "k_fc_true": sim.truth("SIM_FC_VOLT"), "action": decision.action})
+                         "k_fc_true": sim.truth("SIM_FC_VOLT"), "k_fc_met": met,
+                         "action": decision.action})
             if decision.action == "stop":
                 break
     return rows, decision
+
+
+def friction_met_v(plant, states, modes, reference_rad, u_v, fs_hz):
+    """The friction one repetition met, as the estimator defines K_fc, computed from the
+    plant's own state (not from the drive's sums): per sample the motor-side friction torque
+    (sliding: the friction law at the motor's velocity, with the Stribeck rise; stuck: the
+    torque that holds the motor, k_m u - spring), projected on the Coulomb regressors p, n
+    and the acceleration a_r of the reference (central differences), K_fc = (F_+ + F_-) / 2
+    in input volts. ``plant`` the plant section ({coulomb, static, stribeck_velocity, k, c,
+    km}), ``states`` (N, 4) th1 w1 th2 w2 at each sample's start, ``modes`` the plant's
+    friction mode (0 stuck), ``reference_rad`` and ``u_v`` the recorded reference and plant
+    input. This is the truth of what ``track`` tracks where the friction depends on the
+    speed (a Stribeck rise): the level the task's own motion meets, below the plain average
+    along the reference (the motor sticks where the reference is slowest)."""
+    p = {k: float(plant.get(k, 0.0)) for k in ("coulomb", "static", "stribeck_velocity", "k", "c", "km")}
+    x = np.asarray(states, dtype=float)
+    w1 = x[:, 1]
+    fr = np.full_like(w1, p["coulomb"])
+    if p["stribeck_velocity"] > 0:
+        fr += (p["static"] - p["coulomb"]) * np.exp(-(w1 / p["stribeck_velocity"]) ** 2)
+    spring = p["k"] * (x[:, 0] - x[:, 2]) + p["c"] * (x[:, 1] - x[:, 3])
+    m = np.asarray(modes)
+    fric = np.where(m != 0, m * fr, p["km"] * np.asarray(u_v, dtype=float) - spring)
+    vr = np.gradient(np.asarray(reference_rad, dtype=float)) * fs_hz
+    ar = np.gradient(vr) * fs_hz
+    s = np.sign(np.round(vr, 6))
+    X = np.column_stack([np.maximum(s, 0), np.minimum(s, 0), ar])
+    th = np.linalg.lstsq(X, fric / p["km"], rcond=None)[0]
+    return float(0.5 * (th[0] + th[1]))
