@@ -87,6 +87,16 @@ def _fit_weights(offsets, order, scale):
     return pinv[0], Q
 
 
+def _dot_rows(v, B, rows=1024):
+    """v @ B (v tall, B small, both float64) in blocks of ``rows`` rows: each block is
+    under OpenBLAS's size for threading, so no thread is woken (and left spinning) for
+    what one core does in well under a millisecond; the result is the same product."""
+    out = np.empty((v.shape[0], B.shape[1]))
+    for s in range(0, v.shape[0], rows):
+        np.dot(v[s:s + rows], B, out=out[s:s + rows])
+    return out
+
+
 def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_side=6):
     """Line moments of the kept periods with the transient removed (robust LPM).
 
@@ -145,52 +155,57 @@ def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_sid
         w, Q = _fit_weights(off, order, float(p))
         groups.append((np.array(idx), off, np.column_stack((w, Q))))
 
-    def spectrum(x):
-        return np.fft.rfft(np.ascontiguousarray(x[:, settle:]).reshape(m_real, -1), axis=-1)
-
     # an input that repeats exactly (a generator's signal, open loop) has no transient:
     # its line sums are P times one period's, with no variance (one FFT saved)
     u_exact = all(bool((u[m, settle + 1:] == u[m, settle]).all()) for m in range(m_real))
-    XY = spectrum(y)
-    XU = None if u_exact else spectrum(u)
     Yt, Ut = np.empty((m_real, L), complex), np.empty((m_real, L), complex)
+    Yc, Uc = np.empty((m_real, L), complex), np.empty((m_real, L), complex)
     ss = {key: np.empty((m_real, L)) for key in ("yy", "uu")}
     s_yu = np.empty((m_real, L), complex)
     s_w = np.empty(L)
+    keys = ("y",) if u_exact else ("y", "u")
+    # one realization at a time, into buffers allocated once: its full-record spectra
+    # and the neighbours of its lines stay in cache (fresh multi-megabyte temporaries
+    # for all realizations at once cost page faults comparable to the arithmetic)
+    spec = {key: np.empty(n_full, complex) for key in keys}
+    fits = []
     for idx, off, B in groups:
         sel = lines[idx][:, None] + off[None, :]
         # B on the interleaved (re, im) view: one real product for both parts
         B2 = np.zeros((2 * off.size, 2 * B.shape[1]))
         B2[0::2, 0::2] = B
         B2[1::2, 1::2] = B
-        parts = {}
-        for key, X in (("y", XY), ("u", XU)):
-            if X is None:                   # (an exactly periodic input: nothing to fit)
-                ss["uu"][:, idx] = 0.0
-                Ut[:, idx] = 0.0
-                continue
-            nb = np.take(X, sel, axis=1)                            # (M, l, 2n), contiguous
-            v = nb.reshape(-1, off.size).view(np.float64)
-            c = np.dot(v, B2).view(np.complex128).reshape(m_real, idx.size, -1)
-            parts[key] = (nb, c)
-            cv = np.ascontiguousarray(c[..., 1:]).reshape(-1, order + 1).view(np.float64)
-            ss[key + key][:, idx] = (np.einsum("nk,nk->n", v, v)
-                                     - np.einsum("nk,nk->n", cv, cv)).reshape(m_real, idx.size)
-            (Yt if key == "y" else Ut)[:, idx] = c[..., 0]
-        if XU is None:
-            s_yu[:, idx] = 0.0
-        else:
-            (ny, cy), (nu, cu) = parts["y"], parts["u"]
-            # sum of res_y conj(res_u), res = (I - Q Q^T) x: x_y . conj(x_u) minus the fit's
-            s_yu[:, idx] = (np.einsum("mlk,mlk->ml", ny, np.conj(nu))
-                            - np.einsum("mlj,mlj->ml", cy[..., 1:], np.conj(cu[..., 1:])))
+        fits.append((idx, sel, B2, {key: np.empty(sel.shape, complex) for key in keys}))
         s_w[idx] = float(np.sum(B[:, 0] ** 2))
-    Yc = XY[:, lines] - Yt
-    if XU is None:
+    for m in range(m_real):
+        for key in keys:
+            x = np.asarray((y if key == "y" else u)[m, settle:], dtype=np.float64)
+            np.fft.rfft(x.reshape(-1), out=spec[key])
+        for idx, sel, B2, nbs in fits:
+            parts = {}
+            for key in keys:
+                nb = np.take(spec[key], sel, out=nbs[key], mode="clip")       # (l, 2n)
+                v = nb.view(np.float64)
+                cr = _dot_rows(v, B2)
+                cv = cr[:, 2:]                          # Q^T x (re, im): the fit's part
+                ss[key + key][m, idx] = np.einsum("nk,nk->n", v, v) - np.einsum("nk,nk->n", cv, cv)
+                c = cr.view(np.complex128)
+                parts[key] = (nb, c)
+                (Yt if key == "y" else Ut)[m, idx] = c[:, 0]
+            if u_exact:                         # (an exactly periodic input: nothing to fit)
+                ss["uu"][m, idx] = 0.0
+                Ut[m, idx] = 0.0
+                s_yu[m, idx] = 0.0
+            else:
+                (ny, cy), (nu, cu) = parts["y"], parts["u"]
+                # sum of res_y conj(res_u), res = (I - Q Q^T) x: x_y . conj(x_u) minus the fit's
+                s_yu[m, idx] = (np.einsum("lk,lk->l", ny, np.conj(nu))
+                                - np.einsum("lj,lj->l", cy[:, 1:], np.conj(cu[:, 1:])))
+        Yc[m] = spec["y"][lines] - Yt[m]
+        if not u_exact:
+            Uc[m] = spec["u"][lines] - Ut[m]
+    if u_exact:
         Uc = p * np.fft.rfft(np.asarray(u[:, settle], dtype=np.float64), axis=-1)[:, band]
-    else:
-        Uc = XU[:, lines] - Ut
-    del XY, XU
     factor = (1.0 + s_w) / q                     # var of a corrected line sum per |res|^2
     var_y = np.maximum(ss["yy"], 0.0) * factor
     var_u = np.maximum(ss["uu"], 0.0) * factor
