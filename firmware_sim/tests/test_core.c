@@ -10,6 +10,7 @@
 #include "lstat.h"
 #include "ms.h"
 #include "ms_vectors.h"
+#include "task.h"
 #include "th.h"
 
 #define FS 2560.0f
@@ -1902,9 +1903,154 @@ static void test_drv_friction_ff_params(void)
     TH_ASSERT(moving > 200);
 }
 
+/* ---- issue 33: task.c's statistics read-out (objects 0x2061/0x2062 through drv) --------
+ * A task_t filled by task_push alone (no generator: v_last, a_last set by hand per sample),
+ * n_rep = 20 samples in TASK_BLOCKS = 8 blocks, block b from sample floor(20 b / 8) (2 or 3
+ * samples: unequal), two repetitions of different inputs. Every word of the four streams
+ * (run sums and the last repetition alone, data and design) is compared with sums computed
+ * here per sample, block 0 and block 7 included; then the byte ranges at and beyond the
+ * ends. */
+#define TT_NREP 20u
+
+static float tt_u(uint32_t rep, uint32_t k) { return 0.5f + (float)k * 0.25f + (float)rep * 3.0f; }
+static float tt_e(uint32_t rep, uint32_t k) { return 0.01f * (float)(k + 1u) - 0.002f * (float)rep; }
+static float tt_s(uint32_t k) { return (k % 3u == 1u) ? -1.0f : 1.0f; }
+static float tt_v(uint32_t rep, uint32_t k) { return 0.125f * (float)k - 1.0f + 0.0625f * (float)rep; }
+static float tt_a(uint32_t rep, uint32_t k) { return 2.0f - 0.375f * (float)k + (float)rep; }
+
+/* the sums of block b of repetition rep, in the stream's order */
+static void tt_ref(uint32_t rep, uint32_t b, double des[TASK_DESIGN_SUMS], double dat[TASK_DATA_SUMS])
+{
+    for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+        des[i] = 0.0;
+    }
+    for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+        dat[i] = 0.0;
+    }
+    for (uint32_t k = 0; k < TT_NREP; k++) {
+        /* block b holds samples floor(20 b / 8) <= k < floor(20 (b + 1) / 8) */
+        if (k < b * TT_NREP / TASK_BLOCKS || k >= (b + 1u) * TT_NREP / TASK_BLOCKS) {
+            continue;
+        }
+        double s = tt_s(k), v = tt_v(rep, k), a = tt_a(rep, k), u = tt_u(rep, k), e = tt_e(rep, k);
+        double p = s > 0 ? s : 0, n = s < 0 ? s : 0;
+        double d[TASK_DESIGN_SUMS] = {p * p, n * n, p * v, p * a, n * v, n * a, v * v, v * a, a * a};
+        double x[TASK_DATA_SUMS] = {p * u, n * u, v * u, a * u, e * e, u * u};
+        for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+            des[i] += d[i];
+        }
+        for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+            dat[i] += x[i];
+        }
+    }
+}
+
+static uint32_t tt_u32(const uint8_t *p)
+{
+    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+
+static float tt_f32(const uint8_t *p)
+{
+    uint32_t w = tt_u32(p);
+    float f;
+    memcpy(&f, &w, 4);
+    return f;
+}
+
+/* one stream read whole and compared: header (count, 20), then block by block the sums of
+ * repetitions [rep_lo, rep_hi] */
+static void tt_check_stream(int (*rd)(const task_t *, uint32_t, uint8_t *, uint32_t), const task_t *t,
+                            uint32_t m, uint32_t count, uint32_t rep_lo, uint32_t rep_hi)
+{
+    uint8_t buf[TASK_DESIGN_BYTES];
+    uint32_t size = TASK_HEADER_BYTES + 4u * TASK_BLOCKS * m;
+    TH_EQ(rd(t, 0u, buf, size), 0);
+    TH_EQ(tt_u32(buf), count);
+    TH_EQ(tt_u32(buf + 4), TT_NREP);
+    for (uint32_t b = 0; b < TASK_BLOCKS; b++) {
+        double des[TASK_DESIGN_SUMS], dat[TASK_DATA_SUMS], sd[TASK_DESIGN_SUMS] = {0}, sx[TASK_DATA_SUMS] = {0};
+        for (uint32_t r = rep_lo; r <= rep_hi; r++) {
+            tt_ref(r, b, des, dat);
+            for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+                sd[i] += des[i];
+            }
+            for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+                sx[i] += dat[i];
+            }
+        }
+        for (uint32_t i = 0; i < m; i++) {
+            double want = m == TASK_DESIGN_SUMS ? sd[i] : sx[i];
+            TH_NEAR(tt_f32(buf + TASK_HEADER_BYTES + 4u * (b * m + i)), want, 1e-5 * (1.0 + fabs(want)));
+        }
+    }
+}
+
+static void tt_push_rep(task_t *t, uint32_t rep)
+{
+    for (uint32_t k = 0; k < TT_NREP; k++) {
+        t->v_last = tt_v(rep, k);
+        t->a_last = tt_a(rep, k);
+        task_push(t, tt_s(k), tt_u(rep, k), tt_e(rep, k));
+    }
+}
+
+static void test_task_statistics_read_out(void)
+{
+    static task_t t;
+    memset(&t, 0, sizeof t);
+    t.n_rep = TT_NREP;
+    t.blk_end = TT_NREP / TASK_BLOCKS;
+    tt_push_rep(&t, 0);
+    TH_EQ(t.reps, 1);
+    TH_EQ(t.latched, 1);
+    tt_check_stream(task_latch_data_read, &t, TASK_DATA_SUMS, 1u, 0u, 0u);
+    tt_check_stream(task_latch_design_read, &t, TASK_DESIGN_SUMS, 1u, 0u, 0u);
+    tt_push_rep(&t, 1);
+    TH_EQ(t.reps, 2);
+    TH_EQ(t.latched, 2);
+    /* the run: both repetitions; the latched record: the second alone */
+    tt_check_stream(task_data_read, &t, TASK_DATA_SUMS, 2u, 0u, 1u);
+    tt_check_stream(task_design_read, &t, TASK_DESIGN_SUMS, 2u, 0u, 1u);
+    tt_check_stream(task_latch_data_read, &t, TASK_DATA_SUMS, 2u, 1u, 1u);
+    tt_check_stream(task_latch_design_read, &t, TASK_DESIGN_SUMS, 2u, 1u, 1u);
+    /* block 0 of the latched data (0x2061's first block) is the second repetition's */
+    double des[TASK_DESIGN_SUMS], dat[TASK_DATA_SUMS];
+    tt_ref(1u, 0u, des, dat);
+    uint8_t w[4];
+    TH_EQ(task_latch_data_read(&t, TASK_HEADER_BYTES, w, 4u), 0);
+    TH_NEAR(tt_f32(w), dat[0], 1e-5 * (1.0 + fabs(dat[0])));
+
+    /* byte ranges: up to the end accepted, one byte beyond refused, at every entry */
+    int (*rds[4])(const task_t *, uint32_t, uint8_t *, uint32_t) = {task_data_read, task_design_read,
+                                                                    task_latch_data_read, task_latch_design_read};
+    uint32_t sizes[4] = {TASK_DATA_BYTES, TASK_DESIGN_BYTES, TASK_DATA_BYTES, TASK_DESIGN_BYTES};
+    TH_EQ(task_data_size_bytes(&t), TASK_DATA_BYTES);
+    TH_EQ(task_design_size_bytes(&t), TASK_DESIGN_BYTES);
+    for (int j = 0; j < 4; j++) {
+        uint8_t buf[TASK_DESIGN_BYTES + 8];
+        uint32_t size = sizes[j];
+        uint8_t whole[TASK_DESIGN_BYTES];
+        TH_EQ(rds[j](&t, 0u, whole, size), 0);
+        TH_EQ(rds[j](&t, 0u, buf, size + 1u), -1);
+        TH_EQ(rds[j](&t, size - 4u, buf, 4u), 0); /* the last sum of the last block */
+        TH_ASSERT(memcmp(buf, whole + size - 4u, 4u) == 0);
+        TH_EQ(rds[j](&t, size - 4u, buf, 5u), -1);
+        TH_EQ(rds[j](&t, size, buf, 0u), 0);  /* empty read at the end */
+        TH_EQ(rds[j](&t, size + 1u, buf, 0u), -1);
+        TH_EQ(rds[j](&t, 0xFFFFFFFFu, buf, 2u), -1); /* no wrap-around of offset + len */
+        TH_EQ(rds[j](&t, 8u, buf, 0xFFFFFFFCu), -1);
+        TH_EQ(rds[j](&t, 3u, NULL, 0u), 0);
+        TH_EQ(rds[j](&t, 3u, NULL, 1u), -1);
+        TH_EQ(rds[j](&t, 7u, buf, 6u), 0); /* unaligned: bytes 7 .. 12 */
+        TH_ASSERT(memcmp(buf, whole + 7u, 6u) == 0);
+    }
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
+    TH_RUN(test_task_statistics_read_out);
     TH_RUN(test_ctl_feedforward_and_saturation);
     TH_RUN(test_ctl_setters_reject_and_keep);
     TH_RUN(test_ctl_init_defaults_reset_and_edges);
