@@ -2047,10 +2047,72 @@ static void test_task_statistics_read_out(void)
     }
 }
 
+/* task_init's state (every byte zero but fs, ts = 1/fs or 0, dir = +1 and a one-sample
+ * dwell), and whole-sample durations: a count within 1e-4 (relative above one sample) of
+ * an integer is that integer (float noise), else rounded up; n_move is one move and its
+ * dwell (the sum of the 8 segments), n_rep two of them back and forth, one forward. */
+static void test_task_init_and_whole_samples(void)
+{
+    static task_t t, ref;
+    memset(&t, 0xA5, sizeof t);
+    task_init(&t, 2500.0f);
+    memset(&ref, 0, sizeof ref);
+    ref.fs = 2500.0f;
+    ref.ts = 1.0f / 2500.0f;
+    ref.dir = 1.0f;
+    ref.n_seg[7] = 1u;
+    TH_ASSERT(memcmp(&t, &ref, sizeof t) == 0);
+    TH_ASSERT(t.ts == 1.0f / 2500.0f && t.dir == 1.0f && t.n_seg[7] == 1u && t.n_rep == 0u);
+    task_init(&t, 0.0f);
+    TH_ASSERT(t.fs == 0.0f && t.ts == 0.0f);
+    task_init(&t, -5.0f);
+    TH_ASSERT(t.ts == 0.0f);
+    TH_EQ(task_set_param(&t, TASK_P_DISTANCE, 0.2f), TASK_OK); /* fs <= 0: no design */
+    TH_EQ(task_set_param(&t, TASK_P_V_MAX, 1.0f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_A_MAX, 10.0f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_JERK, 1000.0f), TASK_OK);
+    TH_EQ(task_set_mode(&t, TASK_MODE_BACK_AND_FORTH), TASK_OK);
+    TH_EQ(t.n_rep, 0);
+
+    /* fs 1000: t_j 10 ms, t_a 90 ms, t_v 90 ms: a move of 4 10 + 2 90 + 90 = 310 samples */
+    task_init(&t, 1000.0f);
+    TH_EQ(task_set_param(&t, TASK_P_DISTANCE, 0.2f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_V_MAX, 1.0f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_A_MAX, 10.0f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_JERK, 1000.0f), TASK_OK);
+    /* dwell [s] -> samples at 1 kHz: x = dwell 1000 */
+    const struct {
+        float dwell_s;
+        uint32_t n;
+    } cases[] = {
+        {0.25002f, 250u},   /* 250.02: within 1e-4 250 = 0.025 of 250 */
+        {0.25003f, 251u},   /* 250.03: beyond it, rounded up */
+        {0.0009f, 1u},      /* 0.9 */
+        {1.5e-7f, 1u},      /* 1.5e-4: beyond the absolute 1e-4 below one sample */
+        {5e-8f, 0u},        /* 5e-5: within it */
+        {0.0f, 0u},
+    };
+    for (uint32_t m = TASK_MODE_BACK_AND_FORTH; m <= TASK_MODE_FORWARD; m++) {
+        TH_EQ(task_set_mode(&t, m), TASK_OK);
+        for (size_t c = 0; c < sizeof cases / sizeof cases[0]; c++) {
+            TH_EQ(task_set_param(&t, TASK_P_DWELL, cases[c].dwell_s), TASK_OK);
+            TH_EQ(t.n_seg[7], cases[c].n);
+            uint32_t sum = 0u;
+            for (int s = 0; s < 8; s++) {
+                sum += t.n_seg[s];
+            }
+            TH_EQ(t.n_move, 310u + cases[c].n);
+            TH_EQ(t.n_move, sum);
+            TH_EQ(t.n_rep, (m == TASK_MODE_FORWARD ? 1u : 2u) * (310u + cases[c].n));
+        }
+    }
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
     TH_RUN(test_task_statistics_read_out);
+    TH_RUN(test_task_init_and_whole_samples);
     TH_RUN(test_ctl_feedforward_and_saturation);
     TH_RUN(test_ctl_setters_reject_and_keep);
     TH_RUN(test_ctl_init_defaults_reset_and_edges);
