@@ -2108,11 +2108,141 @@ static void test_task_init_and_whole_samples(void)
     }
 }
 
+/* task.c's API edges: parameters refused (unknown, negative, NaN) keep the old value and
+ * read 0 when unknown; period 0 and displacement 0 when off; task_begin's state (every
+ * generator and statistics field from a scrambled run); the design's bounds (a
+ * repetition of exactly TASK_REP_MIN = 64 samples kept, 63 and 62 refused; a jerk phase
+ * below one sample made one sample; fs = 1 Hz valid); task_init writes no byte beyond
+ * the struct. */
+static void tt_design(task_t *t, float fs, float d, float vm, float am, float jm, float dwell, uint32_t mode)
+{
+    task_init(t, fs);
+    TH_EQ(task_set_param(t, TASK_P_DISTANCE, d), TASK_OK);
+    TH_EQ(task_set_param(t, TASK_P_V_MAX, vm), TASK_OK);
+    TH_EQ(task_set_param(t, TASK_P_A_MAX, am), TASK_OK);
+    TH_EQ(task_set_param(t, TASK_P_JERK, jm), TASK_OK);
+    TH_EQ(task_set_param(t, TASK_P_DWELL, dwell), TASK_OK);
+    TH_EQ(task_set_mode(t, mode), TASK_OK);
+}
+
+static void test_task_api_begin_and_design_bounds(void)
+{
+    static struct {
+        task_t t;
+        uint8_t canary[16];
+    } s;
+    memset(s.canary, 0x5A, sizeof s.canary);
+    task_init(&s.t, 1000.0f);
+    for (size_t i = 0; i < sizeof s.canary; i++) {
+        TH_EQ(s.canary[i], 0x5A);
+    }
+    task_t *t = &s.t;
+
+    /* parameters */
+    TH_EQ(task_set_param(t, TASK_P_KA, 0.75f), TASK_OK);
+    TH_EQ(task_set_param(t, 6u, 2.0f), TASK_E_RANGE);
+    TH_EQ(task_set_param(t, 99u, 2.0f), TASK_E_RANGE);
+    TH_ASSERT(task_get_param(t, 6u) == 0.0f && task_get_param(t, 99u) == 0.0f);
+    TH_EQ(task_set_param(t, TASK_P_KA, -0.5f), TASK_E_RANGE);
+    TH_EQ(task_set_param(t, TASK_P_KA, NAN), TASK_E_RANGE);
+    TH_ASSERT(task_get_param(t, TASK_P_KA) == 0.75f);
+    TH_EQ(task_set_mode(t, TASK_MODE_MAX + 1u), TASK_E_RANGE);
+
+    /* fs 100: t_j 10 ms, t_a 90 ms, t_v 90 ms: a move of 4 1 + 2 9 + 9 = 31 samples */
+    tt_design(t, 100.0f, 0.2f, 1.0f, 10.0f, 1000.0f, 0.33f, TASK_MODE_FORWARD);
+    TH_EQ(t->n_seg[0], 1);
+    TH_EQ(t->n_seg[1], 9);
+    TH_EQ(t->n_seg[3], 9);
+    TH_EQ(task_period(t), 64); /* 31 + 33: exactly the minimum, kept */
+    TH_ASSERT(task_displacement(t) == 0.2f);
+    TH_EQ(task_set_param(t, TASK_P_DWELL, 0.32f), TASK_OK);
+    TH_EQ(task_period(t), 0); /* 63 */
+    TH_EQ(t->n_rep, 0);
+    TH_EQ(t->n_move, 0);
+    tt_design(t, 100.0f, 0.2f, 1.0f, 10.0f, 1000.0f, 0.01f, TASK_MODE_BACK_AND_FORTH);
+    TH_EQ(task_period(t), 64); /* 2 (31 + 1) */
+    TH_ASSERT(task_displacement(t) == 0.0f);
+    TH_EQ(task_set_param(t, TASK_P_DWELL, 0.0f), TASK_OK);
+    TH_EQ(task_period(t), 0); /* 62 */
+    TH_EQ(task_begin(t), TASK_E_DESIGN);
+
+    /* off: no period even with a valid design; no displacement even when forward-designed */
+    tt_design(t, 1000.0f, 0.2f, 1.0f, 10.0f, 1000.0f, 0.0f, TASK_MODE_FORWARD);
+    TH_EQ(t->n_rep, 310);
+    TH_EQ(task_set_mode(t, TASK_MODE_OFF), TASK_OK);
+    TH_EQ(t->n_rep, 620); /* (designed as back and forth) */
+    TH_EQ(task_period(t), 0);
+    TH_ASSERT(task_displacement(t) == 0.0f);
+    TH_EQ(task_begin(t), TASK_E_DESIGN);
+
+    /* a jerk phase far below one sample (t_j = 10 ns): one sample each */
+    tt_design(t, 1000.0f, 0.2f, 1.0f, 10.0f, 1e9f, 0.0f, TASK_MODE_BACK_AND_FORTH);
+    TH_EQ(t->n_seg[0], 1);
+    TH_EQ(t->n_seg[2], 1);
+    TH_EQ(t->n_seg[4], 1);
+    TH_EQ(t->n_seg[6], 1);
+    TH_ASSERT(t->n_rep > 0u);
+
+    /* fs = 1 Hz: D 40, v 1, a 1, j 1: t_j 1 s, t_a 0, t_v 38 s: 2 (4 + 38) = 84 samples */
+    tt_design(t, 1.0f, 40.0f, 1.0f, 1.0f, 1.0f, 0.0f, TASK_MODE_BACK_AND_FORTH);
+    TH_ASSERT(t->ts == 1.0f);
+    TH_EQ(task_period(t), 84);
+
+    /* task_begin from a scrambled run: segment 0 (one sample long: not skipped), sample 0,
+     * forward from 0 at rest, every sum cleared */
+    tt_design(t, 100.0f, 0.2f, 1.0f, 10.0f, 1000.0f, 0.33f, TASK_MODE_FORWARD);
+    TH_EQ(t->n_seg[0], 1);
+    t->seg = 5u;
+    t->k = 3u;
+    t->dir = -1.0f;
+    t->base = 7.0f;
+    t->v_last = 2.5f;
+    t->a_last = -4.0f;
+    t->blk = 6u;
+    t->rk = 17u;
+    t->reps = 9u;
+    t->latched = 4u;
+    t->blk_end = 3u;
+    for (uint32_t b = 0; b < TASK_BLOCKS; b++) {
+        for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+            t->design[b][i] = t->rep_design[b][i] = t->latch_design[b][i] = 1.5f + (float)i;
+        }
+        for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+            t->data[b][i] = t->rep_data[b][i] = t->latch_data[b][i] = -2.5f - (float)i;
+        }
+    }
+    TH_EQ(task_begin(t), TASK_OK);
+    TH_EQ(t->seg, 0);
+    TH_EQ(t->k, 0);
+    TH_ASSERT(t->dir == 1.0f && t->base == 0.0f && t->v_last == 0.0f && t->a_last == 0.0f);
+    TH_EQ(t->blk, 0);
+    TH_EQ(t->rk, 0);
+    TH_EQ(t->reps, 0);
+    TH_EQ(t->latched, 0);
+    TH_EQ(t->blk_end, 64u / TASK_BLOCKS);
+    int nonzero = 0;
+    for (uint32_t b = 0; b < TASK_BLOCKS; b++) {
+        for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+            nonzero += t->design[b][i] != 0.0f || t->rep_design[b][i] != 0.0f || t->latch_design[b][i] != 0.0f;
+        }
+        for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+            nonzero += t->data[b][i] != 0.0f || t->rep_data[b][i] != 0.0f || t->latch_data[b][i] != 0.0f;
+        }
+    }
+    TH_EQ(nonzero, 0);
+    /* the first sample: segment 0 at its start (position, velocity 0, acceleration 0) */
+    float w = 1.0f, wd = 1.0f, ua = 1.0f;
+    task_next(t, &w, &wd, &ua);
+    TH_ASSERT(w == 0.0f && wd == 0.0f);
+    TH_EQ(t->seg, 1); /* its one sample done */
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
     TH_RUN(test_task_statistics_read_out);
     TH_RUN(test_task_init_and_whole_samples);
+    TH_RUN(test_task_api_begin_and_design_bounds);
     TH_RUN(test_ctl_feedforward_and_saturation);
     TH_RUN(test_ctl_setters_reject_and_keep);
     TH_RUN(test_ctl_init_defaults_reset_and_edges);
