@@ -2183,6 +2183,18 @@ static void test_task_api_begin_and_design_bounds(void)
     TH_EQ(t->n_seg[6], 1);
     TH_ASSERT(t->n_rep > 0u);
 
+    /* the longest repetition, in binary-exact numbers: fs 1024, j 256, a 8, v 0.5, D 0.109375:
+     * t_j = t_a = 1/32 s (32 samples), t_v = 1/8 s (128): a move of 320 samples; a dwell of
+     * 2^24 - 320 samples makes exactly TASK_N_MAX (kept), one sample more is refused */
+    tt_design(t, 1024.0f, 0.109375f, 0.5f, 8.0f, 256.0f, (float)(TASK_N_MAX - 320u) / 1024.0f,
+              TASK_MODE_FORWARD);
+    TH_EQ(t->n_seg[0], 32);
+    TH_EQ(t->n_seg[1], 32);
+    TH_EQ(t->n_seg[3], 128);
+    TH_EQ(task_period(t), TASK_N_MAX);
+    TH_EQ(task_set_param(t, TASK_P_DWELL, (float)(TASK_N_MAX - 319u) / 1024.0f), TASK_OK);
+    TH_EQ(task_period(t), 0);
+
     /* fs = 1 Hz: D 40, v 1, a 1, j 1: t_j 1 s, t_a 0, t_v 38 s: 2 (4 + 38) = 84 samples */
     tt_design(t, 1.0f, 40.0f, 1.0f, 1.0f, 1.0f, 0.0f, TASK_MODE_BACK_AND_FORTH);
     TH_ASSERT(t->ts == 1.0f);
