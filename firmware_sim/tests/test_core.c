@@ -10,6 +10,7 @@
 #include "lstat.h"
 #include "ms.h"
 #include "ms_vectors.h"
+#include "task.h"
 #include "th.h"
 
 #define FS 2560.0f
@@ -1902,9 +1903,358 @@ static void test_drv_friction_ff_params(void)
     TH_ASSERT(moving > 200);
 }
 
+/* ---- issue 33: task.c's statistics read-out (objects 0x2061/0x2062 through drv) --------
+ * A task_t filled by task_push alone (no generator: v_last, a_last set by hand per sample),
+ * n_rep = 20 samples in TASK_BLOCKS = 8 blocks, block b from sample floor(20 b / 8) (2 or 3
+ * samples: unequal), two repetitions of different inputs. Every word of the four streams
+ * (run sums and the last repetition alone, data and design) is compared with sums computed
+ * here per sample, block 0 and block 7 included; then the byte ranges at and beyond the
+ * ends. */
+#define TT_NREP 20u
+
+static float tt_u(uint32_t rep, uint32_t k) { return 0.5f + (float)k * 0.25f + (float)rep * 3.0f; }
+static float tt_e(uint32_t rep, uint32_t k) { return 0.01f * (float)(k + 1u) - 0.002f * (float)rep; }
+static float tt_s(uint32_t k) { return (k % 3u == 1u) ? -1.0f : 1.0f; }
+static float tt_v(uint32_t rep, uint32_t k) { return 0.125f * (float)k - 1.0f + 0.0625f * (float)rep; }
+static float tt_a(uint32_t rep, uint32_t k) { return 2.0f - 0.375f * (float)k + (float)rep; }
+
+/* the sums of block b of repetition rep, in the stream's order */
+static void tt_ref(uint32_t rep, uint32_t b, double des[TASK_DESIGN_SUMS], double dat[TASK_DATA_SUMS])
+{
+    for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+        des[i] = 0.0;
+    }
+    for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+        dat[i] = 0.0;
+    }
+    for (uint32_t k = 0; k < TT_NREP; k++) {
+        /* block b holds samples floor(20 b / 8) <= k < floor(20 (b + 1) / 8) */
+        if (k < b * TT_NREP / TASK_BLOCKS || k >= (b + 1u) * TT_NREP / TASK_BLOCKS) {
+            continue;
+        }
+        double s = tt_s(k), v = tt_v(rep, k), a = tt_a(rep, k), u = tt_u(rep, k), e = tt_e(rep, k);
+        double p = s > 0 ? s : 0, n = s < 0 ? s : 0;
+        double d[TASK_DESIGN_SUMS] = {p * p, n * n, p * v, p * a, n * v, n * a, v * v, v * a, a * a};
+        double x[TASK_DATA_SUMS] = {p * u, n * u, v * u, a * u, e * e, u * u};
+        for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+            des[i] += d[i];
+        }
+        for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+            dat[i] += x[i];
+        }
+    }
+}
+
+static uint32_t tt_u32(const uint8_t *p)
+{
+    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+
+static float tt_f32(const uint8_t *p)
+{
+    uint32_t w = tt_u32(p);
+    float f;
+    memcpy(&f, &w, 4);
+    return f;
+}
+
+/* one stream read whole and compared: header (count, 20), then block by block the sums of
+ * repetitions [rep_lo, rep_hi] */
+static void tt_check_stream(int (*rd)(const task_t *, uint32_t, uint8_t *, uint32_t), const task_t *t,
+                            uint32_t m, uint32_t count, uint32_t rep_lo, uint32_t rep_hi)
+{
+    uint8_t buf[TASK_DESIGN_BYTES];
+    uint32_t size = TASK_HEADER_BYTES + 4u * TASK_BLOCKS * m;
+    TH_EQ(rd(t, 0u, buf, size), 0);
+    TH_EQ(tt_u32(buf), count);
+    TH_EQ(tt_u32(buf + 4), TT_NREP);
+    for (uint32_t b = 0; b < TASK_BLOCKS; b++) {
+        double des[TASK_DESIGN_SUMS], dat[TASK_DATA_SUMS], sd[TASK_DESIGN_SUMS] = {0}, sx[TASK_DATA_SUMS] = {0};
+        for (uint32_t r = rep_lo; r <= rep_hi; r++) {
+            tt_ref(r, b, des, dat);
+            for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+                sd[i] += des[i];
+            }
+            for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+                sx[i] += dat[i];
+            }
+        }
+        for (uint32_t i = 0; i < m; i++) {
+            double want = m == TASK_DESIGN_SUMS ? sd[i] : sx[i];
+            TH_NEAR(tt_f32(buf + TASK_HEADER_BYTES + 4u * (b * m + i)), want, 1e-5 * (1.0 + fabs(want)));
+        }
+    }
+}
+
+static void tt_push_rep(task_t *t, uint32_t rep)
+{
+    for (uint32_t k = 0; k < TT_NREP; k++) {
+        t->v_last = tt_v(rep, k);
+        t->a_last = tt_a(rep, k);
+        task_push(t, tt_s(k), tt_u(rep, k), tt_e(rep, k));
+    }
+}
+
+static void test_task_statistics_read_out(void)
+{
+    static task_t t;
+    memset(&t, 0, sizeof t);
+    t.n_rep = TT_NREP;
+    t.blk_end = TT_NREP / TASK_BLOCKS;
+    tt_push_rep(&t, 0);
+    TH_EQ(t.reps, 1);
+    TH_EQ(t.latched, 1);
+    tt_check_stream(task_latch_data_read, &t, TASK_DATA_SUMS, 1u, 0u, 0u);
+    tt_check_stream(task_latch_design_read, &t, TASK_DESIGN_SUMS, 1u, 0u, 0u);
+    tt_push_rep(&t, 1);
+    TH_EQ(t.reps, 2);
+    TH_EQ(t.latched, 2);
+    /* the run: both repetitions; the latched record: the second alone */
+    tt_check_stream(task_data_read, &t, TASK_DATA_SUMS, 2u, 0u, 1u);
+    tt_check_stream(task_design_read, &t, TASK_DESIGN_SUMS, 2u, 0u, 1u);
+    tt_check_stream(task_latch_data_read, &t, TASK_DATA_SUMS, 2u, 1u, 1u);
+    tt_check_stream(task_latch_design_read, &t, TASK_DESIGN_SUMS, 2u, 1u, 1u);
+    /* block 0 of the latched data (0x2061's first block) is the second repetition's */
+    double des[TASK_DESIGN_SUMS], dat[TASK_DATA_SUMS];
+    tt_ref(1u, 0u, des, dat);
+    uint8_t w[4];
+    TH_EQ(task_latch_data_read(&t, TASK_HEADER_BYTES, w, 4u), 0);
+    TH_NEAR(tt_f32(w), dat[0], 1e-5 * (1.0 + fabs(dat[0])));
+
+    /* byte ranges: up to the end accepted, one byte beyond refused, at every entry */
+    int (*rds[4])(const task_t *, uint32_t, uint8_t *, uint32_t) = {task_data_read, task_design_read,
+                                                                    task_latch_data_read, task_latch_design_read};
+    uint32_t sizes[4] = {TASK_DATA_BYTES, TASK_DESIGN_BYTES, TASK_DATA_BYTES, TASK_DESIGN_BYTES};
+    TH_EQ(task_data_size_bytes(&t), TASK_DATA_BYTES);
+    TH_EQ(task_design_size_bytes(&t), TASK_DESIGN_BYTES);
+    for (int j = 0; j < 4; j++) {
+        uint8_t buf[TASK_DESIGN_BYTES + 8];
+        uint32_t size = sizes[j];
+        uint8_t whole[TASK_DESIGN_BYTES];
+        TH_EQ(rds[j](&t, 0u, whole, size), 0);
+        TH_EQ(rds[j](&t, 0u, buf, size + 1u), -1);
+        TH_EQ(rds[j](&t, size - 4u, buf, 4u), 0); /* the last sum of the last block */
+        TH_ASSERT(memcmp(buf, whole + size - 4u, 4u) == 0);
+        TH_EQ(rds[j](&t, size - 4u, buf, 5u), -1);
+        TH_EQ(rds[j](&t, size, buf, 0u), 0);  /* empty read at the end */
+        TH_EQ(rds[j](&t, size + 1u, buf, 0u), -1);
+        TH_EQ(rds[j](&t, 0xFFFFFFFFu, buf, 2u), -1); /* no wrap-around of offset + len */
+        TH_EQ(rds[j](&t, 8u, buf, 0xFFFFFFFCu), -1);
+        TH_EQ(rds[j](&t, 3u, NULL, 0u), 0);
+        TH_EQ(rds[j](&t, 3u, NULL, 1u), -1);
+        TH_EQ(rds[j](&t, 7u, buf, 6u), 0); /* unaligned: bytes 7 .. 12 */
+        TH_ASSERT(memcmp(buf, whole + 7u, 6u) == 0);
+    }
+}
+
+/* task_init's state (every byte zero but fs, ts = 1/fs or 0, dir = +1 and a one-sample
+ * dwell), and whole-sample durations: a count within 1e-4 (relative above one sample) of
+ * an integer is that integer (float noise), else rounded up; n_move is one move and its
+ * dwell (the sum of the 8 segments), n_rep two of them back and forth, one forward. */
+static void test_task_init_and_whole_samples(void)
+{
+    static task_t t, ref;
+    memset(&t, 0xA5, sizeof t);
+    task_init(&t, 2500.0f);
+    memset(&ref, 0, sizeof ref);
+    ref.fs = 2500.0f;
+    ref.ts = 1.0f / 2500.0f;
+    ref.dir = 1.0f;
+    ref.n_seg[7] = 1u;
+    TH_ASSERT(memcmp(&t, &ref, sizeof t) == 0);
+    TH_ASSERT(t.ts == 1.0f / 2500.0f && t.dir == 1.0f && t.n_seg[7] == 1u && t.n_rep == 0u);
+    task_init(&t, 0.0f);
+    TH_ASSERT(t.fs == 0.0f && t.ts == 0.0f);
+    task_init(&t, -5.0f);
+    TH_ASSERT(t.ts == 0.0f);
+    TH_EQ(task_set_param(&t, TASK_P_DISTANCE, 0.2f), TASK_OK); /* fs <= 0: no design */
+    TH_EQ(task_set_param(&t, TASK_P_V_MAX, 1.0f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_A_MAX, 10.0f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_JERK, 1000.0f), TASK_OK);
+    TH_EQ(task_set_mode(&t, TASK_MODE_BACK_AND_FORTH), TASK_OK);
+    TH_EQ(t.n_rep, 0);
+
+    /* fs 1000: t_j 10 ms, t_a 90 ms, t_v 90 ms: a move of 4 10 + 2 90 + 90 = 310 samples */
+    task_init(&t, 1000.0f);
+    TH_EQ(task_set_param(&t, TASK_P_DISTANCE, 0.2f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_V_MAX, 1.0f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_A_MAX, 10.0f), TASK_OK);
+    TH_EQ(task_set_param(&t, TASK_P_JERK, 1000.0f), TASK_OK);
+    /* dwell [s] -> samples at 1 kHz: x = dwell 1000 */
+    const struct {
+        float dwell_s;
+        uint32_t n;
+    } cases[] = {
+        {0.25002f, 250u},   /* 250.02: within 1e-4 250 = 0.025 of 250 */
+        {0.25003f, 251u},   /* 250.03: beyond it, rounded up */
+        {0.0009f, 1u},      /* 0.9 */
+        {1.5e-7f, 1u},      /* 1.5e-4: beyond the absolute 1e-4 below one sample */
+        {5e-8f, 0u},        /* 5e-5: within it */
+        {0.0f, 0u},
+    };
+    for (uint32_t m = TASK_MODE_BACK_AND_FORTH; m <= TASK_MODE_FORWARD; m++) {
+        TH_EQ(task_set_mode(&t, m), TASK_OK);
+        for (size_t c = 0; c < sizeof cases / sizeof cases[0]; c++) {
+            TH_EQ(task_set_param(&t, TASK_P_DWELL, cases[c].dwell_s), TASK_OK);
+            TH_EQ(t.n_seg[7], cases[c].n);
+            uint32_t sum = 0u;
+            for (int s = 0; s < 8; s++) {
+                sum += t.n_seg[s];
+            }
+            TH_EQ(t.n_move, 310u + cases[c].n);
+            TH_EQ(t.n_move, sum);
+            TH_EQ(t.n_rep, (m == TASK_MODE_FORWARD ? 1u : 2u) * (310u + cases[c].n));
+        }
+    }
+}
+
+/* task.c's API edges: parameters refused (unknown, negative, NaN) keep the old value and
+ * read 0 when unknown; period 0 and displacement 0 when off; task_begin's state (every
+ * generator and statistics field from a scrambled run); the design's bounds (a
+ * repetition of exactly TASK_REP_MIN = 64 samples kept, 63 and 62 refused; a jerk phase
+ * below one sample made one sample; fs = 1 Hz valid); task_init writes no byte beyond
+ * the struct. */
+static void tt_design(task_t *t, float fs, float d, float vm, float am, float jm, float dwell, uint32_t mode)
+{
+    task_init(t, fs);
+    TH_EQ(task_set_param(t, TASK_P_DISTANCE, d), TASK_OK);
+    TH_EQ(task_set_param(t, TASK_P_V_MAX, vm), TASK_OK);
+    TH_EQ(task_set_param(t, TASK_P_A_MAX, am), TASK_OK);
+    TH_EQ(task_set_param(t, TASK_P_JERK, jm), TASK_OK);
+    TH_EQ(task_set_param(t, TASK_P_DWELL, dwell), TASK_OK);
+    TH_EQ(task_set_mode(t, mode), TASK_OK);
+}
+
+static void test_task_api_begin_and_design_bounds(void)
+{
+    static struct {
+        task_t t;
+        uint8_t canary[16];
+    } s;
+    memset(s.canary, 0x5A, sizeof s.canary);
+    task_init(&s.t, 1000.0f);
+    for (size_t i = 0; i < sizeof s.canary; i++) {
+        TH_EQ(s.canary[i], 0x5A);
+    }
+    task_t *t = &s.t;
+
+    /* parameters */
+    TH_EQ(task_set_param(t, TASK_P_KA, 0.75f), TASK_OK);
+    TH_EQ(task_set_param(t, 6u, 2.0f), TASK_E_RANGE);
+    TH_EQ(task_set_param(t, 99u, 2.0f), TASK_E_RANGE);
+    TH_ASSERT(task_get_param(t, 6u) == 0.0f && task_get_param(t, 99u) == 0.0f);
+    TH_EQ(task_set_param(t, TASK_P_KA, -0.5f), TASK_E_RANGE);
+    TH_EQ(task_set_param(t, TASK_P_KA, NAN), TASK_E_RANGE);
+    TH_ASSERT(task_get_param(t, TASK_P_KA) == 0.75f);
+    TH_EQ(task_set_mode(t, TASK_MODE_MAX + 1u), TASK_E_RANGE);
+
+    /* fs 100: t_j 10 ms, t_a 90 ms, t_v 90 ms: a move of 4 1 + 2 9 + 9 = 31 samples */
+    tt_design(t, 100.0f, 0.2f, 1.0f, 10.0f, 1000.0f, 0.33f, TASK_MODE_FORWARD);
+    TH_EQ(t->n_seg[0], 1);
+    TH_EQ(t->n_seg[1], 9);
+    TH_EQ(t->n_seg[3], 9);
+    TH_EQ(task_period(t), 64); /* 31 + 33: exactly the minimum, kept */
+    TH_ASSERT(task_displacement(t) == 0.2f);
+    TH_EQ(task_set_param(t, TASK_P_DWELL, 0.32f), TASK_OK);
+    TH_EQ(task_period(t), 0); /* 63 */
+    TH_EQ(t->n_rep, 0);
+    TH_EQ(t->n_move, 0);
+    tt_design(t, 100.0f, 0.2f, 1.0f, 10.0f, 1000.0f, 0.01f, TASK_MODE_BACK_AND_FORTH);
+    TH_EQ(task_period(t), 64); /* 2 (31 + 1) */
+    TH_ASSERT(task_displacement(t) == 0.0f);
+    TH_EQ(task_set_param(t, TASK_P_DWELL, 0.0f), TASK_OK);
+    TH_EQ(task_period(t), 0); /* 62 */
+    TH_EQ(task_begin(t), TASK_E_DESIGN);
+
+    /* off: no period even with a valid design; no displacement even when forward-designed */
+    tt_design(t, 1000.0f, 0.2f, 1.0f, 10.0f, 1000.0f, 0.0f, TASK_MODE_FORWARD);
+    TH_EQ(t->n_rep, 310);
+    TH_EQ(task_set_mode(t, TASK_MODE_OFF), TASK_OK);
+    TH_EQ(t->n_rep, 620); /* (designed as back and forth) */
+    TH_EQ(task_period(t), 0);
+    TH_ASSERT(task_displacement(t) == 0.0f);
+    TH_EQ(task_begin(t), TASK_E_DESIGN);
+
+    /* a jerk phase far below one sample (t_j = 10 ns): one sample each */
+    tt_design(t, 1000.0f, 0.2f, 1.0f, 10.0f, 1e9f, 0.0f, TASK_MODE_BACK_AND_FORTH);
+    TH_EQ(t->n_seg[0], 1);
+    TH_EQ(t->n_seg[2], 1);
+    TH_EQ(t->n_seg[4], 1);
+    TH_EQ(t->n_seg[6], 1);
+    TH_ASSERT(t->n_rep > 0u);
+
+    /* the longest repetition, in binary-exact numbers: fs 1024, j 256, a 8, v 0.5, D 0.109375:
+     * t_j = t_a = 1/32 s (32 samples), t_v = 1/8 s (128): a move of 320 samples; a dwell of
+     * 2^24 - 320 samples makes exactly TASK_N_MAX (kept), one sample more is refused */
+    tt_design(t, 1024.0f, 0.109375f, 0.5f, 8.0f, 256.0f, (float)(TASK_N_MAX - 320u) / 1024.0f,
+              TASK_MODE_FORWARD);
+    TH_EQ(t->n_seg[0], 32);
+    TH_EQ(t->n_seg[1], 32);
+    TH_EQ(t->n_seg[3], 128);
+    TH_EQ(task_period(t), TASK_N_MAX);
+    TH_EQ(task_set_param(t, TASK_P_DWELL, (float)(TASK_N_MAX - 319u) / 1024.0f), TASK_OK);
+    TH_EQ(task_period(t), 0);
+
+    /* fs = 1 Hz: D 40, v 1, a 1, j 1: t_j 1 s, t_a 0, t_v 38 s: 2 (4 + 38) = 84 samples */
+    tt_design(t, 1.0f, 40.0f, 1.0f, 1.0f, 1.0f, 0.0f, TASK_MODE_BACK_AND_FORTH);
+    TH_ASSERT(t->ts == 1.0f);
+    TH_EQ(task_period(t), 84);
+
+    /* task_begin from a scrambled run: segment 0 (one sample long: not skipped), sample 0,
+     * forward from 0 at rest, every sum cleared */
+    tt_design(t, 100.0f, 0.2f, 1.0f, 10.0f, 1000.0f, 0.33f, TASK_MODE_FORWARD);
+    TH_EQ(t->n_seg[0], 1);
+    t->seg = 5u;
+    t->k = 3u;
+    t->dir = -1.0f;
+    t->base = 7.0f;
+    t->v_last = 2.5f;
+    t->a_last = -4.0f;
+    t->blk = 6u;
+    t->rk = 17u;
+    t->reps = 9u;
+    t->latched = 4u;
+    t->blk_end = 3u;
+    for (uint32_t b = 0; b < TASK_BLOCKS; b++) {
+        for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+            t->design[b][i] = t->rep_design[b][i] = t->latch_design[b][i] = 1.5f + (float)i;
+        }
+        for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+            t->data[b][i] = t->rep_data[b][i] = t->latch_data[b][i] = -2.5f - (float)i;
+        }
+    }
+    TH_EQ(task_begin(t), TASK_OK);
+    TH_EQ(t->seg, 0);
+    TH_EQ(t->k, 0);
+    TH_ASSERT(t->dir == 1.0f && t->base == 0.0f && t->v_last == 0.0f && t->a_last == 0.0f);
+    TH_EQ(t->blk, 0);
+    TH_EQ(t->rk, 0);
+    TH_EQ(t->reps, 0);
+    TH_EQ(t->latched, 0);
+    TH_EQ(t->blk_end, 64u / TASK_BLOCKS);
+    int nonzero = 0;
+    for (uint32_t b = 0; b < TASK_BLOCKS; b++) {
+        for (uint32_t i = 0; i < TASK_DESIGN_SUMS; i++) {
+            nonzero += t->design[b][i] != 0.0f || t->rep_design[b][i] != 0.0f || t->latch_design[b][i] != 0.0f;
+        }
+        for (uint32_t i = 0; i < TASK_DATA_SUMS; i++) {
+            nonzero += t->data[b][i] != 0.0f || t->rep_data[b][i] != 0.0f || t->latch_data[b][i] != 0.0f;
+        }
+    }
+    TH_EQ(nonzero, 0);
+    /* the first sample: segment 0 at its start (position, velocity 0, acceleration 0) */
+    float w = 1.0f, wd = 1.0f, ua = 1.0f;
+    task_next(t, &w, &wd, &ua);
+    TH_ASSERT(w == 0.0f && wd == 0.0f);
+    TH_EQ(t->seg, 1); /* its one sample done */
+}
+
 int main(void)
 {
     TH_RUN(test_ctl_law_pd_filtered_derivative);
+    TH_RUN(test_task_statistics_read_out);
+    TH_RUN(test_task_init_and_whole_samples);
+    TH_RUN(test_task_api_begin_and_design_bounds);
     TH_RUN(test_ctl_feedforward_and_saturation);
     TH_RUN(test_ctl_setters_reject_and_keep);
     TH_RUN(test_ctl_init_defaults_reset_and_edges);

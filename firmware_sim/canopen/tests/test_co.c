@@ -1531,6 +1531,155 @@ static void test_node_init_refuses_a_bad_node_id(void)
     setup();
 }
 
+/* ---- issue 33: co_nmt.c's mutation survivors (docs/testing.md) ---------------------- */
+
+/* 0x1016:1 write checks: reserved bits 24..31, node id 1..127 when the time is not 0 (a
+ * time of 0 disables the consumer, any node id accepted); each case on its own bit. */
+static void test_hb_consumer_write_checks(void)
+{
+    setup();
+    CHECK(sdo_write(0x1016, 1, 0x01000000u | (0x22u << 16) | 37u, 4) == CO_SDO_AB_INVALID_VALUE);
+    CHECK(sdo_write(0x1016, 1, 0x80000000u | (0x22u << 16) | 37u, 4) == CO_SDO_AB_INVALID_VALUE);
+    CHECK(sdo_write(0x1016, 1, (0u << 16) | 37u, 4) == CO_SDO_AB_INVALID_VALUE);  /* node 0 */
+    CHECK(sdo_write(0x1016, 1, (0u << 16) | 1u, 4) == CO_SDO_AB_INVALID_VALUE);   /* node 0, 1 ms */
+    CHECK(sdo_write(0x1016, 1, (128u << 16) | 37u, 4) == CO_SDO_AB_INVALID_VALUE); /* node 128 */
+    CHECK(sdo_write(0x1016, 1, (0xFFu << 16) | 37u, 4) == CO_SDO_AB_INVALID_VALUE);
+    CHECK(g_n.ram.hb_consumer[0] == 0u); /* nothing refused was stored */
+    CHECK(sdo_write(0x1016, 1, (1u << 16) | 37u, 4) == 0);     /* lowest node id */
+    CHECK(g_n.ram.hb_consumer[0] == ((1u << 16) | 37u));
+    CHECK(sdo_write(0x1016, 1, (127u << 16) | 1u, 4) == 0);    /* highest node id, 1 ms */
+    CHECK(sdo_write(0x1016, 1, (0x22u << 16) | 0x8000u, 4) == 0);
+    CHECK(sdo_write(0x1016, 1, 0u, 4) == 0);                    /* disabled: node 0 allowed */
+    CHECK(sdo_write(0x1016, 1, (200u << 16) | 0u, 4) == 0);     /* disabled: any node id */
+    CHECK(g_n.ram.hb_consumer[0] == (200u << 16));
+}
+
+/* The consumer times out when MORE than its time has passed since the last heartbeat
+ * (CiA 301): exactly the time is still alive, one microsecond beyond is lost. Two
+ * configurations in turn (node 0x22 / 37 ms, node 0x7F / 1 ms); a heartbeat of another
+ * node, or of the right node while the time is 0, arms nothing; a consumer never armed
+ * never times out; a lost consumer reports once, with the EMCY's bytes in full. */
+static void test_hb_consumer_timeout_boundary(void)
+{
+    setup();
+    nmt(0x01);
+    CHECK(g_n.ram.error_register == 0u);
+    CHECK(sdo_write(0x1016, 1, (0x22u << 16) | 37u, 4) == 0);
+    g_ntx = 0;
+    uint8_t hb = 5;
+    rx(0x77F, &hb, 1); /* another node (0x7F): not this consumer */
+    rx(0x723, &hb, 1); /* 0x23: neither */
+    CHECK(!g_n.hb.consumer[0].active);
+    co_node_process(&g_n, g_now + 500000u); /* not armed: no timeout however long */
+    CHECK(!g_n.hb.consumer[0].timed_out && count_id(0x85) == 0);
+    g_now += 500000u;
+    rx(0x722, &hb, 1);
+    CHECK(g_n.hb.consumer[0].active && g_n.hb.consumer[0].last_us == g_now);
+    uint32_t t0 = g_now;
+    co_node_process(&g_n, t0 + 37000u); /* exactly 37 ms: alive */
+    CHECK(!g_n.hb.consumer[0].timed_out && count_id(0x85) == 0);
+    co_node_process(&g_n, t0 + 37001u); /* 1 us beyond: lost */
+    CHECK(g_n.hb.consumer[0].timed_out && !g_n.hb.consumer[0].active);
+    CHECK(count_id(0x85) == 1);
+    const co_frame_t *e = last_id(0x85);
+    CHECK(e && e->len == 8 && co_get_u16(e->data) == CO_EMCY_HEARTBEAT);
+    CHECK(e && e->data[2] == (CO_ERR_REG_COMM | CO_ERR_REG_GENERIC) && e->data[3] == 0x22);
+    CHECK(e && e->data[4] == 0 && e->data[5] == 0 && e->data[6] == 0 && e->data[7] == 0);
+    CHECK(g_n.ram.error_register == 0x11u);
+    for (uint32_t k = 1; k <= 40; k++) { /* reported once, not again every cycle */
+        co_node_process(&g_n, t0 + 37001u + 1000u * k);
+    }
+    CHECK(count_id(0x85) == 1);
+
+    /* 1 ms, node 0x7F */
+    setup();
+    nmt(0x01);
+    CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 1u, 4) == 0);
+    g_ntx = 0;
+    rx(0x77F, &hb, 1);
+    t0 = g_now;
+    co_node_process(&g_n, t0 + 1000u);
+    CHECK(!g_n.hb.consumer[0].timed_out && count_id(0x85) == 0);
+    co_node_process(&g_n, t0 + 1001u);
+    CHECK(g_n.hb.consumer[0].timed_out && count_id(0x85) == 1);
+    e = last_id(0x85);
+    CHECK(e && e->data[3] == 0x7F && e->data[4] == 0 && e->data[7] == 0);
+
+    /* time 0 (disabled) with node 0x7F configured: its heartbeat arms nothing */
+    setup();
+    nmt(0x01);
+    CHECK(sdo_write(0x1016, 1, (0x7Fu << 16) | 0u, 4) == 0);
+    rx(0x77F, &hb, 1);
+    CHECK(!g_n.hb.consumer[0].active);
+    /* an even node id (bit 16 clear) with a time is armed by its heartbeat */
+    CHECK(sdo_write(0x1016, 1, (0x7Eu << 16) | 3u, 4) == 0);
+    rx(0x77E, &hb, 1);
+    CHECK(g_n.hb.consumer[0].active);
+}
+
+/* Rewriting 0x1016:1 while the consumer has timed out starts it over: neither armed nor
+ * timed out (the test before only rewrote a consumer that had recovered). */
+static void test_hb_consumer_rewrite_while_timed_out(void)
+{
+    setup();
+    nmt(0x01);
+    CHECK(sdo_write(0x1016, 1, (0x22u << 16) | 37u, 4) == 0);
+    uint8_t hb = 5;
+    rx(0x722, &hb, 1);
+    advance_ms(38);
+    CHECK(g_n.hb.consumer[0].timed_out);
+    CHECK(sdo_write(0x1016, 1, (0x22u << 16) | 50u, 4) == 0);
+    CHECK(!g_n.hb.consumer[0].timed_out && !g_n.hb.consumer[0].active);
+}
+
+/* Boot and reset communication clear the error register (0x1001) to 0, also when it held
+ * the communication and generic bits of a lost heartbeat. */
+static void test_error_register_cleared_by_boot_and_reset(void)
+{
+    setup();
+    uint32_t v = 99;
+    CHECK(g_n.ram.error_register == 0u && sdo_read_u32(0x1001, 0, &v) == 0 && v == 0u);
+    CHECK(sdo_write(0x1016, 1, (0x22u << 16) | 37u, 4) == 0);
+    uint8_t hb = 5;
+    rx(0x722, &hb, 1);
+    advance_ms(38);
+    CHECK(g_n.ram.error_register == 0x11u);
+    nmt(0x82);
+    CHECK(g_n.ram.error_register == 0u && !g_n.hb.consumer[0].timed_out);
+    CHECK(g_n.ram.hb_consumer[0] == 0u); /* 0x1016 back to its default */
+    CHECK(sdo_write(0x1016, 1, (0x22u << 16) | 37u, 4) == 0);
+    rx(0x722, &hb, 1);
+    advance_ms(38);
+    CHECK(g_n.ram.error_register == 0x11u);
+    nmt(0x81);
+    CHECK(g_n.ram.error_register == 0u && sdo_read_u32(0x1001, 0, &v) == 0 && v == 0u);
+}
+
+/* An SDO transfer in progress survives PRE-OPERATIONAL <-> OPERATIONAL and is dropped by
+ * STOPPED (segmented upload of 0x1008, "fftune drive_sim", 16 bytes). */
+static void test_nmt_state_and_sdo_transfer(void)
+{
+    uint8_t init[8] = {0x40, 0x08, 0x10, 0, 0, 0, 0, 0};
+    uint8_t seg0[8] = {0x60, 0, 0, 0, 0, 0, 0, 0};
+    uint8_t seg1[8] = {0x70, 0, 0, 0, 0, 0, 0, 0};
+    setup();
+    const co_frame_t *f = sdo(init); /* in PRE-OPERATIONAL */
+    CHECK(f && f->data[0] == 0x41 && co_get_u32(&f->data[4]) == 16u);
+    nmt(0x01);
+    f = sdo(seg0);
+    CHECK(f && f->data[0] == 0x00 && memcmp(&f->data[1], "fftune ", 7) == 0);
+    nmt(0x80);
+    f = sdo(seg1);
+    CHECK(f && f->data[0] == 0x10 && memcmp(&f->data[1], "drive_s", 7) == 0);
+    /* started in PRE-OPERATIONAL, through STOPPED to OPERATIONAL: dropped */
+    f = sdo(init);
+    CHECK(f && f->data[0] == 0x41);
+    nmt(0x02);
+    nmt(0x01);
+    f = sdo(seg0);
+    CHECK(f && f->data[0] == 0x80);
+}
+
 int main(void)
 {
     test_crc();
@@ -1561,6 +1710,11 @@ int main(void)
     test_sdo_repeat_window();
     test_sdo_init_clears_everything();
     test_node_init_refuses_a_bad_node_id();
+    test_hb_consumer_write_checks();
+    test_hb_consumer_timeout_boundary();
+    test_hb_consumer_rewrite_while_timed_out();
+    test_error_register_cleared_by_boot_and_reset();
+    test_nmt_state_and_sdo_transfer();
     printf("%d passed, %d failed\n", g_pass, g_fail);
     return g_fail ? 1 : 0;
 }
