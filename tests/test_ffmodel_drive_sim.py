@@ -35,7 +35,8 @@ def test_model_tune_over_canopen(tmp_path, capsys):
     finally:
         drive.stop()
     text = capsys.readouterr().out
-    assert "feed-forward terms (tune.method model): converged" in text and "asymmetry (0x2000:9)" in text
+    assert "feed-forward terms (tune.method model): converged" in text
+    assert "on object 0x2000:09" in text and "K_fa = " in text      # the recommendation names every term's object
     t = yaml.safe_load(open(out / "results.yaml"))["tune"]
     assert t["method"] == "model" and t["model"]["converged"], t["model"]["stop_reason"]
     fc, a = 5.785e-3 / 0.05, 0.25 * 5.785e-3 / 0.05
