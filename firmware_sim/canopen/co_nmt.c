@@ -108,8 +108,15 @@ static void hb_consumer_written(co_node_t *n, const co_od_entry_t *e, uint32_t v
 {
     (void)value;
     if (e->sub >= 1u && e->sub <= CO_NUM_HB_CONSUMERS) {
-        n->hb.consumer[e->sub - 1u].active = false;
-        n->hb.consumer[e->sub - 1u].timed_out = false;
+        co_hb_consumer_t *c = &n->hb.consumer[e->sub - 1u];
+        bool was_timed_out = c->timed_out;
+        c->active = false;
+        c->timed_out = false;
+        if (was_timed_out) {
+            /* the lost heartbeat's error ends here as when the heartbeat returns: error
+             * reset EMCY, 0x1001's communication bit cleared unless another remains */
+            co_emcy_reset_comm(n);
+        }
     }
 }
 

@@ -1628,8 +1628,15 @@ static void test_hb_consumer_rewrite_while_timed_out(void)
     rx(0x722, &hb, 1);
     advance_ms(38);
     CHECK(g_n.hb.consumer[0].timed_out);
+    CHECK(g_n.ram.error_register == 0x11u);
     CHECK(sdo_write(0x1016, 1, (0x22u << 16) | 50u, 4) == 0);
     CHECK(!g_n.hb.consumer[0].timed_out && !g_n.hb.consumer[0].active);
+    /* the re-armed consumer ends the lost heartbeat's error: error reset, 0x1001 back to 0 */
+    CHECK(g_n.ram.error_register == 0u && g_n.last_emcy_code == 0x0000u);
+    /* a rewrite of a consumer that had not timed out sends nothing */
+    g_n.last_emcy_code = 0x1234u;
+    CHECK(sdo_write(0x1016, 1, (0x22u << 16) | 60u, 4) == 0);
+    CHECK(g_n.last_emcy_code == 0x1234u);
 }
 
 /* Boot and reset communication clear the error register (0x1001) to 0, also when it held
