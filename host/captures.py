@@ -134,15 +134,29 @@ class CaptureStore:
 MAX_STATS_BYTES = 64 << 20
 
 
-def _load_stats(path, request):
-    """A RunRecord without samples from a ``.stats.json`` capture (a regular file of at most
-    MAX_STATS_BYTES: a FIFO or device under the name is refused, not waited on)."""
-    from fftune.host.config import regular_file
+def read_stats_document(path):
+    """The JSON document of a ``.stats.json`` capture, read through the one loader of user
+    files (:func:`fftune.host.config.read_text`: a regular file of at most MAX_STATS_BYTES,
+    UTF-8; a FIFO or device under the name is refused, not waited on); one FftuneError line
+    naming the file otherwise. Every reader of statistics captures goes through here."""
+    from fftune.host.config import read_text
 
-    regular_file(path, "statistics capture", MAX_STATS_BYTES)
+    text = read_text(path, "statistics capture", max_bytes=MAX_STATS_BYTES)
     try:
-        with open(path, "r", encoding="utf-8") as fh:
-            doc = json.load(fh)
+        doc = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise FftuneError(f"{path}: not a readable statistics capture ({type(exc).__name__}: "
+                          f"{str(exc)[:120]})") from None
+    if not isinstance(doc, dict):
+        raise FftuneError(f"{path}: not a readable statistics capture (a JSON "
+                          f"{type(doc).__name__}, expected an object)")
+    return doc
+
+
+def _load_stats(path, request):
+    """A RunRecord without samples from a ``.stats.json`` capture (:func:`read_stats_document`)."""
+    doc = read_stats_document(path)
+    try:
         meta = doc["meta"]
         stats = None if doc["stats"] is None else HarmonicStats.from_dict(doc["stats"])
         lines = doc.get("line_stats")

@@ -160,14 +160,14 @@ class CaptureReplay:
 def _first_meta(files):
     """(metadata of the first readable capture, reasons of those that were not)."""
     from fftune.analysis import capture as _capture
+    from fftune.host.captures import read_stats_document
 
     problems = []
     for f in files:
         try:
             if f.endswith(".h5"):
                 return _capture.read_run(f).meta, problems
-            with open(f, "r", encoding="utf-8") as fh:
-                return json.load(fh)["meta"], problems
+            return read_stats_document(f)["meta"], problems
         except Exception as exc:  # a damaged file: try the next one, say why
             problems.append(f"{os.path.basename(f)}: {exc}")
     return None, problems

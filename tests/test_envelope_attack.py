@@ -406,6 +406,29 @@ def test_a_damaged_statistics_capture_is_one_line(tmp_path, content, needle):
         _load_stats(str(path), {})
 
 
+def test_fleet_reads_statistics_captures_with_the_one_loader(tmp_path):
+    """The fleet's metadata probe reads .stats.json through the loader every session uses:
+    a FIFO under the name is a reason, not a wait; a damaged one names its file; the next
+    readable capture still gives the metadata."""
+    from fftune.host.fleet import _first_meta
+
+    fifo = tmp_path / "tune-a.stats.json"
+    os.mkfifo(fifo)
+    deep = tmp_path / "tune-b.stats.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    bare = tmp_path / "tune-c.stats.json"
+    bare.write_text("[1, 2]")
+    good = tmp_path / "tune-d.stats.json"
+    good.write_text('{"meta": {"fs_hz": 2000.0, "n_period": 512}, "stats": null}')
+    with _deadline():
+        meta, problems = _first_meta([str(fifo), str(deep), str(bare), str(good)])
+    assert meta == {"fs_hz": 2000.0, "n_period": 512}
+    assert len(problems) == 3
+    assert problems[0].startswith("tune-a.stats.json: ") and "is a FIFO" in problems[0]
+    assert problems[1].startswith("tune-b.stats.json: ") and "RecursionError" in problems[1]
+    assert problems[2].startswith("tune-c.stats.json: ") and "a JSON list" in problems[2]
+
+
 def test_fleet_reads_results_yaml_with_the_one_loader(tmp_path):
     from fftune.host.fleet import _names_for
 
