@@ -191,35 +191,80 @@ def test_stribeck_estimate_covers_the_friction_the_task_met(tmp_path):
     assert "Stribeck" in K_FC_MEANING and "sticks" in K_FC_MEANING
 
 
-def test_friction_met_against_a_hand_projection():
-    # sliding everywhere: the friction law at the motor's velocity, projected on p, n, a_r;
-    # the reference's velocity v = 2 sin(w t) (asymmetric speeds via a 0.3 offset)
-    from track_sim import friction_met_v
-    fs = 1000.0
-    t = np.arange(2000) / fs
-    ref = 0.3 * t - 2.0 / (2 * np.pi) * np.cos(2 * np.pi * t)       # v_r = 0.3 + 2 sin(2 pi t)
+@pytest.mark.parametrize("noise, seed", [(5e-3, 1), (1e-2, 2)])
+def test_stribeck_under_noise_covers_the_friction_met(tmp_path, noise, seed):
+    # static x2, Stribeck velocity 0.2 rad/s under sensor noise: the friction the task met
+    # (averaged over each sample, friction_met_v) falls with the noise (1.053 -> 1.045 ->
+    # 1.033 x Coulomb at 0 / 5e-3 / 1e-2 rad: the jitter's slides average the Stribeck
+    # peak down) and the estimate follows it; on today's main the bench read the law at each
+    # sample's start (1.074 x at 5e-3: the motor breaks away and sticks within a sample)
+    # and covered 71 % of the settled tasks at 5e-3
+    from fwsim_drive import plant_file as derived
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"static": 2 * fc0, "stribeck_velocity": 0.2},
+                     "sensor": {"noise_std": noise, "seed": seed}}, directory=str(tmp_path))
+    rows, _ = run_tracking(plant, 24, k_fc=0.1157, k_v=0.002, k_a=0.0, friction_met=True)
+    sel = rows[4:]
+    met = float(np.mean([r["k_fc_met"] for r in sel]))   # stationary plant: its mean is the truth
+    assert 1.02 * 0.1157 < met < 1.05 * 0.1157
+    cov = np.mean([abs(r["k_fc_estimate"] - met) <= 2 * r["k_fc_sigma"] for r in sel])
+    assert cov >= 0.9
+
+
+def test_friction_met_against_the_law_on_a_fine_grid(tmp_path):
+    # the friction met is the friction averaged over each sample from the plant's momentum
+    # balance; reference: the plant (Stribeck, static x2, 0.2 rad/s; load viscous too) run
+    # at 128 points per sample, the law read at each (mode * (F_c + (F_s - F_c) e^-(w/v_s)^2)
+    # sliding, k_m u - spring stuck) and averaged, projected on p, n, a_r by hand. The input
+    # jitters every sample (as with sensor noise) so that the motor breaks away and sticks
+    # within samples
+    from fwsim_drive import plant_file as derived
+    import yaml
+
+    from track_sim import FwSim, friction_met_v
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"static": 2 * fc0, "stribeck_velocity": 0.2, "load_viscous": 3e-5}},
+                    directory=str(tmp_path))
+    pp = yaml.safe_load(open(plant, encoding="utf-8"))["plant"]
+    fs, n, fine = 2560.0, 1536, 128
+    t = np.arange(n) / fs
+    ref = 0.25 * (1 - np.cos(2 * np.pi * t / t[-1] * 1.0)) + 0.05 * t      # forward, then back
+    rng = np.random.default_rng(3)
+    u = 0.13 * np.sign(np.gradient(ref)) + 0.11 * rng.standard_normal(n)     # V
+    def law_at(x, m, uk):
+        if m == 0:
+            return pp["km"] * uk - pp["k"] * (x[0] - x[2]) - pp["c"] * (x[1] - x[3])
+        return m * (pp["coulomb"] + (pp["static"] - pp["coulomb"]) * math.exp(-(x[1] / pp["stribeck_velocity"]) ** 2))
+
+    states, modes, law = [], [], np.zeros(n)
+    with FwSim(plant) as sim:
+        sim.plant_set_state(0.0, 0.0, 0.0, 0.0)
+        for k in range(n):
+            states.append(sim.plant_state())
+            modes.append(sim.plant_mode())
+            acc = 0.0
+            for _ in range(fine):
+                acc += law_at(sim.plant_state(), sim.plant_mode(), u[k])
+                sim.plant_advance(u[k], 1.0 / fs / fine)
+            law[k] = acc / fine
+        states.append(sim.plant_state())
+    states = np.array(states)
+    assert 0.1 < np.mean(states[:, 1] == 0.0) < 0.9               # it sticks and slides
     v = np.gradient(ref) * fs
-    plant = {"coulomb": 4e-3, "static": 7e-3, "stribeck_velocity": 0.5, "k": 0.5, "c": 0.0, "km": 0.05}
-    w1 = 0.9 * v                                                    # the motor slightly slower
-    states = np.column_stack([ref, w1, ref, w1])
-    modes = np.sign(w1).astype(int)
-    got = friction_met_v(plant, states, modes, ref, np.zeros_like(t), fs)
-    s = np.sign(np.round(v, 6))
-    f = modes * (4e-3 + 3e-3 * np.exp(-(w1 / 0.5) ** 2)) / 0.05
     a = np.gradient(v) * fs
+    s = np.sign(np.round(v, 6))
     X = np.column_stack([(s > 0).astype(float), -(s < 0).astype(float), a])
-    th = np.linalg.solve(X.T @ X, X.T @ f)
-    assert got == pytest.approx(0.5 * (th[0] + th[1]), rel=1e-9)
-    assert 0.08 < got < 0.14                                        # between Coulomb and static
-    # stuck samples: the holding torque k_m u - spring enters instead of the law
-    modes2 = modes.copy()
-    modes2[:100] = 0
-    u = np.full_like(t, 0.06)
-    got2 = friction_met_v(plant, states, modes2, ref, u, fs)
-    f2 = f.copy()
-    f2[:100] = (0.05 * 0.06 - 0.0) / 0.05
-    th2 = np.linalg.solve(X.T @ X, X.T @ f2)
-    assert got2 == pytest.approx(0.5 * (th2[0] + th2[1]), rel=1e-9)
+    th = np.linalg.lstsq(X, law / pp["km"], rcond=None)[0]
+    want = 0.5 * (th[0] + th[1])
+    got = friction_met_v(pp, states, ref, u, fs)
+    start = np.array([law_at(x, m, uk) for x, m, uk in zip(states[:-1], modes, u)])
+    assert got == pytest.approx(want, rel=2e-3)
+    # the input exercises what the first version missed: the law at each sample's start
+    # reads this trajectory 14 % high (0.150 against 0.132 V)
+    assert 0.5 * sum(np.linalg.lstsq(X, start / pp["km"], rcond=None)[0][:2]) > 1.05 * want
+    assert 0.1157 < got < 2 * 0.1157                               # between Coulomb and static
+    with pytest.raises(ValueError, match="states"):
+        friction_met_v(pp, states[:-1], ref, u, fs)
 
 
 def test_viscous_step_under_noise_1e_2_is_covered(tmp_path):
