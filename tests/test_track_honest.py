@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from fftune.analysis.track import (K_FC_MEANING, NOISE_BIAS_PER_RAD2, NOTE_NOISE_CORRECTED,
+from fftune.analysis.track import (K_FC_MEANING, NOISE_BIAS_PER_R2, NOTE_NOISE_CORRECTED,
                                    NOTE_VISCOUS_CHANGE, curvature_scatter, drift_trend, sensor_noise_gain,
                                    viscous_shift, viscous_unresolved)
 
@@ -33,6 +33,27 @@ def test_sigma_covers_the_truth_with_noise_1e_2(tmp_path, seed):
     # ... and its bias removed: the mean error within 0.5 % (today -1.1 %)
     err = np.mean([r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in late])
     assert abs(err) < 0.005
+
+
+def test_noise_bias_follows_the_friction_level(tmp_path):
+    # Coulomb level 0.7 x plant_twomass's, 1e-2 rad: the jitter's torque against a lower
+    # friction averages more of it down. The correction of the first model (100 sigma_n^2
+    # whatever the level) left -1.2 % (today's main); the relative bias as a function of
+    # the input's noise over K_fc, NOISE_BIAS_PER_R2 (gain sigma_n / K_fc)^2: within 0.5 %
+    from fwsim_drive import plant_file as derived
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"coulomb": 0.7 * fc0, "static": 0.7 * fc0},
+                     "sensor": {"noise_std": 1e-2, "seed": 2}}, directory=str(tmp_path))
+    rows, _ = run_tracking(plant, 24, k_fc=0.7 * 0.1157, k_v=0.002, k_a=0.0)
+    late = rows[8:]
+    err = np.mean([r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in late])
+    assert abs(err) < 0.005
+    # the correction is the model's: r from the smallest noise bound, K_fc before it
+    r = late[-1]
+    fc_plain = r["k_fc_estimate"] - r["k_fc_noise_correction"]
+    assert r["k_fc_noise_correction"] / fc_plain == pytest.approx(
+        NOISE_BIAS_PER_R2 * (23.75 * 1e-2 / fc_plain) ** 2, rel=0.15)
+    assert _coverage(rows, skip=range(3)) >= 0.9
 
 
 def test_noise_free_rows_have_no_noise_correction(tmp_path):
@@ -122,7 +143,9 @@ def test_noise_correction_constant_and_the_first_task():
     second = estimate_task(st, noise_gain=10.0, recent=[first])
     sn = first.sensor_noise_rad
     plain = estimate_task(st)
-    assert second.k_fc_noise_correction == pytest.approx(NOISE_BIAS_PER_RAD2 * sn ** 2 * plain.k_fc, rel=1e-9)
+    # the relative bias NOISE_BIAS_PER_R2 r^2, r = the input's noise rms (10 V/rad x sn) over K_fc
+    assert second.k_fc_noise_correction == pytest.approx(
+        NOISE_BIAS_PER_R2 * (10.0 * sn / plain.k_fc) ** 2 * plain.k_fc, rel=1e-9)
     assert second.k_fc == pytest.approx(plain.k_fc + second.k_fc_noise_correction, rel=1e-12)
     assert second.k_fc_sigma_sys == pytest.approx(
         math.hypot(0.02 * plain.k_fc, second.k_fc_noise_correction), rel=1e-9)   # K_v estimated: 2 % floor

@@ -123,6 +123,7 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
                          "k_v_shift": est.k_v_shift if ok else None,
                          "k_v_free": est.k_v_free if ok else None,
                          "sensor_noise_rad": est.sensor_noise_rad if ok else None,
+                         "k_fc_noise_correction": est.k_fc_noise_correction if ok else None,
                          "rms_error": est.rms_error if ok else None,
                          "rms_residual": est.rms_residual if ok else None,
                          "k_fc_true": sim.truth("SIM_FC_VOLT"), "k_fc_met": met,

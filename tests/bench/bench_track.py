@@ -417,8 +417,10 @@ def demo_track_figures():
 
 if __name__ == "__main__":
     print(f"load average {os.getloadavg()[0]:.1f}")
-    family_figures()
-    if "--families" in sys.argv:
+    # --families: issue 32's families only; --family NAME (repeatable): those families only
+    only = [sys.argv[i + 1] for i, a in enumerate(sys.argv[:-1]) if a == "--family"] or None
+    family_figures(only=only)
+    if "--families" in sys.argv or only:
         sys.exit(0)
     drift_figures()
     noise_figures()
