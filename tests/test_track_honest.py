@@ -350,3 +350,21 @@ def test_ramp_end_trend_stops(tmp_path):
     assert max(abs(e) for e in err[end + 2:]) < 0.02
     assert max(abs(e) for e in err[13:end + 1]) < 0.01         # the ramp itself followed
     assert not any(r["cause"] == "trend" for r in rows[end + 2:])
+
+
+@pytest.mark.parametrize("drift", [
+    {"coulomb_ramp": -0.3, "coulomb_ramp_start_s": 12.0, "coulomb_ramp_end_s": 36.0},
+    {"coulomb_exp": -0.3, "coulomb_exp_start_s": 12.0, "coulomb_exp_tau_s": 15.0}])
+def test_fast_drift_under_noise_1e_2_applied_value_within_its_sigma(tmp_path, drift):
+    # under 1e-2 rad a fast drift is not followed within 2 % (single estimates scatter by
+    # about 0.6 %, the trend's lead adds its rate's noise, a ramp's end is not in the data
+    # when the lead overshoots it): the applied K_fc's error stays within 2 sigma of the
+    # estimate it came from, from 3 tasks after the start; and the tail (0.7 x the level)
+    # carries no noise bias beyond 1 % (today's main: -1.2 % there)
+    plant = plant_file(str(tmp_path), drift=drift, sensor={"noise_std": 1e-2, "seed": 1})
+    rows, _ = run_tracking(plant, 50, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    start = next(r["task"] for r in rows if r["t_s"] > 12.0)
+    for k in range(start + 3, len(rows)):
+        assert abs(rows[k]["k_fc"] - rows[k]["k_fc_true"]) <= 2 * rows[k - 1]["k_fc_sigma"]
+    tail = [r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in rows[-10:]]
+    assert abs(np.mean(tail)) < 0.01
