@@ -434,8 +434,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         mostly high-frequency feedback of sensor noise, the slow regressors see little of it).
     noise_gain : float or None
         rms of u per rad of sensor noise (:func:`sensor_noise_gain` of the drive's PD): the
-        sensor noise is then read from the residual and its bias removed (module constants
-        ``NOISE_BIAS_PER_RAD2``); None: not corrected.
+        sensor noise is then read from the residual and its bias removed
+        (:func:`noise_bias_rel` of the input's noise rms over K_fc); None: not corrected.
     recent : sequence of TaskEstimate or None
         The previous tasks' estimates (oldest first). With K_v held a change of the viscous
         friction is then watched (:func:`viscous_shift` on their ``k_v_free``), and the
@@ -609,7 +609,10 @@ def drift_trend(estimates, scatter_floor=0.0, active=False, min_rate=0.0):
     task lags by the drift's rate). Either way |m| must exceed ``min_rate`` [V per task] (the
     tracker: TREND_TASKS changes within the systematic floor are the loop's own settling,
     e.g. its fixed point relaxing after a ramp's end, not a drift of the friction).
-    Its value is their mean m (the noise of one change would be extrapolated), unless the
+    Its value is their mean m (the noise of one change would be extrapolated), or the last
+    change where that is smaller and of the same sign (0 where of the other sign: a drift
+    that slows, an exponential's tail, is led by its present rate, and a noisy early change
+    does not extend the lead; issue 32's third pass), unless the
     last change falls short of the mean of the ones before by more than TREND_NOISE_Z times
     the noise of that difference (the drift slows or stops: an exponential's tail, a ramp's
     end, whose last change is its partial task): then the last change times its ratio to
@@ -636,7 +639,7 @@ def drift_trend(estimates, scatter_floor=0.0, active=False, min_rate=0.0):
     # var(d_last - mean(before)) for white estimates: 2 + 2 / (n - 1) + 2 (n - 2) / (n - 1) ... ~ (2 + 1) s^2
     if (before - d[-1]) * sg > TREND_NOISE_Z * math.sqrt(3.0) * s:
         return float(d[-1] * min(1.0, max(0.0, float(d[-1] / before))))
-    return m
+    return sg * min(abs(m), max(0.0, float(d[-1]) * sg))
 
 
 @dataclass

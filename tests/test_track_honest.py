@@ -155,7 +155,14 @@ def test_drift_trend_rules():
     rng = np.random.default_rng(5)
     base = 0.12 + 2e-5 * rng.standard_normal(12)
     ramp = base - 1.5e-3 * np.arange(12)
-    assert drift_trend(ramp) == pytest.approx(np.mean(np.diff(ramp)[-3:]))   # the mean change
+    d3 = np.diff(ramp)[-3:]
+    # the mean change, or the last one if smaller (same sign)
+    assert drift_trend(ramp) == pytest.approx(-min(abs(d3.mean()), abs(d3[-1])))
+    # a drift that slows within the noise (the decay rule not triggered): led by its last
+    # change, not by the mean of the three (the first pass's mean led an exponential's
+    # tail, and a noisy early change, too far)
+    slow = np.array([0.1200, 0.1200, 0.1200, 0.1185, 0.1170, 0.1158])
+    assert drift_trend(slow, scatter_floor=3e-4) == pytest.approx(-1.2e-3, rel=1e-9)
     step = base + np.where(np.arange(12) >= 9, 0.03, 0.0)
     step[9] -= 0.015                                         # the mixed task
     assert drift_trend(step) == 0.0 and drift_trend(step[:11]) == 0.0
