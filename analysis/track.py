@@ -119,6 +119,15 @@ VISC_RECENT_N = (8, 4)
 # fixed point): after a Coulomb step the free coefficient jumps for the two tasks the
 # feed-forward is wrong (1.5 -> 5.7, 9.8 mV s/rad on plant_twomass), then returns
 VISC_FIXED_REL = 0.02
+# Friction that falls with speed (a Stribeck rise) shows in the data as a negative viscous
+# coefficient of the unconstrained fit (viscous friction alone cannot be negative; on
+# plant_twomass +1.5 mV s/rad, with static x2 .. x3 and a Stribeck velocity of 0.05 .. 0.4
+# rad/s -3.3 .. -4.7): the median of the last SPEED_WINDOW tasks' (after the first
+# VISC_BASELINE_FROM, K_a learnt) below zero names it. K_fc is then the friction the task
+# met with its slow phases (K_FC_MEANING), and with a strong rise the estimate falls short
+# of it by about a fifth of the rise (docs/track.md), which the sigma does not cover
+SPEED_WINDOW = 5
+NOTE_FRICTION_FALLS_WITH_SPEED = "friction_falls_with_speed"
 # What a task's K_fc is (results.yaml track_summary.k_fc_meaning).
 K_FC_MEANING = (
     "the Coulomb friction averaged over the task's path and speeds: the friction the "
@@ -236,7 +245,9 @@ class TaskEstimate:
     ``NOTE_VISCOUS_CHANGE`` (K_v held, a viscous change detected and taken into the fit:
     ``k_v_shift`` [V s/rad]); ``NOTE_NOISE_CORRECTED`` (the sensor noise's bias removed:
     ``k_fc_noise_correction`` [V], from the smallest recent ``sensor_noise_rad``, each task's
-    bound rms_residual / noise gain). ``k_v_free`` [V s/rad]: the
+    bound rms_residual / noise gain); ``NOTE_FRICTION_FALLS_WITH_SPEED`` (the unconstrained
+    fit's viscous coefficient negative over the last SPEED_WINDOW tasks: a Stribeck rise,
+    K_fc is the friction the task met, a strong rise not covered). ``k_v_free`` [V s/rad]: the
     viscous coefficient of the unconstrained fit (NaN when the task cannot tell it).
     ``k_fc_sigma_viscous`` [V] (a part of ``k_fc_sigma_sys``, K_v held): what a viscous change
     the tasks cannot rule out moves K_fc by (detected or not; :func:`viscous_unresolved`).
@@ -551,6 +562,10 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         fc_stat = scat
     fc_visc = abs(shift_effect) / VISC_SEEN_FRACTION
     fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + fc_visc ** 2)
+    if recent is not None and len(recent) >= VISC_BASELINE_FROM + SPEED_WINDOW - 1:
+        kv_seen = [e.k_v_free for e in recent[-(SPEED_WINDOW - 1):]] + [k_v_free]
+        if all(math.isfinite(v) for v in kv_seen) and float(np.median(kv_seen)) < 0.0:
+            notes.append(NOTE_FRICTION_FALLS_WITH_SPEED)
     notes = tuple(notes)
     return TaskEstimate(
         k_fc=float(fc), k_fc_sigma=math.hypot(fc_stat, fc_sys),

@@ -332,6 +332,9 @@ def family_figures(tasks=80, noises=(0.0, 2e-3, 5e-3, 1e-2), only=None):
                         sel = [dict(r, k_fc_true=met_mean) for r in sel]
                     cov = sum(abs(r["k_fc_estimate"] - r["k_fc_true"]) <= 2 * r["k_fc_sigma"]
                               for r in sel) / len(sel)
+                    if fam in ("Stribeck", "position friction", "noise alone"):
+                        named = sum("friction_falls_with_speed" in r["notes"] for r in sel)
+                        extra += f"; friction_falls_with_speed named on {named} of {len(sel)}"
                     cov_all.append(cov)
                     err = statistics.mean(r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in sel)
                     sig = statistics.mean(r["k_fc_sigma"] / r["k_fc_true"] for r in sel)
