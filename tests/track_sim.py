@@ -72,7 +72,7 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
     noise's bias removed (the drive's PD gains give the noise gain); ``watch_viscous``: a
     viscous change with K_v held detected and taken into the fit (as ``fftune track``).
     ``friction_met``: each row also has ``k_fc_met``, the friction the task met
-    (:func:`friction_met_v`, from the plant's state sample by sample; slower)."""
+    (:func:`friction_met_v`, from the plant's state at every sample boundary; slower)."""
     rows = []
     with open(plant, encoding="utf-8") as fh:
         plant_params = yaml.safe_load(fh)["plant"]

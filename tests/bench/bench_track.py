@@ -265,11 +265,14 @@ def family_figures(tasks=80, noises=(0.0, 2e-3, 5e-3, 1e-2), only=None):
     The truth is the plant's Coulomb level (0x2100), except where K_fc is something else
     (``track_summary.k_fc_meaning``): with position-dependent friction the task's path
     average (uniform over 0 .. 1 rad), with a Stribeck rise the friction the task met
-    (tests/track_sim.py ``friction_met_v``: from the plant's state sample by sample, not
-    from the drive's sums; the plant is stationary, so the truth is its mean over the
+    (tests/track_sim.py ``friction_met_v``: the friction averaged over each sample from the
+    plant's momentum balance, not from the drive's sums; the plant is stationary, so the truth is its mean over the
     settled tasks: one task's value carries the sensor noise through the holding torque of
     the stuck samples); the Stribeck rows also show the coverage of the Coulomb level.
-    ``only``: family names to run (all: None)."""
+    ``only``: family names to run (all: None; ``--family NAME`` on the command line).
+    Fast drifts also print the applied K_fc against the sigma of the estimate it came from;
+    Stribeck, position friction and noise alone how often ``friction_falls_with_speed`` is
+    named."""
     from fwsim_drive import plant_file as derived
     fc0 = 5.785e-3
     fams = {
