@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from fftune.analysis.track import (K_FC_MEANING, NOISE_BIAS_PER_RAD2, NOTE_NOISE_CORRECTED,
+from fftune.analysis.track import (K_FC_MEANING, NOISE_BIAS_PER_R2, NOTE_NOISE_CORRECTED,
                                    NOTE_VISCOUS_CHANGE, curvature_scatter, drift_trend, sensor_noise_gain,
                                    viscous_shift, viscous_unresolved)
 
@@ -33,6 +33,27 @@ def test_sigma_covers_the_truth_with_noise_1e_2(tmp_path, seed):
     # ... and its bias removed: the mean error within 0.5 % (today -1.1 %)
     err = np.mean([r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in late])
     assert abs(err) < 0.005
+
+
+def test_noise_bias_follows_the_friction_level(tmp_path):
+    # Coulomb level 0.7 x plant_twomass's, 1e-2 rad: the jitter's torque against a lower
+    # friction averages more of it down. The correction of the first model (100 sigma_n^2
+    # whatever the level) left -1.2 % (today's main); the relative bias as a function of
+    # the input's noise over K_fc, NOISE_BIAS_PER_R2 (gain sigma_n / K_fc)^2: within 0.5 %
+    from fwsim_drive import plant_file as derived
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"coulomb": 0.7 * fc0, "static": 0.7 * fc0},
+                     "sensor": {"noise_std": 1e-2, "seed": 2}}, directory=str(tmp_path))
+    rows, _ = run_tracking(plant, 24, k_fc=0.7 * 0.1157, k_v=0.002, k_a=0.0)
+    late = rows[8:]
+    err = np.mean([r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in late])
+    assert abs(err) < 0.005
+    # the correction is the model's: r from the smallest noise bound, K_fc before it
+    r = late[-1]
+    fc_plain = r["k_fc_estimate"] - r["k_fc_noise_correction"]
+    assert r["k_fc_noise_correction"] / fc_plain == pytest.approx(
+        NOISE_BIAS_PER_R2 * (23.75 * 1e-2 / fc_plain) ** 2, rel=0.15)
+    assert _coverage(rows, skip=range(3)) >= 0.9
 
 
 def test_noise_free_rows_have_no_noise_correction(tmp_path):
@@ -122,7 +143,9 @@ def test_noise_correction_constant_and_the_first_task():
     second = estimate_task(st, noise_gain=10.0, recent=[first])
     sn = first.sensor_noise_rad
     plain = estimate_task(st)
-    assert second.k_fc_noise_correction == pytest.approx(NOISE_BIAS_PER_RAD2 * sn ** 2 * plain.k_fc, rel=1e-9)
+    # the relative bias NOISE_BIAS_PER_R2 r^2, r = the input's noise rms (10 V/rad x sn) over K_fc
+    assert second.k_fc_noise_correction == pytest.approx(
+        NOISE_BIAS_PER_R2 * (10.0 * sn / plain.k_fc) ** 2 * plain.k_fc, rel=1e-9)
     assert second.k_fc == pytest.approx(plain.k_fc + second.k_fc_noise_correction, rel=1e-12)
     assert second.k_fc_sigma_sys == pytest.approx(
         math.hypot(0.02 * plain.k_fc, second.k_fc_noise_correction), rel=1e-9)   # K_v estimated: 2 % floor
@@ -132,7 +155,14 @@ def test_drift_trend_rules():
     rng = np.random.default_rng(5)
     base = 0.12 + 2e-5 * rng.standard_normal(12)
     ramp = base - 1.5e-3 * np.arange(12)
-    assert drift_trend(ramp) == pytest.approx(np.mean(np.diff(ramp)[-3:]))   # the mean change
+    d3 = np.diff(ramp)[-3:]
+    # the mean change, or the last one if smaller (same sign)
+    assert drift_trend(ramp) == pytest.approx(-min(abs(d3.mean()), abs(d3[-1])))
+    # a drift that slows within the noise (the decay rule not triggered): led by its last
+    # change, not by the mean of the three (the first pass's mean led an exponential's
+    # tail, and a noisy early change, too far)
+    slow = np.array([0.1200, 0.1200, 0.1200, 0.1185, 0.1170, 0.1158])
+    assert drift_trend(slow, scatter_floor=3e-4) == pytest.approx(-1.2e-3, rel=1e-9)
     step = base + np.where(np.arange(12) >= 9, 0.03, 0.0)
     step[9] -= 0.015                                         # the mixed task
     assert drift_trend(step) == 0.0 and drift_trend(step[:11]) == 0.0
@@ -191,35 +221,80 @@ def test_stribeck_estimate_covers_the_friction_the_task_met(tmp_path):
     assert "Stribeck" in K_FC_MEANING and "sticks" in K_FC_MEANING
 
 
-def test_friction_met_against_a_hand_projection():
-    # sliding everywhere: the friction law at the motor's velocity, projected on p, n, a_r;
-    # the reference's velocity v = 2 sin(w t) (asymmetric speeds via a 0.3 offset)
-    from track_sim import friction_met_v
-    fs = 1000.0
-    t = np.arange(2000) / fs
-    ref = 0.3 * t - 2.0 / (2 * np.pi) * np.cos(2 * np.pi * t)       # v_r = 0.3 + 2 sin(2 pi t)
+@pytest.mark.parametrize("noise, seed", [(5e-3, 1), (1e-2, 2)])
+def test_stribeck_under_noise_covers_the_friction_met(tmp_path, noise, seed):
+    # static x2, Stribeck velocity 0.2 rad/s under sensor noise: the friction the task met
+    # (averaged over each sample, friction_met_v) falls with the noise (1.053 -> 1.045 ->
+    # 1.033 x Coulomb at 0 / 5e-3 / 1e-2 rad: the jitter's slides average the Stribeck
+    # peak down) and the estimate follows it; on today's main the bench read the law at each
+    # sample's start (1.074 x at 5e-3: the motor breaks away and sticks within a sample)
+    # and covered 71 % of the settled tasks at 5e-3
+    from fwsim_drive import plant_file as derived
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"static": 2 * fc0, "stribeck_velocity": 0.2},
+                     "sensor": {"noise_std": noise, "seed": seed}}, directory=str(tmp_path))
+    rows, _ = run_tracking(plant, 24, k_fc=0.1157, k_v=0.002, k_a=0.0, friction_met=True)
+    sel = rows[4:]
+    met = float(np.mean([r["k_fc_met"] for r in sel]))   # stationary plant: its mean is the truth
+    assert 1.02 * 0.1157 < met < 1.05 * 0.1157
+    cov = np.mean([abs(r["k_fc_estimate"] - met) <= 2 * r["k_fc_sigma"] for r in sel])
+    assert cov >= 0.9
+
+
+def test_friction_met_against_the_law_on_a_fine_grid(tmp_path):
+    # the friction met is the friction averaged over each sample from the plant's momentum
+    # balance; reference: the plant (Stribeck, static x2, 0.2 rad/s; load viscous too) run
+    # at 128 points per sample, the law read at each (mode * (F_c + (F_s - F_c) e^-(w/v_s)^2)
+    # sliding, k_m u - spring stuck) and averaged, projected on p, n, a_r by hand. The input
+    # jitters every sample (as with sensor noise) so that the motor breaks away and sticks
+    # within samples
+    from fwsim_drive import plant_file as derived
+    import yaml
+
+    from track_sim import FwSim, friction_met_v
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"static": 2 * fc0, "stribeck_velocity": 0.2, "load_viscous": 3e-5}},
+                    directory=str(tmp_path))
+    pp = yaml.safe_load(open(plant, encoding="utf-8"))["plant"]
+    fs, n, fine = 2560.0, 1536, 128
+    t = np.arange(n) / fs
+    ref = 0.25 * (1 - np.cos(2 * np.pi * t / t[-1] * 1.0)) + 0.05 * t      # forward, then back
+    rng = np.random.default_rng(3)
+    u = 0.13 * np.sign(np.gradient(ref)) + 0.11 * rng.standard_normal(n)     # V
+    def law_at(x, m, uk):
+        if m == 0:
+            return pp["km"] * uk - pp["k"] * (x[0] - x[2]) - pp["c"] * (x[1] - x[3])
+        return m * (pp["coulomb"] + (pp["static"] - pp["coulomb"]) * math.exp(-(x[1] / pp["stribeck_velocity"]) ** 2))
+
+    states, modes, law = [], [], np.zeros(n)
+    with FwSim(plant) as sim:
+        sim.plant_set_state(0.0, 0.0, 0.0, 0.0)
+        for k in range(n):
+            states.append(sim.plant_state())
+            modes.append(sim.plant_mode())
+            acc = 0.0
+            for _ in range(fine):
+                acc += law_at(sim.plant_state(), sim.plant_mode(), u[k])
+                sim.plant_advance(u[k], 1.0 / fs / fine)
+            law[k] = acc / fine
+        states.append(sim.plant_state())
+    states = np.array(states)
+    assert 0.1 < np.mean(states[:, 1] == 0.0) < 0.9               # it sticks and slides
     v = np.gradient(ref) * fs
-    plant = {"coulomb": 4e-3, "static": 7e-3, "stribeck_velocity": 0.5, "k": 0.5, "c": 0.0, "km": 0.05}
-    w1 = 0.9 * v                                                    # the motor slightly slower
-    states = np.column_stack([ref, w1, ref, w1])
-    modes = np.sign(w1).astype(int)
-    got = friction_met_v(plant, states, modes, ref, np.zeros_like(t), fs)
-    s = np.sign(np.round(v, 6))
-    f = modes * (4e-3 + 3e-3 * np.exp(-(w1 / 0.5) ** 2)) / 0.05
     a = np.gradient(v) * fs
+    s = np.sign(np.round(v, 6))
     X = np.column_stack([(s > 0).astype(float), -(s < 0).astype(float), a])
-    th = np.linalg.solve(X.T @ X, X.T @ f)
-    assert got == pytest.approx(0.5 * (th[0] + th[1]), rel=1e-9)
-    assert 0.08 < got < 0.14                                        # between Coulomb and static
-    # stuck samples: the holding torque k_m u - spring enters instead of the law
-    modes2 = modes.copy()
-    modes2[:100] = 0
-    u = np.full_like(t, 0.06)
-    got2 = friction_met_v(plant, states, modes2, ref, u, fs)
-    f2 = f.copy()
-    f2[:100] = (0.05 * 0.06 - 0.0) / 0.05
-    th2 = np.linalg.solve(X.T @ X, X.T @ f2)
-    assert got2 == pytest.approx(0.5 * (th2[0] + th2[1]), rel=1e-9)
+    th = np.linalg.lstsq(X, law / pp["km"], rcond=None)[0]
+    want = 0.5 * (th[0] + th[1])
+    got = friction_met_v(pp, states, ref, u, fs)
+    start = np.array([law_at(x, m, uk) for x, m, uk in zip(states[:-1], modes, u)])
+    assert got == pytest.approx(want, rel=2e-3)
+    # the input exercises what the first version missed: the law at each sample's start
+    # reads this trajectory 14 % high (0.150 against 0.132 V)
+    assert 0.5 * sum(np.linalg.lstsq(X, start / pp["km"], rcond=None)[0][:2]) > 1.05 * want
+    assert 0.1157 < got < 2 * 0.1157                               # between Coulomb and static
+    with pytest.raises(ValueError, match="states"):
+        friction_met_v(pp, states[:-1], ref, u, fs)
 
 
 def test_viscous_step_under_noise_1e_2_is_covered(tmp_path):
@@ -282,3 +357,42 @@ def test_ramp_end_trend_stops(tmp_path):
     assert max(abs(e) for e in err[end + 2:]) < 0.02
     assert max(abs(e) for e in err[13:end + 1]) < 0.01         # the ramp itself followed
     assert not any(r["cause"] == "trend" for r in rows[end + 2:])
+
+
+@pytest.mark.parametrize("drift", [
+    {"coulomb_ramp": -0.3, "coulomb_ramp_start_s": 12.0, "coulomb_ramp_end_s": 36.0},
+    {"coulomb_exp": -0.3, "coulomb_exp_start_s": 12.0, "coulomb_exp_tau_s": 15.0}])
+def test_fast_drift_under_noise_1e_2_applied_value_within_its_sigma(tmp_path, drift):
+    # under 1e-2 rad a fast drift is not followed within 2 % (single estimates scatter by
+    # about 0.6 %, the trend's lead adds its rate's noise, a ramp's end is not in the data
+    # when the lead overshoots it): the applied K_fc's error stays within 2 sigma of the
+    # estimate it came from, from 3 tasks after the start; and the tail (0.7 x the level)
+    # carries no noise bias beyond 1 % (today's main: -1.2 % there)
+    plant = plant_file(str(tmp_path), drift=drift, sensor={"noise_std": 1e-2, "seed": 1})
+    rows, _ = run_tracking(plant, 50, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    start = next(r["task"] for r in rows if r["t_s"] > 12.0)
+    for k in range(start + 3, len(rows)):
+        assert abs(rows[k]["k_fc"] - rows[k]["k_fc_true"]) <= 2 * rows[k - 1]["k_fc_sigma"]
+    tail = [r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in rows[-10:]]
+    assert abs(np.mean(tail)) < 0.01
+
+
+def test_friction_falling_with_speed_is_named(tmp_path):
+    # static x3, Stribeck velocity 0.4 rad/s: the estimate falls short of the friction met
+    # by 1.6 % with a 0.8 % sigma (a strong rise the sigma does not cover; today's main says
+    # nothing). The unconstrained fit's viscous coefficient turns negative (friction that
+    # falls with speed; +1.5 mV s/rad on the Coulomb plant): the rows name it. Not on a
+    # Coulomb plant under 1e-2 rad of noise, nor during a Coulomb drift
+    from fwsim_drive import plant_file as derived
+    from fftune.analysis.track import NOTE_FRICTION_FALLS_WITH_SPEED
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"static": 3 * fc0, "stribeck_velocity": 0.4}}, directory=str(tmp_path / "s"))
+    rows, _ = run_tracking(plant, 14, k_fc=0.1157, k_v=0.002, k_a=0.0)
+    assert all(NOTE_FRICTION_FALLS_WITH_SPEED in r["notes"] for r in rows[8:])
+    assert all(r["k_v_free"] < 0 for r in rows[8:])
+    assert not any(NOTE_FRICTION_FALLS_WITH_SPEED in r["notes"] for r in rows[:8])   # (K_a learnt first)
+    for sensor, drift in (({"noise_std": 1e-2, "seed": 3}, None),
+                          (None, {"coulomb_exp": -0.3, "coulomb_exp_start_s": 6.0, "coulomb_exp_tau_s": 10.0})):
+        plant = plant_file(str(tmp_path), sensor=sensor, drift=drift)
+        rows, _ = run_tracking(plant, 24, k_fc=0.1157, k_v=0.002, k_a=0.0)
+        assert not any(NOTE_FRICTION_FALLS_WITH_SPEED in r["notes"] for r in rows)
