@@ -3,6 +3,10 @@
 
     forkserver.py serve SOCKET          # imports numpy, scipy, pytest once, then waits
     forkserver.py run SOCKET ARGS...    # cosmic-ray's test command: pytest ARGS in a fork
+    forkserver.py run SOCKET --map MAP --module FILE ARGS...
+                                        # only the tests that execute the mutated statements
+                                        # (tools/mutation/testmap.py); ARGS' test paths are
+                                        # replaced by their node ids under --rootdir
 
 Each `run` connects to the server, which forks; the child runs ``pytest.main(ARGS)`` (it
 imports the package under test itself, fresh, so it sees the mutant just written) and
@@ -84,7 +88,23 @@ def serve(path):
                     pass
 
 
+def _narrow(args):
+    """ARGS with --map/--module taken out; the test paths replaced by the node ids the map
+    selects for the mutant in FILE (unchanged where the map selects the whole selection)."""
+    if len(args) < 4 or args[0] != "--map" or args[2] != "--module":
+        return args
+    map_path, module, args = args[1], args[3], args[4:]
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import testmap
+    nodes = testmap.select(map_path, module)
+    if nodes is None:
+        return args
+    root = next(a.split("=", 1)[1] for a in args if a.startswith("--rootdir="))
+    return [a for a in args if a.startswith("-")] + [os.path.join(root, n) for n in nodes]
+
+
 def run(path, args):
+    args = _narrow(args)
     cli = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     cli.connect(path)
     cli.sendall((json.dumps({"cwd": os.getcwd(), "args": args}) + "\n").encode())

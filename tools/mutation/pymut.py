@@ -142,29 +142,32 @@ def _pytest_args(tests, tree):
             f"--rootdir={tree}"] + [t if t.startswith("-") else str(tree / t) for t in tests]
 
 
-def _test_command(tests, tree, socket_path=None):
-    """pytest on the selection (in the frozen tree); through the fork server when one is given."""
+def _test_command(tests, tree, socket_path=None, test_map=None):
+    """pytest on the selection (in the frozen tree); through the fork server when one is
+    given, narrowed by the per-test coverage map when one is given (testmap.py)."""
     if socket_path is None:
         return " ".join([sys.executable, "-m", "pytest"] + _pytest_args(tests, tree))
-    return " ".join([sys.executable, str(FORKSERVER), "run", str(socket_path)]
+    narrow = [] if test_map is None else ["--map", str(test_map[0]), "--module", str(test_map[1])]
+    return " ".join([sys.executable, str(FORKSERVER), "run", str(socket_path)] + narrow
                     + _pytest_args(tests, tree))
 
 
-def _write_config(config, target, timeout, tests, tree, sock):
+def _write_config(config, target, timeout, tests, tree, sock, test_map=None):
     config.write_text(
         "[cosmic-ray]\n"
         f'module-path = "{target}"\n'
         f"timeout = {timeout:.0f}\n"
         "excluded-modules = []\n"
-        f'test-command = "{_test_command(tests, tree, sock)}"\n\n'
+        f'test-command = "{_test_command(tests, tree, sock, test_map)}"\n\n'
         "[cosmic-ray.distributor]\n"
         'name = "local"\n')
 
 
 def _start_forkserver(mod_dir, pkg_root):
     sock = mod_dir / "fork.sock"
+    # (the baseline has rebuilt any stale binary: each mutant's pytest skips the check)
     proc = subprocess.Popen([sys.executable, str(FORKSERVER), "serve", str(sock)], cwd=ROOT,
-                            env=_env(pkg_root), stdout=subprocess.PIPE, text=True,
+                            env=dict(_env(pkg_root), FFTUNE_TEST_NO_REBUILD="1"), stdout=subprocess.PIPE, text=True,
                             start_new_session=True)
     if proc.stdout.readline().strip() != "forkserver: ready":
         proc.kill()
@@ -198,7 +201,7 @@ def _prepare(name, force=False):
     target = pkg_root / "fftune" / Path(module).parent.name / Path(module).name
     sock = mod_dir / "fork.sock"
     kept = None if force or not session.exists() or not stamp.exists() else stamp.read_text()
-    if kept == digest:
+    if kept == digest and (mod_dir / "testmap.json").exists():
         return session, config, pkg_root
     tests_only = kept is not None and kept.split("\n")[0] == digest.split("\n")[0]
     if not tests_only:
@@ -215,9 +218,10 @@ def _prepare(name, force=False):
         raise MutationError(f"mutation: {name}: the tests fail on the unmutated code "
                             f"({' '.join(tests)}): {tail[0]}")
     timeout = max(30.0, 5.0 * elapsed)
+    test_map = _build_test_map(name, tests, tree, target, env, mod_dir)
     # (the config holds the test command: a selection that gained or lost files must reach
     # the mutants, not only the edits to the files it had)
-    _write_config(config, target, timeout, tests, tree, sock)
+    _write_config(config, target, timeout, tests, tree, sock, test_map)
     if tests_only:
         n = _rerun_survivors(session)
         stamp.write_text(digest)
@@ -234,6 +238,36 @@ def _prepare(name, force=False):
     print(f"mutation: {name}: new session, baseline tests {elapsed:.1f} s, timeout {timeout:.0f} s",
           flush=True)
     return session, config, pkg_root
+
+
+def _build_test_map(name, tests, tree, target, env, mod_dir):
+    """The per-test coverage map of the unmutated module (testmap.py): (map file, module
+    file) for the fork server's client, which narrows each mutant's run to the tests that
+    execute what it changed. One more run of the selection, under coverage.py."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import testmap
+    args = [a for a in _pytest_args(tests, tree) if a != "-x"]
+    collect = subprocess.run([sys.executable, "-m", "pytest", "--collect-only"] + args,
+                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             text=True)
+    node_ids = [ln.strip() for ln in collect.stdout.splitlines() if "::" in ln and " " not in ln.strip()]
+    cov_file = mod_dir / "coverage.data"
+    cov_file.unlink(missing_ok=True)
+    cov_env = dict(env, COVERAGE_FILE=str(cov_file))
+    run = subprocess.run([sys.executable, "-m", "pytest", f"--cov={target.parent}",
+                          "--cov-context=test", "--cov-report="] + args,
+                         cwd=ROOT, env=cov_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if collect.returncode != 0 or run.returncode != 0 or not node_ids:
+        tail = (run.stdout or collect.stdout).strip().splitlines()[-1:] or ["(no output)"]
+        raise MutationError(f"mutation: {name}: the coverage run of the tests failed: {tail[0]}")
+    test_map = testmap.build(cov_file, target, node_ids)
+    map_path = mod_dir / "testmap.json"
+    testmap.save(map_path, target.read_text(encoding="utf-8"), test_map)
+    narrowed = sum(1 for v in test_map["lines"].values() if v != testmap.ALL)
+    print(f"mutation: {name}: per-test coverage of {len(node_ids)} tests: {narrowed} of "
+          f"{len(test_map['lines'])} executed statements run only the tests that reach them",
+          flush=True)
+    return map_path, target
 
 
 def _skip_unkept_operators(session):
