@@ -21,7 +21,7 @@ static double cogging_torque(const double *p, double th1)
     return p[VR_cogging_amplitude] * sin(p[VR_cogging_periods] * th1);
 }
 
-static void cogging_rhs(const double *p, const double x[5], double u, double dx[5])
+static void cogging_rhs(const double *p, const double *x, double u, double *dx)
 {
     double w = x[1];
     double dz = w - p[VR_sigma0] * fabs(w) * x[4] / p[VR_Fc];
@@ -49,21 +49,12 @@ int model_init(void *mv, double *r, char *msg, size_t msglen)
     static const unsigned positive[] = {VR_j1, VR_j2, VR_km, VR_Fc, VR_sigma0};
     static const unsigned nonneg[] = {VR_k, VR_c, VR_viscous, VR_load_viscous, VR_cogging_amplitude,
                                       VR_cogging_periods};
-    for (unsigned i = 0; i < sizeof positive / sizeof positive[0]; i++) {
-        if (!(r[positive[i]] > 0.0) || !isfinite(r[positive[i]])) {
-            snprintf(msg, msglen, "parameter %s = %g: must be finite and > 0", fmu_names[positive[i]], r[positive[i]]);
-            return -1;
-        }
-    }
-    for (unsigned i = 0; i < sizeof nonneg / sizeof nonneg[0]; i++) {
-        if (!(r[nonneg[i]] >= 0.0) || !isfinite(r[nonneg[i]])) {
-            snprintf(msg, msglen, "parameter %s = %g: must be finite and >= 0", fmu_names[nonneg[i]], r[nonneg[i]]);
-            return -1;
-        }
+    if (fmu_check_parameters(r, positive, sizeof positive / sizeof positive[0], 1, msg, msglen) != 0 ||
+        fmu_check_parameters(r, nonneg, sizeof nonneg / sizeof nonneg[0], 0, msg, msglen) != 0) {
+        return -1;
     }
     double sub = r[VR_substeps];
-    if (!(sub >= 1.0 && sub <= 10000.0) || sub != floor(sub)) {
-        snprintf(msg, msglen, "parameter substeps = %g: a whole number 1 .. 10000", sub);
+    if (fmu_check_substeps(sub, msg, msglen) != 0) {
         return -1;
     }
     for (unsigned i = 0; i <= VR_substeps; i++) {
@@ -80,35 +71,8 @@ int model_init(void *mv, double *r, char *msg, size_t msglen)
 int model_step(void *mv, double *r, double t, double h, char *msg, size_t msglen)
 {
     cogging_t *m = mv;
-    double u = r[VR_u], hs = h / (double)m->substeps;
-    if (!isfinite(u)) {
-        snprintf(msg, msglen, "input u = %g is not finite at t = %g s", u, t);
+    if (fmu_rk4_step(cogging_rhs, m->p, m->x, 5, r[VR_u], t, h, m->substeps, msg, msglen) != 0) {
         return -1;
-    }
-    for (unsigned s = 0; s < m->substeps; s++) {
-        double k1[5], k2[5], k3[5], k4[5], y[5];
-        cogging_rhs(m->p, m->x, u, k1);
-        for (int i = 0; i < 5; i++) {
-            y[i] = m->x[i] + 0.5 * hs * k1[i];
-        }
-        cogging_rhs(m->p, y, u, k2);
-        for (int i = 0; i < 5; i++) {
-            y[i] = m->x[i] + 0.5 * hs * k2[i];
-        }
-        cogging_rhs(m->p, y, u, k3);
-        for (int i = 0; i < 5; i++) {
-            y[i] = m->x[i] + hs * k3[i];
-        }
-        cogging_rhs(m->p, y, u, k4);
-        for (int i = 0; i < 5; i++) {
-            m->x[i] += hs / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
-        }
-    }
-    for (int i = 0; i < 5; i++) {
-        if (!isfinite(m->x[i])) {
-            snprintf(msg, msglen, "the state diverged at t = %g s (reduce the step or raise substeps)", t + h);
-            return -1;
-        }
     }
     cogging_outputs(m, r);
     return 0;
