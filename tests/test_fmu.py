@@ -339,10 +339,18 @@ def test_an_unloadable_binary_is_drive_sims_one_line(tmp_path, capsys):
     assert "cannot load binaries/linux64/fftune_lugre.so" in line
 
 
-def test_a_parameter_the_fmu_refuses_at_initialisation_is_one_line(tmp_path, capsys):
-    plant = plant_file(tmp_path, parameters={"Fc": 9e-3, "Fs": 5e-3})    # Fs < Fc
+@pytest.mark.parametrize("parameters,words", [
+    ({"Fc": 9e-3, "Fs": 5e-3}, "Fs = 0.005: must be >= Fc = 0.009"),
+    ({"j1": -2e-5}, "parameter j1 = -2e-05: must be finite and > 0"),          # strictly positive
+    ({"sigma0": 0.0}, "parameter sigma0 = 0: must be finite and > 0"),
+    ({"sigma1": -0.5}, "parameter sigma1 = -0.5: must be finite and >= 0"),    # non-negative
+    ({"substeps": 2.5}, "parameter substeps = 2.5: a whole number 1 .. 10000"),
+    ({"substeps": 10001}, "parameter substeps = 10001: a whole number 1 .. 10000"),
+])
+def test_a_parameter_the_fmu_refuses_at_initialisation_is_one_line(tmp_path, capsys, parameters, words):
+    plant = plant_file(tmp_path, parameters=parameters)
     line = _demo_error(tmp_path, capsys, plant)
-    assert "fmi2ExitInitializationMode returned fmi2Error" in line and "Fs = 0.005" in line
+    assert "fmi2ExitInitializationMode returned fmi2Error" in line and words in line
 
 
 def test_a_step_that_fails_is_one_line_before_the_drive_exists(fmpy_built_fmu, tmp_path, capsys):
