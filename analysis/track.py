@@ -136,7 +136,7 @@ NOTE_FRICTION_FALLS_WITH_SPEED = "friction_falls_with_speed"
 # is zero at the moves' ends, for the Coulomb level; p - n for the offset; a_r): where the
 # model holds the two agree within noise, where it misses they weight the miss differently
 # and disagree. Half their gap (the median over the last SCATTER_WINDOW tasks at the loop's
-# fixed point, VISC_FIXED_REL, once SCATTER_MIN exist: the gap of a task whose feed-forward
+# fixed point, VISC_FIXED_REL, once MODEL_MIN exist: the gap of a task whose feed-forward
 # was wrong, the first ones without K_a, a step's, is the closed loop's transient) is a part of
 # the systematic sigma (``k_fc_sigma_model``): 2 sigma then reaches the gap, which covers
 # the sign estimate's bias wherever the two biases are of opposite sign or the velocity
@@ -144,6 +144,7 @@ NOTE_FRICTION_FALLS_WITH_SPEED = "friction_falls_with_speed"
 # MODEL_NOTE_REL of the floor the row names it.
 NOTE_MODEL_ERROR = "model_error_instruments_disagree"
 MODEL_NOTE_REL = 1.0
+MODEL_MIN = 3               # gaps at the fixed point before their median is the part
 # What a task's K_fc is (results.yaml track_summary.k_fc_meaning).
 K_FC_MEANING = (
     "the Coulomb friction averaged over the task's path and speeds: the friction the "
@@ -383,11 +384,11 @@ def model_error_sigma(gaps):
     """The model-error part of K_fc's sigma [V] from the instrument gaps (sign-instrument K_fc
     less velocity-instrument K_fc, :func:`velocity_iv_k_fc`) of successive tasks (oldest
     first, this task last; NaN for a task left out): half the absolute median of the finite
-    ones among the last ``SCATTER_WINDOW``; 0 with fewer than ``SCATTER_MIN`` finite ones
+    ones among the last ``SCATTER_WINDOW``; 0 with fewer than ``MODEL_MIN`` finite ones
     there (the first tasks' gap is the missing mass feed-forward's, not the model's)."""
     g = np.asarray(gaps, dtype=float)[-SCATTER_WINDOW:]
     g = g[np.isfinite(g)]
-    if g.size < SCATTER_MIN:
+    if g.size < MODEL_MIN:
         return 0.0
     return 0.5 * abs(float(np.median(g)))
 
