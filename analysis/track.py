@@ -380,14 +380,22 @@ def velocity_iv_k_fc(A, c, k_v_hold):
     return fc if math.isfinite(fc) else math.nan
 
 
-def model_error_sigma(gaps):
+def model_error_sigma(gaps, all_gaps=None):
     """The model-error part of K_fc's sigma [V] from the instrument gaps (sign-instrument K_fc
     less velocity-instrument K_fc, :func:`velocity_iv_k_fc`) of successive tasks (oldest
     first, this task last; NaN for a task left out): half the absolute median of the finite
     ones among the last ``SCATTER_WINDOW``; 0 with fewer than ``MODEL_MIN`` finite ones
-    there (the first tasks' gap is the missing mass feed-forward's, not the model's)."""
+    there (the first tasks' gap is the missing mass feed-forward's, not the model's).
+
+    ``all_gaps`` (the same tasks' gaps, none left out): where ``gaps`` leaves out so many
+    that fewer than ``MODEL_MIN`` remain among ``SCATTER_WINDOW`` or more tasks (a loop that
+    does not settle at a fixed point, or whose estimate scatters beyond the fixed-point
+    band), the median of these instead: the loop's persistent state is then what it is."""
     g = np.asarray(gaps, dtype=float)[-SCATTER_WINDOW:]
     g = g[np.isfinite(g)]
+    if g.size < MODEL_MIN and all_gaps is not None and len(all_gaps) >= SCATTER_WINDOW:
+        g = np.asarray(all_gaps, dtype=float)[-SCATTER_WINDOW:]
+        g = g[np.isfinite(g)]
     if g.size < MODEL_MIN:
         return 0.0
     return 0.5 * abs(float(np.median(g)))
@@ -653,10 +661,11 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     floor = fc_sys
     # the gaps of the tasks at the loop's fixed point (a task whose feed-forward was wrong,
     # after a step or while K_a is learnt, has the closed loop's transient in its gap)
-    fc_model = model_error_sigma(
-        [e.k_fc_instrument_gap if _at_fixed_point(e.k_fc_applied, e.k_fc - e.k_fc_noise_correction) else math.nan
-         for e in (recent or [])]
-        + [gap if _at_fixed_point(k_fc_applied, fc - corr) else math.nan]) if math.isfinite(gap) else 0.0
+    all_gaps = [e.k_fc_instrument_gap for e in (recent or [])] + [gap]
+    fixed = [_at_fixed_point(e.k_fc_applied, e.k_fc - e.k_fc_noise_correction) for e in (recent or [])] \
+        + [_at_fixed_point(k_fc_applied, fc - corr)]
+    fc_model = model_error_sigma([g if ok else math.nan for g, ok in zip(all_gaps, fixed)], all_gaps) \
+        if math.isfinite(gap) else 0.0
     if fc_model > MODEL_NOTE_REL * floor:
         notes.append(NOTE_MODEL_ERROR)
     fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + fc_visc ** 2 + fc_model ** 2)
@@ -869,9 +878,12 @@ class Tracker:
         if not fc_certain:
             self._uncertain += 1
             if self._uncertain >= s.max_uncertain:
+                why = (f" (its model misses: the sign and velocity instruments' estimates differ, "
+                       f"model-error part {est.k_fc_sigma_model:.3g} V; the load's momentum at the moves' "
+                       f"ends, which one inertia term does not model)" if NOTE_MODEL_ERROR in est.notes else "")
                 return self._stop("uncertain", f"K_fc {est.k_fc:.4g} V with sigma {est.k_fc_sigma:.3g} V "
                                                f"(> {s.max_sigma_rel:.0%} of it) in {self._uncertain} tasks "
-                                               f"in a row: the task's data cannot tell it")
+                                               f"in a row: the task's data cannot tell it{why}")
         else:
             self._uncertain = 0
         if self._last_action != "rollback":

@@ -6,8 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from fftune.analysis.track import (NOTE_MODEL_ERROR, MODEL_MIN, SCATTER_WINDOW, TaskStats, estimate_task,
-                                   model_error_sigma, normal_matrix, velocity_iv_k_fc)
+from fftune.analysis.track import (MODEL_MIN, NOTE_MODEL_ERROR, SCATTER_WINDOW, TaskEstimate, TaskStats,
+                                   Tracker, TrackSettings, estimate_task, model_error_sigma, normal_matrix,
+                                   velocity_iv_k_fc)
 
 from fwsim_drive import plant_file
 from track_sim import run_tracking
@@ -120,3 +121,32 @@ def test_nominal_plant_keeps_its_sigma_and_names_nothing(tmp_path):
     rows, _ = run_tracking(plant, 12, k_a=0.0)
     for r in _settled(rows):
         assert abs(r["k_fc_estimate"] - r["k_fc_true"]) <= 2 * r["k_fc_sigma"]
+
+
+def test_model_error_sigma_falls_back_to_every_gap_when_the_loop_never_settles():
+    # a loop whose estimate never stays within the fixed-point band: every gap left out
+    gaps = [np.nan] * SCATTER_WINDOW
+    all_gaps = [0.03, -0.01, 0.05, 0.04, 0.045, 0.06, 0.02, 0.055, 0.035, 0.05]
+    assert model_error_sigma(gaps) == 0.0
+    assert model_error_sigma(gaps, all_gaps) == pytest.approx(0.5 * float(np.median(all_gaps)))
+    # fewer tasks than the window: the first tasks' transients are not taken for the state
+    assert model_error_sigma(gaps[:6], all_gaps[:6]) == 0.0
+
+
+def test_uncertain_stop_names_the_model_error():
+    tr = Tracker(k_fc=0.035, k_v=0.002, k_a=0.006, settings=TrackSettings(update_kv=False))
+    base = dict(k_fc=0.032, k_v=0.002, k_v_sigma=0.0, k_a=0.006, k_a_sigma=1e-4, offset=0.0,
+                offset_sigma=1e-4, rms_error=1e-3, rms_residual=0.01, condition=10.0, k_v_identified=False,
+                samples=3072)
+    plain = TaskEstimate(k_fc_sigma=0.009, **base)
+    named = TaskEstimate(k_fc_sigma=0.009, k_fc_sigma_model=0.0085,
+                         notes=("viscous_drift_folded_into_k_fc", NOTE_MODEL_ERROR), **base)
+    for est in [plain] * 4:
+        assert tr.after_task(est).action == "hold"
+    d = tr.after_task(named)
+    assert d.action == "stop" and d.cause == "uncertain"
+    assert "velocity instruments" in d.reason and "0.0085 V" in d.reason
+    tr2 = Tracker(k_fc=0.035, k_v=0.002, k_a=0.006, settings=TrackSettings(update_kv=False))
+    for est in [plain] * 5:
+        d = tr2.after_task(est)
+    assert d.action == "stop" and "instruments" not in d.reason
