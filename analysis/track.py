@@ -28,7 +28,10 @@ point and the stick-slip loop's periodic states). Not a jackknife over the block
 hold different phases of the motion (the Coulomb information sits in the moves, a dwell
 block holds none), so deleting one moves the estimate by the model error that differs
 between phases, a deterministic part that does not vary from task to task: that sigma was
-~30x the actual scatter.
+~30x the actual scatter. The model's own miss (the momentum at the moves' ends that the one
+inertia term does not model) is a further part, from the gap between this estimate and one
+with velocity instruments from the same sums (:func:`velocity_iv_k_fc`,
+:func:`model_error_sigma`).
 
 Pure numpy; no CAN code. The tracking policy (bounded updates, rollback, named stops) is
 :class:`Tracker`.
