@@ -16,6 +16,9 @@ estimator and tracker of ``fftune track``), the demo task (1 rad back and forth,
    (tests/bench/bench_tune.py's path), within their combined 2 sigma or not;
 4. K_v tracked as well (track_k_v): the closed-loop bias of the K_fc / K_v split;
 5. ``fftune demo-track`` over CANopen: wall time, bus figures.
+6. issue 32's families (``--families``; ``--family NAME``), with the family "two-mass
+   momentum" (``model_error_figures``): the load's momentum at the moves' ends over a matrix
+   of two-mass plants, the model-error part of the sigma and its note.
 """
 import math
 import os
