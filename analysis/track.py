@@ -143,7 +143,7 @@ NOTE_FRICTION_FALLS_WITH_SPEED = "friction_falls_with_speed"
 # was wrong, the first ones without K_a, a step's, is the closed loop's transient) is a part of
 # the systematic sigma (``k_fc_sigma_model``): 2 sigma then reaches the gap, which covers
 # the sign estimate's bias wherever the two biases are of opposite sign or the velocity
-# instrument's is the larger (docs/track.md, the family "low Coulomb level"). Beyond
+# instrument's is the larger (docs/track.md, the family "two-mass momentum"). Beyond
 # MODEL_NOTE_REL of the floor the row names it.
 NOTE_MODEL_ERROR = "model_error_instruments_disagree"
 MODEL_NOTE_REL = 1.0
