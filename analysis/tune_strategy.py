@@ -557,7 +557,14 @@ LINEAR_H1_FACTOR = 1.5
 # the result is accepted: an exponential -40 % drift with tau 15 s ended a tune +8.9 % off
 # its final level with sigma 1.9 % (the second amplitude agreed within its noise).
 DRIFT_MIN_EXPERIMENTS = 4
-DRIFT_MIN_REL = 1e-3
+DRIFT_MIN_REL = 2e-3
+# The search stops for the loop's lag as soon as its experiments on either side of the root
+# bound the lag at K_fc* (lag_bound_deg) above this many times LOOP_LAG_MAX_DEG, without
+# finding K_fc* first: the budget's K_v estimate lowers the lag by up to about 1.5 deg (kp 0.35
+# on configs/plant_twomass.yaml: bounded 7.9 deg, 6.5 deg after K_v), so a bound just above the
+# limit is left to the budget. On the matrix's slow loops this ends the try at a frequency the
+# loop cannot follow after 2 .. 4 experiments instead of 8 .. 11 (tests/bench/bench_tune_matrix.py).
+LAG_BOUND_MARGIN = 1.25
 # Unconverged for these, the first experiment is repeated: a plant that changed during the
 # tune looks like stick-slip, a rotating phase, an amplitude dependence or a large budget.
 REPEAT_FOR = ("stick-slip", "amplitude dependence", "budget", "flatness")
@@ -963,6 +970,50 @@ def _period_drift(probe, outcome, by_k):
     return period_drift(s_periods, slope, float(outcome.k_fc))
 
 
+def lag_bound_deg(lags_below, lags_above):
+    """A bound of the motor's lag behind the reference at K_fc* (deg) from experiments on
+    either side of it: the lag falls as K_fc rises (more feed-forward pushes the motor ahead),
+    so it is at least the lag of any experiment above the root (over-compensated, s < 0) and
+    at most that of any below it (s > 0).
+
+    Parameters
+    ----------
+    lags_below, lags_above : sequence of float
+        Lags (deg; < 0 a lead) of the experiments below and above the root.
+
+    Returns
+    -------
+    float
+        The largest lag above the root when it is > 0, else the smallest lag below the root
+        when it is < 0 (a lead at least that large), else 0 (no bound beyond the limits).
+    """
+    above = [x for x in lags_above if math.isfinite(x)]
+    below = [x for x in lags_below if math.isfinite(x)]
+    if above and max(above) > 0:
+        return float(max(above))
+    if below and min(below) < 0:
+        return float(min(below))
+    return 0.0
+
+
+def _lag_sides(probe, by_k):
+    """The lags of the search's experiments below and above the root (the sign of the signed
+    objective with the phases of its first bracket, K_fc = 0 and the top); ([], []) before
+    both ends are measured."""
+    pts = [(k, p) for k, p in by_k.items() if math.isfinite(p["ratio"])]
+    if 0.0 not in by_k or len(pts) < 2:
+        return [], []
+    top = max(k for k, _ in pts)
+    phases = _tuning.reference_phases(np.asarray(by_k[0.0]["H"]) - np.asarray(by_k[top]["H"]), probe.harmonics)
+    below, above = [], []
+    for k, p in pts:
+        sp = _tuning.signed_point(probe.search_point(p), phases, probe.harmonics)
+        s_k, se = sp[0], sp[1]
+        if abs(s_k) > 2 * se:
+            (below if s_k > 0 else above).append(p["lag_deg"])
+    return below, above
+
+
 def _tune_at_frequency(ctx):
     """K_fc at one frequency (a generator of experiments): (a) the paper's sweep (optional),
     (b) the automated search, then (c) K_v.
@@ -982,8 +1033,11 @@ def _tune_at_frequency(ctx):
     # (0) amplitude
     amp_block = stop = None
     if c["amplitude_rad"] == "auto":
-        probe.amplitude, amp_block, _, stop = yield from choose_amplitude(probe, c["amplitude_start_rad"],
-                                                               c["amplitude_max_rad"])
+        # at a lower frequency after a refusal: from the amplitude chosen before (the loop's
+        # stick-slip is the amplitude's, the probes below it would be repeated)
+        start = min(max(c["amplitude_start_rad"], getattr(ctx, "amplitude_start", None) or 0.0),
+                    c["amplitude_max_rad"])
+        probe.amplitude, amp_block, _, stop = yield from choose_amplitude(probe, start, c["amplitude_max_rad"])
     n_amplitude_probes = ctx.tune_experiments
     # (b) automated search, one experiment at a time; saturation or no motion ends it
     k_hi = c["search"]["k_fc_max"] or c["sweep"]["k_fc_max"]
@@ -1018,6 +1072,16 @@ def _tune_at_frequency(ctx):
             search.tell(k, p["H_periods"])
         else:
             search.tell_moments(k, p["H"], p["H_var"], p["n_periods"])
+        bound = lag_bound_deg(*_lag_sides(probe, by_k))
+        if abs(bound) > LAG_BOUND_MARGIN * _tuning.LOOP_LAG_MAX_DEG:
+            # the lag at K_fc* is already known to exceed the limit: no need to find K_fc*
+            stop = {"cause": "loop lag", "lag_bound_deg": bound, "text": (
+                f"the loop cannot follow the {c['frequency_hz']:g} Hz sine closely enough: the motor "
+                f"{'lags' if bound > 0 else 'leads'} the reference by {abs(bound):.3g} deg or more at K_fc* "
+                f"(more than {_tuning.LOOP_LAG_MAX_DEG:g} deg; bounded by the experiments on either side "
+                "of the root: the lag falls as K_fc rises), the loop's own bandwidth, which no K_v "
+                "removes; lower tune.frequency_hz or raise the loop gains")}
+            break
     outcome = search.result
     if stop is not None:
         outcome.converged = False
@@ -1181,7 +1245,11 @@ def _tune_at_frequency(ctx):
             # the search's own root (before the budget's corrections), and the lag of the motor
             # behind the reference left at it with the viscous feed-forward (the loop's own)
             "k_fc_search_v": _f(k_search) if search_converged else None,
-            "loop_lag_deg": (budget or {}).get("viscous", {}).get("lag_residual_deg"),
+            # (or, when the search stopped on it before K_fc* was found, its bound from the
+            # experiments on either side of the root, also in loop_lag_bound_deg)
+            "loop_lag_deg": (budget or {}).get("viscous", {}).get("lag_residual_deg",
+                                                                  _f((stop or {}).get("lag_bound_deg"))),
+            "loop_lag_bound_deg": _f((stop or {}).get("lag_bound_deg")),
             "converged": bool(outcome.converged), "stop_reason": outcome.reason,
             "cause": None if outcome.converged else (cause or "not verified"),
             "regime": outcome.regime,
@@ -1198,6 +1266,7 @@ def _tune_at_frequency(ctx):
             "amplitude_probes": n_amplitude_probes,
             "relative_to_sweep_optimum": _f(k_star / k_sweep_opt - 1) if k_sweep_opt else None,
             "evaluations": [{"k_fc": _f(p["kfc"]), "k_v": _f(p["kv"]), "ratio": _f(p["ratio"]),
+                             "lag_deg": _f(p["lag_deg"]), "h1": _f(abs(complex(p["H"][0]))),
                              "ratio_std": _f(probe.search_point(p).ratio_std) if math.isfinite(p["ratio"])
                              else None, **_check_block(p)}
                             for _, p in pts],
@@ -1246,20 +1315,41 @@ def _tune(ctx, max_halvings, log):
         while results["search"]["cause"] in HALVE_FOR and len(changes) < max_halvings:
             c = ctx.cfg["tune"]
             src = ctx.cfg.get("_source", "config")
-            cyc = _cycles(ctx.fs_hz, c["period_samples"], c["frequency_hz"], f"{src}: key 'tune.frequency_hz'")
-            nxt = _tuning.halved_frequency(c["period_samples"], cyc, n_max=8192)
-            if nxt is None:
+            # the lag measured (or bounded) here: it falls at least in proportion to the
+            # frequency, so a frequency where half of it is still above the limit is skipped
+            lag = results["search"].get("loop_lag_bound_deg") or results["search"].get("loop_lag_deg")
+            lag = abs(lag) if lag is not None and math.isfinite(lag) and results["search"]["cause"] == "loop lag" \
+                else 0.0
+            n, cyc, f = c["period_samples"], _cycles(ctx.fs_hz, c["period_samples"], c["frequency_hz"],
+                                                     f"{src}: key 'tune.frequency_hz'"), c["frequency_hz"]
+            steps = 0
+            while len(changes) < max_halvings:
+                nxt = _tuning.halved_frequency(n, cyc, n_max=8192)
+                if nxt is None:
+                    break
+                n, cyc = nxt
+                f2 = cyc * ctx.fs_hz / n
+                lag /= 2
+                changes.append({"from_hz": _f(f), "to_hz": _f(f2), "period_samples": int(n),
+                                "reason": results["search"]["stop_reason"] if steps == 0 else (
+                                    f"skipped: the lag at {f:g} Hz would still be about {2 * lag:.3g} deg "
+                                    f"(half the {4 * lag:.3g} deg at {2 * f:g} Hz; more than "
+                                    f"{_tuning.LOOP_LAG_MAX_DEG:g} deg)")})
+                f, steps = f2, steps + 1
+                if lag <= _tuning.LOOP_LAG_MAX_DEG:
+                    break
+            if steps == 0:
                 break
-            n2, c2 = nxt
-            f2 = c2 * ctx.fs_hz / n2
-            changes.append({"from_hz": _f(c["frequency_hz"]), "to_hz": _f(f2), "period_samples": int(n2),
-                            "reason": results["search"]["stop_reason"]})
-            log(f"tune: the loop cannot follow {c['frequency_hz']:g} Hz; again at {f2:g} Hz")
+            log(f"tune: the loop cannot follow {c['frequency_hz']:g} Hz; again at {f:g} Hz")
             experiments += results["search"]["experiments"] + results["search"]["amplitude_probes"]
-            ctx.cfg = dict(ctx.cfg, tune=dict(c, frequency_hz=f2, period_samples=n2))
+            ctx.cfg = dict(ctx.cfg, tune=dict(c, frequency_hz=f, period_samples=n))
+            # (not after `unsettled`: the amplitude chosen there is the unsettled loop's)
+            ctx.amplitude_start = results["amplitude_rad"] if c["amplitude_rad"] == "auto" and \
+                results["search"]["cause"] == "loop lag" else None
             results, data = yield from _tune_at_frequency(ctx)
     finally:
         ctx.cfg = cfg0
+        ctx.amplitude_start = None
     if changes:
         results["frequency_changes"] = changes
         results["search"]["experiments_at_other_frequencies"] = experiments

@@ -193,12 +193,15 @@ def test_a_stationary_plant_brings_no_repeat(tmp_path):
 
 def test_period_drift_rule():
     slope, k = -2.0, 0.1
-    # every experiment falls by 4e-4 per period: 4e-4 / 2 / 0.1 = 0.2 % of K_fc* per period
-    down = [[0.01, 0.0096], [-0.002, -0.0024, -0.0028], [0.003, 0.0026], [-0.05, -0.0504]]
+    # every experiment falls by 6e-4 per period: 6e-4 / 2 / 0.1 = 0.3 % of K_fc* per period
+    down = [[0.01, 0.0094], [-0.002, -0.0026, -0.0032], [0.003, 0.0024], [-0.05, -0.0506]]
     drifting, rate = tune_strategy.period_drift(down, slope, k)
-    assert drifting and rate == pytest.approx(-2e-3)
+    assert drifting and rate == pytest.approx(-3e-3)
+    # the mean over the experiments (per period: a 3-period experiment counts its mean step)
+    assert tune_strategy.period_drift(down[:3] + [[-0.05, -0.0505]], slope, k)[1] == pytest.approx(
+        (-6e-4 * 3 - 5e-4) / 4 / 2 / 0.1)
     # one experiment the other way: noise, not a drift
-    mixed = down[:3] + [[-0.05, -0.0496]]
+    mixed = down[:3] + [[-0.05, -0.0494]]
     assert tune_strategy.period_drift(mixed, slope, k)[0] is False
     # one way, but below DRIFT_MIN_REL of K_fc* per period
     small = [[x, x - 1e-5] for x in (0.01, 0.0, -0.01, 0.02)]
