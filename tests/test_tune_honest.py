@@ -237,3 +237,31 @@ def test_loop_near_its_anti_resonance_names_the_loop_not_the_viscous_part(tmp_pa
     s = t["search"]
     assert not s["converged"] and s["cause"] == "loop lag"
     assert "times the reference" in s["stop_reason"] and "outside 0.8 .. 1.25" in s["stop_reason"]
+
+
+def test_lag_bound_from_either_side_of_the_root():
+    # the lag falls as K_fc rises: above the root (s < 0) the lag is a lower bound of the
+    # lag at K_fc*, below it (s > 0) an upper one
+    assert tune_strategy.lag_bound_deg([26.0, 16.1], [14.6, 4.1]) == pytest.approx(14.6)
+    assert tune_strategy.lag_bound_deg([8.6, 2.5], [-12.3]) == 0.0            # 0.4 deg at the root: no bound
+    assert tune_strategy.lag_bound_deg([-9.0, -3.0], [-20.0]) == pytest.approx(-9.0)   # a lead of 9 deg or more
+    assert tune_strategy.lag_bound_deg([], [float("nan")]) == 0.0
+
+
+def test_sine_the_loop_cannot_follow_is_left_after_two_experiments(tmp_path, monkeypatch):
+    # 2.5 Hz on the demo loop: K_fc = 0 lags 44 deg, the over-compensated top 0.3 V still
+    # 28 deg, so the lag at K_fc* is at least 28 deg. On main the search ran 10 experiments
+    # at 2.5 Hz, then halved to 1.25 Hz (8 more, 9.8 deg: refused again) before 0.625 Hz
+    monkeypatch.setattr(ex, "tune", ex.tune_at_frequency)
+    t = _row(tmp_path, {}, {"frequency_hz": 2.5}, name="one")
+    s = t["search"]
+    assert not s["converged"] and s["cause"] == "loop lag" and s["experiments"] == 2
+    assert s["loop_lag_bound_deg"] > 1.25 * tuning.LOOP_LAG_MAX_DEG
+    assert "deg or more at K_fc*" in s["stop_reason"]
+    monkeypatch.undo()
+    t = _row(tmp_path, {}, {"frequency_hz": 2.5})
+    s = t["search"]
+    assert s["converged"] and _ok(t) and s["experiments"] <= 9
+    ch = t["frequency_changes"]
+    assert [c["to_hz"] for c in ch] == [pytest.approx(1.25), pytest.approx(0.625)]
+    assert ch[1]["reason"].startswith("skipped: the lag at 1.25 Hz would still be about")
