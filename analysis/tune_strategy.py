@@ -1316,7 +1316,7 @@ def _tune(ctx, max_halvings, log):
             c = ctx.cfg["tune"]
             src = ctx.cfg.get("_source", "config")
             # the lag measured (or bounded) here: it falls at least in proportion to the
-            # frequency, so a frequency where half of it is still above the limit is skipped
+            # frequency, so a lower frequency where it would still be above the limit is skipped
             lag = results["search"].get("loop_lag_bound_deg") or results["search"].get("loop_lag_deg")
             lag = abs(lag) if lag is not None and math.isfinite(lag) and results["search"]["cause"] == "loop lag" \
                 else 0.0
@@ -1324,24 +1324,24 @@ def _tune(ctx, max_halvings, log):
                                                      f"{src}: key 'tune.frequency_hz'"), c["frequency_hz"]
             steps = 0
             while len(changes) < max_halvings:
-                nxt = _tuning.halved_frequency(n, cyc, n_max=8192)
+                nxt = _tuning.lower_frequency(n, cyc, n_max=8192)
                 if nxt is None:
                     break
+                f2 = nxt[1] * ctx.fs_hz / nxt[0]
+                lag *= f2 / f          # (a third, for odd cycles in the longest period)
                 n, cyc = nxt
-                f2 = cyc * ctx.fs_hz / n
-                lag /= 2
                 changes.append({"from_hz": _f(f), "to_hz": _f(f2), "period_samples": int(n),
                                 "reason": results["search"]["stop_reason"] if steps == 0 else (
-                                    f"skipped: the lag at {f:g} Hz would still be about {2 * lag:.3g} deg "
-                                    f"(half the {4 * lag:.3g} deg at {2 * f:g} Hz; more than "
-                                    f"{_tuning.LOOP_LAG_MAX_DEG:g} deg)")})
+                                    f"skipped: the lag at {f:g} Hz would still be about {lag * f / f2:.3g} "
+                                    f"deg (the lag scaled with the frequency from {c['frequency_hz']:g} Hz; "
+                                    f"more than {_tuning.LOOP_LAG_MAX_DEG:g} deg)")})
                 f, steps = f2, steps + 1
                 if lag <= _tuning.LOOP_LAG_MAX_DEG:
                     break
             if steps == 0:
                 break
             log(f"tune: the loop cannot follow {c['frequency_hz']:g} Hz; again at {f:g} Hz")
-            experiments += results["search"]["experiments"] + results["search"]["amplitude_probes"]
+            experiments += results["search"]["experiments"]     # (the amplitude probes among them)
             ctx.cfg = dict(ctx.cfg, tune=dict(c, frequency_hz=f, period_samples=n))
             # (not after `unsettled`: the amplitude chosen there is the unsettled loop's)
             ctx.amplitude_start = results["amplitude_rad"] if c["amplitude_rad"] == "auto" and \

@@ -265,3 +265,27 @@ def test_sine_the_loop_cannot_follow_is_left_after_two_experiments(tmp_path, mon
     ch = t["frequency_changes"]
     assert [c["to_hz"] for c in ch] == [pytest.approx(1.25), pytest.approx(0.625)]
     assert ch[1]["reason"].startswith("skipped: the lag at 1.25 Hz would still be about")
+
+
+def test_lower_frequency_on_the_grid():
+    assert tuning.lower_frequency(4096, 4) == (4096, 2)           # half the cycles
+    assert tuning.lower_frequency(4096, 3) == (8192, 3)           # twice the period
+    assert tuning.lower_frequency(8192, 3) == (8192, 1)           # odd cycles in the longest period: a third
+    assert tuning.lower_frequency(8192, 5) == (8192, 2)
+    assert tuning.lower_frequency(8192, 1) is None
+
+
+def test_slow_loop_at_odd_cycles_in_the_longest_period_goes_lower(tmp_path, monkeypatch):
+    # kp 0.3 at 0.9375 Hz (3 cycles in 8192 samples): no half on the grid; main ended there
+    # with `loop lag`, now at 0.3125 Hz (a third), where the loop follows. Every experiment
+    # run is counted once (main added the amplitude probes of a refused frequency twice)
+    told = []
+    real_tell = tune_strategy.SearchTune.tell
+    monkeypatch.setattr(tune_strategy.SearchTune, "tell",
+                        lambda self, req, m: (told.append(req.frequency_hz), real_tell(self, req, m))[1])
+    t = _row(tmp_path, {"controller": {"kp": 0.3}}, {"frequency_hz": 0.9375, "period_samples": 8192})
+    s = t["search"]
+    assert s["converged"] and _ok(t)
+    assert [c["to_hz"] for c in t["frequency_changes"]] == [pytest.approx(0.3125)]
+    assert s["experiments"] == len(told)
+    assert s["experiments_at_other_frequencies"] == sum(f == 0.9375 for f in told) >= 2
