@@ -565,6 +565,16 @@ DRIFT_MIN_REL = 2e-3
 # limit is left to the budget. On the matrix's slow loops this ends the try at a frequency the
 # loop cannot follow after 2 .. 4 experiments instead of 8 .. 11 (tests/bench/bench_tune_matrix.py).
 LAG_BOUND_MARGIN = 1.25
+# The angle's spread over the recorded periods at the chosen amplitude more than this many
+# times its smallest over the auto probes (in rad): motion that differs between periods, not
+# measurement noise (the same in rad at every amplitude): `unsettled`, not `noise` (with the
+# drive's statistics a loop near a two-mass resonance read 0.56 rad "noise" at 8 rad).
+UNSETTLED_SPREAD_GROWTH = 2.0
+# With the drive's statistics (no samples) the spread comes from the line variances: white
+# measurement noise gives about equal variances at every harmonic line (two recorded periods:
+# the largest of seven above 10 times their median in about 1 % of the cases); above it the
+# spread is motion at some lines, `unsettled`.
+LINE_VARIANCE_MAX_RATIO = 10.0
 # Unconverged for these, the first experiment is repeated: a plant that changed during the
 # tune looks like stick-slip, a rotating phase, an amplitude dependence or a large budget.
 REPEAT_FOR = ("stick-slip", "amplitude dependence", "budget", "flatness")
@@ -689,8 +699,18 @@ def _budget(ctx, probe, outcome, by_k, amp_block):
             visc["steps"].append({"k_fc": _f(k), "s": _f(s_k), "s_std": _f(se), "root": _f(k_new)})
             step = abs(k_new - k)
             # one experiment: the root along the search's slope, its linearity unverified
-            # (half the step is the part); a second when the step exceeds 2 %
-            k, last = k_new, (p, se, step / 2 if i == 0 else step)
+            # (half the step is the part); a second when the step exceeds 2 %. Two steps the
+            # same way converge no faster than geometrically (the search's slope, measured with
+            # another K_v, is not this loop's): the rest of that series, step q / (1 - q) with
+            # q the ratio of the steps, bounds what is left (kp 1 at 0.3125 Hz: steps 2.3 %, 1.4 %,
+            # K_fc* -3.5 % with the last step as the part, sigma_total 1.7 %)
+            part = step / 2 if i == 0 else step
+            if i == 1 and visc["steps"][0]["root"] is not None:
+                first = visc["steps"][0]["root"] - visc["steps"][0]["k_fc"]
+                q = step / abs(first) if first else math.inf
+                if first * (k_new - k) > 0:
+                    part = math.inf if q >= 1 else max(step, step * q / (1 - q))
+            k, last = k_new, (p, se, part)
             if step <= max(2 * se / abs(slope), 0.02 * abs(k)):
                 break
         if last is not None:
@@ -903,6 +923,19 @@ def _repeat_check(probe, by_k, kv):
     rep = yield from _repeat_first(probe, by_k)
     return _repeat_text(rep) if rep and rep["changed"] else None
 
+def line_variance_is_white(var, ratio=None):
+    """Whether the period-to-period variances of a signal's harmonic lines look like white
+    measurement noise (about equal at every line: their largest at most ``ratio`` times their
+    median, default LINE_VARIANCE_MAX_RATIO) rather than motion that differs between periods
+    at some lines (a loop ringing near its resonance, a slow settling transient)."""
+    v = np.asarray(var, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size < 3:
+        return True
+    med = float(np.median(v))
+    return bool(med > 0 and np.max(v) <= (LINE_VARIANCE_MAX_RATIO if ratio is None else ratio) * med)
+
+
 def _loop_gain_text(probe, by_k, k):
     """The text naming the loop's own dynamics when the motor's |H_1| at the measured point
     nearest ``k`` lies outside LOOP_GAIN_BAND, else None."""
@@ -1113,6 +1146,28 @@ def _tune_at_frequency(ctx):
             f"{p_lo['angle_noise_rad'] / MAX_NOISE_RE_AMPLITUDE:.2g} rad or set it to auto"
             + ("; if the loop settles slowly, raise tune.settle_periods or use tune.capture: both"
                if from_lines else ""))
+        # measurement noise is the same in rad at every amplitude; a spread that grew with the
+        # amplitude over the auto probes is motion that differs between periods (a loop near
+        # its resonance, slow to settle): the loop's cause, a lower frequency may remove it
+        spread = [(q["angle_noise_re_amplitude"] * q["amplitude_rad"], q["amplitude_rad"])
+                  for q in (amp_block or {}).get("probes", [])
+                  if q.get("angle_noise_re_amplitude") is not None and q.get("amplitude_rad")]
+        lines_var = None if not from_lines else np.asarray(p_lo["record"].stats.var["motor_angle"], dtype=float)
+        white = lines_var is None or line_variance_is_white(lines_var)
+        if spread or not white:
+            n_min, a_min = min(spread) if spread else (p_lo["angle_noise_rad"], probe.amplitude)
+            if not white or (p_lo["angle_noise_rad"] > UNSETTLED_SPREAD_GROWTH * n_min
+                             and probe.amplitude > a_min):
+                cause = "unsettled"
+                outcome.reason = (
+                    f"the motor angle differs between the recorded periods by {p_lo['angle_noise_rad']:.2g} "
+                    f"rad at {probe.amplitude:g} rad and {n_min:.2g} rad at {a_min:g} rad: not measurement "
+                    + ("noise (it grows with the amplitude)" if white else
+                       f"noise (the period-to-period variance of the harmonic lines is not flat: its largest "
+                       f"{np.max(lines_var) / max(np.median(lines_var), 1e-300):.3g} times its median)")
+                    + " but a loop that has not settled or does not "
+                    "repeat (near its resonance?); raise tune.settle_periods or lower tune.frequency_hz ("
+                    + outcome.reason + ")")
     k_search = float(outcome.k_fc)
     search_converged = bool(outcome.converged)
     budget = None
