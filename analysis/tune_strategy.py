@@ -382,6 +382,20 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
         probes.append({"amplitude_rad": _f(a), "h1": _f(h1), "ratio_at_zero": _f(p["ratio"]),
                        "angle_noise_re_amplitude": _f(noise), "verdict": verdict, **_check_block(p)})
         ck = p["check"]
+        if h1 > LOOP_GAIN_MAX:
+            # without feed-forward the friction only holds the motor back: a motor that moves
+            # more than the reference is the loop's resonance at this frequency (it also drives
+            # the output into u_max: kp 5, kd 0.01 at 3.75 Hz, |H_1| 5.8, 57 % at u_max)
+            ck = dict(ck, cause="loop lag", text=(
+                f"the loop cannot follow the {probe.c['frequency_hz']:g} Hz sine: without feed-forward the "
+                f"motor moves {h1:.3g} times the reference at {a:g} rad (more than {LOOP_GAIN_MAX:g}; the "
+                "friction only holds it back): the loop is near its resonance at this frequency"
+                + (f", its output at u_max in {100 * ck['saturated_fraction']:.0f} % of the samples"
+                   if (ck["saturated_fraction"] or 0) > _tuning.SATURATION_MAX_FRACTION else "")
+                + "; lower tune.frequency_hz or change the loop gains"))
+            probes[-1]["cause"] = "loop lag"
+            return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
+                       "reason": f"stopped: {ck['text']}"}, p, ck
         if ck["cause"] == "saturation" or (ck["cause"] == "no motion" and (ck["saturated_fraction"] or 0)
                                            > _tuning.SATURATION_MAX_FRACTION):
             return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
@@ -401,8 +415,10 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
             return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
                        "reason": f"stopped: {ck['text']}"}, p, ck
         prev = probes[-2] if len(probes) >= 2 else None
-        if ck["cause"] == "no motion" and prev is not None and prev["cause"] == "no motion" and \
-                not (ck["saturated_fraction"] or 0) > _tuning.SATURATION_MAX_FRACTION and \
+        linear = prev is not None and ((ck["cause"] == "no motion" and prev["cause"] == "no motion") or (
+            h1 < AUTO_AMPLITUDE_MIN_H1 and (prev["h1"] or 0) < AUTO_AMPLITUDE_MIN_H1
+            and math.isfinite(p["ratio"]) and p["ratio"] <= AUTO_AMPLITUDE_MAX_RATIO))
+        if linear and not (ck["saturated_fraction"] or 0) > _tuning.SATURATION_MAX_FRACTION and \
                 not (prev["saturated_fraction"] or 0) > _tuning.SATURATION_MAX_FRACTION and \
                 prev["h1"] and h1 > 0 and 1 / LINEAR_H1_FACTOR <= h1 / prev["h1"] <= LINEAR_H1_FACTOR:
             ck = {"cause": "loop lag", "saturated_fraction": ck["saturated_fraction"], "text": (
@@ -544,10 +560,12 @@ HALVE_FOR = ("loop lag", "unsettled")
 # two-mass anti-resonance 0.63 .. 0.75 (tests/bench/bench_tune_matrix.py --hidden, "two-mass
 # resonance"). The cause is the loop's, and a lower frequency is tried.
 LOOP_GAIN_BAND = (0.8, 1.25)
-# A motor that does not move at two amplitudes (|H_1| < MOTION_MIN_H1, no sample at u_max) with
-# the same |H_1| within this factor is no friction that holds it (a held motor's |H_1| rises
-# with the amplitude as it breaks free) but a linear loop that cannot make it follow the sine
-# at this frequency (a two-mass anti-resonance).
+# A motor that does not move at two amplitudes (|H_1| < MOTION_MIN_H1, no sample at u_max), or
+# follows at both less than AUTO_AMPLITUDE_MIN_H1 with small odd harmonics at the larger (no
+# stick-slip), with the same |H_1| within this factor, is no friction that holds it (a held
+# motor's |H_1| rises with the amplitude as it breaks free) but a linear loop that cannot make
+# it follow the sine at this frequency (a two-mass anti-resonance: k 0.03 at 1.875 Hz, |H_1|
+# 0.39 and 0.43 at 0.5 and 2 rad, then 8 rad into u_max).
 LINEAR_H1_FACTOR = 1.5
 # A drift of the friction during the tune shows within each experiment as a change of the
 # signed objective from one recorded period to the next, of the same sign in every
@@ -1358,6 +1376,15 @@ def check_plan(cfg, fs_hz, capture):
     _TuneProbe(_Context(cfg, fs_hz, capture, math.inf, None))
 
 
+def _lower_frequency_helps(search):
+    """Whether a lower frequency may remove what stopped the tune: the causes HALVE_FOR, and a
+    budget whose largest part is the noise of s over the periods while the angle's own spread
+    passed its check (motion that differs between periods: a loop still ringing from a
+    frequency near its resonance; kp 5, kd 0.01 at 1.875 Hz after 3.75 Hz, +-41 %, converged
+    +0.2 % at 0.9375 Hz; a lower frequency also has more samples per period)."""
+    return search["cause"] in HALVE_FOR or (search["cause"] == "noise" and search.get("sigma_total_v") is not None)
+
+
 def _tune(ctx, max_halvings, log):
     """K_fc* (:func:`_tune_at_frequency`) at ``tune.frequency_hz``; when the loop cannot follow
     that sine (cause ``loop lag``: its own lag, which no K_v removes, moves the criterion's
@@ -1367,7 +1394,7 @@ def _tune(ctx, max_halvings, log):
     changes, experiments = [], 0
     try:
         results, data = yield from _tune_at_frequency(ctx)
-        while results["search"]["cause"] in HALVE_FOR and len(changes) < max_halvings:
+        while _lower_frequency_helps(results["search"]) and len(changes) < max_halvings:
             c = ctx.cfg["tune"]
             src = ctx.cfg.get("_source", "config")
             # the lag measured (or bounded) here: it falls at least in proportion to the
