@@ -1382,14 +1382,18 @@ def _lower_frequency_helps(search):
     passed its check (motion that differs between periods: a loop still ringing from a
     frequency near its resonance; kp 5, kd 0.01 at 1.875 Hz after 3.75 Hz, +-41 %, converged
     +0.2 % at 0.9375 Hz; a lower frequency also has more samples per period)."""
-    return search["cause"] in HALVE_FOR or (search["cause"] == "noise" and search.get("sigma_total_v") is not None)
+    return search["cause"] in HALVE_FOR or (search["cause"] == "noise"
+                                            and search.get("sigma_total_v") is not None)
 
 
 def _tune(ctx, max_halvings, log):
     """K_fc* (:func:`_tune_at_frequency`) at ``tune.frequency_hz``; when the loop cannot follow
     that sine (cause ``loop lag``: its own lag, which no K_v removes, moves the criterion's
-    optimum), again at half the frequency (on the drive's DFT grid, N <= 8192), at most
-    ``max_halvings`` times; ``frequency_changes`` in the results says so."""
+    optimum; ``unsettled``; a budget stopped by the noise of s: :func:`_lower_frequency_helps`),
+    again at half the frequency (on the drive's DFT grid, N <= 8192: :func:`fftune.analysis.
+    tuning.lower_frequency`), at most ``max_halvings`` halvings; a frequency where the lag
+    measured or bounded here, scaled with the frequency, would still exceed LOOP_LAG_MAX_DEG is
+    skipped (it counts as a halving). ``frequency_changes`` in the results says so."""
     cfg0 = ctx.cfg
     changes, experiments = [], 0
     try:
@@ -1400,8 +1404,9 @@ def _tune(ctx, max_halvings, log):
             # the lag measured (or bounded) here: it falls at least in proportion to the
             # frequency, so a lower frequency where it would still be above the limit is skipped
             lag = results["search"].get("loop_lag_bound_deg") or results["search"].get("loop_lag_deg")
-            lag = abs(lag) if lag is not None and math.isfinite(lag) and results["search"]["cause"] == "loop lag" \
-                else 0.0
+            if lag is None or not math.isfinite(lag) or results["search"]["cause"] != "loop lag":
+                lag = 0.0
+            lag = abs(lag)
             n, cyc, f = c["period_samples"], _cycles(ctx.fs_hz, c["period_samples"], c["frequency_hz"],
                                                      f"{src}: key 'tune.frequency_hz'"), c["frequency_hz"]
             steps = 0

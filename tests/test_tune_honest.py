@@ -233,7 +233,8 @@ def test_loop_near_its_anti_resonance_names_the_loop_not_the_viscous_part(tmp_pa
     # k 0.02 at 1.875 Hz (anti-resonance 1.59 Hz): the motor moves 0.65 times the sine; on
     # main "the largest part is 'viscous' ... check the plant's damping"
     monkeypatch.setattr(ex, "tune", ex.tune_at_frequency)
-    t = _row(tmp_path, {"plant": {"k": 0.02}, "sensor": {"noise_std": 1e-3, "seed": 31}}, {"frequency_hz": 1.875})
+    t = _row(tmp_path, {"plant": {"k": 0.02}, "sensor": {"noise_std": 1e-3, "seed": 31}},
+             {"frequency_hz": 1.875})
     s = t["search"]
     assert not s["converged"] and s["cause"] == "loop lag"
     assert "times the reference" in s["stop_reason"] and "outside 0.8 .. 1.25" in s["stop_reason"]

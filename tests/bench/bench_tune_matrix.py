@@ -162,14 +162,16 @@ def hidden_families():
                                      "coulomb_ramp_end_s": 50.0}, 0.0, 1, {}),
         ("ramp +50 % over 0..100 s", {"coulomb_ramp": 0.5, "coulomb_ramp_start_s": 0.0,
                                      "coulomb_ramp_end_s": 100.0}, 1e-3, 5, {}),
-        ("exp +30 % tau 20 s", {"coulomb_exp": 0.3, "coulomb_exp_start_s": 0.0, "coulomb_exp_tau_s": 20.0}, 0.0, 1, {}),
+        ("exp +30 % tau 20 s", {"coulomb_exp": 0.3, "coulomb_exp_start_s": 0.0,
+                                "coulomb_exp_tau_s": 20.0}, 0.0, 1, {}),
         ("exp -25 % tau 40 s from 5 s", {"coulomb_exp": -0.25, "coulomb_exp_start_s": 5.0,
                                          "coulomb_exp_tau_s": 40.0}, 1e-3, 5, {}),
         ("exp +50 % tau 8 s from 10 s", {"coulomb_exp": 0.5, "coulomb_exp_start_s": 10.0,
                                          "coulomb_exp_tau_s": 8.0}, 0.0, 1, {}),
         ("exp -40 % tau 15 s", {"coulomb_exp": -0.4, "coulomb_exp_start_s": 0.0, "coulomb_exp_tau_s": 15.0},
          1e-3, 4, {}),
-        ("exp +20 % tau 60 s", {"coulomb_exp": 0.2, "coulomb_exp_start_s": 0.0, "coulomb_exp_tau_s": 60.0}, 0.0, 1, {}))
+        ("exp +20 % tau 60 s", {"coulomb_exp": 0.2, "coulomb_exp_start_s": 0.0,
+                                "coulomb_exp_tau_s": 60.0}, 0.0, 1, {}))
     f["drift inside a tune (hidden)"] = [
         (name, {"drift": d, "sensor": {"noise_std": ns, "seed": sd}}, tn, (None, "non-stationary"))
         for name, d, ns, sd, tn in drift]
@@ -188,7 +190,8 @@ def hidden_families():
                                (2.0, 0.05, 2e-3, 2), (1.5, 0.3, 2e-3, 3))]
     f["position friction (hidden)"] = [
         (f"coulomb_position {e:g} at {a} rad, noise {ns:g}",
-         {"plant": {"coulomb_position": e, "static": (1 + e) * FC0 * 1.001}, "sensor": {"noise_std": ns, "seed": sd}},
+         {"plant": {"coulomb_position": e, "static": (1 + e) * FC0 * 1.001},
+          "sensor": {"noise_std": ns, "seed": sd}},
          {} if a == "auto" else {"amplitude_rad": a}, (None, "amplitude dependence"))
         for e, a, ns, sd in ((0.1, "auto", 0, 1), (0.3, 0.5, 0, 1), (0.6, "auto", 0, 1), (0.5, 2.0, 0, 1),
                              (0.8, "auto", 1e-3, 1), (0.4, 1.0, 1e-3, 2), (0.6, 0.5, 1e-3, 3))]
