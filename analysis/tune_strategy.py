@@ -351,6 +351,25 @@ def amplitude_verdict(h1, ratio, ratio_std, noise_re_amplitude, margin=AUTO_AMPL
     return "near"
 
 
+def _resonance_check(probe, p):
+    """The check of an experiment without feed-forward whose motor moves more than
+    LOOP_GAIN_MAX times the reference (cause ``loop lag``), else None. Friction only holds the
+    motor back: such motion is the loop's resonance at this frequency (it also drives the output
+    into u_max: kp 5, kd 0.01 at 3.75 Hz, |H_1| 5.8 and 57 % of the samples at u_max, which
+    read as saturation)."""
+    h1 = float(np.abs(p["H"][0]))
+    if p["kfc"] != 0.0 or p["kv"] != 0.0 or not h1 > LOOP_GAIN_MAX:
+        return None
+    ck = p["check"]
+    return dict(ck, cause="loop lag", text=(
+        f"the loop cannot follow the {probe.c['frequency_hz']:g} Hz sine: without feed-forward the "
+        f"motor moves {h1:.3g} times the reference at {p['amplitude']:g} rad (more than {LOOP_GAIN_MAX:g}; "
+        "the friction only holds it back): the loop is near its resonance at this frequency"
+        + (f", its output at u_max in {100 * ck['saturated_fraction']:.0f} % of the samples"
+           if (ck["saturated_fraction"] or 0) > _tuning.SATURATION_MAX_FRACTION else "")
+        + "; lower tune.frequency_hz or change the loop gains"))
+
+
 def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
     """``tune.amplitude_rad: auto``: the sine amplitude (rad) for the search, from probes
     at K_fc = 0, raised until the loop is out of stick-slip.
@@ -382,17 +401,9 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
         probes.append({"amplitude_rad": _f(a), "h1": _f(h1), "ratio_at_zero": _f(p["ratio"]),
                        "angle_noise_re_amplitude": _f(noise), "verdict": verdict, **_check_block(p)})
         ck = p["check"]
-        if h1 > LOOP_GAIN_MAX:
-            # without feed-forward the friction only holds the motor back: a motor that moves
-            # more than the reference is the loop's resonance at this frequency (it also drives
-            # the output into u_max: kp 5, kd 0.01 at 3.75 Hz, |H_1| 5.8, 57 % at u_max)
-            ck = dict(ck, cause="loop lag", text=(
-                f"the loop cannot follow the {probe.c['frequency_hz']:g} Hz sine: without feed-forward the "
-                f"motor moves {h1:.3g} times the reference at {a:g} rad (more than {LOOP_GAIN_MAX:g}; the "
-                "friction only holds it back): the loop is near its resonance at this frequency"
-                + (f", its output at u_max in {100 * ck['saturated_fraction']:.0f} % of the samples"
-                   if (ck["saturated_fraction"] or 0) > _tuning.SATURATION_MAX_FRACTION else "")
-                + "; lower tune.frequency_hz or change the loop gains"))
+        resonance = _resonance_check(probe, p)
+        if resonance is not None:
+            ck = resonance
             probes[-1]["cause"] = "loop lag"
             return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes,
                        "reason": f"stopped: {ck['text']}"}, p, ck
@@ -593,6 +604,9 @@ UNSETTLED_SPREAD_GROWTH = 2.0
 # the largest of seven above 10 times their median in about 1 % of the cases); above it the
 # spread is motion at some lines, `unsettled`.
 LINE_VARIANCE_MAX_RATIO = 10.0
+# With samples: the share of the spread's power in 1 % of its frequencies (spread_concentration;
+# white noise about 5.6 %) above which it is motion at a few frequencies, `unsettled`.
+SPREAD_MAX_SHARE = 0.5
 # Unconverged for these, the first experiment is repeated: a plant that changed during the
 # tune looks like stick-slip, a rotating phase, an amplitude dependence or a large budget.
 REPEAT_FOR = ("stick-slip", "amplitude dependence", "budget", "flatness")
@@ -941,6 +955,56 @@ def _repeat_check(probe, by_k, kv):
     rep = yield from _repeat_first(probe, by_k)
     return _repeat_text(rep) if rep and rep["changed"] else None
 
+def spread_concentration(y_periods, top=0.01):
+    """The share of the period-to-period deviation's power in the ``top`` fraction of its DFT
+    bins: about top (1 + ln(1 / top)) for white measurement noise (5.6 % for 1 %), near 1 for
+    motion that differs between periods at a few frequencies (a loop ringing at its resonance).
+
+    Parameters
+    ----------
+    y_periods : array_like, shape (P, N)
+        The recorded periods of a signal (P >= 2).
+
+    Returns
+    -------
+    float
+        NaN when P < 2 or the deviation is zero.
+    """
+    y = np.asarray(y_periods, dtype=float)
+    if y.ndim != 2 or y.shape[0] < 2:
+        return math.nan
+    dev = y - y.mean(axis=0)
+    pw = np.sum(np.abs(np.fft.rfft(dev, axis=1)[:, 1:]) ** 2, axis=0)
+    total = float(np.sum(pw))
+    if not total > 0:
+        return math.nan
+    k = max(1, int(round(top * pw.size)))
+    return float(np.sum(np.sort(pw)[-k:]) / total)
+
+
+def _spread_text(probe, p):
+    """The text naming motion that differs between the recorded periods of experiment ``p``
+    (its spread not white: :func:`spread_concentration` with samples, else
+    :func:`line_variance_is_white` on the drive's line statistics), or None."""
+    rec = p["record"]
+    if "motor_angle" in rec.signals:
+        share = spread_concentration(_blocks(rec.signals["motor_angle"], probe.n))
+        if not share > SPREAD_MAX_SHARE:
+            return None
+        what = f"its spectrum is not flat: {100 * share:.0f} % of its power in 1 % of the frequencies"
+    elif rec.stats is not None and "motor_angle" in rec.stats.var:
+        v = np.asarray(rec.stats.var["motor_angle"], dtype=float)
+        if line_variance_is_white(v):
+            return None
+        what = (f"the period-to-period variance of the harmonic lines is not flat: its largest "
+                f"{np.max(v) / max(np.median(v), 1e-300):.3g} times its median")
+    else:
+        return None
+    return (f"the motor angle differs between the recorded periods at K_fc = {p['kfc']:.4g} V by motion, "
+            f"not measurement noise ({what}): a loop that has not settled or does not repeat (near "
+            "its resonance?); raise tune.settle_periods or lower tune.frequency_hz")
+
+
 def line_variance_is_white(var, ratio=None):
     """Whether the period-to-period variances of a signal's harmonic lines look like white
     measurement noise (about equal at every line: their largest at most ``ratio`` times their
@@ -1104,8 +1168,9 @@ def _tune_at_frequency(ctx):
     kv_pre, kv_share = 0.0, 0.0
     if stop is None:
         p_zero = yield from probe.measure("search", 0.0)
-        if p_zero["check"]["cause"] is not None:
-            stop = p_zero["check"]
+        resonance = _resonance_check(probe, p_zero)
+        if resonance is not None or p_zero["check"]["cause"] is not None:
+            stop = resonance or p_zero["check"]
             by_k[0.0] = p_zero
         else:
             kv_pre, kv_share = _viscous_estimate(probe, p_zero)
@@ -1147,7 +1212,13 @@ def _tune_at_frequency(ctx):
         cause, why = yield from _diagnose_search(probe, outcome, by_k, kv_pre)
         if why:
             outcome.reason = f"{why} ({outcome.reason})"
-    p_lo = by_k.get(0.0)
+    # the angle's spread of the search's experiments at its amplitude, their median (the lower
+    # of two): measurement noise is in every experiment, a change of the plant or a transient
+    # inside one experiment is not (a +50 % friction step inside the K_fc = 0 experiment read
+    # as "noise 15 % of the amplitude" with the drive's statistics)
+    spread_pts = sorted((p for p in by_k.values() if p["amplitude"] == probe.amplitude
+                         and math.isfinite(p["angle_noise_rad"])), key=lambda p: p["angle_noise_rad"])
+    p_lo = spread_pts[(len(spread_pts) - 1) // 2] if spread_pts else by_k.get(0.0)
     if outcome.converged and p_lo is not None and \
             p_lo["angle_noise_rad"] > MAX_NOISE_RE_AMPLITUDE * probe.amplitude:
         outcome.converged = False
@@ -1171,7 +1242,13 @@ def _tune_at_frequency(ctx):
                   for q in (amp_block or {}).get("probes", [])
                   if q.get("angle_noise_re_amplitude") is not None and q.get("amplitude_rad")]
         lines_var = None if not from_lines else np.asarray(p_lo["record"].stats.var["motor_angle"], dtype=float)
-        white = lines_var is None or line_variance_is_white(lines_var)
+        if from_lines:
+            white = line_variance_is_white(lines_var)
+        else:
+            share = spread_concentration(_blocks(p_lo["record"].signals["motor_angle"], probe.n))
+            white = not share > SPREAD_MAX_SHARE
+            if not white:
+                lines_var = None
         if spread or not white:
             n_min, a_min = min(spread) if spread else (p_lo["angle_noise_rad"], probe.amplitude)
             if not white or (p_lo["angle_noise_rad"] > UNSETTLED_SPREAD_GROWTH * n_min
@@ -1179,10 +1256,14 @@ def _tune_at_frequency(ctx):
                 cause = "unsettled"
                 outcome.reason = (
                     f"the motor angle differs between the recorded periods by {p_lo['angle_noise_rad']:.2g} "
-                    f"rad at {probe.amplitude:g} rad and {n_min:.2g} rad at {a_min:g} rad: not measurement "
+                    f"rad at {probe.amplitude:g} rad"
+                    + (f" and {n_min:.2g} rad at {a_min:g} rad" if white else "") + ": not measurement "
                     + ("noise (it grows with the amplitude)" if white else
                        f"noise (the period-to-period variance of the harmonic lines is not flat: its largest "
-                       f"{np.max(lines_var) / max(np.median(lines_var), 1e-300):.3g} times its median)")
+                       f"{np.max(lines_var) / max(np.median(lines_var), 1e-300):.3g} times its median)"
+                       if lines_var is not None else
+                       f"noise (its spectrum is not flat: {100 * share:.0f} % of its power in 1 % of the "
+                       "frequencies)")
                     + " but a loop that has not settled or does not "
                     "repeat (near its resonance?); raise tune.settle_periods or lower tune.frequency_hz ("
                     + outcome.reason + ")")
@@ -1208,6 +1289,16 @@ def _tune_at_frequency(ctx):
                 f"(sigma_total {budget['sigma_total']:.3g} V at K_fc = {budget['k_fc']:.4g} V, more than "
                 f"{100 * MAX_SIGMA_RE_K_FC:g} %); the largest part is '{part}' ({value:.3g} V): "
                 + _BUDGET_ADVICE.get(part, "see tune.search.budget"))
+            if part == "noise":
+                # the spread of s over the periods: measurement noise, or motion that differs
+                # between them (a loop ringing near its resonance), which is no noise
+                # (the experiment with the largest spread: it dominates the pooled noise)
+                p_worst = max((p for p in by_k.values() if math.isfinite(p["angle_noise_rad"])),
+                              key=lambda p: p["angle_noise_rad"], default=None)
+                why = _spread_text(probe, p_worst) if p_worst is not None else None
+                if why:
+                    cause = "unsettled"
+                    outcome.reason = f"{why} ({outcome.reason})"
         else:
             outcome.k_fc, outcome.sigma = budget["k_fc"], budget["sigma_total"]
             kv_search = budget["k_v_in_search"]
