@@ -1212,13 +1212,17 @@ def _tune_at_frequency(ctx):
         cause, why = yield from _diagnose_search(probe, outcome, by_k, kv_pre)
         if why:
             outcome.reason = f"{why} ({outcome.reason})"
-    # the angle's spread of the search's experiments at its amplitude, their median (the lower
-    # of two): measurement noise is in every experiment, a change of the plant or a transient
-    # inside one experiment is not (a +50 % friction step inside the K_fc = 0 experiment read
-    # as "noise 15 % of the amplitude" with the drive's statistics)
+    # the angle's spread of the K_fc = 0 experiment, or the median over the search's experiments
+    # at its amplitude (the lower of two) when smaller: measurement noise is in every experiment,
+    # a change of the plant or a transient inside one experiment is not (a +50 % friction step
+    # inside the K_fc = 0 experiment read as "noise 15 % of the amplitude" with the drive's
+    # statistics); near K_fc* a Stribeck curve's stick-slip spreads more than at K_fc = 0
     spread_pts = sorted((p for p in by_k.values() if p["amplitude"] == probe.amplitude
                          and math.isfinite(p["angle_noise_rad"])), key=lambda p: p["angle_noise_rad"])
-    p_lo = spread_pts[(len(spread_pts) - 1) // 2] if spread_pts else by_k.get(0.0)
+    p_lo = by_k.get(0.0)
+    if spread_pts and (p_lo is None or spread_pts[(len(spread_pts) - 1) // 2]["angle_noise_rad"]
+                       < p_lo["angle_noise_rad"]):
+        p_lo = spread_pts[(len(spread_pts) - 1) // 2]
     if outcome.converged and p_lo is not None and \
             p_lo["angle_noise_rad"] > MAX_NOISE_RE_AMPLITUDE * probe.amplitude:
         outcome.converged = False
