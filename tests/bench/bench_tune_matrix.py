@@ -347,6 +347,8 @@ def lag_map(capture="raw"):
                 err += f" (reported {100 * (t['k_fc_star'] / t['true_coulomb_v'] - 1):+6.2f} %)"
             sig = f"{100 * s['sigma_total_v'] / t['true_coulomb_v']:5.2f} %" if s.get("sigma_total_v") else "   -   "
             lag_s = f"{lag:5.2f}" if lag is not None and math.isfinite(lag) else "  -  "
+            if s.get("loop_lag_bound_deg") is not None:      # a bound: the search stopped on it
+                lag_s = f">={abs(s['loop_lag_bound_deg']):4.1f}"
             print(f"  {name:12s} lag {lag_s} deg  error {err}  sigma_total {sig}  "
                   f"{'converged' if s['converged'] else 'refused: ' + str(s['cause'])}", flush=True)
     finally:
