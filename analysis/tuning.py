@@ -1306,6 +1306,18 @@ def drift_between(k_first, k_repeat, sigma_first, sigma_repeat, floor=0.0):
     return bool(abs(d) > max(3 * float(np.hypot(sigma_first, sigma_repeat)), float(floor))), d
 
 
+def lower_frequency(n_period, cycles, n_max=8192):
+    """The tuning sine at half the frequency on the DFT grid (:func:`halved_frequency`), else,
+    with odd cycles in the longest period, the nearest grid frequency below half: (N, cycles // 2)
+    (3 cycles in 8192 samples -> 1: a third); None when the sine has one cycle in the longest
+    period."""
+    half = halved_frequency(n_period, cycles, n_max)
+    if half is not None:
+        return half
+    n, c = int(n_period), int(cycles)
+    return (n, c // 2) if c >= 3 else None
+
+
 def halved_frequency(n_period, cycles, n_max=8192):
     """The tuning sine at half the frequency on the DFT grid: (N, cycles / 2) when the cycles
     per period are even, else (2 N, cycles) when 2 N <= ``n_max``; None when neither."""
