@@ -1,0 +1,180 @@
+"""Pins of track's numbers and policy, second set (issue 33's hand-written bug audit,
+docs/testing.md): every expected value is computed here from the raw samples or the
+documented rule (a slow reference), with unequal, asymmetric inputs, so that a wrong
+divisor, a swapped weight, an ignored repetition count or a comparison at its threshold
+fails. No drive_sim run: the estimator's and the tracker's contracts only."""
+import math
+
+import numpy as np
+import pytest
+
+from fftune.analysis.track import (TaskEstimate, TaskStats, Tracker, TrackSettings, drift_trend,
+                                   estimate_task)
+
+FS = 2560.0
+
+
+def _raw_task(theta, rng, samples, noise_per_block, blocks):
+    """One repetition's raw regressors and input: a fast short forward move and a slow long
+    move back (asymmetric), noise of a different level in every block."""
+    t = np.arange(samples) / FS
+    T = t[-1]
+    v = np.where(t < 0.3 * T, 5.0 * np.sin(np.pi * t / (0.3 * T)),
+                 -1.6 * np.sin(np.pi * (t - 0.3 * T) / (0.7 * T)))
+    v = v + 0.4 * np.sin(7 * np.pi * t / T)
+    a = np.gradient(v, 1 / FS)
+    s = np.sign(v)
+    p, n = np.maximum(s, 0), np.minimum(s, 0)
+    edges = [(b * samples) // blocks for b in range(blocks + 1)]
+    sd = np.concatenate([np.full(edges[b + 1] - edges[b], noise_per_block[b]) for b in range(blocks)])
+    u = theta[0] * p + theta[1] * n + theta[2] * v + theta[3] * a + sd * rng.standard_normal(samples)
+    e = 2e-3 * rng.standard_normal(samples) + 1e-3
+    return np.column_stack([p, n, v, a]), u, e, edges
+
+
+def _stats_from_raw(reps, samples, blocks, theta, noise_per_block, seed):
+    """The drive's block sums over ``reps`` repetitions, and the raw samples themselves."""
+    rng = np.random.default_rng(seed)
+    design = np.zeros((blocks, 9))
+    data = np.zeros((blocks, 6))
+    raw = []
+    for _ in range(reps):
+        Phi, u, e, edges = _raw_task(theta, rng, samples, noise_per_block, blocks)
+        raw.append((Phi, u, e))
+        for b in range(blocks):
+            sl = slice(edges[b], edges[b + 1])
+            P, N, V, A = Phi[sl].T
+            U, E = u[sl], e[sl]
+            design[b] += [P @ P, N @ N, P @ V, P @ A, N @ V, N @ A, V @ V, V @ A, A @ A]
+            data[b] += [P @ U, N @ U, V @ U, A @ U, E @ E, U @ U]
+    return TaskStats(reps, samples, design, data), raw, edges
+
+
+def _reference(raw, edges, blocks):
+    """Least squares on the raw samples of every repetition (all four parameters), and the
+    sandwich covariance A^-1 (sum_b s2_b A_b) A^-1 with s2_b the block's residual variance
+    (its RSS over its samples, times n / (n - 4))."""
+    Phi = np.vstack([r[0] for r in raw])
+    u = np.concatenate([r[1] for r in raw])
+    e = np.concatenate([r[2] for r in raw])
+    theta, *_ = np.linalg.lstsq(Phi, u, rcond=None)
+    n, k = u.size, 4
+    A = Phi.T @ Phi
+    meat = np.zeros((4, 4))
+    resid_all = 0.0
+    for b in range(blocks):
+        rows = np.concatenate([r[0][edges[b]:edges[b + 1]] for r in raw])
+        ub = np.concatenate([r[1][edges[b]:edges[b + 1]] for r in raw])
+        res = ub - rows @ theta
+        resid_all += res @ res
+        s2 = (res @ res) / ub.size * n / (n - k)
+        meat += s2 * rows.T @ rows
+    Ai = np.linalg.inv(A)
+    V = Ai @ meat @ Ai
+    return theta, V, math.sqrt(resid_all / n), math.sqrt(e @ e / n), n
+
+
+@pytest.mark.parametrize("reps", [1, 3])
+def test_estimate_against_a_least_squares_on_the_raw_samples(reps):
+    """Every number of one task estimate against the raw-sample reference: the offset's
+    sigma from its own weights (F_+ - F_-) / 2 (not K_fc's), the sandwich with each
+    block's variance over that block's samples, and rms_error / rms_residual over every
+    recorded sample (repetitions x samples)."""
+    blocks, samples = 6, 3001
+    theta_true = [0.142, 0.097, 0.011, 0.0052]
+    noise = [0.02, 0.09, 0.035, 0.005, 0.06, 0.015]
+    st, raw, edges = _stats_from_raw(reps, samples, blocks, theta_true, noise, seed=11 + reps)
+    est = estimate_task(st, kv_unique_min=0.0)
+    assert est.k_v_identified
+    theta, V, rms_res, rms_err, n = _reference(raw, edges, blocks)
+    w_fc, w_off = np.array([0.5, 0.5, 0, 0]), np.array([0.5, -0.5, 0, 0])
+    assert est.samples == n == reps * samples
+    assert est.k_fc == pytest.approx(w_fc @ theta, rel=1e-6)
+    assert est.offset == pytest.approx(w_off @ theta, rel=1e-5, abs=1e-9)
+    assert est.k_v == pytest.approx(theta[2], rel=1e-5)
+    assert est.k_a == pytest.approx(theta[3], rel=1e-5)
+    sig_fc, sig_off = math.sqrt(w_fc @ V @ w_fc), math.sqrt(w_off @ V @ w_off)
+    # the data make the two clearly different (so swapped weights cannot pass)
+    assert abs(sig_off / sig_fc - 1) > 0.1
+    assert est.k_fc_sigma_stat == pytest.approx(sig_fc, rel=1e-4)
+    assert est.offset_sigma == pytest.approx(sig_off, rel=1e-4)
+    assert est.k_v_sigma == pytest.approx(math.sqrt(V[2, 2]), rel=1e-4)
+    assert est.k_a_sigma == pytest.approx(math.sqrt(V[3, 3]), rel=1e-4)
+    assert est.rms_residual == pytest.approx(rms_res, rel=1e-5)
+    assert est.rms_error == pytest.approx(rms_err, rel=1e-9)
+
+
+def _est(k_fc=0.12, sigma=1e-3, k_a=0.0061, k_a_sigma=1e-4, rms=0.004, k_v=0.0, kv_ok=False):
+    return TaskEstimate(k_fc=k_fc, k_fc_sigma=sigma, k_v=k_v, k_v_sigma=0.0, k_a=k_a, k_a_sigma=k_a_sigma,
+                        offset=0.0, offset_sigma=0.0, rms_error=rms, rms_residual=0.0, condition=1.0,
+                        k_v_identified=kv_ok, samples=3000)
+
+
+def test_sigma_exactly_at_the_limit_is_certain():
+    # "above this fraction holds K_fc": a sigma equal to max_sigma_rel K_fc updates
+    # (0.2 x 0.5 = 0.1 exactly in binary); one ulp above holds
+    s = TrackSettings(max_sigma_rel=0.2, ka_max_sigma_rel=0.5)
+    d = Tracker(k_fc=0.45, k_v=0.0, k_a=0.006, settings=s).after_task(_est(k_fc=0.5, sigma=0.1, k_a=0.006))
+    assert d.action == "update" and d.k_fc == pytest.approx(0.5)
+    d = Tracker(k_fc=0.45, k_v=0.0, k_a=0.006, settings=s).after_task(
+        _est(k_fc=0.5, sigma=math.nextafter(0.1, 1.0), k_a=0.006))
+    assert d.action == "hold" and d.k_fc == 0.45
+    # K_a's own limit while K_fc is held: sigma equal to half of K_a still learns it
+    d = Tracker(k_fc=0.45, k_v=0.0, k_a=0.0, settings=s).after_task(
+        _est(k_fc=0.5, sigma=0.2, k_a=0.008, k_a_sigma=0.004))
+    assert d.action == "hold" and d.k_a == pytest.approx(0.008)
+
+
+def test_k_a_step_is_bounded_relative_to_k_a_on_update_and_hold():
+    s = TrackSettings(ka_max_step_rel=0.5)
+    # update: K_a 0.004 -> estimate 0.0130: at most +50 % of 0.004 = 0.006
+    tr = Tracker(k_fc=0.12, k_v=0.0, k_a=0.004, settings=s)
+    d = tr.after_task(_est(k_fc=0.121, k_a=0.0130))
+    assert d.action == "update" and d.k_a == pytest.approx(0.006)
+    d = tr.after_task(_est(k_fc=0.121, k_a=0.0130))
+    assert d.k_a == pytest.approx(0.009)
+    d = tr.after_task(_est(k_fc=0.121, k_a=0.0020))      # down: at most -50 % of 0.009
+    assert d.k_a == pytest.approx(0.0045)
+    # hold (K_fc uncertain): the same bound
+    tr = Tracker(k_fc=0.12, k_v=0.0, k_a=0.004, settings=s)
+    d = tr.after_task(_est(k_fc=0.121, sigma=0.1, k_a=0.0130))
+    assert d.action == "hold" and d.k_a == pytest.approx(0.006)
+
+
+def test_k_v_is_updated_only_where_the_task_identifies_it():
+    s = TrackSettings(kv_max_step=0.005)
+    tr = Tracker(k_fc=0.12, k_v=0.010, k_a=0.006, settings=s)
+    d = tr.after_task(_est(k_fc=0.121, k_v=0.050, kv_ok=False))
+    assert d.action == "update" and d.k_v == 0.010
+    d = tr.after_task(_est(k_fc=0.121, k_v=0.050, kv_ok=True))
+    assert d.k_v == pytest.approx(0.015)                  # bounded by kv_max_step
+    d = tr.after_task(_est(k_fc=0.121, k_v=0.0171, kv_ok=True))
+    assert d.k_v == pytest.approx(0.0171)
+    tr = Tracker(k_fc=0.12, k_v=0.010, k_a=0.006, settings=TrackSettings(update_kv=False))
+    assert tr.after_task(_est(k_fc=0.121, k_v=0.0123, kv_ok=True)).k_v == 0.010
+
+
+def test_drift_trend_share_rule_tolerance_is_two_noises_of_a_change():
+    # a ramp (zero second differences: the scatter is the floor s) whose last three
+    # changes are 1.3, 0.25, 1.45 (mean 1.0): the smallest passes the share rule when
+    # 0.25 >= 0.5 - 2 sqrt(2) s, i.e. s >= 0.0884 (a change's noise is sqrt 2 s); below,
+    # no trend
+    x = list(np.arange(7.0)) + [7.3, 7.55, 9.0]
+    assert drift_trend(x, scatter_floor=0.11) == pytest.approx((1.3 + 0.25 + 1.45) / 3)
+    assert drift_trend(x, scatter_floor=0.085) == 0.0
+    # |m| must exceed 3 s
+    assert drift_trend(x, scatter_floor=0.34) == 0.0
+
+
+def test_scatter_sigma_reads_the_newest_window_only():
+    from fftune.analysis.track import SCATTER_WINDOW, curvature_scatter, scatter_sigma
+    rng = np.random.default_rng(5)
+    old = list(0.2 + 0.05 * rng.standard_normal(7))              # noisy early tasks
+    new = [0.1200, 0.1203, 0.1199, 0.1206, 0.1201, 0.1198, 0.1204, 0.1202, 0.1197, 0.1205]
+    assert len(new) == SCATTER_WINDOW
+    d = np.diff(new)
+    expected = 1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0)
+    assert scatter_sigma(old + new) == pytest.approx(expected, rel=1e-12)
+    c = np.diff(new, 2)
+    assert curvature_scatter(old + new) == pytest.approx(
+        1.4826 * np.median(np.abs(c - np.median(c))) / math.sqrt(6.0), rel=1e-12)
