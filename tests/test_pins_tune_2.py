@@ -1,0 +1,222 @@
+"""Pins of tune's numbers, second set (issue 33's hand-written bug audit, docs/testing.md):
+the uncertainty budget's parts composed by the search tune after a converged search, the
+raw capture's harmonic lines with several sine cycles per period, the repeated
+experiment's verdict, the amplitude step and the grid limits. Expected values are
+computed here (explicit DFT sums, scipy.stats' t quantile, the documented formulas) from
+unequal, asymmetric inputs. The strategy's helpers are driven with a stand-in probe (no
+drive, no simulation): their contracts, not a bench's numbers."""
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fftune.analysis import tune_strategy as ts
+from fftune.analysis import tuning
+from fftune.analysis.errors import FftuneError
+
+HARM = (3, 5, 7)
+
+
+def _t95(dof):
+    from scipy.stats import t
+    return float(t.ppf(0.9772, dof)) / 2.0
+
+
+def _periods(h1, s_per_period, phases, even=0.013):
+    """Per-period HOSIDFs (P, 7) whose signed objective is s_p in period p: every odd
+    harmonic i projects on its reference phase phi_i as s_p |H_1|, plus an orthogonal part
+    that differs per harmonic (it must not count)."""
+    P = len(s_per_period)
+    H = np.zeros((P, 7), dtype=complex)
+    H[:, 0] = h1
+    for j, (i, phi) in enumerate(zip(HARM, phases)):
+        ortho = (0.004 * (j + 1)) * 1j
+        H[:, i - 1] = (np.asarray(s_per_period) * abs(h1) + ortho) * np.exp(1j * phi)
+    H[:, 1] = even
+    H[:, 3] = -0.5 * even
+    return H
+
+
+class _Probe:
+    """The search tune's probe without a drive: ``measure`` hands back prepared points."""
+
+    def __init__(self, amplitude, points, frequency_hz=1.25):
+        self.amplitude = amplitude
+        self.harmonics = HARM
+        self.c = {"frequency_hz": frequency_hz}
+        self.kv_search = 0.0
+        self.points = points            # tag -> point
+        self.asked = []
+
+    def measure(self, tag, kfc, kv=0.0, amplitude=None, repeat=False):
+        self.asked.append((tag, kfc, kv, amplitude, repeat))
+        return self.points[tag]
+        yield   # (a generator, as the real probe)
+
+    def search_point(self, p):
+        return ts._TuneProbe.search_point(self, p)
+
+
+def _point(kfc, Hp, amplitude, noise=2e-4, kv=0.0):
+    Hp = np.asarray(Hp)
+    return {"kfc": float(np.float32(kfc)), "kv": kv, "amplitude": amplitude, "H": Hp.mean(axis=0),
+            "H_periods": Hp, "H_var": None, "n_periods": Hp.shape[0],
+            "ratio": float(tuning.odd_ratio(Hp.mean(axis=0), HARM)), "check": {"cause": None},
+            "lines": None, "u_over_y": None, "angle_noise_rad": noise, "fc_smooth": None,
+            "rms_error": 1e-3, "record": None}
+
+
+def _run(gen):
+    try:
+        while True:
+            next(gen)
+    except StopIteration as stop:
+        return stop.value
+
+
+def test_budget_parts_after_a_converged_search_with_the_smaller_second_amplitude():
+    a1, a2 = 0.5, 0.25                     # the auto choice's alternative: the smaller amplitude
+    q = 2 * math.pi / 4096                 # detect.encoder_step_rad
+    k1, sig1, slope, sigma_fit = 0.1187, 1.0e-3, -8.0, 4.0e-4
+    phases = np.array([0.3, -1.1, 2.0])
+    h1_star = 0.97 * np.exp(-1j * 0.015)   # lag 0.86 deg: below LAG_MIN_DEG, no K_v step
+    h1_two = 0.95 * np.exp(-1j * 0.021)
+    s_two = np.array([0.0015, 0.0027, 0.0018, 0.0020])
+    p_star = _point(k1, _periods(h1_star, [1e-4, -2e-4, 3e-4], phases), a1, noise=2.0e-4)
+    p_two = _point(k1, _periods(h1_two, s_two, phases), a2)
+    probe = _Probe(a1, {"amplitude2": p_two})
+    cfg = {"tune": {"frequency_hz": 1.25, "amplitude_max_rad": 0.5}, "detect": {"encoder_step_rad": q},
+           "limits": {}}
+    ctx = ts._Context(cfg, 2560.0, "raw", 5.0, {})
+    outcome = tuning.KfcSearchResult(k_fc=k1, sigma=sig1, converged=True, reason="", n_experiments=5,
+                                     bracket=(0.1, 0.14), extended_to=None, regime="signed root",
+                                     sigma_signed=1e-3, slope=slope, phases=phases, sigma_fit=sigma_fit)
+    out = _run(ts._budget(ctx, probe, outcome, {k1: p_star}, {"alternative_rad": a2}))
+    assert out["cause"] is None, out["cause"]
+    assert [a[0] for a in probe.asked] == ["amplitude2"] and probe.asked[0][3] == a2
+    # the second amplitude's root along the search's slope scaled by A1 |H_1| / (A2 |H_1(A2)|)
+    s2 = s_two.mean()
+    se2 = s_two.std(ddof=1) / math.sqrt(s_two.size)
+    slope2 = slope * a1 * abs(h1_star) / (a2 * abs(h1_two))
+    k_a = float(np.float32(k1))
+    k2 = k_a - s2 / slope2
+    sigma2 = se2 / abs(slope2) * _t95(s_two.size - 1)
+    assert out["k_fc_at_amplitude"]["k_fc"] == [pytest.approx(k1), pytest.approx(k2, rel=1e-9)]
+    assert out["k_fc_at_amplitude"]["sigma_noise"][1] == pytest.approx(sigma2, rel=1e-6)
+    # they agree within twice their noise: the inverse-variance mean, the difference the part
+    assert abs(k2 - k1) < 2 * math.hypot(sig1, sigma2)
+    w1, w2 = 1 / sig1 ** 2, 1 / sigma2 ** 2
+    k_est = (w1 * k1 + w2 * k2) / (w1 + w2)
+    parts = out["parts"]
+    assert out["k_fc"] == pytest.approx(k_est, rel=1e-9)
+    assert parts["noise"] == pytest.approx(1 / math.sqrt(w1 + w2), rel=1e-6)
+    assert parts["amplitude"] == pytest.approx(abs(k2 - k1), rel=1e-6)
+    # the encoder floor at the smaller amplitude, through the slope there (A1 / A2 steeper)
+    ds = (q / a2) ** 1.5 / math.pi * math.exp(-2 * math.pi ** 2 * (2.0e-4 / q) ** 2)
+    assert parts["encoder"] == pytest.approx(ds / abs(slope * a1 / a2), rel=1e-9)
+    assert parts["flatness"] == pytest.approx(sigma_fit)
+    lag = math.degrees(0.015)
+    assert parts["loop_lag"] == pytest.approx(1.2e-3 * lag ** 2 * k_est, rel=1e-6)
+    assert parts["viscous"] == 0.0 and parts["smoothed_sign"] == 0.0
+    assert out["sigma_total"] == pytest.approx(math.sqrt(sum(v ** 2 for v in parts.values())), rel=1e-12)
+
+
+def test_repeated_first_experiment_changed_only_beyond_three_noises():
+    # H(0) - H(top) is real at every odd harmonic: the reference phases are 0 and s is the
+    # per-period projection built in
+    p0 = _point(0.0, _periods(0.9, [0.030, 0.031, 0.029, 0.0305], [0.0, 0.0, 0.0]), 0.5)
+    top_s = np.array([-0.0200, -0.0212, -0.0191, -0.0205])
+    first = _point(0.3, _periods(0.92, top_s, [0.0, 0.0, 0.0]), 0.5)
+    se = top_s.std(ddof=1) / 2
+    noise = math.hypot(se, se)              # a constant shift keeps the spread
+    floor = 0.01 * abs(top_s.mean())
+    for shift, changed in ((0.0, False), (2.0 * noise, False), (3.0 * noise + 0.8 * floor, False),
+                           (3.0 * noise + 1.2 * floor, True), (-(3.0 * noise + 1.2 * floor), True)):
+        rep = _point(0.3, _periods(0.92, top_s + shift, [0.0, 0.0, 0.0]), 0.5)
+        probe = _Probe(0.5, {"repeat": rep})
+        out = _run(ts._repeat_first(probe, {0.0: p0, 0.3: first}))
+        assert probe.asked == [("repeat", 0.3, 0.0, 0.5, True)]
+        assert out["s_then"] == pytest.approx(top_s.mean(), rel=1e-9)
+        assert out["s_now"] == pytest.approx(top_s.mean() + shift, rel=1e-9)
+        assert out["noise"] == pytest.approx(noise, rel=1e-9)
+        assert out["changed"] is changed, shift / noise
+
+
+def test_raw_capture_lines_at_k_times_the_cycles_and_the_per_period_checks():
+    n, P, cyc, K = 512, 3, 4, 7
+    fs = 512.0
+    f = cyc * fs / n
+    cfg = {"tune": {"period_samples": n, "frequency_hz": f, "harmonics": K, "amplitude_rad": 0.4,
+                    "settle_periods": 1, "periods": P}, "_source": "t.yaml"}
+    probe = ts._TuneProbe(ts._Context(cfg, fs, "raw", 5.0, {}))
+    t = np.arange(P * n) / fs
+    w = 2 * np.pi * f
+    rng = np.random.default_rng(3)
+    ref = 0.4 * np.sin(w * t)
+    y = 0.37 * np.sin(w * t - 0.08) + 0.006 * np.sin(3 * w * t + 0.4) + 0.002 * np.sin(2 * w * t) \
+        + 3e-4 * rng.standard_normal(t.size)
+    u = 0.9 * np.sin(w * t + 0.3) + 0.2 * np.sign(np.cos(w * t - 0.08)) + 0.05 * np.sin(5 * w * t)
+    u[17] = u[900] = 1.5                                   # two samples at u_max
+    rec = SimpleNamespace(stats=None, signals={"reference": ref, "motor_angle": y, "plant_input": u,
+                                               "error": ref - y})
+    gen = probe.measure("search", 0.1, 0.0)
+    req = next(gen)
+    assert req.cycles == cyc and req.period_samples == n
+    try:
+        gen.send(ts.Measurement(rec, u_max_v=1.5))
+    except StopIteration as stop:
+        p = stop.value
+    # the lines k = 1 .. K of the period mean, explicit DFT sums at k x cycles
+    tt = np.arange(n)
+    U_mean, Y_mean = u.reshape(P, n).mean(axis=0), y.reshape(P, n).mean(axis=0)
+    for k in range(1, K + 1):
+        e = np.exp(-2j * np.pi * k * cyc * tt / n)
+        assert p["lines"][0][k - 1] == pytest.approx(np.sum(U_mean * e), rel=1e-9, abs=1e-9)
+        assert p["lines"][1][k - 1] == pytest.approx(np.sum(Y_mean * e), rel=1e-9, abs=1e-9)
+    assert p["check"]["saturated_fraction"] == pytest.approx(2 / (P * n))
+    # the angle's spread over the periods: sum of squared deviations over (P - 1) N
+    yp = y.reshape(P, n)
+    assert p["angle_noise_rad"] == pytest.approx(
+        math.sqrt(np.sum((yp - yp.mean(axis=0)) ** 2) / ((P - 1) * n)), rel=1e-12)
+    assert p["rms_error"] == pytest.approx(math.sqrt(np.mean((ref - y) ** 2)), rel=1e-12)
+    assert p["lag_deg"] == pytest.approx(math.degrees(0.08), rel=2e-2)
+
+
+def test_std_over_periods_is_the_sample_standard_deviation():
+    Hp = np.array([[1.0 + 0.1j, 0.02, 0.010j], [0.97 - 0.05j, 0.025, -0.004j],
+                   [1.02 + 0.0j, 0.018, 0.007j], [0.99 + 0.02j, 0.021, 0.001j]])
+    out = ts._std_over_periods([{"H": Hp.mean(axis=0), "H_periods": Hp},
+                                {"H": Hp[0], "H_periods": None, "H_var": np.array([4e-4, 1e-6, 9e-6])}])
+    d = Hp - Hp.mean(axis=0)
+    expected = np.sqrt(np.sum(np.abs(d) ** 2, axis=0) / (len(Hp) - 1))
+    assert out[0] == pytest.approx(expected, rel=1e-12)
+    assert out[1] == pytest.approx([2e-2, 1e-3, 3e-3], rel=1e-12)
+
+
+def test_next_auto_amplitude_steps():
+    # out of stick-slip the ratio at K_fc = 0 falls as 1/A: the step aims at 0.8 of the limit
+    r = ts.AUTO_AMPLITUDE_MAX_RATIO
+    assert ts._next_amplitude(0.5, 0.9, 5.0 * 0.8 * r, 1e-4, 10.0) == pytest.approx(2.5)
+    assert ts._next_amplitude(0.5, 0.9, 1.1 * r, 1e-4, 10.0) == pytest.approx(1.0)      # at least 2x
+    assert ts._next_amplitude(0.5, 0.9, 100 * r, 1e-4, 10.0) == pytest.approx(4.0)      # at most 8x
+    assert ts._next_amplitude(0.5, 0.3, 0.01, 1e-4, 10.0) == pytest.approx(2.0)         # stuck: 4x
+    assert ts._next_amplitude(0.5, 0.9, 0.01, 0.05, 10.0) == pytest.approx(0.5 * 1.2 * 0.05 / 0.02)
+    assert ts._next_amplitude(0.5, 0.9, 5.0 * 0.8 * r, 1e-4, 1.7) == pytest.approx(1.7)
+
+
+def test_sine_on_the_grid_below_half_the_sample_rate():
+    assert ts.cycles_on_grid(1000.0, 16, 437.5, "k") == 7
+    with pytest.raises(FftuneError, match="above fs/2"):
+        ts.cycles_on_grid(1000.0, 16, 500.0, "k")         # 8 cycles in 16 samples: fs/2 itself
+    with pytest.raises(FftuneError, match="not on the DFT grid"):
+        ts.cycles_on_grid(1000.0, 16, 440.0, "k")
+
+
+def test_loop_lag_part_at_its_limit_and_drift_floor():
+    assert tuning.loop_lag_part(7.0, 0.2) == pytest.approx(1.2e-3 * 49 * 0.2)
+    assert math.isinf(tuning.loop_lag_part(math.nextafter(7.0, 8.0), 0.2))
+    # a difference under the floor is no drift even beyond 3 sigma; over both, a drift
+    assert tuning.drift_between(0.100, 0.108, 0.001, 0.002, floor=0.010) == (False, pytest.approx(0.008))
+    assert tuning.drift_between(0.100, 0.1115, 0.001, 0.002, floor=0.010)[0] is True
+    assert tuning.drift_between(0.100, 0.1070, 0.001, 0.002, floor=0.001)[0] is True   # 7 > 3 x 2.24 mV
