@@ -19,8 +19,11 @@ HARM = (3, 5, 7)
 
 
 def _t95(dof):
-    from scipy.stats import t
-    return float(t.ppf(0.9772, dof)) / 2.0
+    """t_{0.9772, dof} / 2 through the incomplete beta function (not stdtrit, which the
+    code uses): P(T > t) = I_x(dof / 2, 1 / 2) / 2 with x = dof / (dof + t^2)."""
+    from scipy.special import betaincinv
+    x = float(betaincinv(dof / 2.0, 0.5, 2.0 * (1.0 - 0.9772)))
+    return math.sqrt(dof * (1.0 / x - 1.0)) / 2.0
 
 
 def _periods(h1, s_per_period, phases, even=0.013):
