@@ -1,0 +1,50 @@
+"""Pins of the HOSIDF's checks and its drift removal, second set (issue 33's hand-written
+bug audit, docs/testing.md): expected HOSIDFs from the closed form of sines (unequal
+amplitudes and phases), the one-sine rule at its two limits."""
+import numpy as np
+import pytest
+
+from fftune.analysis.errors import InputError
+from fftune.analysis.hosidf import hosidf
+
+FS, N, P, C = 1000.0, 200, 6, 2          # 2 sine periods per block of 200 samples
+
+
+def _t():
+    return np.arange(P * N) / FS
+
+
+def test_drifting_output_gives_the_hosidf_of_the_periodic_part():
+    # u = A sin(w t); y = B sin(w t + phi) + C3 sin(3 w t + psi) + a slow ramp: H_1 = B/A e^{j phi},
+    # H_3 = -C3/A e^{j psi} (the input's phase -90 deg, three times), H_2 = 0
+    w = 2 * np.pi * C * FS / N
+    A, B, phi, C3, psi = 0.8, 0.55, -0.4, 0.031, 0.9
+    t = _t()
+    rng = np.random.default_rng(2)
+    u = A * np.sin(w * t)
+    y = B * np.sin(w * t + phi) + C3 * np.sin(3 * w * t + psi) + 0.9 * t + 1e-4 * rng.standard_normal(t.size)
+    res = hosidf(u.reshape(1, P, N), y.reshape(1, P, N), fs=FS, n_harmonics=3, f0=C * FS / N)
+    assert any("drift" in note and "removed" in note for note in res.notes), res.notes
+    assert res.H[0] == pytest.approx(B / A * np.exp(1j * phi), abs=2e-3)
+    assert res.H[2] == pytest.approx(-C3 / A * np.exp(1j * psi), abs=2e-3)
+    assert abs(res.H[1]) < 2e-3
+    assert res.amplitude == pytest.approx(A, rel=1e-9)
+
+
+def _one_sine_check(extra_bin, extra_rel):
+    t = _t()
+    w = 2 * np.pi * C * FS / N
+    u = np.sin(w * t) + extra_rel * np.sin(2 * np.pi * extra_bin * FS / N * t + 0.3)
+    y = 0.5 * u
+    return hosidf(u.reshape(1, P, N), y.reshape(1, P, N), fs=FS, n_harmonics=3, f0=C * FS / N)
+
+
+def test_one_sine_rule_harmonics_to_half_other_lines_to_a_tenth():
+    # a harmonic of the sine (bin 2 C) up to half of it: a distorted sine, accepted
+    assert _one_sine_check(2 * C, 0.3).H[0] == pytest.approx(0.5, rel=1e-9)
+    with pytest.raises(InputError, match="not one sine"):
+        _one_sine_check(2 * C, 0.6)
+    # another line (bin 3: no harmonic of bin 2) above a tenth: refused; below: accepted
+    with pytest.raises(InputError, match="not one sine"):
+        _one_sine_check(3, 0.3)
+    assert _one_sine_check(3, 0.05).H[0] == pytest.approx(0.5, rel=1e-9)
