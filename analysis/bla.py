@@ -1854,7 +1854,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         # per-line medians: what Figure 3 shows line by line
         "line_median_nl_re_output_db": None if nl_db is None else _median_db(nl_db - output_db),
         "line_median_noise_re_nl_db": None if nl_db is None or noise_db is None else
-        _median_db(nl_db - noise_db),
+        _median_db(-(nl_db - noise_db)),
         "line_median_noise_re_output_db": None if noise_db is None else
         _median_db(noise_db - output_db),
         "line_fraction_nl_over_noise_6db": None if nl_power is None or noise_power is None

@@ -34,3 +34,37 @@ def test_drift_test_slope_and_t_with_p_minus_2_degrees_of_freedom():
     m, s, tt = _drift_test(dc2, t_limit=1.0)
     assert m == (2 if abs(t2) > abs(t) else 0)
     assert _drift_test(dc[:, :3]) is None                             # P < 4: no test
+
+
+def _one_pole(u, a, b):
+    y = np.empty_like(u)
+    acc = 0.0
+    for i, x in enumerate(u):
+        acc = a * acc + b * x
+        y[i] = acc
+    return y
+
+
+def test_lpm_with_an_exactly_periodic_input_from_rest():
+    # a generator's input (every period the same) into y[n] = 0.93 y[n-1] + 0.21 u[n] from
+    # rest: the period-mean input lines are one period's DFT, G the filter's response
+    from fftune.analysis.lpm import lpm_moments
+    n, p = 128, 8
+    rng = np.random.default_rng(4)
+    bins = np.arange(3, 40, 2)
+    X = np.zeros(n // 2 + 1, complex)
+    X[bins] = np.exp(2j * np.pi * rng.random(bins.size))
+    one = np.fft.irfft(X, n)
+    u = np.tile(one, (2, p))                                   # M = 2 realizations
+    u[1] *= 0.7
+    y = np.vstack([_one_pole(row, 0.93, 0.21) for row in u]) + 1e-6 * rng.standard_normal(u.shape)
+    band = np.arange(bins[0], bins[-1] + 1)
+    mom, G_per, info = lpm_moments(u.reshape(2, p, n), y.reshape(2, p, n), band=band, excited=bins)
+    assert mom.U[0] == pytest.approx(np.fft.rfft(one)[band], rel=1e-9, abs=1e-12)
+    assert mom.U[1] == pytest.approx(0.7 * np.fft.rfft(one)[band], rel=1e-9, abs=1e-12)
+    G_true = 0.21 / (1 - 0.93 * np.exp(-2j * np.pi * bins / n))
+    assert G_per[0][0] == pytest.approx(G_true, rel=1e-3)
+    assert G_per[0][1] == pytest.approx(G_true, rel=1e-3)
+    # the periodic output at the excited lines: G times the input (transient removed)
+    pos = np.searchsorted(band, bins)
+    assert mom.Y[0][pos] == pytest.approx(G_true * np.fft.rfft(one)[bins], rel=1e-3)
