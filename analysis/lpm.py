@@ -225,7 +225,7 @@ def lpm_moments(u, y, r=None, *, band, excited, settle_periods=0, order=2, n_sid
     with np.errstate(divide="ignore", invalid="ignore"):
         G_m = Yc[:, pos] / Uc[:, pos]
         var_g = (var_y[:, pos] + np.abs(G_m) ** 2 * var_u[:, pos]
-                 + 2 * np.real(np.conj(G_m) * cov_yu[:, pos])) / np.abs(Uc[:, pos]) ** 2
+                 - 2 * np.real(np.conj(G_m) * cov_yu[:, pos])) / np.abs(Uc[:, pos]) ** 2
     G_per = (G_m, np.maximum(var_g, 0.0) * p * (p - 1))
     # how large the removed transient is, at the excited lines of the output
     t_pow = np.abs(Yt[:, pos]) ** 2

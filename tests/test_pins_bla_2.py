@@ -68,3 +68,25 @@ def test_lpm_with_an_exactly_periodic_input_from_rest():
     # the periodic output at the excited lines: G times the input (transient removed)
     pos = np.searchsorted(band, bins)
     assert mom.Y[0][pos] == pytest.approx(G_true * np.fft.rfft(one)[bins], rel=1e-3)
+
+
+def test_lpm_input_noise_through_the_plant_leaves_no_variance_of_g():
+    # the measured input's own noise drives the plant: y = filter(u) exactly, so G = Y / U
+    # has (almost) no variance; its propagation subtracts 2 Re(conj(G) cov_yu), the sum
+    # |G|^2 var_u + var_y of the parts alone would be about 2 |G|^2 var_u
+    from fftune.analysis.lpm import lpm_moments
+    n, p = 128, 8
+    rng = np.random.default_rng(8)
+    bins = np.arange(3, 40, 2)
+    X = np.zeros(n // 2 + 1, complex)
+    X[bins] = np.exp(2j * np.pi * rng.random(bins.size))
+    one = np.fft.irfft(X, n)
+    u = np.tile(one, (2, p)) + 0.02 * rng.standard_normal((2, p * n))
+    y = np.vstack([_one_pole(row, 0.93, 0.21) for row in u])
+    band = np.arange(bins[0], bins[-1] + 1)
+    mom, G_per, _ = lpm_moments(u.reshape(2, p, n), y.reshape(2, p, n), band=band, excited=bins)
+    pos = np.searchsorted(band, bins)
+    G = G_per[0]
+    parts = (np.abs(G) ** 2 * mom.ss_u[:, pos] + mom.ss_y[:, pos]) / np.abs(mom.U[:, pos]) ** 2
+    assert np.all(parts > 0)
+    assert np.median(G_per[1] / parts) < 0.05
