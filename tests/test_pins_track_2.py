@@ -178,3 +178,123 @@ def test_scatter_sigma_reads_the_newest_window_only():
     c = np.diff(new, 2)
     assert curvature_scatter(old + new) == pytest.approx(
         1.4826 * np.median(np.abs(c - np.median(c))) / math.sqrt(6.0), rel=1e-12)
+
+
+# ---- second round: identifiability, the viscous watch, the noise note, the stops' limits --------
+
+def test_kv_unique_fraction_is_one_minus_r2_of_v_on_p_n_a():
+    from fftune.analysis.track import _kv_unique_fraction
+    st, raw, _ = _stats_from_raw(1, 3001, 6, [0.142, 0.097, 0.011, 0.0052], [0.02] * 6, seed=3)
+    Phi = raw[0][0]
+    X, v = Phi[:, [0, 1, 3]], Phi[:, 2]
+    coef, *_ = np.linalg.lstsq(X, v, rcond=None)
+    frac = np.sum((v - X @ coef) ** 2) / np.sum(v ** 2)
+    A = sum(normal_matrix_of(d) for d in st.design)
+    assert 0.05 < frac < 0.95
+    assert _kv_unique_fraction(A) == pytest.approx(frac, rel=1e-6)
+    # a task whose velocity is nearly +-constant does not identify K_v: held, named
+    est = estimate_task(st, kv_unique_min=frac * 1.01, k_v_hold=0.0123)
+    assert not est.k_v_identified and est.k_v == 0.0123
+    est = estimate_task(st, kv_unique_min=frac * 0.99)
+    assert est.k_v_identified and est.k_v_free == pytest.approx(est.k_v, rel=1e-12)
+
+
+def normal_matrix_of(d):
+    from fftune.analysis.track import normal_matrix
+    return normal_matrix(d)
+
+
+def test_viscous_shift_count_latch_and_settled_rule():
+    from fftune.analysis.track import (VISC_BASELINE_FROM, VISC_BASELINE_N, VISC_SHIFT_MIN_ABS,
+                                       viscous_shift)
+    base = [0.0150, 0.0152, 0.0149, 0.0151, 0.0153]
+    early = [0.03, 0.02, 0.018, 0.016]
+    assert len(early) == VISC_BASELINE_FROM and len(base) == VISC_BASELINE_N
+    x = early + base + [0.0195, 0.0192]               # two tasks 27 % above: a change
+    settled = [10.0, 10.03, 9.99]                    # K_fc within 0.5 % of its median
+    shift, seen = viscous_shift(x, 0.015, settled)
+    assert seen and shift == pytest.approx(np.median([0.0195, 0.0192]) - np.median(base))
+    # one task less than the baseline plus two: nothing yet (even when the baseline's last
+    # and the new one lie beyond the threshold; the baseline's median ignores its last)
+    z = early + base[:-1] + [0.0196, 0.0195]
+    assert viscous_shift(z, 0.015, settled) == (0.0, False)
+    assert viscous_shift(z + [0.0194], 0.015, settled)[1]
+    # K_fc not settled (0.8 % apart): no viscous change read
+    assert viscous_shift(x, 0.015, [10.0, 10.08, 9.99]) == (0.0, False)
+    # latched: the median of the last two minus the baseline, whatever its size
+    y = early + base + [0.0158, 0.0149, 0.0161]
+    shift, seen = viscous_shift(y, 0.015, None, latched=True)
+    assert seen and shift == pytest.approx(np.median([0.0149, 0.0161]) - np.median(base))
+    assert VISC_SHIFT_MIN_ABS < 0.0038
+
+
+def test_noise_correction_its_note_and_its_part_of_the_systematic_sigma():
+    from fftune.analysis.track import NOTE_NOISE_CORRECTED, SYS_FLOOR_KV_REL
+    st, raw, edges = _stats_from_raw(2, 3001, 6, [0.142, 0.097, 0.011, 0.0052],
+                                     [0.02, 0.09, 0.035, 0.005, 0.06, 0.015], seed=21)
+    plain = estimate_task(st, kv_unique_min=0.0)
+    prev = [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": 1.0})]
+    for rel, noted in ((1.0e-3, True), (2.0e-4, False)):
+        # the gain that makes sigma_n^2 = rel / NOISE_BIAS_PER_RAD2 (100 / rad^2)
+        gain = plain.rms_residual / math.sqrt(rel / 100.0)
+        est = estimate_task(st, kv_unique_min=0.0, noise_gain=gain, recent=prev)
+        assert est.sensor_noise_rad == pytest.approx(math.sqrt(rel / 100.0), rel=1e-9)
+        corr = rel * plain.k_fc
+        assert est.k_fc_noise_correction == pytest.approx(corr, rel=1e-9)
+        assert est.k_fc == pytest.approx(plain.k_fc + corr, rel=1e-12)
+        assert (NOTE_NOISE_CORRECTED in est.notes) is noted
+        assert est.k_fc_sigma_sys == pytest.approx(math.hypot(SYS_FLOOR_KV_REL * plain.k_fc, corr), rel=1e-9)
+    # the smallest bound of the last SCATTER_WINDOW - 1 earlier tasks: an older one is not read
+    from fftune.analysis.track import SCATTER_WINDOW
+    older = [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": 1e-9})]
+    recent = older + [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": 1.0})] * (SCATTER_WINDOW - 1)
+    gain = plain.rms_residual / math.sqrt(1e-3 / 100.0)
+    est = estimate_task(st, kv_unique_min=0.0, noise_gain=gain, recent=recent)
+    assert est.k_fc_noise_correction == pytest.approx(1e-3 * plain.k_fc, rel=1e-9)
+
+
+def test_stop_and_rollback_limits():
+    s = TrackSettings(rms_limit_rad=0.25, rollback_ratio=2.0, rollback_min_rms_rad=1e-3)
+    # rms exactly at the limit: not above it, no stop
+    assert Tracker(k_fc=0.12, k_v=0.0, k_a=0.006, settings=s).after_task(_est(k_fc=0.121, rms=0.25)).action == "update"
+    assert Tracker(k_fc=0.12, k_v=0.0, k_a=0.006, settings=s).after_task(
+        _est(k_fc=0.121, rms=math.nextafter(0.25, 1.0))).action == "stop"
+    # the error grew 3x after a +20 % update but stays under rollback_min_rms_rad: no rollback
+    tr = Tracker(k_fc=0.10, k_v=0.0, k_a=0.006, settings=s)
+    tr.after_task(_est(k_fc=0.12, rms=2e-4))
+    assert tr.after_task(_est(k_fc=0.12, rms=6e-4)).action == "update"
+    tr = Tracker(k_fc=0.10, k_v=0.0, k_a=0.006, settings=s)
+    tr.after_task(_est(k_fc=0.12, rms=4e-4))
+    assert tr.after_task(_est(k_fc=0.12, rms=1.2e-3)).action == "rollback"
+
+
+def test_curvature_scatter_needs_scatter_min_plus_one_and_trend_keep_and_slow_down():
+    from fftune.analysis.track import SCATTER_MIN, curvature_scatter
+    assert curvature_scatter(list(np.arange(SCATTER_MIN) * 0.1)) is None
+    assert curvature_scatter(list(np.arange(SCATTER_MIN + 1) * 0.1)) == pytest.approx(0.0, abs=1e-15)
+    # a trend seen before continues while |m| > 2 s (3 s to start one)
+    x = list(0.25 * np.arange(10.0))                  # changes 0.25: no curvature, s the floor
+    assert drift_trend(x, scatter_floor=0.1, active=False) == 0.0          # 0.25 < 3 x 0.1
+    assert drift_trend(x, scatter_floor=0.1, active=True) == pytest.approx(0.25)
+    assert drift_trend(x, scatter_floor=0.13, active=True) == 0.0          # 0.25 < 2 x 0.13
+    # the last change falls short of the ones before by more than 2 sqrt(3) s: the last
+    # change times its ratio to their mean; by less (but more than 2 sqrt(2) s): the mean
+    s = 0.1
+    for drop, slowed in ((2 * math.sqrt(3) * s * 1.05, True), (2 * math.sqrt(3) * s * 0.95, False)):
+        d = [2.0, 2.0, 2.0 - drop]
+        x = list(2.0 * np.arange(7.0)) + list(12.0 + np.cumsum(d))
+        m = float(np.mean(d))
+        expected = d[-1] * min(1.0, d[-1] / 2.0) if slowed else m
+        assert drift_trend(x, scatter_floor=s) == pytest.approx(expected, rel=1e-12)
+
+
+def test_parse_refuses_a_length_that_is_not_whole_blocks_of_float32_sums():
+    from fftune.analysis.errors import FftuneError
+    from fftune.analysis.track import parse_task_stats
+    import struct
+    head = struct.pack("<II", 2, 100)
+    design = head + np.arange(9, dtype="<f4").tobytes()
+    data = head + np.arange(6, dtype="<f4").tobytes()
+    assert parse_task_stats(design, data).repetitions == 2
+    with pytest.raises(FftuneError, match="not an 8-byte header"):
+        parse_task_stats(head + bytes(9 * 3), data)        # 27 bytes: a multiple of 9, not of 36
