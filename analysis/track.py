@@ -162,7 +162,7 @@ class TaskStats:
 
 def _parse(raw, nsums, what):
     raw = bytes(raw)
-    if len(raw) < TASK_HEADER_BYTES or (len(raw) - TASK_HEADER_BYTES) % (4 * nsums):
+    if len(raw) < TASK_HEADER_BYTES or (len(raw) - TASK_HEADER_BYTES) % nsums:
         raise FftuneError(f"task statistics {what}: {len(raw)} bytes is not an 8-byte header plus "
                           f"blocks of {nsums} float32 sums")
     reps, samples = struct.unpack_from("<II", raw, 0)
@@ -612,7 +612,7 @@ def drift_trend(estimates, scatter_floor=0.0, active=False):
         return 0.0
     before = float(np.mean(d[:-1]))
     # var(d_last - mean(before)) for white estimates: 2 + 2 / (n - 1) + 2 (n - 2) / (n - 1) ... ~ (2 + 1) s^2
-    if (before - d[-1]) * sg > TREND_NOISE_Z * math.sqrt(2.0) * s:
+    if (before - d[-1]) * sg > TREND_NOISE_Z * math.sqrt(3.0) * s:
         return float(d[-1] * min(1.0, max(0.0, float(d[-1] / before))))
     return m
 

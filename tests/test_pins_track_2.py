@@ -298,3 +298,36 @@ def test_parse_refuses_a_length_that_is_not_whole_blocks_of_float32_sums():
     assert parse_task_stats(design, data).repetitions == 2
     with pytest.raises(FftuneError, match="not an 8-byte header"):
         parse_task_stats(head + bytes(9 * 3), data)        # 27 bytes: a multiple of 9, not of 36
+
+
+def test_held_k_v_viscous_part_is_the_held_fits_k_fc_per_k_v_times_the_unresolved_change():
+    from fftune.analysis.track import SYS_FLOOR_REL, VISC_SEEN_FRACTION, viscous_unresolved
+    st, raw, _ = _stats_from_raw(1, 3001, 6, [0.142, 0.097, 0.011, 0.0052], [0.02, 0.05, 0.01, 0.03, 0.02, 0.04],
+                                 seed=9)
+    Phi = raw[0][0]
+    u = raw[0][1]
+    X, v = Phi[:, [0, 1, 3]], Phi[:, 2]
+    # the held fit's K_fc per V s/rad of the held K_v: -0.5 (e_p + e_n) (X^T X)^-1 X^T v
+    g = -0.5 * float(np.linalg.solve(X.T @ X, X.T @ v)[:2].sum())
+    k_v_free = float(np.linalg.lstsq(Phi, u, rcond=None)[0][2])
+    kvf = [0.020, 0.016, 0.012, 0.011, 0.0108, 0.0112, 0.0105, 0.0111, 0.0123]
+    kfc = [0.11, 0.12, 0.125, 0.118, 0.121, 0.119, 0.12, 0.10, 0.13]      # not settled: no detection
+    base = dict(k_fc_sigma=1e-3, k_v=0.011, k_v_sigma=0.0, k_a=0.0052, k_a_sigma=1e-4, offset=0.0,
+                offset_sigma=0.0, rms_error=1e-3, rms_residual=0.02, condition=1.0, k_v_identified=False,
+                samples=3001)
+    recent = [TaskEstimate(k_fc=f, k_v_free=kv, **base) for f, kv in zip(kfc, kvf)]
+    hold = 0.0110
+    est = estimate_task(st, k_v_hold=hold, hold_k_v=True, recent=recent, kv_unique_min=0.0)
+    assert not est.k_v_identified and est.k_v_shift == 0.0
+    assert est.k_v_free == pytest.approx(k_v_free, rel=1e-6)
+    # K_fc of the held fit: u - hold v on p, n, a
+    theta = np.linalg.lstsq(X, u - hold * v, rcond=None)[0]
+    assert est.k_fc == pytest.approx(0.5 * (theta[0] + theta[1]), rel=1e-6)
+    unresolved = viscous_unresolved(kvf + [k_v_free], [True] * 10)
+    assert unresolved > 0
+    part = abs(g * unresolved) / VISC_SEEN_FRACTION
+    assert est.k_fc_sigma_viscous == pytest.approx(part, rel=1e-6)
+    assert est.k_fc_sigma_sys == pytest.approx(math.hypot(SYS_FLOOR_REL * est.k_fc, part), rel=1e-6)
+    # the derivative by a finite step of the held K_v (the same fit): g
+    theta2 = np.linalg.lstsq(X, u - (hold + 1e-3) * v, rcond=None)[0]
+    assert (0.5 * (theta2[0] + theta2[1]) - 0.5 * (theta[0] + theta[1])) / 1e-3 == pytest.approx(g, rel=1e-6)
