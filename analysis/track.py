@@ -162,7 +162,7 @@ class TaskStats:
 
 def _parse(raw, nsums, what):
     raw = bytes(raw)
-    if len(raw) < TASK_HEADER_BYTES or (len(raw) - TASK_HEADER_BYTES) % nsums:
+    if len(raw) < TASK_HEADER_BYTES or (len(raw) - TASK_HEADER_BYTES) % (4 * nsums):
         raise FftuneError(f"task statistics {what}: {len(raw)} bytes is not an 8-byte header plus "
                           f"blocks of {nsums} float32 sums")
     reps, samples = struct.unpack_from("<II", raw, 0)

@@ -710,7 +710,7 @@ class KfcSearch(_GeneratorSearch):
         if np.isfinite(pa.ratio) and np.isfinite(pb.ratio):
             s, _ = self._signed([pa, pb], self._phases(lo, hi))
             if s[0] > 0 > s[1]:
-                guess = lo + (hi - lo) * s[0] / (s[0] - s[1])
+                guess = lo + (hi - lo) * s[1] / (s[0] - s[1])
             elif s[0] > s[1] > 0 and pb.ratio < pa.ratio and hi < self.k_limit:
                 # both ends under-compensated: extend at once, to the extrapolated zero of
                 # s (with a margin), at least 1.25 and at most 4 times the upper end

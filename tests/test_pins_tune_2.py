@@ -223,3 +223,50 @@ def test_loop_lag_part_at_its_limit_and_drift_floor():
     assert tuning.drift_between(0.100, 0.108, 0.001, 0.002, floor=0.010) == (False, pytest.approx(0.008))
     assert tuning.drift_between(0.100, 0.1115, 0.001, 0.002, floor=0.010)[0] is True
     assert tuning.drift_between(0.100, 0.1070, 0.001, 0.002, floor=0.001)[0] is True   # 7 > 3 x 2.24 mV
+
+
+# ---- second round: the limits of a larger sine, the model plan, the verdicts, the truth ----------
+
+def test_a_larger_amplitude_within_the_velocity_limit():
+    cfg = {"tune": {"frequency_hz": 1.25, "amplitude_max_rad": 2.0}, "limits": {"max_velocity_rad_s": 6.0}}
+    ctx = ts._Context(cfg, 2560.0, "raw", 5.0, {})
+    a_top = 6.0 / (2 * math.pi * 1.25)                    # 0.764 rad: the peak velocity 2 pi f A
+    assert ts._amplitude_allowed(ctx, 0.999 * a_top)
+    assert not ts._amplitude_allowed(ctx, 1.001 * a_top)
+    cfg["limits"] = {"max_amplitude_rad": 1.5}
+    assert ts._amplitude_allowed(ctx, 1.5) and not ts._amplitude_allowed(ctx, 1.51)
+    cfg["limits"] = {}
+    assert ts._amplitude_allowed(ctx, 2.0) and not ts._amplitude_allowed(ctx, 2.01)
+
+
+def test_model_plan_doubles_up_to_the_largest_amplitude_reached():
+    c = {"model": {"amplitude_rad": "auto", "verify_amplitude_rad": None}, "terms": ["coulomb"],
+         "amplitude_rad": "auto", "amplitude_max_rad": 4.0}
+    plan = ts.model_plan(c)
+    assert plan["amplitude"] == 1.0 and plan["verify"] is None
+    assert plan["checked"] == [("tune.model.amplitude_rad", 1.0), ("tune.amplitude_max_rad", 4.0)]
+    c["amplitude_max_rad"] = 3.9
+    assert ts.model_plan(c)["checked"][1] == ("tune.amplitude_max_rad", 2.0)
+    c = dict(c, amplitude_rad=0.3, amplitude_max_rad=1.0)
+    plan = ts.model_plan(c)
+    assert plan["verify"] == 0.3 and plan["checked"] == [("tune.model.amplitude_rad", 1.0),
+                                                        ("tune.amplitude_rad", 0.3)]
+
+
+def test_amplitude_verdict_cases():
+    v = ts.amplitude_verdict
+    assert v(0.9, 0.02, 0.001, 0.001) == "pass"
+    assert v(0.9, 0.048, 0.001, 0.001) == "near"           # the ratio within 25 % of its limit
+    assert v(0.9, 0.07, 0.001, 0.001) == "fail"
+    assert v(0.52, 0.02, 0.001, 0.001) == "near"           # |H_1| within 5 % of 0.5
+    assert v(0.9, 0.02, 0.001, 0.016) == "fail"            # noise: the full margin below 2 %
+    assert v(0.9, 0.02, 0.001, 0.0149) == "pass"
+    # the ratio's band: 2 standard errors when wider than the margin
+    assert v(0.9, 0.03, 0.011, 0.001) == "near"            # -40 % vs 2 x 0.011 / 0.05 = 44 %
+    assert v(0.9, 0.03, 0.009, 0.001) == "pass"            # vs 36 %
+
+
+def test_with_truth_is_the_error_against_the_end_value():
+    r = ts.with_truth({"k_fc_star": 0.1207, "true_coulomb_v_at_start": None}, 0.100, 0.115)
+    assert r["true_coulomb_v"] == 0.115 and r["true_coulomb_v_at_start"] == 0.100
+    assert r["k_fc_star_error_re_truth"] == pytest.approx(0.1207 / 0.115 - 1)
