@@ -710,7 +710,7 @@ class KfcSearch(_GeneratorSearch):
         if np.isfinite(pa.ratio) and np.isfinite(pb.ratio):
             s, _ = self._signed([pa, pb], self._phases(lo, hi))
             if s[0] > 0 > s[1]:
-                guess = lo + (hi - lo) * s[1] / (s[0] - s[1])
+                guess = lo + (hi - lo) * s[0] / (s[0] - s[1])
             elif s[0] > s[1] > 0 and pb.ratio < pa.ratio and hi < self.k_limit:
                 # both ends under-compensated: extend at once, to the extrapolated zero of
                 # s (with a margin), at least 1.25 and at most 4 times the upper end
@@ -833,7 +833,7 @@ class KfcSearch(_GeneratorSearch):
                 for q in side:
                     r_ok = r_ok and q.ratio >= pm.ratio - 2 * np.hypot(pm.ratio_std, q.ratio_std)
             s_ok = abs(s[m]) <= 2 * max(s_se[m], pooled) + abs(slope) * self._tol(root)
-            narrow = (k2 - k1) <= 4 * tol
+            narrow = (k2 - k1) <= 2 * tol
             if abs(ks[m] - root) <= tol and r_ok and (s_ok or narrow):
                 # s_ok: s(K_m) = 0 within the noise; narrow: the sign change is bracketed
                 # within the tolerance, s's K-to-K scatter (quantisation) exceeds the noise

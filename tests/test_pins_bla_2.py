@@ -90,3 +90,46 @@ def test_lpm_input_noise_through_the_plant_leaves_no_variance_of_g():
     parts = (np.abs(G) ** 2 * mom.ss_u[:, pos] + mom.ss_y[:, pos]) / np.abs(mom.U[:, pos]) ** 2
     assert np.all(parts > 0)
     assert np.median(G_per[1] / parts) < 0.05
+
+
+# ---- second round: the helpers behind the detection's figures ------------------------------------
+
+def test_g_extrapolated_is_a_falling_power_law_of_the_top_tenth():
+    from fftune.analysis.bla import _g_extrapolated2
+    f = np.linspace(1.0, 40.0, 40)
+    G = 5.0 * f ** -1.5 * np.exp(1j * f)
+    f_at = np.array([44.0, 80.0])
+    assert _g_extrapolated2(f, G, f_at) == pytest.approx((5.0 * f_at ** -1.5) ** 2, rel=1e-9)
+    # a rising top is capped flat: the geometric mean of the top four |G|, squared
+    G_up = 0.3 * f ** 0.7
+    top = np.abs(G_up[-4:])
+    assert _g_extrapolated2(f, G_up, f_at) == pytest.approx(np.exp(2 * np.mean(np.log(top))) * np.ones(2), rel=1e-9)
+
+
+def test_mean_quantisation_error_against_the_gaussian_level_probabilities():
+    from scipy.special import ndtr
+    from fftune.analysis.bla import _mean_quantisation_error
+    q, sigma = 0.01, 0.003
+    s = np.linspace(-0.023, 0.031, 37)
+    k = np.arange(-10, 11)[:, None]
+    lo, hi = ((k - 0.5) * q - s) / sigma, ((k + 0.5) * q - s) / sigma
+    expected = np.sum(k * q * (ndtr(hi) - ndtr(lo)), axis=0) - s
+    assert _mean_quantisation_error(s, q, sigma) == pytest.approx(expected, abs=1e-7 * q)
+    # without noise: the plain rounding error
+    assert _mean_quantisation_error(s, q, 0.0) == pytest.approx(q * np.round(s / q) - s, abs=1e-15)
+
+
+def test_class_stats_noise_tail_and_false_alarm_count():
+    from scipy.special import bdtrc, fdtrc
+    from fftune.analysis.bla import _class_stats, _false_alarm_count
+    nu = 7
+    level = np.array([1.0, 5.0, 2.0, 0.3, 4.5, 0.9, 1.2, 3.9, 0.8, 6.0, 1.1])
+    ref = np.ones_like(level)
+    st = _class_stats(level, ref, nu, "x_")
+    p4 = float(fdtrc(2, 2 * nu, 4.0))                     # a noise-only line 6 dB over
+    assert st["x_lines_by_noise"] == pytest.approx(level.size * p4, rel=1e-9)
+    assert st["x_lines_over_noise_6db"] == 3
+    for n, p in ((11, p4), (200, 0.013), (3000, 0.002), (40, 0.3)):
+        need = next(k for k in range(1, n + 2) if k == n + 1 or bdtrc(k - 1, n, p) <= 1e-3)
+        assert _false_alarm_count(n, p) == need, (n, p)
+    assert st["x_lines_needed"] == _false_alarm_count(level.size, p4)
