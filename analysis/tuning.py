@@ -107,7 +107,7 @@ def signed_odd_ratio_std(H, H_std, n_repeats, harmonics=DEFAULT_HARMONICS):
     -------
     ndarray or float, shape (...)
     """
-    var = np.mean([_harmonic(H_std, k) ** 2 for k in harmonics], axis=0) / (
+    var = np.mean([_harmonic(H_std, k) for k in harmonics], axis=0) ** 2 / (
         2 * int(n_repeats) * len(harmonics))
     return np.sqrt(var) / np.abs(_harmonic(H, 1))
 
@@ -833,7 +833,7 @@ class KfcSearch(_GeneratorSearch):
                 for q in side:
                     r_ok = r_ok and q.ratio >= pm.ratio - 2 * np.hypot(pm.ratio_std, q.ratio_std)
             s_ok = abs(s[m]) <= 2 * max(s_se[m], pooled) + abs(slope) * self._tol(root)
-            narrow = (k2 - k1) <= 2 * tol
+            narrow = (k2 - k1) <= 4 * tol
             if abs(ks[m] - root) <= tol and r_ok and (s_ok or narrow):
                 # s_ok: s(K_m) = 0 within the noise; narrow: the sign change is bracketed
                 # within the tolerance, s's K-to-K scatter (quantisation) exceeds the noise

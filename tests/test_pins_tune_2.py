@@ -270,3 +270,42 @@ def test_with_truth_is_the_error_against_the_end_value():
     r = ts.with_truth({"k_fc_star": 0.1207, "true_coulomb_v_at_start": None}, 0.100, 0.115)
     assert r["true_coulomb_v"] == 0.115 and r["true_coulomb_v_at_start"] == 0.100
     assert r["k_fc_star_error_re_truth"] == pytest.approx(0.1207 / 0.115 - 1)
+
+
+def _search_point(k, s, ortho=0.0, phases=(0.4, -1.2, 2.2)):
+    rng = np.random.default_rng(int(k * 1e6) % 997)
+    H = np.zeros(7, dtype=complex)
+    H[0] = 1.0
+    for i, phi in zip(HARM, phases):
+        H[i - 1] = (s + 1j * ortho) * np.exp(1j * phi)
+    Hp = H[None, :] + 1e-8 * (rng.standard_normal((3, 7)) + 1j * rng.standard_normal((3, 7)))
+    return tuning.make_point(k, H_periods=Hp)
+
+
+def test_verified_by_a_sign_change_bracketed_within_four_tolerances():
+    # s at the measured point nearest the root is beyond its noise (the secant through the
+    # over-compensated points puts the root 0.2 mV from it), but the sign change is
+    # bracketed within 4 tolerances (1.5 mV < 4 x 0.5 mV): verified, the bracket's width
+    # over sqrt(12) a part of sigma
+    k1, k2, k3 = 0.1000, 0.1015, 0.1030
+    s1, s2 = 0.002, -0.001
+    s3 = s2 - abs(s2) * (k3 - k2) / (k2 - (k1 + 0.0002))       # the secant's root at k1 + 0.2 mV
+    search = tuning.KfcSearch(0.0, 0.2)
+    search.points = {0.0: _search_point(0.0, 0.3), k1: _search_point(k1, s1),
+                     k2: _search_point(k2, s2, ortho=0.003), k3: _search_point(k3, s3, ortho=0.003),
+                     0.2: _search_point(0.2, -0.05)}
+    out = search._estimate(0.0, 0.2)
+    assert out["stop"], out
+    res = out["result"]
+    root = k2 - s2 * (k3 - k2) / (s3 - s2)
+    assert res.converged and res.k_fc == pytest.approx(root, rel=1e-6)
+    assert abs(s1) > abs((s2 - s1) / (k2 - k1)) * search._tol(root)      # s not zero within the noise
+    assert res.sigma == pytest.approx(math.hypot(abs(k1 - root), (k2 - k1) / math.sqrt(12)), rel=1e-3)
+    assert "bracketed" in res.reason
+
+
+def test_motion_limit_itself_is_motion():
+    assert tuning.check_experiment(tuning.MOTION_MIN_H1)["cause"] is None
+    assert tuning.check_experiment(math.nextafter(tuning.MOTION_MIN_H1, 0.0))["cause"] == "no motion"
+    ck = tuning.check_experiment(0.9, u_rms_re_max=0.9)                  # (0.81 - 0.64) / 0.36
+    assert ck["saturated_fraction"] == pytest.approx(0.17 / 0.36) and ck["cause"] == "saturation"
