@@ -341,7 +341,7 @@ def amplitude_verdict(h1, ratio, ratio_std, noise_re_amplitude, margin=AUTO_AMPL
     """
     rel = [(AUTO_AMPLITUDE_MIN_H1 - h1) / AUTO_AMPLITUDE_MIN_H1,
            (ratio - AUTO_AMPLITUDE_MAX_RATIO) / AUTO_AMPLITUDE_MAX_RATIO if math.isfinite(ratio) else math.inf]
-    band = [margin / 5, max(margin, (2 * ratio_std / AUTO_AMPLITUDE_MAX_RATIO)
+    band = [margin / 5, max(margin, (ratio_std / AUTO_AMPLITUDE_MAX_RATIO)
                             if math.isfinite(ratio_std) else 0.0)]
     noise = (noise_re_amplitude - MAX_NOISE_RE_AMPLITUDE) / MAX_NOISE_RE_AMPLITUDE
     if noise > -margin or any(r > b for r, b in zip(rel, band)):

@@ -107,7 +107,7 @@ def signed_odd_ratio_std(H, H_std, n_repeats, harmonics=DEFAULT_HARMONICS):
     -------
     ndarray or float, shape (...)
     """
-    var = np.mean([_harmonic(H_std, k) for k in harmonics], axis=0) ** 2 / (
+    var = np.mean([_harmonic(H_std, k) ** 2 for k in harmonics], axis=0) / (
         2 * int(n_repeats) * len(harmonics))
     return np.sqrt(var) / np.abs(_harmonic(H, 1))
 

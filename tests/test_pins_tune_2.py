@@ -309,3 +309,12 @@ def test_motion_limit_itself_is_motion():
     assert tuning.check_experiment(math.nextafter(tuning.MOTION_MIN_H1, 0.0))["cause"] == "no motion"
     ck = tuning.check_experiment(0.9, u_rms_re_max=0.9)                  # (0.81 - 0.64) / 0.36
     assert ck["saturated_fraction"] == pytest.approx(0.17 / 0.36) and ck["cause"] == "saturation"
+
+
+def test_signed_ratio_std_of_unequal_harmonic_noises():
+    # the mean of n projections, each of variance H_std_i^2 / (2 R): sqrt(sum H_std_i^2 / (2 R n^2))
+    H = np.array([0.8 + 0.3j, 0.01, 0.05, 0.0, 0.02, 0.0, 0.007])
+    H_std = np.array([0.01, 0.0, 0.004, 0.0, 0.011, 0.0, 0.0005])
+    R = 5
+    expected = math.sqrt((0.004 ** 2 + 0.011 ** 2 + 0.0005 ** 2) / (2 * R * 9)) / abs(H[0])
+    assert tuning.signed_odd_ratio_std(H, H_std, R) == pytest.approx(expected, rel=1e-12)
