@@ -341,7 +341,7 @@ def amplitude_verdict(h1, ratio, ratio_std, noise_re_amplitude, margin=AUTO_AMPL
     """
     rel = [(AUTO_AMPLITUDE_MIN_H1 - h1) / AUTO_AMPLITUDE_MIN_H1,
            (ratio - AUTO_AMPLITUDE_MAX_RATIO) / AUTO_AMPLITUDE_MAX_RATIO if math.isfinite(ratio) else math.inf]
-    band = [margin / 5, max(margin, (ratio_std / AUTO_AMPLITUDE_MAX_RATIO)
+    band = [margin / 5, max(margin, (2 * ratio_std / AUTO_AMPLITUDE_MAX_RATIO)
                             if math.isfinite(ratio_std) else 0.0)]
     noise = (noise_re_amplitude - MAX_NOISE_RE_AMPLITUDE) / MAX_NOISE_RE_AMPLITUDE
     if noise > -margin or any(r > b for r, b in zip(rel, band)):
@@ -722,7 +722,7 @@ def _budget(ctx, probe, outcome, by_k, amp_block):
             if slope_m < 0:
                 second = {"k_fc": _f(k_b), "s": _f(s3), "s_std": _f(se3), "slope_measured": _f(slope_m)}
                 k2 = _tuning.root_at_slope(k_b, s3, slope_m)
-                sigma2 = math.hypot(se3, se2) / abs(slope_m) * _tuning._t_factor(max(1, p3["n_periods"] - 1))
+                sigma2 = se3 / abs(slope_m) * _tuning._t_factor(max(1, p3["n_periods"] - 1))
     repeat = None
     if math.isfinite(k2) and (abs(k2 - k) > 2 * math.hypot(sig_noise, sigma2)
                               or abs(k2 - k) > REPEAT_STEP * abs(k)

@@ -318,3 +318,42 @@ def test_signed_ratio_std_of_unequal_harmonic_noises():
     R = 5
     expected = math.sqrt((0.004 ** 2 + 0.011 ** 2 + 0.0005 ** 2) / (2 * R * 9)) / abs(H[0])
     assert tuning.signed_odd_ratio_std(H, H_std, R) == pytest.approx(expected, rel=1e-12)
+
+
+def test_phases_and_slope_from_the_bracket_ends_in_the_ratio_minimiser_regime():
+    phases = np.array([0.7, -0.2, 1.9])
+    a, b = 0.08, 0.16
+    pa = _point(a, _periods(0.9, [0.021, 0.019, 0.020], phases), 0.5)
+    pb = _point(b, _periods(0.93, [-0.012, -0.010, -0.0115], phases), 0.5)
+    outcome = tuning.KfcSearchResult(k_fc=0.12, sigma=np.nan, converged=True, reason="", n_experiments=5,
+                                     bracket=(a, b), extended_to=None, regime="ratio minimiser",
+                                     sigma_signed=np.nan, slope=np.nan, phases=None)
+    got_phases, slope = ts._phases_and_slope(_Probe(0.5, {}), outcome, {a: pa, b: pb})
+    assert np.angle(np.exp(1j * (got_phases - phases))) == pytest.approx(np.zeros(3), abs=1e-9)
+    assert slope == pytest.approx((-0.0335 / 3 - 0.060 / 3) / (b - a), rel=1e-9)
+    assert slope < 0
+
+
+def test_auto_amplitude_raised_past_the_encoder_limit_with_a_margin():
+    q = 0.002
+    cfg = {"tune": {"frequency_hz": 1.25}, "detect": {"encoder_step_rad": q}, "limits": {}}
+    ctx = ts._Context(cfg, 2560.0, "raw", 5.0, {})
+
+    class Probe(_Probe):
+        def measure(self, tag, kfc, kv=0.0, amplitude=None, repeat=False):
+            self.asked.append(amplitude)
+            H = _periods(0.9, [0.010, 0.0101, 0.0099], [0.0, 0.0, 0.0])
+            p = _point(0.0, H, amplitude, noise=1e-5 * amplitude)
+            p["check"] = tuning.check_experiment(0.9)
+            p["record"] = SimpleNamespace(signals={})
+            return p
+            yield
+
+    probe = Probe(None, {})
+    probe.s = ctx
+    a, block, _, stop = _run(ts.choose_amplitude(probe, 0.05, 10.0))
+    # 0.05 rad: the step is 4 % of it (> 1 %): raised to 1.05 q / 1 % = 0.21 rad (more than
+    # the ratio's 2x), where it is 0.95 %
+    assert stop is None and probe.asked == [0.05, pytest.approx(0.21)]
+    assert a == pytest.approx(0.21) and block["chosen_rad"] == pytest.approx(0.21)
+    assert block["probes"][0]["verdict"] == "fail" and "encoder step" in block["probes"][0]["encoder_note"]
