@@ -722,7 +722,7 @@ def _budget(ctx, probe, outcome, by_k, amp_block):
             if slope_m < 0:
                 second = {"k_fc": _f(k_b), "s": _f(s3), "s_std": _f(se3), "slope_measured": _f(slope_m)}
                 k2 = _tuning.root_at_slope(k_b, s3, slope_m)
-                sigma2 = se3 / abs(slope_m) * _tuning._t_factor(max(1, p3["n_periods"] - 1))
+                sigma2 = math.hypot(se3, se2) / abs(slope_m) * _tuning._t_factor(max(1, p3["n_periods"] - 1))
     repeat = None
     if math.isfinite(k2) and (abs(k2 - k) > 2 * math.hypot(sig_noise, sigma2)
                               or abs(k2 - k) > REPEAT_STEP * abs(k)
@@ -800,7 +800,7 @@ def _diagnose_search(probe, outcome, by_k, kv):
         return "loop lag", _loop_lag_text(probe.c["frequency_hz"], lag, kv).replace(
             "at K_fc*", f"at K_fc = {best['kfc']:.4g} V (the smallest ratio)")
     gain = abs(complex(best["H"][0]))
-    if not 1 / LOOP_GAIN_MAX <= gain <= LOOP_GAIN_MAX:
+    if not gain <= LOOP_GAIN_MAX:
         return "loop lag", (
             f"the loop cannot follow the {probe.c['frequency_hz']:g} Hz sine: the motor moves {gain:.3g} "
             f"times the reference at K_fc = {best['kfc']:.4g} V (the smallest ratio; |H_1| "

@@ -357,3 +357,55 @@ def test_auto_amplitude_raised_past_the_encoder_limit_with_a_margin():
     assert stop is None and probe.asked == [0.05, pytest.approx(0.21)]
     assert a == pytest.approx(0.21) and block["chosen_rad"] == pytest.approx(0.21)
     assert block["probes"][0]["verdict"] == "fail" and "encoder step" in block["probes"][0]["encoder_note"]
+
+
+def test_budget_with_the_lag_correction_step():
+    # the motor lags 2.9 deg at K_fc* and the plant's harmonics read K_v = 0.04 V s/rad:
+    # one experiment with K_v in the loop (its root along the slope moves K_fc* by less
+    # than 2 %: no second), half that step the viscous part, its noise added
+    fs, n, c = 2560.0, 4096, 2
+    f = c * fs / n
+    w = 2 * np.pi * f
+    t = np.arange(n) / fs
+    y = 0.45 * np.sin(w * t + 0.3) + 0.004 * np.sin(3 * w * t - 0.6)
+    yd = 0.45 * w * np.cos(w * t + 0.3) + 0.012 * w * np.cos(3 * w * t - 0.6)
+    ydd = -0.45 * w ** 2 * np.sin(w * t + 0.3) - 0.036 * w ** 2 * np.sin(3 * w * t - 0.6)
+    u = 1.7e-3 * ydd + 0.04 * yd + 0.1157 * np.sign(0.45 * w * np.cos(w * t + 0.3))
+    lines_at = c * np.arange(1, 8)
+    U, Y = np.fft.fft(u)[lines_at], np.fft.fft(y)[lines_at]
+    kv = tuning.viscous_from_harmonics(U, Y, w, n, c)[0]
+    assert kv == pytest.approx(0.04, rel=2e-3)
+    a1, a2 = 0.5, 0.25
+    k1, sig1, slope = 0.1187, 1.0e-3, -8.0
+    phases = np.array([0.3, -1.1, 2.0])
+    h1_star = 0.97 * np.exp(-1j * 0.05)
+    p_star = _point(k1, _periods(h1_star, [1e-4, -2e-4, 3e-4], phases), a1, noise=1e-5)
+    p_star["lines"] = (U, Y)
+    s_lag = np.array([0.0010, 0.0012, 0.0009])
+    p_lag = _point(k1, _periods(0.98 * np.exp(-1j * 0.01), s_lag, phases), a1, kv=kv)
+    s_two = np.array([0.0015, 0.0027, 0.0018, 0.0020])
+    h1_two = 0.95 * np.exp(-1j * 0.012)
+    p_two = _point(k1, _periods(h1_two, s_two, phases), a2, kv=kv)
+    probe = _Probe(a1, {"lag": p_lag, "amplitude2": p_two}, frequency_hz=f)
+    probe.n, probe.cycles = n, c
+    cfg = {"tune": {"frequency_hz": f, "amplitude_max_rad": 0.5}, "detect": {"encoder_step_rad": None},
+           "limits": {}}
+    cfg["detect"]["encoder_step_rad"] = 1e-9          # (an ideal encoder: a negligible part)
+    ctx = ts._Context(cfg, fs, "raw", 5.0, {})
+    outcome = tuning.KfcSearchResult(k_fc=k1, sigma=sig1, converged=True, reason="", n_experiments=5,
+                                     bracket=(0.1, 0.14), extended_to=None, regime="signed root",
+                                     sigma_signed=1e-3, slope=slope, phases=phases, sigma_fit=0.0)
+    out = _run(ts._budget(ctx, probe, outcome, {k1: p_star}, {"alternative_rad": a2}))
+    assert out["cause"] is None, out["cause"]
+    k_new = float(np.float32(k1)) - s_lag.mean() / slope
+    assert [(x[0], x[2]) for x in probe.asked] == [("lag", pytest.approx(kv)), ("amplitude2", pytest.approx(kv))]
+    assert probe.asked[1][1] == pytest.approx(k_new, rel=1e-12)
+    visc = out["viscous"]
+    assert visc["applied"] and visc["lag_after_deg"] == pytest.approx(math.degrees(0.01))
+    assert out["parts"]["viscous"] == pytest.approx(abs(k_new - k1) / 2, rel=1e-9)
+    se_lag = s_lag.std(ddof=1) / math.sqrt(3)
+    sig_noise = math.hypot(sig1, se_lag / abs(slope))
+    assert out["k_fc_at_amplitude"]["sigma_noise"][0] == pytest.approx(sig_noise, rel=1e-9)
+    assert out["k_fc_at_amplitude"]["k_fc"][0] == pytest.approx(k_new, rel=1e-12)
+    assert out["parts"]["loop_lag"] == pytest.approx(1.2e-3 * math.degrees(0.01) ** 2 * out["k_fc"], rel=1e-6)
+    assert out["k_v_in_search"] == pytest.approx(kv)
