@@ -409,3 +409,54 @@ def test_budget_with_the_lag_correction_step():
     assert out["k_fc_at_amplitude"]["k_fc"][0] == pytest.approx(k_new, rel=1e-12)
     assert out["parts"]["loop_lag"] == pytest.approx(1.2e-3 * math.degrees(0.01) ** 2 * out["k_fc"], rel=1e-6)
     assert out["k_v_in_search"] == pytest.approx(kv)
+
+
+def test_budget_second_amplitude_secant_and_the_1_over_a_extrapolation():
+    # at A2 = A1 / 2 the root along the scaled slope is 6.8 % away: one more experiment
+    # there, the secant through both (its noise from both), then K_fc* differs at the two
+    # amplitudes by more than twice the noise: extrapolated in 1/A
+    a1, a2 = 0.5, 0.25
+    k1, sig1, slope = 0.1187, 1.0e-3, -8.0
+    phases = np.array([0.3, -1.1, 2.0])
+    h1_star, h1_two = 0.97 * np.exp(-1j * 0.015), 0.95 * np.exp(-1j * 0.021)
+    p_star = _point(k1, _periods(h1_star, [1e-4, -2e-4, 3e-4], phases), a1, noise=1e-5)
+    s2 = np.array([0.128, 0.131, 0.1305, 0.1295])
+    s3 = np.array([0.0102, 0.0097, 0.0105])
+    p_two = _point(k1, _periods(h1_two, s2, phases), a2)
+    slope2 = slope * a1 * abs(h1_star) / (a2 * abs(h1_two))
+    k_a = float(np.float32(k1))
+    k2_first = k_a - s2.mean() / slope2
+    p_three = _point(k2_first, _periods(h1_two, s3, phases), a2)
+
+    class Probe(_Probe):
+        def measure(self, tag, kfc, kv=0.0, amplitude=None, repeat=False):
+            self.asked.append((tag, kfc, kv, amplitude, repeat))
+            return self.points[tag].pop(0)
+            yield
+
+    probe = Probe(a1, {"amplitude2": [p_two, p_three]})
+    cfg = {"tune": {"frequency_hz": 1.25, "amplitude_max_rad": 0.5}, "detect": {"encoder_step_rad": 1e-9},
+           "limits": {}}
+    ctx = ts._Context(cfg, 2560.0, "raw", 5.0, {})
+    outcome = tuning.KfcSearchResult(k_fc=k1, sigma=sig1, converged=True, reason="", n_experiments=5,
+                                     bracket=(0.1, 0.14), extended_to=None, regime="signed root",
+                                     sigma_signed=1e-3, slope=slope, phases=phases, sigma_fit=0.0)
+    out = _run(ts._budget(ctx, probe, outcome, {k1: p_star}, {"alternative_rad": a2}))
+    assert out["cause"] is None, out["cause"]
+    assert abs(k2_first - k_a) > 0.05 * k_a
+    assert probe.asked[1][1] == pytest.approx(k2_first, rel=1e-12)
+    k_b = float(np.float32(k2_first))
+    slope_m = (s3.mean() - s2.mean()) / (k_b - k_a)
+    k2 = k_b - s3.mean() / slope_m
+    se2, se3 = s2.std(ddof=1) / 2, s3.std(ddof=1) / math.sqrt(3)
+    sigma2 = math.hypot(se3, se2) / abs(slope_m) * _t95(2)
+    at = out["k_fc_at_amplitude"]
+    assert at["secant_at_second"]["slope_measured"] == pytest.approx(slope_m, rel=1e-9)
+    assert at["k_fc"][1] == pytest.approx(k2, rel=1e-9)
+    assert at["sigma_noise"][1] == pytest.approx(sigma2, rel=1e-9)
+    g = (1 / a1) / (1 / a1 - 1 / a2)
+    k_inf = k1 + g * (k2 - k1)
+    assert out["k_fc"] == pytest.approx(k_inf, rel=1e-9)
+    assert out["parts"]["noise"] == pytest.approx(math.hypot((1 - g) * sig1, g * sigma2), rel=1e-9)
+    assert out["parts"]["amplitude"] == pytest.approx(abs(k_inf - k1), rel=1e-9)
+    assert out["repeat"] is None          # (no K_fc = 0 point to repeat against)
