@@ -800,7 +800,7 @@ def _diagnose_search(probe, outcome, by_k, kv):
         return "loop lag", _loop_lag_text(probe.c["frequency_hz"], lag, kv).replace(
             "at K_fc*", f"at K_fc = {best['kfc']:.4g} V (the smallest ratio)")
     gain = abs(complex(best["H"][0]))
-    if not gain <= LOOP_GAIN_MAX:
+    if not 1 / LOOP_GAIN_MAX <= gain <= LOOP_GAIN_MAX:
         return "loop lag", (
             f"the loop cannot follow the {probe.c['frequency_hz']:g} Hz sine: the motor moves {gain:.3g} "
             f"times the reference at K_fc = {best['kfc']:.4g} V (the smallest ratio; |H_1| "
@@ -1116,7 +1116,7 @@ def _tune(ctx, max_halvings, log):
     changes, experiments = [], 0
     try:
         results, data = yield from _tune_at_frequency(ctx)
-        while results["search"]["cause"] in HALVE_FOR and len(changes) < max_halvings:
+        while results["search"]["cause"] in HALVE_FOR and len(changes) <= max_halvings:
             c = ctx.cfg["tune"]
             src = ctx.cfg.get("_source", "config")
             cyc = _cycles(ctx.fs_hz, c["period_samples"], c["frequency_hz"], f"{src}: key 'tune.frequency_hz'")

@@ -460,3 +460,20 @@ def test_budget_second_amplitude_secant_and_the_1_over_a_extrapolation():
     assert out["parts"]["noise"] == pytest.approx(math.hypot((1 - g) * sig1, g * sigma2), rel=1e-9)
     assert out["parts"]["amplitude"] == pytest.approx(abs(k_inf - k1), rel=1e-9)
     assert out["repeat"] is None          # (no K_fc = 0 point to repeat against)
+
+
+def test_unconverged_search_with_a_motor_that_moves_too_little_is_the_loops_lag():
+    phases = np.array([0.3, -1.1, 2.0])
+    outcome = SimpleNamespace(cause="not verified")
+    for gain, cause in ((0.70, "loop lag"), (1.45, "loop lag"), (0.72, "not verified"), (1.38, "not verified")):
+        h1 = gain * np.exp(-1j * np.radians(3.0))              # 3 deg: within the lag limit
+        pts = {0.0: _point(0.0, _periods(h1, [0.03, 0.031, 0.029], phases), 0.5),
+               0.2: _point(0.2, _periods(h1, [-0.02, -0.021, -0.019], phases), 0.5),
+               0.11: _point(0.11, _periods(h1, [0.001, 0.0012, 0.0009], phases), 0.5)}
+        for k, p in pts.items():
+            p["lag_deg"] = 3.0
+        probe = _Probe(0.5, {"repeat": pts[0.2]})
+        got, text = _run(ts._diagnose_search(probe, outcome, pts, 0.0))
+        assert got == cause, (gain, got)
+        if cause == "loop lag":
+            assert f"{gain:.3g} times the reference" in text
