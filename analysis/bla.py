@@ -1347,7 +1347,7 @@ def _g_extrapolated2(freq, G, f_at):
         slope = float(np.polyfit(lf, lg, 1)[0]) if np.ptp(lf) > 0 else 0.0
     else:
         slope = 0.0
-    slope = min(slope, 0.0)
+    slope = max(slope, 0.0)
     at_top = float(np.mean(lg) + slope * (np.log(f[-1]) - np.mean(lf)))
     return np.exp(2.0 * (at_top + slope * (np.log(np.asarray(f_at)) - np.log(f[-1]))))
 

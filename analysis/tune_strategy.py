@@ -1116,7 +1116,7 @@ def _tune(ctx, max_halvings, log):
     changes, experiments = [], 0
     try:
         results, data = yield from _tune_at_frequency(ctx)
-        while results["search"]["cause"] in HALVE_FOR and len(changes) <= max_halvings:
+        while results["search"]["cause"] in HALVE_FOR and len(changes) < max_halvings:
             c = ctx.cfg["tune"]
             src = ctx.cfg.get("_source", "config")
             cyc = _cycles(ctx.fs_hz, c["period_samples"], c["frequency_hz"], f"{src}: key 'tune.frequency_hz'")

@@ -133,3 +133,32 @@ def test_class_stats_noise_tail_and_false_alarm_count():
         need = next(k for k in range(1, n + 2) if k == n + 1 or bdtrc(k - 1, n, p) <= 1e-3)
         assert _false_alarm_count(n, p) == need, (n, p)
     assert st["x_lines_needed"] == _false_alarm_count(level.size, p4)
+
+
+def test_float32_rounding_above_the_band_is_no_distortion():
+    # a linear plant's output on a large offset (an encoder's absolute angle) recorded as
+    # float32, exactly periodic (no noise): the lines above the band hold its rounding
+    # only (-75 dB re the lines: not the 100 dB under them that is ignored outright), under
+    # the floor 4 (2 r)^2 / 12 / N, r = 2^-24 max|y| (uniform within +-r): nothing detected
+    from fftune.analysis.bla import robust_bla
+    n, p, m = 1024, 4, 3
+    rng = np.random.default_rng(17)
+    bins = np.arange(1, 101)
+    G = 2.0 / (1 + 1j * bins / 30.0) ** 2
+    u_list, y_list = [], []
+    for _ in range(m):
+        X = np.zeros(n // 2 + 1, complex)
+        X[bins] = np.exp(2j * np.pi * rng.random(bins.size))
+        u1 = np.fft.irfft(X, n)
+        Yf = np.zeros_like(X)
+        Yf[bins] = G * X[bins]
+        y1 = np.fft.irfft(Yf, n)
+        u_list.append(np.tile(u1, p))
+        y_list.append(np.tile((y1 + 1.0e4).astype(np.float32), p))
+    u = np.array(u_list).reshape(m, p, n)
+    y = np.array(y_list).reshape(m, p, n)
+    res = robust_bla(u, y, fs=1.0, excited_bins=bins)
+    s = res.summary
+    assert s["above_band_lines"] > 150
+    assert s["above_band_line_median_re_noise_db"] is not None      # the lines were tested
+    assert s["above_band_detected"] is False, s["above_band_lines_over_noise_6db"]
