@@ -162,3 +162,28 @@ def test_float32_rounding_above_the_band_is_no_distortion():
     assert s["above_band_lines"] > 150
     assert s["above_band_line_median_re_noise_db"] is not None      # the lines were tested
     assert s["above_band_detected"] is False, s["above_band_lines_over_noise_6db"]
+
+
+def test_lpm_offsets_by_hand():
+    from fftune.analysis.lpm import lpm_offsets
+    # P = 4, lines at multiples of 4: the nearest non-multiples, n on each side
+    assert list(lpm_offsets(8, 4, 3, 1000)) == [-3, -2, -1, 1, 2, 3]
+    assert list(lpm_offsets(12, 4, 4, 1000)) == [-5, -3, -2, -1, 1, 2, 3, 5]
+    # near DC only 3 below (bins 3, 2, 1): the rest above
+    assert list(lpm_offsets(4, 4, 4, 1000)) == [-3, -2, -1, 1, 2, 3, 5, 6]
+    # near the top (n_full 15: bins up to 14): the rest below
+    assert list(lpm_offsets(12, 4, 3, 15)) == [-5, -3, -2, -1, 1, 2]
+
+
+def test_lpm_reference_moments_are_its_period_mean():
+    from fftune.analysis.lpm import lpm_moments
+    n, p = 64, 5
+    t = np.arange(n)
+    r1 = np.sin(2 * np.pi * 3 * t / n) + 0.4 * np.sin(2 * np.pi * 7 * t / n + 1.0)
+    r = np.tile(r1, (1, p)).reshape(1, p, n)
+    u = r + 0.01 * np.random.default_rng(1).standard_normal(r.shape)
+    y = 0.5 * u
+    band = np.arange(3, 8)
+    mom, _, _ = lpm_moments(u, y, r, band=band, excited=np.array([3, 7]))
+    assert mom.R[0] == pytest.approx(np.fft.rfft(r1)[band], abs=1e-9)
+    assert np.all(mom.ss_r == 0)

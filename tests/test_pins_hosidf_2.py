@@ -48,3 +48,15 @@ def test_one_sine_rule_harmonics_to_half_other_lines_to_a_tenth():
     with pytest.raises(InputError, match="not one sine"):
         _one_sine_check(3, 0.3)
     assert _one_sine_check(3, 0.05).H[0] == pytest.approx(0.5, rel=1e-9)
+
+
+def test_a_line_beside_the_sine_is_no_leakage():
+    # the sine's own line found from the data (f0 not given): an off-grid sine raises both
+    # neighbours, a small other input line at the next bin only one; accepted
+    t = _t()
+    u = np.sin(2 * np.pi * 5 * FS / N * t) + 0.05 * np.sin(2 * np.pi * 6 * FS / N * t)
+    res = hosidf(u.reshape(1, P, N), (0.5 * u).reshape(1, P, N), fs=FS, n_harmonics=3)
+    assert res.bin == 5 and res.H[0] == pytest.approx(0.5, rel=1e-9)
+    off = np.sin(2 * np.pi * 5.3 * FS / N * t)
+    with pytest.raises(InputError, match="off the DFT grid"):
+        hosidf(off.reshape(1, P, N), off.reshape(1, P, N), fs=FS, n_harmonics=3)
