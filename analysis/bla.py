@@ -1739,7 +1739,7 @@ def _bla_from_moments(mom, *, excited, n, fs, settle, Y_exc, G_per, warn_transie
         ref_var = var_noise + round_var
         with np.errstate(divide="ignore", invalid="ignore"):
             excited_stats = _class_stats(var_total, np.where(ref_var > 0, ref_var, np.nan),
-                                         d2, "excited_",
+                                         d2 / 2, "excited_",
                                          tail=lambda x: f_sf_even(x, d1, d2))
         neg_fraction_expected = float(1.0 - f_sf_even(np.array(1.0), d1, d2))
         n_neg = int(var_nl_negative.sum())

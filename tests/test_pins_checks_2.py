@@ -1,6 +1,8 @@
 """Pins of the checks before averaging, second set (issue 33's hand-written bug audit,
 docs/testing.md): a level step at the two sides of its floor, the count of blocks in
 the non-finite message, the smallest period."""
+import math
+
 import numpy as np
 import pytest
 
@@ -41,3 +43,19 @@ def test_a_period_of_fewer_than_four_samples_is_refused():
     assert check_arguments(fs=10.0, n_period=4) == (10.0, None)
     with pytest.raises(InputError, match="too small"):
         check_arguments(fs=10.0, n_period=3)
+
+
+def test_a_period_is_named_only_when_the_record_repeats_closely():
+    # a record periodic in 1333 samples, read with N = 1024: refused; with little noise the
+    # message names the period 1333, with noise of 40 % of its power (autocorrelation 0.7 at
+    # the lag: under 0.9) it says no period was found
+    rng = np.random.default_rng(6)
+    m, n, blocks = 1333, 1024, 8
+    k = np.arange(1, 400)
+    t = np.arange(n * blocks)
+    x = np.sum(np.cos(2 * np.pi * np.outer(t, k) / m + 2 * np.pi * rng.random(k.size)), axis=1)
+    x /= np.std(x)
+    with pytest.raises(InputError, match="repeats every 1333 samples"):
+        check_blocks((x + 0.01 * rng.standard_normal(x.size)).reshape(1, blocks, n))
+    with pytest.raises(InputError, match="no period found"):
+        check_blocks((x + math.sqrt(0.43) * rng.standard_normal(x.size)).reshape(1, blocks, n))
