@@ -60,3 +60,11 @@ def test_a_line_beside_the_sine_is_no_leakage():
     off = np.sin(2 * np.pi * 5.3 * FS / N * t)
     with pytest.raises(InputError, match="off the DFT grid"):
         hosidf(off.reshape(1, P, N), off.reshape(1, P, N), fs=FS, n_harmonics=3)
+
+
+def test_a_sine_that_falls_26_db_before_the_record_ends_is_named_a_burst():
+    t = np.arange(P * N) / FS
+    u = np.sin(2 * np.pi * 5 * FS / N * t)
+    u[int(0.7 * u.size):] *= 0.05                     # -26 dB: under the envelope's 20 dB
+    with pytest.raises(InputError, match="excitation stops at sample"):
+        hosidf(u.reshape(1, 1, -1), u.reshape(1, 1, -1), fs=FS, n_harmonics=3)
