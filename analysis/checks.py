@@ -66,7 +66,7 @@ def check_arguments(*, fs, n_period=None, settle_periods=None, n_total=None, hol
         raise InputError(f"fs must be a positive sample rate in Hz, got {fs!r}") from None
     if not np.isfinite(fs_value) or fs_value <= 0:
         raise InputError(f"fs must be a positive sample rate in Hz, got {fs}")
-    if n_period is not None and int(n_period) < 2:
+    if n_period is not None and int(n_period) < 4:
         raise InputError(f"samples per period N = {n_period} is too small")
     settle = None
     if settle_periods is not None:
