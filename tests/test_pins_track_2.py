@@ -229,28 +229,40 @@ def test_viscous_shift_count_latch_and_settled_rule():
 
 
 def test_noise_correction_its_note_and_its_part_of_the_systematic_sigma():
-    from fftune.analysis.track import NOTE_NOISE_CORRECTED, SYS_FLOOR_KV_REL
-    st, raw, edges = _stats_from_raw(2, 3001, 6, [0.142, 0.097, 0.011, 0.0052],
-                                     [0.02, 0.09, 0.035, 0.005, 0.06, 0.015], seed=21)
-    plain = estimate_task(st, kv_unique_min=0.0)
-    prev = [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": 1.0})]
-    for rel, noted in ((1.0e-3, True), (2.0e-4, False)):
-        # the gain that makes sigma_n^2 = rel / NOISE_BIAS_PER_RAD2 (100 / rad^2)
-        gain = plain.rms_residual / math.sqrt(rel / 100.0)
+    """The bias model of issue 32's third pass: relative bias NOISE_BIAS_PER_RAD2 x
+    (K_cal / gain_cal)^2 x r^2, r = gain x (the smallest noise bound of this and the
+    earlier tasks) / |K_fc| (with this task's own bound r is the residual's rms over K_fc,
+    whatever the gain); its note above a tenth of the floor; its size a part of the
+    systematic sigma."""
+    from fftune.analysis.track import (NOISE_BIAS_PER_RAD2, NOISE_CAL_GAIN_V_PER_RAD, NOISE_CAL_K_FC_V,
+                                       NOTE_NOISE_CORRECTED, SCATTER_WINDOW, SYS_FLOOR_REL)
+    coef = NOISE_BIAS_PER_RAD2 * (NOISE_CAL_K_FC_V / NOISE_CAL_GAIN_V_PER_RAD) ** 2
+    gain = 31.0
+    for scale, case in ((1.0, "bound"), (1.0, "own"), (2.5, "own")):
+        st, raw, edges = _stats_from_raw(2, 3001, 6, [0.142, 0.097, 0.011, 0.0052],
+                                         [scale * v for v in (0.02, 0.09, 0.035, 0.005, 0.06, 0.015)], seed=21)
+        plain = estimate_task(st, kv_unique_min=0.0)
+        sigma_n = plain.rms_residual / gain
+        if case == "bound":       # an earlier task's smaller bound: r = gain b / K_fc
+            b = 0.6 * sigma_n
+            prev = [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": b})]
+            r = gain * b / abs(plain.k_fc)
+        else:                     # this task's own bound: r = rms_residual / K_fc
+            prev = [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": 1.0})]
+            r = plain.rms_residual / abs(plain.k_fc)
         est = estimate_task(st, kv_unique_min=0.0, noise_gain=gain, recent=prev)
-        assert est.sensor_noise_rad == pytest.approx(math.sqrt(rel / 100.0), rel=1e-9)
-        corr = rel * plain.k_fc
+        assert est.sensor_noise_rad == pytest.approx(sigma_n, rel=1e-9)
+        corr = coef * r ** 2 * plain.k_fc
         assert est.k_fc_noise_correction == pytest.approx(corr, rel=1e-9)
         assert est.k_fc == pytest.approx(plain.k_fc + corr, rel=1e-12)
-        assert (NOTE_NOISE_CORRECTED in est.notes) is noted
-        assert est.k_fc_sigma_sys == pytest.approx(math.hypot(SYS_FLOOR_KV_REL * plain.k_fc, corr), rel=1e-9)
+        assert (NOTE_NOISE_CORRECTED in est.notes) is (abs(corr) > 0.1 * SYS_FLOOR_REL * abs(plain.k_fc + corr))
+        assert est.k_fc_sigma_sys ** 2 == pytest.approx(plain.k_fc_sigma_sys ** 2 + corr ** 2, rel=1e-9)
+    assert NOTE_NOISE_CORRECTED in est.notes          # (the 2.5x noise: the note; scale 1: none)
     # the smallest bound of the last SCATTER_WINDOW - 1 earlier tasks: an older one is not read
-    from fftune.analysis.track import SCATTER_WINDOW
     older = [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": 1e-9})]
     recent = older + [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": 1.0})] * (SCATTER_WINDOW - 1)
-    gain = plain.rms_residual / math.sqrt(1e-3 / 100.0)
-    est = estimate_task(st, kv_unique_min=0.0, noise_gain=gain, recent=recent)
-    assert est.k_fc_noise_correction == pytest.approx(1e-3 * plain.k_fc, rel=1e-9)
+    est2 = estimate_task(st, kv_unique_min=0.0, noise_gain=gain, recent=recent)
+    assert est2.k_fc_noise_correction == pytest.approx(est.k_fc_noise_correction, rel=1e-9)
 
 
 def test_stop_and_rollback_limits():
@@ -279,12 +291,15 @@ def test_curvature_scatter_needs_scatter_min_plus_one_and_trend_keep_and_slow_do
     assert drift_trend(x, scatter_floor=0.13, active=True) == 0.0          # 0.25 < 2 x 0.13
     # the last change falls short of the ones before by more than 2 sqrt(3) s: the last
     # change times its ratio to their mean; by less (but more than 2 sqrt(2) s): the mean
+    # by less: the smaller of the mean and the last change (issue 32's third pass); a last
+    # change above the mean: the mean
     s = 0.1
-    for drop, slowed in ((2 * math.sqrt(3) * s * 1.05, True), (2 * math.sqrt(3) * s * 0.95, False)):
+    for drop, slowed in ((2 * math.sqrt(3) * s * 1.05, True), (2 * math.sqrt(3) * s * 0.95, False),
+                         (-0.1, False)):
         d = [2.0, 2.0, 2.0 - drop]
         x = list(2.0 * np.arange(7.0)) + list(12.0 + np.cumsum(d))
         m = float(np.mean(d))
-        expected = d[-1] * min(1.0, d[-1] / 2.0) if slowed else m
+        expected = d[-1] * min(1.0, d[-1] / 2.0) if slowed else min(m, d[-1])
         assert drift_trend(x, scatter_floor=s) == pytest.approx(expected, rel=1e-12)
 
 

@@ -34,7 +34,8 @@ WORK = ROOT / "build" / "mutation" / "py"
 MODULES = {
     # the 150-seed Monte Carlo check of the known-reference variances (the slowest test by
     # far) is left out for time; the known-reference var_nl test covers the same lines
-    "bla": ("analysis/bla.py", ["tests/test_analysis_bla_helpers.py",
+    "bla": ("analysis/bla.py", ["tests/test_pins_bla_2.py", "tests/test_pins_bla_reference.py",
+                                "tests/test_analysis_bla_helpers.py",
                                 "tests/test_analysis_bla_mimo.py",
                                 "tests/test_analysis_bla_mutants.py", "tests/test_analysis_bla.py",
                                 "tests/test_analysis_bla_moments.py", "tests/test_analysis_detect.py",
@@ -42,14 +43,16 @@ MODULES = {
                                 "tests/test_analysis_groundtruth.py",
                                 "--deselect=tests/test_analysis_bla.py::"
                                 "test_known_reference_variances_match_monte_carlo_spread"]),
-    "hosidf": ("analysis/hosidf.py", ["tests/test_analysis_hosidf_mutants.py",
+    "hosidf": ("analysis/hosidf.py", ["tests/test_pins_hosidf_2.py", "tests/test_analysis_hosidf_mutants.py",
                                       "tests/test_analysis_hosidf.py"]),
-    "tuning": ("analysis/tuning.py", ["tests/test_analysis_tuning_mutants.py",
+    "tuning": ("analysis/tuning.py", ["tests/test_pins_tune_2.py", "tests/test_pins_tune_track.py",
+                                      "tests/test_analysis_tuning_mutants.py",
                                       "tests/test_analysis_tuning.py"]),
     "multisine": ("analysis/multisine.py", ["tests/test_analysis_multisine.py"]),
     # the paper's verdicts: without the shortened `make paper` run (minutes; its numbers
     # come from the functions the fast tests pin)
-    "reproduction": ("analysis/reproduction.py", ["tests/test_pins_paper.py", "tests/test_paper.py",
+    "reproduction": ("analysis/reproduction.py", ["tests/test_pins_paper.py", "tests/test_pins_paper_2.py",
+                                                  "tests/test_paper.py",
                                                   "--deselect=tests/test_paper.py::test_short_run_reproduces_the_paper",
                                                   "--deselect=tests/test_paper.py::"
                                                   "test_doc_table_is_generated_from_reproduction_json"]),
