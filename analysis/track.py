@@ -593,7 +593,7 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     k_v_ref = float(k_v_hold)
     if recent and math.isfinite(recent[0].k_v_trusted):
         k_v_ref = float(recent[0].k_v_trusted)
-    if kv_ok:   # the split's conditioning: the four-gain K_fc against the held fit's at the trusted K_v
+    if kv_ok and recent is not None:   # the split's conditioning: the four-gain K_fc against the held fit's at the trusted K_v
         try:
             fc4 = 0.5 * sum(_solve(A, c, [0, 1, 2, 3])[:2])
             fch = 0.5 * sum(_solve(A, c - k_v_ref * A[:, 2], [0, 1, 3])[:2])
@@ -709,7 +709,9 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         if math.isfinite(gap) else 0.0
     if fc_model > MODEL_NOTE_REL * floor:
         notes.append(NOTE_MODEL_ERROR)
-    fc_split = abs(split_gap)
+    # the gap less what the noise alone makes of it (the four-gain K_fc's sandwich part,
+    # twice: the held fit is nested in it, so the gap's noise is at most the four-gain's)
+    fc_split = max(0.0, abs(split_gap) - 2.0 * math.sqrt(max(0.0, float(w_fc @ V @ w_fc))))
     fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + fc_visc ** 2 + fc_model ** 2 + fc_split ** 2)
     if recent is not None and len(recent) >= VISC_BASELINE_FROM + SPEED_WINDOW - 1:
         kv_seen = [e.k_v_free for e in recent[-(SPEED_WINDOW - 1):]] + [k_v_free]
