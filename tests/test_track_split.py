@@ -88,3 +88,20 @@ def test_tracker_returns_k_v_to_the_trusted_value_on_a_held_split():
     assert dec.k_v == pytest.approx(0.0045, abs=1e-12)      # toward 0.003, bounded by the step
     tr2 = Tracker(k_fc=0.11, k_v=0.0065, k_a=M, settings=TrackSettings(update_kv=False))
     assert tr2.after_task(est).k_v == 0.0065                 # K_v not tracked: untouched
+
+
+def test_low_coulomb_plant_with_k_v_tracked_is_held_not_confidently_wrong(tmp_path):
+    # the simulated drive, 0.5 x plant_twomass's Coulomb level (where K_fc collapsed to
+    # -68 % with a 4.9 % sigma): K_v is held at the trusted value from the first task on
+    # and no settled task is outside max(2 %, 2 sigma)
+    from fwsim_drive import plant_file
+    from track_sim import run_tracking
+    fc0 = 5.785e-3
+    plant = plant_file({"plant": {"coulomb": 0.5 * fc0, "static": 0.5 * fc0}}, directory=str(tmp_path))
+    rows, dec = run_tracking(plant, 8, k_fc=0.1157 * 0.5, k_v=0.002, k_a=0.0, track_k_v=True)
+    assert dec.action != "stop" and len(rows) == 8
+    assert all(NOTE_KV_SPLIT_HELD in r["notes"] for r in rows)
+    assert all(r["k_fc"] > 0 for r in rows)
+    for r in rows[3:]:
+        err = r["k_fc_estimate"] / r["k_fc_true"] - 1
+        assert abs(err) <= max(0.02, 2 * r["k_fc_sigma"] / r["k_fc_true"]), (r["task"], err)
