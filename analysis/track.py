@@ -293,6 +293,12 @@ class TaskEstimate:
     estimated or the task cannot give it); ``k_fc_sigma_model`` [V] (a part of
     ``k_fc_sigma_sys``): half the median gap of the recent tasks, the model error the two
     instruments reveal; beyond the floor the row carries ``NOTE_MODEL_ERROR``.
+    ``k_fc_sigma_split`` [V] (a part of ``k_fc_sigma_sys``, K_v estimated within a run): the
+    four-gain K_fc's gap to the K_v-held fit's at the trusted K_v, less twice the four-gain
+    K_fc's sandwich part; ``NOTE_KV_SPLIT_HELD`` when the gap exceeded KV_SPLIT_MAX_REL of
+    K_fc (or did on KV_SPLIT_LATCH earlier tasks): the estimate is then the held fit's, K_v
+    at the trusted value. ``k_v_trusted`` [V s/rad]: the run's first task's K_v (NaN without
+    a run's history).
     """
 
     k_fc: float
@@ -566,7 +572,10 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         friction is then watched (:func:`viscous_shift` on their ``k_v_free``), and the
         sensor noise is the smallest of their residual bounds and this one's over the last
         ``SCATTER_WINDOW`` tasks (a model error, e.g. while a gain is still wrong, only
-        adds to a residual; with no earlier task no correction). None: neither.
+        adds to a residual; with no earlier task no correction). With K_v estimated the
+        split is checked against the held fit at the trusted K_v (the first estimate's
+        ``k_v_trusted``, or ``k_v_hold`` on the run's first task, ``recent`` empty).
+        None: none of these.
     k_fc_applied : float or None
         The K_fc [V] the drive ran this task with: a task whose estimate differs from it by
         more than VISC_FIXED_REL (the loop away from its fixed point: the closed loop moves
@@ -731,7 +740,7 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         k_fc_noise_correction=float(corr), k_fc_sigma_viscous=float(fc_visc),
         k_fc_applied=math.nan if k_fc_applied is None else float(k_fc_applied),
         k_fc_instrument_gap=gap, k_fc_sigma_model=float(fc_model), k_fc_sigma_split=float(fc_split),
-        k_v_trusted=k_v_ref)
+        k_v_trusted=k_v_ref if recent is not None else math.nan)
 
 
 def _block_samples(stats):
