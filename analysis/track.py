@@ -602,7 +602,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     k_v_ref = float(k_v_hold)
     if recent and math.isfinite(recent[0].k_v_trusted):
         k_v_ref = float(recent[0].k_v_trusted)
-    if kv_ok and recent is not None:   # the split's conditioning: the four-gain K_fc against the held fit's at the trusted K_v
+    # the split's conditioning: the four-gain K_fc against the held fit's at the trusted K_v
+    if kv_ok and recent is not None:
         try:
             fc4 = 0.5 * sum(_solve(A, c, [0, 1, 2, 3])[:2])
             fch = 0.5 * sum(_solve(A, c - k_v_ref * A[:, 2], [0, 1, 3])[:2])
