@@ -66,6 +66,23 @@ NOTE_VISCOUS_FOLDED = "viscous_drift_folded_into_k_fc"
 # (20x its viscous friction) above the truth (make bench); the floor then is this fraction
 SYS_FLOOR_KV_REL = 0.02
 NOTE_KV_SPLIT = "k_fc_k_v_split_bias"
+# K_v estimated as well, the split's conditioning: the four-gain fit equals the K_v-held fit
+# with b at the fit's own K_v, so the two K_fc differ by what the proposed K_v change moves
+# K_fc by (the held fit's K_fc per V s/rad times the change). Where the regressors p, n and
+# v_r are nearly collinear over the task (a low Coulomb level, issue 32's fourth pass) a
+# small model error in the data moves that K_v far and K_fc with it (-68 % at 0.5 x
+# plant_twomass's Coulomb level, sigma 4.9 %). The gap against the held fit at the K_v in
+# effect is a part of K_fc's sigma (``k_fc_sigma_split``); where it exceeds KV_SPLIT_MAX_REL
+# of K_fc (the tracker's default limit on K_fc's sigma, TrackSettings.max_sigma_rel: a K_v
+# change the tracker could not accept K_fc's uncertainty for) the task cannot tell the split:
+# the estimate falls back to the K_v-held fit (K_v not identified, held at the value in
+# effect) and the row says so (NOTE_KV_SPLIT_HELD)
+KV_SPLIT_MAX_REL = 0.2
+# ... on this many tasks of the run (the first task, without the mass feed-forward, is the
+# closed loop's transient; a second one is the split's): K_v held from then on (a split that
+# came apart once creeps back task by task, each step within the limit)
+KV_SPLIT_LATCH = 2
+NOTE_KV_SPLIT_HELD = "k_v_split_ill_determined_k_v_held"
 # Sensor noise: it enters u through the feedback (white at the sample rate, gain
 # sensor_noise_gain of the PD controller), so the fit's residual measures it:
 # sigma_n = rms_residual / gain (an upper bound: the model error adds to the residual).
@@ -276,6 +293,12 @@ class TaskEstimate:
     estimated or the task cannot give it); ``k_fc_sigma_model`` [V] (a part of
     ``k_fc_sigma_sys``): half the median gap of the recent tasks, the model error the two
     instruments reveal; beyond the floor the row carries ``NOTE_MODEL_ERROR``.
+    ``k_fc_sigma_split`` [V] (a part of ``k_fc_sigma_sys``, K_v estimated within a run): the
+    four-gain K_fc's gap to the K_v-held fit's at the trusted K_v, less twice the four-gain
+    K_fc's sandwich part; ``NOTE_KV_SPLIT_HELD`` when the gap exceeded KV_SPLIT_MAX_REL of
+    K_fc (or did on KV_SPLIT_LATCH earlier tasks): the estimate is then the held fit's, K_v
+    at the trusted value. ``k_v_trusted`` [V s/rad]: the run's first task's K_v (NaN without
+    a run's history).
     """
 
     k_fc: float
@@ -302,6 +325,8 @@ class TaskEstimate:
     k_fc_applied: float = math.nan
     k_fc_instrument_gap: float = math.nan
     k_fc_sigma_model: float = 0.0
+    k_fc_sigma_split: float = 0.0
+    k_v_trusted: float = math.nan
 
 
 def _check_identifiable(A):
@@ -547,7 +572,10 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         friction is then watched (:func:`viscous_shift` on their ``k_v_free``), and the
         sensor noise is the smallest of their residual bounds and this one's over the last
         ``SCATTER_WINDOW`` tasks (a model error, e.g. while a gain is still wrong, only
-        adds to a residual; with no earlier task no correction). None: neither.
+        adds to a residual; with no earlier task no correction). With K_v estimated the
+        split is checked against the held fit at the trusted K_v (the first estimate's
+        ``k_v_trusted``, or ``k_v_hold`` on the run's first task, ``recent`` empty).
+        None: none of these.
     k_fc_applied : float or None
         The K_fc [V] the drive ran this task with: a task whose estimate differs from it by
         more than VISC_FIXED_REL (the loop away from its fixed point: the closed loop moves
@@ -568,6 +596,24 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     _check_identifiable(A)
     kv_unique = _kv_unique_fraction(A) >= kv_unique_min
     kv_ok = not hold_k_v and kv_unique
+    recent = list(recent) if recent is not None else None
+    split_gap, split_held = 0.0, False
+    # the trusted K_v: the one the first task of the run ran with (carried by the estimates)
+    k_v_ref = float(k_v_hold)
+    if recent and math.isfinite(recent[0].k_v_trusted):
+        k_v_ref = float(recent[0].k_v_trusted)
+    # the split's conditioning: the four-gain K_fc against the held fit's at the trusted K_v
+    if kv_ok and recent is not None:
+        try:
+            fc4 = 0.5 * sum(_solve(A, c, [0, 1, 2, 3])[:2])
+            fch = 0.5 * sum(_solve(A, c - k_v_ref * A[:, 2], [0, 1, 3])[:2])
+            split_gap = float(fc4 - fch)
+        except np.linalg.LinAlgError:
+            split_gap = math.inf
+        latched = sum(NOTE_KV_SPLIT_HELD in e.notes for e in (recent or [])) >= KV_SPLIT_LATCH
+        if latched or not math.isfinite(split_gap) or abs(split_gap) > KV_SPLIT_MAX_REL * abs(fch):
+            kv_ok, split_held, split_gap = False, True, 0.0
+            k_v_hold = k_v_ref
     cols = [0, 1, 2, 3] if kv_ok else [0, 1, 3]
     k_v_free = math.nan
     if kv_unique:
@@ -644,6 +690,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
     fc_stat = math.sqrt(max(0.0, float(w_fc @ V @ w_fc)))
     fc_sys = (SYS_FLOOR_REL if not kv_ok else SYS_FLOOR_KV_REL) * abs(float(fc))
     notes = [NOTE_KV_SPLIT] if kv_ok else [NOTE_VISCOUS_FOLDED if not shifted else NOTE_VISCOUS_CHANGE]
+    if split_held:
+        notes.append(NOTE_KV_SPLIT_HELD)
     # the sensor noise, read from the residual, and its bias
     sigma_n, corr = math.nan, 0.0
     if noise_gain:
@@ -671,7 +719,10 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         if math.isfinite(gap) else 0.0
     if fc_model > MODEL_NOTE_REL * floor:
         notes.append(NOTE_MODEL_ERROR)
-    fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + fc_visc ** 2 + fc_model ** 2)
+    # the gap less what the noise alone makes of it (the four-gain K_fc's sandwich part,
+    # twice: the held fit is nested in it, so the gap's noise is at most the four-gain's)
+    fc_split = max(0.0, abs(split_gap) - 2.0 * math.sqrt(max(0.0, float(w_fc @ V @ w_fc))))
+    fc_sys = math.sqrt(fc_sys ** 2 + corr ** 2 + fc_visc ** 2 + fc_model ** 2 + fc_split ** 2)
     if recent is not None and len(recent) >= VISC_BASELINE_FROM + SPEED_WINDOW - 1:
         kv_seen = [e.k_v_free for e in recent[-(SPEED_WINDOW - 1):]] + [k_v_free]
         if all(math.isfinite(v) for v in kv_seen) and float(np.median(kv_seen)) < 0.0:
@@ -689,7 +740,8 @@ def estimate_task(stats, k_v_hold=0.0, cond_limit=COND_LIMIT, kv_unique_min=KV_U
         k_v_free=k_v_free, k_v_shift=float(k_v_shift), sensor_noise_rad=sigma_n,
         k_fc_noise_correction=float(corr), k_fc_sigma_viscous=float(fc_visc),
         k_fc_applied=math.nan if k_fc_applied is None else float(k_fc_applied),
-        k_fc_instrument_gap=gap, k_fc_sigma_model=float(fc_model))
+        k_fc_instrument_gap=gap, k_fc_sigma_model=float(fc_model), k_fc_sigma_split=float(fc_split),
+        k_v_trusted=k_v_ref if recent is not None else math.nan)
 
 
 def _block_samples(stats):
@@ -919,7 +971,8 @@ class Tracker:
 
     def _update_kv_ka(self, est):
         s = self.settings
-        if s.update_kv and est.k_v_identified:
+        if s.update_kv and (est.k_v_identified or NOTE_KV_SPLIT_HELD in est.notes):
+            # the split ill-determined: K_v back to the trusted value the estimate held it at
             self.k_v = max(0.0, _bounded(self.k_v, self.k_v + s.gain * (est.k_v - self.k_v), s.kv_max_step))
         lim_ka = s.ka_max_step_rel * self.k_a if self.k_a > 0 else None
         self.k_a = max(0.0, _bounded(self.k_a, self.k_a + s.gain * (est.k_a - self.k_a), lim_ka))

@@ -461,6 +461,8 @@ def _track_loop(client, cfg, out, log, figures, drive, tracker, on_drive, counte
             row["k_fc_sigma_viscous"] = _f(est.k_fc_sigma_viscous)
         if ok and est.k_fc_sigma_model:
             row["k_fc_sigma_model"] = _f(est.k_fc_sigma_model)
+        if ok and est.k_fc_sigma_split:
+            row["k_fc_sigma_split"] = _f(est.k_fc_sigma_split)
         if decision.cause:
             row["cause"] = decision.cause
         if fc_true is not None:

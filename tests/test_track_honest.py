@@ -137,10 +137,11 @@ def test_noise_correction_constant_and_the_first_task():
     from test_track import _synthetic
     from fftune.analysis.track import estimate_task
     st = _synthetic([0.12, 0.12, 0.003, 0.006], noise=0.05, seed=2)
-    first = estimate_task(st, noise_gain=10.0, recent=[])
+    # (K_v in effect the plant's 0.003: the split's gap to the held fit is noise alone, no split part)
+    first = estimate_task(st, noise_gain=10.0, recent=[], k_v_hold=0.003)
     assert first.k_fc_noise_correction == 0.0 and first.sensor_noise_rad == pytest.approx(
         first.rms_residual / 10.0)
-    second = estimate_task(st, noise_gain=10.0, recent=[first])
+    second = estimate_task(st, noise_gain=10.0, recent=[first], k_v_hold=0.003)
     sn = first.sensor_noise_rad
     plain = estimate_task(st)
     # the relative bias NOISE_BIAS_PER_R2 r^2, r = the input's noise rms (10 V/rad x sn) over K_fc

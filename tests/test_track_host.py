@@ -140,3 +140,22 @@ def test_frame_bits_and_defaults():
     assert cfg["track"]["task"]["mode"] == "back_and_forth" and cfg["track"]["tasks"] == 140
     assert cfg["track"]["limits"]["max_step_rel"] == 0.25
     assert cfg["track"]["settle_repetitions"] == 0 and cfg["track"]["progress_pdo_off"] is True
+
+
+def test_demo_track_k_v_tracked_low_coulomb_holds_k_v_and_says_so(tmp_path):
+    # issue 32: with K_v tracked at 0.5 x plant_twomass's Coulomb level the K_fc / K_v split
+    # collapsed (K_fc -68 %, sigma 4.9 %); through `fftune demo-track` K_v is held at the
+    # configured value and every row names it
+    from fwsim_drive import plant_file as derived
+    fc0 = 5.785e-3
+    plant = derived({"plant": {"coulomb": 0.5 * fc0, "static": 0.5 * fc0}}, directory=str(tmp_path / "p"))
+    cfg = _config(tmp_path, plant, tasks=8, track_k_v=True,
+                  initial={"k_fc": 0.5 * 0.1157, "k_v": 0.002, "k_a": 0.0})
+    assert main(["demo-track", "--config", cfg, "--no-progress", "--no-figures"]) == 0
+    rows = yaml.safe_load((tmp_path / "out" / "results.yaml").read_text())["track"]
+    assert len(rows) == 8
+    assert all("k_v_split_ill_determined_k_v_held" in r["notes"] for r in rows)
+    assert all(r["k_v"] == pytest.approx(0.002, rel=1e-6) for r in rows)
+    for r in rows[3:]:
+        err = r["k_fc_estimate"] / r["k_fc_true"] - 1
+        assert abs(err) <= max(0.02, 2 * r["k_fc_sigma"] / r["k_fc_true"]), r

@@ -119,6 +119,7 @@ def run_tracking(plant, tasks, k_fc=0.1157, k_v=0.002, k_a=0.0062, task=None, mo
                          "k_fc_sigma_stat": est.k_fc_sigma_stat if ok else None,
                          "k_fc_sigma_viscous": est.k_fc_sigma_viscous if ok else None,
                          "k_fc_sigma_model": est.k_fc_sigma_model if ok else None,
+                         "k_fc_sigma_split": est.k_fc_sigma_split if ok else None,
                          "notes": list(est.notes) if ok else [],
                          "cause": decision.cause,
                          "k_v_shift": est.k_v_shift if ok else None,

@@ -434,6 +434,53 @@ def model_error_figures(tasks=80):
     print(f"{MODEL_FAMILY}: {ok_rows} of {len(rows_spec)} rows covered (>= 90 %) or flagged", flush=True)
 
 
+SPLIT_FAMILY = "two-mass momentum, K_v tracked"
+
+
+def split_figures(tasks=40):
+    """Issue 32, the K_fc / K_v split with K_v tracked (``track_k_v``) on two-mass plants:
+    the Coulomb level 0.2 .. 2 x plant_twomass's (static = Coulomb), its viscous friction
+    0.5 .. 3 x (the initial K_v the plant's, as tune gives it), sensor noise 0 .. 1e-2 rad
+    with two seeds; 40-task runs from K_a = 0. Per row, over the settled tasks (not the
+    first 3): the mean error and sigma against the Coulomb level, the coverage within
+    max(2 %, 2 sigma), the tasks named ``k_v_split_ill_determined_k_v_held`` (K_v held at
+    the trusted value), the mean split part ``k_fc_sigma_split``, the first settled task
+    outside max(2 %, 2 sigma) that is neither held nor stopped (a confidently wrong one)."""
+    from fwsim_drive import plant_file as derived
+    fc0, b0 = 5.785e-3, 1.0e-4
+    rows_spec = [(f"Coulomb {c:g} x", c, 1.0, 0.0, 1) for c in (0.2, 0.3, 0.5, 1.0, 2.0)]
+    rows_spec += [(f"{c:g} x, viscous {v:g} x", c, v, 0.0, 1) for c in (0.3, 1.0) for v in (0.5, 3.0)]
+    rows_spec += [(f"{c:g} x, noise {ns:g} seed {sd}", c, 1.0, ns, sd)
+                  for c, ns in ((0.3, 5e-3), (0.5, 1e-2), (2.0, 1e-2)) for sd in (1, 2)]
+    ok_rows = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (name, c, vis, ns, seed) in enumerate(rows_spec):
+            over = {"plant": {"coulomb": c * fc0, "static": c * fc0, "viscous": vis * b0}}
+            if ns:
+                over["sensor"] = {"noise_std": ns, "seed": seed}
+            plant = derived(over, directory=os.path.join(tmp, f"s{i}"))
+            rows, dec = run_tracking(plant, tasks, k_fc=0.1157 * c, k_v=0.002 * vis, k_a=0.0, track_k_v=True)
+            sel = [r for r in rows if r["task"] >= 3 and r["k_fc_estimate"] is not None]
+            stop = f"; stopped at task {rows[-1]['task']} ({dec.cause})" if dec.action == "stop" else ""
+            if not sel:
+                print(f"  {name:28s} no settled task{stop}", flush=True)
+                ok_rows += bool(stop)
+                continue
+            e = [r["k_fc_estimate"] / r["k_fc_true"] - 1 for r in sel]
+            sg = [r["k_fc_sigma"] / r["k_fc_true"] for r in sel]
+            inside = [abs(a) <= max(0.02, 2 * b) for a, b in zip(e, sg)]
+            held = sum("k_v_split_ill_determined_k_v_held" in r["notes"] for r in sel)
+            split = statistics.mean(r["k_fc_sigma_split"] / r["k_fc_true"] for r in sel)
+            wrong = [r["task"] for r, ok in zip(sel, inside) if not ok and r["action"] != "hold"]
+            cov = statistics.mean(inside)
+            ok_rows += cov >= 0.9 or bool(stop)
+            print(f"  {name:28s} error {100 * statistics.mean(e):+6.2f} %  sigma {100 * statistics.mean(sg):6.2f} % "
+                  f"(split part {100 * split:5.2f} %)  within max(2 %, 2 sigma) {100 * cov:3.0f} %; K_v held on "
+                  f"{held} of {len(sel)}; outside: {len(wrong)}{' from task ' + str(wrong[0]) if wrong else ''}"
+                  f"{stop}", flush=True)
+    print(f"{SPLIT_FAMILY}: {ok_rows} of {len(rows_spec)} rows covered (>= 90 %) or stopped", flush=True)
+
+
 def realtime_bus_figures():
     """drive_sim --realtime behind a simulated 1 Mbit/s bus: every frame during the tasks."""
     from fftune.host.cli import main
@@ -497,6 +544,8 @@ if __name__ == "__main__":
     family_figures(only=only)
     if not only or MODEL_FAMILY in only:
         model_error_figures()
+    if not only or SPLIT_FAMILY in only:
+        split_figures()
     if "--families" in sys.argv or only:
         sys.exit(0)
     drift_figures()
