@@ -256,7 +256,11 @@ def test_noise_correction_its_note_and_its_part_of_the_systematic_sigma():
         assert est.k_fc_noise_correction == pytest.approx(corr, rel=1e-9)
         assert est.k_fc == pytest.approx(plain.k_fc + corr, rel=1e-12)
         assert (NOTE_NOISE_CORRECTED in est.notes) is (abs(corr) > 0.1 * SYS_FLOOR_REL * abs(plain.k_fc + corr))
-        assert est.k_fc_sigma_sys ** 2 == pytest.approx(plain.k_fc_sigma_sys ** 2 + corr ** 2, rel=1e-9)
+        # (the split and model-error parts need earlier tasks: plain has none of them)
+        assert plain.k_fc_sigma_split == plain.k_fc_sigma_model == 0.0
+        assert est.k_fc_sigma_sys ** 2 == pytest.approx(
+            plain.k_fc_sigma_sys ** 2 + corr ** 2 + est.k_fc_sigma_split ** 2 + est.k_fc_sigma_model ** 2
+            + est.k_fc_sigma_viscous ** 2 - plain.k_fc_sigma_viscous ** 2, rel=1e-9)
     assert NOTE_NOISE_CORRECTED in est.notes          # (the 2.5x noise: the note; scale 1: none)
     # the smallest bound of the last SCATTER_WINDOW - 1 earlier tasks: an older one is not read
     older = [TaskEstimate(**{**plain.__dict__, "sensor_noise_rad": 1e-9})]
