@@ -1,0 +1,121 @@
+"""The fleet's summary and report numbers a person reads (host/fleet.py; issue 33's
+hand-written bug audit, docs/testing.md): the change of K_fc* over an axis' analyses in
+percent and in sigma, the report's cells each in its column, a capture folder with a
+damaged file beside readable ones a partial row naming it. Unequal values throughout, the
+expected numbers computed here from the inputs (not read back from the code). Fast: one
+small session on the Python test double (about a second) for the damaged-file case.
+"""
+import html
+import math
+import re
+import shutil
+
+import pytest
+
+from fftune.host import fleet
+from fftune.host.pipeline import run_pipeline
+from host_fixtures import FakeDriveForTests
+from test_host_experiments import _cfg
+
+
+def _row(**kw):
+    row = fleet._empty_row(kw.pop("source", "/f/m/x/captures"), "captures")
+    row.update(status="ok", reason="")
+    row.update(kw)
+    return row
+
+
+# one axis analysed three times (out of date order in the list) with unequal sigmas, and a
+# second axis once; a partial row counts (it has a K_fc*), an error row does not
+ROWS = [
+    _row(machine="m1", axis="x", date="2026-03-01T08:00:00", k_fc_star=0.3391, k_fc_sigma=0.0041,
+         source="/f/m1/x/c"),
+    _row(machine="m1", axis="x", date="2026-01-01T08:00:00", k_fc_star=0.2953, k_fc_sigma=0.0017,
+         source="/f/m1/x/a"),
+    _row(machine="m1", axis="x", date="2026-02-01T08:00:00", k_fc_star=0.3100, k_fc_sigma=0.0090,
+         status="partial", reason="quantify: x", source="/f/m1/x/b"),
+    _row(machine="m1", axis="y", date="2026-02-11T10:30:00", k_fc_star=0.5012, k_fc_sigma=0.0023,
+         source="/f/m1/y"),
+    _row(machine="m1", axis="z", status="error", reason="no readable capture", source="/f/m1/z"),
+]
+
+
+def test_summary_change_in_percent_of_the_first_and_in_sigma_of_both_ends():
+    items = fleet.summary_items(ROWS)
+    x = [t for t in items if t.startswith("m1 / x")]
+    assert len(x) == 1
+    # latest 0.3391 +- 0.0041 (March), first 0.2953 +- 0.0017 (January): the middle one
+    # (sigma 0.0090) plays no part
+    first, last, s_first, s_last = 0.2953, 0.3391, 0.0017, 0.0041
+    pct = 100.0 * (last - first) / first                       # +14.83 %
+    n_sigma = abs(last - first) / math.sqrt(s_first ** 2 + s_last ** 2)   # 9.9 sigma
+    assert "K_fc* = 0.3391 V +- 0.0041 V" in x[0] and "2026-03-01 08:00 UTC" in x[0]
+    assert f"{pct:+.1f} % since 2026-01-01 08:00 UTC over 3 analyses" in x[0], x[0]
+    assert f"({n_sigma:.1f} sigma)" in x[0], x[0]
+    # (the wrong divisors give other figures: over the last value +12.9 %, the last sigma
+    # alone 10.7 sigma, the first alone 25.8 sigma)
+    assert f"{100.0 * (last - first) / last:+.1f} %" not in x[0]
+    assert f"({abs(last - first) / s_last:.1f} sigma)" not in x[0]
+    y = [t for t in items if t.startswith("m1 / y")]
+    assert y == ["m1 / y: K_fc* = 0.5012 V +- 0.0023 V on object 0x2000:04 (latest analysis, "
+                 "2026-02-11 10:30 UTC)"]            # (one analysis: no change figure)
+    assert items[-1] == "1 of 5 rows without a K_fc* (the table says why)"
+
+
+def test_summary_change_without_sigmas_has_no_sigma_figure():
+    rows = [_row(machine="m", axis="a", date="2026-01-01T00:00:00", k_fc_star=0.4, k_fc_sigma=None),
+            _row(machine="m", axis="a", date="2026-01-02T00:00:00", k_fc_star=0.3, k_fc_sigma=None)]
+    text = fleet.summary_items(rows)[0]
+    assert "-25.0 % since 2026-01-01 00:00 UTC over 2 analyses" in text and "sigma)" not in text
+
+
+def _cells(page):
+    """The K_fc* table's data rows as lists of cell texts."""
+    table = page.split("<h2>K_fc* per axis and date</h2>", 1)[1].split("</table>", 1)[0]
+    rows = re.findall(r"<tr>(.*?)</tr>", table, flags=re.S)
+    return [[html.unescape(c) for c in re.findall(r"<td>(.*?)</td>", r, flags=re.S)] for r in rows[1:]]
+
+
+def test_report_table_each_cell_in_its_column(tmp_path):
+    rows = [_row(machine="m1", axis="x", node_id=12, date="2026-03-01T08:00:00", k_fc_star=0.3391,
+                 k_fc_sigma=0.0041, k_fc_true=0.3125, ratio_at_zero=0.1415, ratio_at_k_fc_star=0.00832,
+                 source="/f/m1/x/c"),
+            _row(machine="m1", axis="w", node_id=3, date="2026-03-02T08:00:00", k_fc_converged=False,
+                 tune_stop_reason="max experiments", ratio_at_zero=0.2, status="partial",
+                 reason="tune: partial capture", source="/f/m1/w")]
+    page = open(fleet.write_summary_html(rows, str(tmp_path), [str(tmp_path / "fleet.csv")], [], [("c", "/f")]),
+                encoding="utf-8").read()
+    cells = _cells(page)
+    assert cells[0] == ["m1 / x", "12", "2026-03-01T08:00:00", "ok", "0.3391 V +- 0.0041 V", "0.3125 V",
+                        "14.1 % -> 0.832 %", "(/f/m1/x/c)"]
+    assert cells[1] == ["m1 / w", "3", "2026-03-02T08:00:00", "partial", "not converged: max experiments", "-",
+                        "20 % -> -", "tune: partial capture (/f/m1/w)"]
+    assert "2 rows: 1 ok, 1 partial, 0 not analysed" in page
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fleet2")
+    cfg = _cfg()
+    cfg["detect"]["enabled"] = cfg["quantify"]["enabled"] = False
+    cfg["tune"]["sweep"]["points"] = 0
+    cfg["tune"]["viscous"]["enabled"] = False
+    d = FakeDriveForTests(fc_volt=0.3, fv_volt=0.02, noise_std=1e-5)
+    d.enable()
+    run_pipeline(d, cfg, str(root / "m" / "x"), log=lambda s: None, figures=False)
+    return root
+
+
+def test_a_damaged_file_beside_readable_captures_makes_the_row_partial_naming_it(small_run, tmp_path):
+    """The first capture file (in name order) unreadable, the others fine: the steps are
+    analysed from the readable ones, and the row says partial with the damaged file's name
+    (not ok: a file of the session was lost)."""
+    good = fleet.analyse_captures(str(small_run / "m" / "x" / "captures"))[0]
+    assert good["status"] == "ok" and good["reason"] == "" and good["k_fc_star"] is not None
+    copy = tmp_path / "m" / "x"
+    shutil.copytree(small_run / "m" / "x", copy)
+    (copy / "captures" / "a-lost.stats.json").write_text("{not json")
+    row = fleet.analyse_captures(str(copy / "captures"))[0]
+    assert row["status"] == "partial", row
+    assert row["reason"].startswith("a-lost.stats.json: "), row["reason"]
+    assert row["k_fc_star"] == good["k_fc_star"] and row["runs"] == good["runs"]
