@@ -2,10 +2,12 @@
 hand-written bug audit, docs/testing.md): an axis thread stuck past the machine's join
 after Ctrl-C is still stopped and disabled by the machine itself (the last axis too), an
 axis whose search does not converge is 'unconverged' with exit status 1, and the bus'
-SDO pacer shares the heartbeat's period among the machine's axes. The drive_sim of
-tests/test_machine.py (two nodes, 5 and 7); seconds each.
+SDO pacer shares the heartbeat's period among the machine's axes (the drive_sim of
+tests/test_machine.py: two nodes, 5 and 7; seconds each); the machine file's host id
+checked against the axes' node ids (not its heartbeat period).
 """
 import _thread
+import os
 import signal
 import struct
 import threading
@@ -20,8 +22,8 @@ from fftune.host.drive import BusOptions, DriveClient
 from host_fixtures import EDS, drive_sim_missing_reason
 from test_machine import SMALL, _machine_file, machine_sim  # noqa: F401  (the module's drive_sim)
 
-pytestmark = pytest.mark.skipif(drive_sim_missing_reason() is not None,
-                                reason=drive_sim_missing_reason() or "")
+needs_drive_sim = pytest.mark.skipif(drive_sim_missing_reason() is not None,
+                                     reason=drive_sim_missing_reason() or "")
 
 
 def _enabled(sim, nid):
@@ -30,6 +32,7 @@ def _enabled(sim, nid):
         return status & 0x6F == 0x27, int(c.get("run_state"))
 
 
+@needs_drive_sim
 def test_ctrl_c_with_the_last_axis_stuck_the_machine_disables_it(machine_sim, tmp_path, monkeypatch):
     """Ctrl-C while the last axis' thread is stuck (it sees no cancel for longer than the
     machine's 10 s join): the machine stops and disables that drive itself before it
@@ -75,6 +78,7 @@ def test_ctrl_c_with_the_last_axis_stuck_the_machine_disables_it(machine_sim, tm
         assert run_state not in (1, 2), (nid, run_state)
 
 
+@needs_drive_sim
 def test_an_unconverged_axis_is_reported_and_exits_1(machine_sim, tmp_path, capsys):
     """Axis a's search may take 3 experiments (too few to converge), axis b the small
     configuration's 8: a is 'unconverged' (its stop reason the error), b 'ok', exit 1."""
@@ -98,6 +102,7 @@ def test_an_unconverged_axis_is_reported_and_exits_1(machine_sim, tmp_path, caps
     assert len(line) == 1 and " unconverged " in line[0], text.out
 
 
+@needs_drive_sim
 def test_the_sdo_pacer_shares_the_heartbeat_period_among_the_axes(machine_sim, tmp_path, monkeypatch):
     """At 20 kbit/s with a 100 ms heartbeat and three axes, the bus' pacer lets
     floor(1.5 x 100 ms / (3 x one 8-byte frame)) SDO frames go back to back; the frame
@@ -127,3 +132,58 @@ def test_the_sdo_pacer_shares_the_heartbeat_period_among_the_axes(machine_sim, t
     want = int(1.5 * 0.100 / (3 * frame_s))          # 150 ms / 20.25 ms: 7 (one axis alone: 22)
     assert want == 7
     assert bursts == [(20000, want)]
+
+
+def test_the_host_id_of_the_bus_heartbeat_is_no_axis_node_id(tmp_path):
+    """host_node_id 5 is axis a's node id: refused, naming the axis and the key. A
+    heartbeat period of 7 ms beside an axis of node 7 is no clash (a period is no id)."""
+    from fftune.analysis.errors import FftuneError
+    from fftune.host import machine as mc
+
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    f = _machine_file(tmp_path, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}], "m_id.yaml")
+    raw = yaml.safe_load(open(f))
+    raw["overrides"] = {"drive": {"host_node_id": 5}}
+    (tmp_path / "m_id.yaml").write_text(yaml.safe_dump(raw))
+    with pytest.raises(FftuneError) as exc:
+        mc.load_machine(f)
+    assert str(exc.value) == (f"{f}: axes[0] (configuration with overrides): key 'drive.host_node_id': "
+                              f"must differ from drive.node_id")
+    raw["overrides"] = {"drive": {"host_node_id": 126, "heartbeat_ms": 7}}
+    (tmp_path / "m_id.yaml").write_text(yaml.safe_dump(raw))
+    m = mc.load_machine(f)
+    assert [(a["name"], a["cfg"]["drive"]["host_node_id"], a["cfg"]["drive"]["heartbeat_ms"]) for a in m["axes"]] \
+        == [("a", 126, 7), ("b", 126, 7)]
+    assert os.path.basename(m["file"]) == "m_id.yaml"
+
+
+def test_bus_busy_time_at_the_rate_the_bus_model_ran(tmp_path):
+    """drive_sim's exit line is the measurement: its bits at its own bit rate (here 250 kbit/s,
+    beside the 500 kbit/s asked for), not at the rate requested."""
+    from fftune.host import machine as mc
+
+    log = tmp_path / "drive_sim.log"
+    log.write_text("drive_sim: listening\nCAN bus model: 2468 frames, 333333 bits at 250000 bit/s\n")
+    m = mc._bus_model_figures(str(log), 500000)
+    assert (m["frames"], m["bits"], m["bitrate"], m["busy_s"]) == (2468, 333333, 250000, 1.333)
+
+
+def test_run_machine_refuses_an_axis_whose_node_id_is_the_bus_heartbeats(tmp_path):
+    """A machine dict built elsewhere (not through load_machine, which refuses it): every
+    axis with host id 7, axis b on node 7. Refused before the bus is opened (port 1: nothing
+    listens there, and nothing is tried)."""
+    from fftune.analysis.errors import FftuneError
+    from fftune.host import machine as mc
+
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    f = _machine_file(tmp_path, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 8}], "m_built.yaml")
+    m = mc.load_machine(f)
+    for ax in m["axes"]:
+        ax["cfg"]["drive"]["host_node_id"] = 7
+    m["axes"][1]["node_id"] = 7
+    with pytest.raises(FftuneError) as exc:
+        mc.run_machine(m, BusOptions(port=1, node_id=5, eds=EDS), str(tmp_path / "o"), figures=False,
+                       log=lambda s: None, log_error=lambda s: None)
+    assert str(exc.value) == ("axis 'b': drive.host_node_id / drive.heartbeat_ms (7, 100 ms) differ from the "
+                              "bus' (7, 100 ms) or name the axis itself")
+    assert not (tmp_path / "o").exists()
