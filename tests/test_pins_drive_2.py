@@ -133,3 +133,32 @@ def test_sdo_burst_refused_when_not_one_frame_per_drive_fits():
     with pytest.raises(FftuneError, match="one SDO frame of each of 3 node"):
         sdo_burst_frames(10000, 20, 3)
     assert sdo_burst_frames(None, 20, 3) == 127 and sdo_burst_frames(10000, 0, 3) == 127
+
+
+class _Net:
+    """The one attribute _SdoPacer wraps: send_message (records what reaches the bus)."""
+
+    def __init__(self):
+        self.sent = []
+
+    def send_message(self, can_id, data, remote=False):
+        self.sent.append(can_id)
+
+
+def test_the_sdo_pacer_takes_a_token_for_each_sdo_request_and_for_nothing_else():
+    """At 10 bit/s a token comes back every 135 / 10 / 0.7 = 19 s: the bucket's count is the
+    requests sent (no refill within the test). SDO requests are 0x601 .. 0x67F (0x600 +
+    node 1 .. 127); the host's heartbeat, NMT, an SDO response COB-ID and 0x600, 0x680 are
+    not paced."""
+    from fftune.host.drive import _SdoPacer
+
+    net = _Net()
+    pacer = _SdoPacer(net, 10, 5)
+    assert pacer.interval_s == pytest.approx(135 / 10 / 0.7)
+    for can_id in (0x605, 0x67F, 0x601):
+        net.send_message(can_id, b"\x40\x00\x10\x00\x00\x00\x00\x00")
+    assert pacer.tokens == pytest.approx(2.0, abs=0.01)
+    for can_id in (0x77F, 0x000, 0x585, 0x600, 0x680, 0x705):
+        net.send_message(can_id, b"\x05")
+    assert pacer.tokens == pytest.approx(2.0, abs=0.01)
+    assert net.sent == [0x605, 0x67F, 0x601, 0x77F, 0x000, 0x585, 0x600, 0x680, 0x705]
