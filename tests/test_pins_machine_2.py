@@ -187,3 +187,37 @@ def test_run_machine_refuses_an_axis_whose_node_id_is_the_bus_heartbeats(tmp_pat
     assert str(exc.value) == ("axis 'b': drive.host_node_id / drive.heartbeat_ms (7, 100 ms) differ from the "
                               "bus' (7, 100 ms) or name the axis itself")
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("bitrate, ok", [(1000000, True), (1e6, True), (10000, True), (1000001, False),
+                                         (9999, False)])
+def test_machine_sim_bitrate_bounds_inclusive(tmp_path, bitrate, ok):
+    """sim.bitrate 10 kbit/s .. 1 Mbit/s, both ends included (1e6 written as a float too)."""
+    from fftune.analysis.errors import FftuneError
+    from fftune.host import machine as mc
+
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    path = tmp_path / "m_rate.yaml"
+    path.write_text(yaml.safe_dump({"machine": "t", "config": "small.yaml", "sim": {"bitrate": bitrate},
+                                    "axes": [{"name": "a", "node_id": 5}]}))
+    if ok:
+        assert mc.load_machine(str(path))["bitrate"] == int(bitrate)
+    else:
+        with pytest.raises(FftuneError) as exc:
+            mc.load_machine(str(path))
+        assert str(exc.value) == (f"{path}: key 'sim.bitrate': expected 10000 .. 1000000 bit/s, got {bitrate}")
+
+
+@pytest.mark.parametrize("n, ok", [(8, True), (9, False), (1, True)])
+def test_machine_of_up_to_eight_axes(tmp_path, n, ok):
+    from fftune.analysis.errors import FftuneError
+    from fftune.host import machine as mc
+
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    f = _machine_file(tmp_path, [{"name": f"ax{i}", "node_id": 10 + 3 * i} for i in range(n)], "m_n.yaml")
+    if ok:
+        assert [a["node_id"] for a in mc.load_machine(f)["axes"]] == [10 + 3 * i for i in range(n)]
+    else:
+        with pytest.raises(FftuneError) as exc:
+            mc.load_machine(f)
+        assert str(exc.value) == f"{f}: key 'axes': {n} axes, at most 8 on one simulated bus"
