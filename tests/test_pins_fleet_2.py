@@ -26,7 +26,8 @@ def _row(**kw):
 
 
 # one axis analysed three times (out of date order in the list) with unequal sigmas, and a
-# second axis once; a partial row counts (it has a K_fc*), an error row does not
+# second axis once; a partial row counts (it has a K_fc*), an error row and an ok row
+# without a K_fc* do not (both are counted as rows without one)
 ROWS = [
     _row(machine="m1", axis="x", date="2026-03-01T08:00:00", k_fc_star=0.3391, k_fc_sigma=0.0041,
          source="/f/m1/x/c"),
@@ -37,6 +38,8 @@ ROWS = [
     _row(machine="m1", axis="y", date="2026-02-11T10:30:00", k_fc_star=0.5012, k_fc_sigma=0.0023,
          source="/f/m1/y"),
     _row(machine="m1", axis="z", status="error", reason="no readable capture", source="/f/m1/z"),
+    # analysed without a tune (detect and quantify only): ok, but no K_fc* either
+    _row(machine="m1", axis="q", date="2026-02-12T09:00:00", detect_verdict="linear", source="/f/m1/q"),
 ]
 
 
@@ -59,7 +62,8 @@ def test_summary_change_in_percent_of_the_first_and_in_sigma_of_both_ends():
     y = [t for t in items if t.startswith("m1 / y")]
     assert y == ["m1 / y: K_fc* = 0.5012 V +- 0.0023 V on object 0x2000:04 (latest analysis, "
                  "2026-02-11 10:30 UTC)"]            # (one analysis: no change figure)
-    assert items[-1] == "1 of 5 rows without a K_fc* (the table says why)"
+    assert items[-1] == "2 of 6 rows without a K_fc* (the table says why)"
+    assert not [t for t in items if t.startswith("m1 / q") or t.startswith("m1 / z")]
 
 
 def test_summary_change_without_sigmas_has_no_sigma_figure():
@@ -119,3 +123,17 @@ def test_a_damaged_file_beside_readable_captures_makes_the_row_partial_naming_it
     assert row["status"] == "partial", row
     assert row["reason"].startswith("a-lost.stats.json: "), row["reason"]
     assert row["k_fc_star"] == good["k_fc_star"] and row["runs"] == good["runs"]
+
+
+@pytest.mark.parametrize("v, ok", [(1, True), (127, True), (64, True), (0, False), (128, False), (True, False),
+                                   (5.0, False)])
+def test_node_id_from_results_one_to_127_inclusive(v, ok):
+    from fftune.analysis.errors import FftuneError
+
+    if ok:
+        assert fleet._node_id(v, "r.yaml: key 'axis.node_id'") == v
+    else:
+        with pytest.raises(FftuneError) as exc:
+            fleet._node_id(v, "r.yaml: key 'axis.node_id'")
+        assert str(exc.value) == f"r.yaml: key 'axis.node_id': expected a node id 1..127, got {v!r}"
+    assert fleet._node_id(None, "x") is None

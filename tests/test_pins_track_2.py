@@ -181,3 +181,24 @@ def test_the_odd_ratio_check_plays_the_nearest_whole_number_of_cycles(frequency_
     assert round(frequency_hz * 4096 / 2560.0) == cycles
     assert (p["exc_kind"], p["exc_period"], p["exc_sine_cycles"], p["exc_amplitude"]) == (1, 4096, cycles, 0.3)
     assert (p["exc_settle_periods"], p["exc_record_periods"], p["kfc"], p["kv"]) == (1, 3, 0.21, 0.004)
+
+
+def test_summary_lines_count_the_rollbacks_and_state_each_figure():
+    from fftune.host.track import summary_lines
+
+    actions = ["update", "rollback", "update", "hold", "rollback", "update", "update"]
+    rows = [{"task": i, "action": a} for i, a in enumerate(actions)]
+    s = {"tasks": 7, "task_s": 1.2, "k_fc_final": 0.1523, "k_fc_true_final": 0.1504,
+         "stop": {"task": 6, "cause": "rollbacks", "reason": "3 updates in a row raised the tracking error"},
+         "bus": {"bits_per_task_max": 2675, "task_traffic_load": 0.0022292, "bitrate": 1000000,
+                 "heartbeat_load": 0.00052, "measured_load": 0.0071},
+         "check": {"odd_ratio": 0.0123, "k_fc": 0.1523}}
+    lines = summary_lines({"track": rows, "track_summary": s}, "out/t")
+    assert lines == [
+        "fftune track: 7 tasks of 1.2 s; final K_fc 0.1523 V (truth 0.1504 V)",
+        "  stopped at task 6: rollbacks: 3 updates in a row raised the tracking error",
+        "  bus: at most 2675 bits per task = 0.22 % of 1000000 bit/s (+ heartbeats 0.05 %)",
+        "  bus measured in real time (all frames, PDOs and heartbeats included): 0.71 %",
+        "  rollbacks: 2",
+        "  odd-ratio check: 0.0123 at K_fc 0.1523 V",
+        "  results: out/t/results.yaml, figure out/t/track_kfc.png"]
