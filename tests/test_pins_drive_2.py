@@ -162,3 +162,62 @@ def test_the_sdo_pacer_takes_a_token_for_each_sdo_request_and_for_nothing_else()
         net.send_message(can_id, b"\x05")
     assert pacer.tokens == pytest.approx(2.0, abs=0.01)
     assert net.sent == [0x605, 0x67F, 0x601, 0x77F, 0x000, 0x585, 0x600, 0x680, 0x705]
+
+
+@needs_drive_sim
+@pytest.mark.parametrize("before, after", [(0, 2), (3, 3), (1, 1), (2, 2)])
+def test_enable_arms_the_lost_host_reaction_unless_the_integrator_chose_one(sim, before, after):
+    """0x6007 = 0 (no action: the drive would stay enabled after the host died) is set to
+    2 (disable voltage) before the power stage goes on; 1 (fault) and 3 (quick stop) are
+    kept."""
+    with DriveClient(BusOptions(port=sim.port, eds=EDS), heartbeat_ms=100, progress=False) as c:
+        c.write(0x6007, 0, before)
+        c.enable()
+        assert int(c.read(0x6007, 0)) == after
+        assert _status(c) & 0x6F == 0x27
+        c.write(0x6040, 0, 0x0006)                   # (disabled before the next case)
+        c.write(0x6007, 0, 2)
+
+
+@needs_drive_sim
+def test_an_enabled_drive_is_not_enabled_again_before_a_run(sim, caplog):
+    import logging
+
+    with DriveClient(BusOptions(port=sim.port, eds=EDS), heartbeat_ms=100, progress=False) as c:
+        c.enable()
+        with caplog.at_level(logging.WARNING, logger="fftune"):
+            c._ensure_enabled()
+        assert not [r for r in caplog.records if "left OPERATION ENABLED" in r.getMessage()]
+        # the power stage off behind the client's back: enabled again, saying so
+        c.write(0x6040, 0, 0x0006)
+        with caplog.at_level(logging.WARNING):
+            c._ensure_enabled()
+        assert [r for r in caplog.records if "left OPERATION ENABLED" in r.getMessage()]
+        assert _status(c) & 0x6F == 0x27
+
+
+@needs_drive_sim
+def test_one_heartbeat_frame_of_another_producer_refuses_the_host_id(sim):
+    """Another node sends ONE heartbeat on the host's COB-ID while the host listens (2 s
+    for a 1 s period): refused, naming the COB-ID and the frame count."""
+    import threading
+
+    import can
+
+    net = canopen.Network(_open_bus(BusOptions(port=sim.port, eds=EDS)))
+    net.connect()
+    other = can.Bus(interface="socketcand", channel="can0", host=sim.host, port=sim.port)
+    try:
+        timer = threading.Timer(0.4, lambda: other.send(can.Message(arbitration_id=0x77B, data=[0x05],
+                                                                    is_extended_id=False)))
+        timer.start()
+        hb = HostHeartbeat(net, 0x7B, 1000)
+        with pytest.raises(FftuneError) as exc:
+            hb.start()
+        timer.join()
+        assert str(exc.value).startswith("another node sends heartbeats on COB-ID 0x77B (host node id 123): "
+                                         "1 frame(s) in 2000 ms, state OPERATIONAL")
+        assert not hb.running
+    finally:
+        other.shutdown()
+        net.disconnect()
