@@ -137,3 +137,67 @@ def test_node_id_from_results_one_to_127_inclusive(v, ok):
             fleet._node_id(v, "r.yaml: key 'axis.node_id'")
         assert str(exc.value) == f"r.yaml: key 'axis.node_id': expected a node id 1..127, got {v!r}"
     assert fleet._node_id(None, "x") is None
+
+
+@pytest.mark.parametrize("runs, ok", [(2 ** 63 - 1, True), (-(2 ** 63), True), (2 ** 63, False),
+                                      (-(2 ** 63) - 1, False), (2 ** 62, True)])
+def test_int64_columns_hold_exactly_the_int64_range(runs, ok):
+    """(the lead's mutation run: _INT64's bounds)"""
+    row = _row(runs=runs, reason="")
+    out = fleet.checked_row(row)
+    if ok:
+        assert out["runs"] == runs and out["status"] == "ok" and out["reason"] == ""
+    else:
+        text = repr(runs)
+        short = text if len(text) <= 40 else text[:37] + "..."
+        assert out["runs"] is None and out["status"] == "error"
+        assert out["reason"] == f"column runs: {short} is not int64"        # (no leading '; ')
+
+
+def test_checked_row_keeps_the_rows_own_reason_first():
+    out = fleet.checked_row(_row(status="partial", reason="quantify: lost", k_fc_star="0.3", runs=True))
+    assert out["status"] == "error" and out["k_fc_star"] is None and out["runs"] is None
+    assert out["reason"] == "quantify: lost; column runs: True is not int64; column k_fc_star: '0.3' is not double"
+
+
+def test_short_values_in_reasons_at_most_40_characters():
+    assert fleet._short("a" * 38) == "'" + "a" * 38 + "'"                  # 40 characters: whole
+    assert fleet._short("a" * 39) == "'" + "a" * 36 + "..."                # 41: cut to 37 + ...
+    assert len(fleet._short(list(range(100)))) == 40
+
+
+@pytest.mark.parametrize("n_items, slots, sizes", [(10, 2, [3, 3, 3, 1]), (3, 4, [1, 1, 1]), (9, 1, [5, 4]),
+                                                   (0, 3, [])])
+def test_batches_two_per_worker_slot_in_order(n_items, slots, sizes):
+    items = list(range(n_items))
+    got = fleet.batches(items, slots)
+    assert [len(b) for b in got] == sizes and [x for b in got for x in b] == items
+
+
+def test_dates_that_are_not_dates_are_none():
+    assert fleet._date("2026-02-11T10:30:00+02:00").isoformat() == "2026-02-11T08:30:00"
+    assert fleet._date("not a date") is None and fleet._date(None) is None
+
+
+def test_a_folder_of_unreadable_captures_is_a_row_naming_them(tmp_path):
+    d = tmp_path / "m" / "x" / "captures"
+    d.mkdir(parents=True)
+    (d / "tune-001.stats.json").write_text("{broken")
+    (d / "tune-002.stats.json").write_text("[]")
+    row = fleet.analyse_captures(str(d))[0]
+    assert row["status"] == "error" and (row["machine"], row["axis"]) == ("m", "x")
+    assert row["reason"].startswith("no readable capture: tune-001.stats.json: "), row["reason"]
+    assert "; tune-002.stats.json: " in row["reason"]
+
+
+def test_a_refused_scheduler_port_says_why_in_words():
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    from fftune.analysis.errors import FftuneError
+    with pytest.raises(FftuneError) as exc:
+        fleet.probe_scheduler(f"tcp://127.0.0.1:{port}", timeout_s=2.0)
+    assert str(exc.value) == f"--scheduler tcp://127.0.0.1:{port}: cannot connect (Connection refused)"
