@@ -221,3 +221,40 @@ def test_machine_of_up_to_eight_axes(tmp_path, n, ok):
         with pytest.raises(FftuneError) as exc:
             mc.load_machine(f)
         assert str(exc.value) == f"{f}: key 'axes': {n} axes, at most 8 on one simulated bus"
+
+
+def _raw_machine(tmp_path, **top):
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    raw = dict({"machine": "t", "config": "small.yaml", "axes": [{"name": "a", "node_id": 5}]}, **top)
+    path = tmp_path / "m_keys.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return str(path)
+
+
+def _error(path):
+    from fftune.analysis.errors import FftuneError
+    from fftune.host import machine as mc
+
+    with pytest.raises(FftuneError) as exc:
+        mc.load_machine(path)
+    return str(exc.value)
+
+
+def test_machine_file_key_errors_name_the_first_key_cut_to_60_and_its_nearest_key(tmp_path):
+    """(the lead's surviving mutants: the cut lengths, which unknown key the hint is for)"""
+    long_key = "z" * 59 + "QRSTU"                                    # 64 characters
+    f = _raw_machine(tmp_path, **{long_key: 1})
+    assert _error(f).startswith(f"{f}: key '{'z' * 59}Q': unknown key (expected one of: axes, config, ")
+    f = _raw_machine(tmp_path, axez=1, ouptut=2)                       # sorted: axez first
+    assert _error(f).startswith(f"{f}: key 'axez': unknown key (did you mean 'axes'? expected one of: ")
+    f = _raw_machine(tmp_path, axes=[{"name": "a", "node_id": 5, "nmae": 1, "plnat": 2}])
+    assert _error(f).startswith(f"{f}: axes[0]: key 'nmae': unknown key (did you mean 'name'? expected one of: ")
+
+
+def test_plant_override_errors_cut_section_and_key_to_40(tmp_path):
+    section, key = "s" * 39 + "TUV", "k" * 39 + "XYZ"                   # 42 characters each
+    f = _raw_machine(tmp_path, axes=[{"name": "a", "node_id": 5, "plant_overrides": {section: {key: "x"}}}])
+    assert _error(f) == (f"{f}: axes[0].plant_overrides.{'s' * 39}T.{'k' * 39}X: expected a finite number, "
+                         f"got 'x'")
+    f = _raw_machine(tmp_path, axes=[{"name": "a", "node_id": 5, "plant_overrides": {"plant": None}}])
+    assert _error(f).startswith(f"{f}: axes[0].plant_overrides.plant: expected {{key: number}}, got ")
