@@ -258,3 +258,26 @@ def test_plant_override_errors_cut_section_and_key_to_40(tmp_path):
                          f"got 'x'")
     f = _raw_machine(tmp_path, axes=[{"name": "a", "node_id": 5, "plant_overrides": {"plant": None}}])
     assert _error(f).startswith(f"{f}: axes[0].plant_overrides.plant: expected {{key: number}}, got ")
+
+
+def test_a_failing_figure_job_is_one_error_line_and_the_wait_ends(tmp_path):
+    """The figure process' job of an axis fails (its tune data is not what the figures
+    need): wait() returns that axis' error, says it once, and ends (the lead's surviving
+    mutant: a `continue` instead of the `break` after the error waits forever)."""
+    from fftune.host import machine as mc
+
+    errors_logged = []
+    pool = mc._FigurePool(lambda s: None, errors_logged.append)
+    done = {}
+    try:
+        pool.submit("ax1", 12, str(tmp_path), "tune", {"not": "tune data"}, {"tune": {}})
+        th = threading.Thread(target=lambda: done.update(result=pool.wait()), daemon=True)
+        th.start()
+        th.join(60)
+        assert not th.is_alive(), "wait() did not return after the job failed"
+    finally:
+        if "result" not in done:
+            pool.terminate()
+    figs, errors = done["result"]
+    assert figs == {"ax1": {}} and list(errors) == ["ax1"] and errors["ax1"].startswith("figures of tune: ")
+    assert errors_logged == [f"fftune: error: axis 'ax1' (node 12): {errors['ax1']}"]
