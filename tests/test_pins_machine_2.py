@@ -281,3 +281,29 @@ def test_a_failing_figure_job_is_one_error_line_and_the_wait_ends(tmp_path):
     figs, errors = done["result"]
     assert figs == {"ax1": {}} and list(errors) == ["ax1"] and errors["ax1"].startswith("figures of tune: ")
     assert errors_logged == [f"fftune: error: axis 'ax1' (node 12): {errors['ax1']}"]
+
+
+@needs_drive_sim
+def test_demo_machine_draws_figures_counts_the_bus_and_keeps_the_earlier_output(tmp_path, capsys):
+    """`fftune demo --machine` with a 500 kbit/s bus model: each axis' tune figure drawn, the
+    bus' busy time from drive_sim's exit line (its bits at its bit rate) in the summary, an
+    earlier output folder kept as <out>.previous (the lead's surviving mutants: figures,
+    `if bitrate`, set_aside)."""
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    path = tmp_path / "m_demo.yaml"
+    path.write_text(yaml.safe_dump({"machine": "d", "config": "small.yaml", "sim": {"bitrate": 500000},
+                                    "axes": [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7}]}))
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "earlier.txt").write_text("an earlier session")
+    code = main(["demo", "--machine", str(path), "--out", str(out)])
+    text = capsys.readouterr()
+    assert code == 0, text.out + text.err
+    assert (tmp_path / "o.previous" / "earlier.txt").read_text() == "an earlier session"
+    assert not (out / "earlier.txt").exists()
+    summary = yaml.safe_load((out / "results.yaml").read_text())
+    bm = summary["bus_model"]
+    assert bm["bitrate"] == 500000 and bm["frames"] > 100 and bm["busy_s"] == round(bm["bits"] / 500000, 3)
+    assert summary["time_budget_s"]["total"]["bus"] == bm["busy_s"]
+    for name in ("a", "b"):
+        assert (out / name / "figure7_tuning.png").stat().st_size > 1000
