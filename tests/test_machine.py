@@ -370,6 +370,31 @@ def test_a_logged_machine_session_and_its_folders_analysed_by_the_fleet(machine_
             assert row["tune_experiments"] == live[nid]["search"]["experiments"]
             assert row["ratio_at_zero"] == live[nid]["ratio_at_zero"]
     assert logged[5]["ratio_at_zero"] != logged[7]["ratio_at_zero"]
+    # each node's logged row is dated by its first run: the time of the first start command
+    # (run command 1) to that node in the log, before its second one (issue 33's audit)
+    import datetime
+
+    from fftune.host.odmap import PARAMS
+    cmd = PARAMS["run_command"]
+    starts = {5: [], 7: []}
+    for m in can.LogReader(str(log_path)):
+        data = bytes(m.data)
+        if m.arbitration_id in (0x605, 0x607) and len(data) >= 5 and data[0] & 0xE0 == 0x20 \
+                and data[1:4] == struct.pack("<HB", cmd.index, cmd.subindex) and data[4] == 1:
+            starts[m.arbitration_id - 0x600].append(m.timestamp)
+    # a configuration that enables detect, which the log does not hold: only the logged tune
+    # is replayed (the row ok, no detect columns), not a detect that finds no runs
+    with_detect = dict(raw, detect=dict(raw["detect"], enabled=True))
+    (d / "small_raw_detect.yaml").write_text(yaml.safe_dump(with_detect))
+    again = fleet.run_graph([it for it in items if it[0] == "canlog"], scheduler="sync",
+                            config_path=str(d / "small_raw_detect.yaml"))
+    assert [(r["node_id"], r["status"], r["reason"], r["detect_verdict"]) for r in again] == \
+        [(5, "ok", "", None), (7, "ok", "", None)]
+    assert [r["k_fc_star"] for r in again] == [live[5]["k_fc_star"], live[7]["k_fc_star"]]
+    for nid in (5, 7):
+        assert len(starts[nid]) >= 2, starts
+        t = datetime.datetime.fromisoformat(logged[nid]["date"]).timestamp()
+        assert abs(t - starts[nid][0]) < 0.05 and t < starts[nid][1], (nid, t, starts[nid][:2])
 
 
 @pytest.mark.parametrize("axes, expected", [

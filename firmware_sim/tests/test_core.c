@@ -402,6 +402,53 @@ static void test_sine_exactly_periodic(void)
     TH_EQ(gen_start_sine(&g, 8u, 4u, 1.0f, 0.0f, FS), -1); /* at Nyquist */
 }
 
+/* Issue 33's hand-written bug audit: the table's velocity feed-forward is the central
+ * difference (t[i+1] - t[i-1]) fs / 2 times the amplitude, wrapping at both ends of the
+ * period (an uneven table: a factor, a sign or a one-sided difference fails). */
+static void test_table_velocity_is_the_central_difference(void)
+{
+    const uint32_t n = 5u;
+    static const float t[5] = {0.0f, 0.25f, 1.0f, -0.5f, 0.125f};
+    const float fs = 1000.0f, amp = 0.8f, off = 0.05f;
+    gen_t g;
+    TH_EQ(gen_start_table(&g, t, n, amp, off, fs), 0);
+    for (uint32_t k = 0u; k < 2u * n; k++) {
+        uint32_t i = k % n, nx = (i + 1u) % n, pv = (i + n - 1u) % n;
+        float w, wd;
+        gen_next(&g, &w, &wd);
+        TH_NEAR(w, 0.05 + 0.8 * (double)t[i], 1e-6);
+        TH_NEAR(wd, 0.8 * ((double)t[nx] - (double)t[pv]) * 1000.0 / 2.0, 1e-3);
+    }
+}
+
+/* Issue 33's hand-written bug audit: the recorder takes samples until the last one that
+ * fits (rec_fits: samples x signals <= capacity, equal included), then none: capacity 6,
+ * signals 0 and 2: three samples kept in order, the fourth dropped, nothing beyond. */
+static void test_recorder_fills_to_its_last_sample(void)
+{
+    static float buf[8];
+    rec_t r;
+    TH_EQ(rec_init(&r, buf, 6u), 0);
+    TH_EQ(rec_set_signals(&r, 0x05u), 0);
+    rec_clear(&r);
+    TH_ASSERT(rec_fits(&r, 3u) && !rec_fits(&r, 4u));
+    float sig[REC_NUM_SIGNALS];
+    for (uint32_t k = 0u; k < 4u; k++) {
+        for (uint32_t s = 0u; s < REC_NUM_SIGNALS; s++) {
+            sig[s] = (float)(10u * k + s + 1u);
+        }
+        rec_push(&r, sig);
+    }
+    TH_EQ(r.samples, 3u);
+    TH_EQ(rec_size_bytes(&r), 24u);
+    float back[6];
+    TH_EQ(rec_read(&r, 0u, (uint8_t *)back, 24u), 0);
+    static const float want[6] = {1.0f, 3.0f, 11.0f, 13.0f, 21.0f, 23.0f};
+    TH_ASSERT(memcmp(back, want, sizeof want) == 0);
+    TH_ASSERT(buf[6] == 0.0f && buf[7] == 0.0f);
+    TH_EQ(rec_read(&r, 0u, (uint8_t *)back, 25u), -1);
+}
+
 static void test_table_playback_bit_exact(void)
 {
     drv_t d = make_drv(REC_CAP);
@@ -2266,6 +2313,8 @@ int main(void)
     TH_RUN(test_drv_param_validation_keeps_old_value);
     TH_RUN(test_sine_exactly_periodic);
     TH_RUN(test_table_playback_bit_exact);
+    TH_RUN(test_table_velocity_is_the_central_difference);
+    TH_RUN(test_recorder_fills_to_its_last_sample);
     TH_RUN(test_table_write_checks);
     TH_RUN(test_table_kept_until_commit);
     TH_RUN(test_overflowing_inputs_refused_and_output_fault);

@@ -1687,6 +1687,27 @@ static void test_nmt_state_and_sdo_transfer(void)
     CHECK(f && f->data[0] == 0x80);
 }
 
+/* Issue 33's hand-written bug audit: a write of 0x1017 restarts the producer's period
+ * from the write (CANopenNode): 100 ms heartbeats, 30 ms after one the period set to
+ * 50 ms: the next heartbeat 50 ms after the write, not 20 ms (50 after the last one). */
+static void test_hb_producer_write_restarts_its_period(void)
+{
+    setup();
+    CHECK(sdo_write(0x1017, 0, 100, 2) == 0);
+    g_ntx = 0;
+    advance_ms(1000);
+    CHECK(count_id(0x705) == 10); /* the last one now */
+    advance_ms(30);
+    CHECK(sdo_write(0x1017, 0, 50, 2) == 0);
+    g_ntx = 0;
+    advance_ms(49);
+    CHECK(count_id(0x705) == 0);
+    advance_ms(1);
+    CHECK(count_id(0x705) == 1);
+    advance_ms(50);
+    CHECK(count_id(0x705) == 2);
+}
+
 int main(void)
 {
     test_crc();
@@ -1722,6 +1743,7 @@ int main(void)
     test_hb_consumer_rewrite_while_timed_out();
     test_error_register_cleared_by_boot_and_reset();
     test_nmt_state_and_sdo_transfer();
+    test_hb_producer_write_restarts_its_period();
     printf("%d passed, %d failed\n", g_pass, g_fail);
     return g_fail ? 1 : 0;
 }
