@@ -56,10 +56,12 @@ MODULES = {
                                                   "--deselect=tests/test_paper.py::test_short_run_reproduces_the_paper",
                                                   "--deselect=tests/test_paper.py::"
                                                   "test_doc_table_is_generated_from_reproduction_json"]),
-    "fleet": ("host/fleet.py", ["tests/test_pins_fleet.py", "tests/test_fleet.py"]),
+    "fleet": ("host/fleet.py", ["tests/test_pins_fleet.py", "tests/test_pins_fleet_2.py",
+                                "tests/test_fleet_outputs.py", "tests/test_fleet.py"]),
     # the machine's summary, exit status and file checks without a bus first, then the
     # sessions on drive_sim (seconds each: a surviving mutant costs tens of seconds)
-    "machine": ("host/machine.py", ["tests/test_pins_machine.py", "tests/test_machine.py"]),
+    "machine": ("host/machine.py", ["tests/test_pins_machine.py", "tests/test_pins_machine_2.py",
+                                    "tests/test_machine.py"]),
 }
 
 # The operators kept: one natural mutation per site, as a reader would write it. cosmic-ray
