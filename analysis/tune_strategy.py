@@ -594,6 +594,7 @@ DRIFT_MIN_REL = 2e-3
 # limit is left to the budget. On the matrix's slow loops this ends the try at a frequency the
 # loop cannot follow after 2 .. 4 experiments instead of 8 .. 11 (tests/bench/bench_tune_matrix.py).
 LAG_BOUND_MARGIN = 1.25
+LAG_BOUND_STOP = False
 # The angle's spread over the recorded periods at the chosen amplitude more than this many
 # times its smallest over the auto probes (in rad): motion that differs between periods, not
 # measurement noise (the same in rad at every amplitude): `unsettled`, not `noise` (with the
@@ -1112,20 +1113,33 @@ def lag_bound_deg(lags_below, lags_above):
 
 
 def _lag_sides(probe, by_k):
-    """The lags of the search's experiments below and above the root (the sign of the signed
-    objective with the phases of its first bracket, K_fc = 0 and the top); ([], []) before
-    both ends are measured."""
+    """The lags of the search's experiments below and above the root: the sign of the signed
+    objective with the phases of its first bracket (K_fc = 0 and the top), below where it is
+    K_fc = 0's (under-compensated by definition), above where it is the other; ([], [])
+    before both ends are measured or while K_fc = 0's sign is not clear of its noise. (The
+    phases fix the sign's convention, not which side is positive.)"""
     pts = [(k, p) for k, p in by_k.items() if math.isfinite(p["ratio"])]
-    if 0.0 not in by_k or len(pts) < 2:
+    if 0.0 not in by_k or len(pts) < 2 or not math.isfinite(by_k[0.0]["ratio"]):
         return [], []
     top = max(k for k, _ in pts)
     phases = _tuning.reference_phases(np.asarray(by_k[0.0]["H"]) - np.asarray(by_k[top]["H"]), probe.harmonics)
+    signed = {k: _tuning.signed_point(probe.search_point(p), phases, probe.harmonics)[:2] for k, p in pts}
+    s0, se0 = signed[0.0]
+    if not abs(s0) > 2 * se0:
+        return [], []
+    # the lag falls with K_fc at one K_v, and is the loop's own only without a viscous
+    # feed-forward: with a K_v pre-estimate (K_fc = 0 runs without it) the lag moves with K_v
+    # itself (the paper's set-up: 38 deg at K_fc = 0, leads of 5 .. 27 deg at K_v 0.157 on
+    # either side of a root the search finds, verified, at 0.625 Hz), which the budget's K_v
+    # step corrects: no bound then.
+    kv = by_k[top].get("kv", 0.0)
+    if kv != 0.0:
+        return [], []
     below, above = [], []
     for k, p in pts:
-        sp = _tuning.signed_point(probe.search_point(p), phases, probe.harmonics)
-        s_k, se = sp[0], sp[1]
-        if abs(s_k) > 2 * se:
-            (below if s_k > 0 else above).append(p["lag_deg"])
+        s_k, se = signed[k]
+        if abs(s_k) > 2 * se and p.get("kv", 0.0) == kv:
+            (below if (s_k > 0) == (s0 > 0) else above).append(p["lag_deg"])
     return below, above
 
 
@@ -1188,8 +1202,18 @@ def _tune_at_frequency(ctx):
             search.tell(k, p["H_periods"])
         else:
             search.tell_moments(k, p["H"], p["H_var"], p["n_periods"])
-        bound = lag_bound_deg(*_lag_sides(probe, by_k))
-        if abs(bound) > LAG_BOUND_MARGIN * _tuning.LOOP_LAG_MAX_DEG:
+        # (with the viscous step enabled the lag left at K_fc* is judged after its K_v, as
+        # before: the experiments' lag holds the viscous friction's, which K_v removes; the
+        # paper's simulation leads 24 deg at 0.625 Hz before its K_v, and tunes there)
+        # (and only a lag: the loop's own bandwidth delays the motor; a lead is a feed-forward's,
+        # K_fc's or a K_v read into the search, which the budget judges). Off by default
+        # (LAG_BOUND_STOP): the experiments' lag also holds the viscous friction's, which no
+        # search-time rule tells from the loop's; on the paper's simulation (viscous friction,
+        # K_v off) it read 15 deg at 0.625 Hz, where the search converges and reproduces
+        # Figure 7's phase turns, and moved the tune to 0.3125 Hz (make paper: H_5 151 deg).
+        bound = 0.0 if not LAG_BOUND_STOP or (c.get("viscous") or {}).get("enabled") \
+            else lag_bound_deg(*_lag_sides(probe, by_k))
+        if bound > LAG_BOUND_MARGIN * _tuning.LOOP_LAG_MAX_DEG:
             # the lag at K_fc* is already known to exceed the limit: no need to find K_fc*
             stop = {"cause": "loop lag", "lag_bound_deg": bound, "text": (
                 f"the loop cannot follow the {c['frequency_hz']:g} Hz sine closely enough: the motor "
