@@ -58,6 +58,16 @@ MODULES = {
                                                   "test_doc_table_is_generated_from_reproduction_json"]),
     "fleet": ("host/fleet.py", ["tests/test_pins_fleet.py", "tests/test_pins_fleet_2.py",
                                 "tests/test_fleet_outputs.py", "tests/test_fleet.py"]),
+    # the tracker's estimate, its sigma parts and its update/rollback/stop rules (no
+    # drive_sim: tests/test_track_host.py runs the host's loop, seconds a test)
+    "track": ("analysis/track.py", ["tests/test_pins_track_2.py", "tests/test_pins_tune_track.py",
+                                    "tests/test_track.py", "tests/test_track_honest.py",
+                                    "tests/test_track_model_error.py", "tests/test_track_split.py"]),
+    # the tune's strategy: its sigma parts, stops and diagnoses (the drive_sim matrix of
+    # tests/test_tune_search.py is left out for time; its rows replay in test_tune_strategy)
+    "tune_strategy": ("analysis/tune_strategy.py", ["tests/test_pins_tune_2.py",
+                                                    "tests/test_tune_strategy.py",
+                                                    "tests/test_tune_honest.py"]),
     # the machine's summary, exit status and file checks without a bus first, then the
     # sessions on drive_sim (seconds each: a surviving mutant costs tens of seconds)
     "machine": ("host/machine.py", ["tests/test_pins_machine.py", "tests/test_pins_machine_2.py",
