@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from fftune.analysis.track import (VISC_BASELINE_FROM, VISC_BASELINE_N, TaskEstimate, Tracker,
-                                   TrackSettings, noise_bias_rel, viscous_shift)
+from fftune.analysis.track import (MODEL_MIN, NOTE_MODEL_ERROR, SYS_FLOOR_REL, VISC_BASELINE_FROM,
+                                   VISC_BASELINE_N, TaskEstimate, TaskStats, Tracker, estimate_task,
+                                   noise_bias_rel, viscous_shift)
 
 
 def _est(k_fc=0.12, sigma=1e-3, k_a=0.0061, k_a_sigma=1e-4, rms=0.004):
@@ -90,3 +91,60 @@ def test_an_estimate_from_elsewhere_carries_no_sigma_part_or_correction():
     assert e.notes == ()
     assert all(math.isnan(x) for x in (e.k_v_free, e.sensor_noise_rad, e.k_fc_applied,
                                        e.k_fc_instrument_gap, e.k_v_trusted))
+
+
+def test_default_steps_of_k_v_and_k_a_per_update():
+    # the defaults: K_v by at most kv_max_step = 5 mV s/rad, K_a by at most 50 % of it
+    tr = Tracker(k_fc=0.12, k_v=0.010, k_a=0.004)
+    est = _est(k_fc=0.121, k_a=0.0130)
+    est.k_v, est.k_v_identified = 0.050, True
+    d = tr.after_task(est)
+    assert d.action == "update"
+    assert d.k_v == pytest.approx(0.015) and d.k_a == pytest.approx(0.006)
+
+
+def test_default_third_rollback_in_a_row_stops():
+    # docs/track.md: max_rollbacks (3) in a row stop; an update between them that grows the
+    # error again does not reset the count
+    tr = Tracker(k_fc=0.10, k_v=0.0, k_a=0.006)
+    actions = []
+    for _ in range(3):
+        actions.append(tr.after_task(_est(k_fc=0.12, rms=2e-3)).action)
+        actions.append(tr.after_task(_est(k_fc=0.12, rms=5e-3)).action)
+    assert actions == ["update", "rollback", "update", "rollback", "update", "stop"]
+
+
+def _exact_task(fc=0.11):
+    """An asymmetric back-and-forth task whose input the model explains exactly (its own
+    instrument gap 0): K_fc 0.11 V."""
+    fs = 1000.0
+    t = np.arange(0, 0.4, 1.0 / fs)
+    v_move = 4.0 * np.minimum(1.0, np.minimum(t / 0.1, (0.4 - t) / 0.1))
+    dwell = np.zeros(int(0.15 * fs))
+    v = np.concatenate([v_move, dwell, -0.8 * v_move, dwell[:-20]])
+    a = np.gradient(v) * fs
+    s = np.sign(np.round(v, 9))
+    p, n = np.maximum(s, 0.0), np.minimum(s, 0.0)
+    u = (fc + 0.02) * p + (fc - 0.02) * n + 0.003 * v + 0.0071 * a
+    edges = [(b * v.size) // 8 for b in range(9)]
+    design, data = [], []
+    for b in range(8):
+        sl = slice(edges[b], edges[b + 1])
+        P, N, V, A, U = p[sl], n[sl], v[sl], a[sl], u[sl]
+        design.append([P @ P, N @ N, P @ V, P @ A, N @ V, N @ A, V @ V, V @ A, A @ A])
+        data.append([P @ U, N @ U, V @ U, A @ U, 0.0, U @ U])
+    return TaskStats(repetitions=1, samples=v.size, design=np.array(design), data=np.array(data))
+
+
+@pytest.mark.parametrize("part_over_floor, named", [(0.8, False), (1.5, True)])
+def test_model_error_is_named_beyond_the_floor(part_over_floor, named):
+    # the model-error part is half the median gap of the tasks at the fixed point; the row
+    # names it beyond MODEL_NOTE_REL (1) times the systematic floor (0.4 % of K_fc)
+    stats = _exact_task()
+    plain = estimate_task(stats, k_v_hold=0.003, hold_k_v=True)
+    assert abs(plain.k_fc_instrument_gap) < 1e-9
+    gap = 2.0 * part_over_floor * SYS_FLOOR_REL * abs(plain.k_fc)
+    recent = [TaskEstimate(**{**plain.__dict__, "k_fc_instrument_gap": gap})] * MODEL_MIN
+    est = estimate_task(stats, k_v_hold=0.003, hold_k_v=True, recent=recent)
+    assert est.k_fc_sigma_model == pytest.approx(0.5 * gap, rel=1e-9)
+    assert (NOTE_MODEL_ERROR in est.notes) is named
