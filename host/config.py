@@ -490,10 +490,8 @@ def _tune_model_keys(cfg, path, amp_high):
 def od_param_high(param):
     """The upper limit of the drive object carrying ``param`` (configs/od.yaml, the one
     source of the object dictionary): values above it the drive refuses mid-experiment."""
-    from fftune.host.odmap import OD_YAML
-    with open(OD_YAML, "r", encoding="utf-8") as fh:
-        od = yaml.safe_load(fh)
-    for obj in od.get("objects", []):
+    from fftune.host.odmap import OD_YAML, load_od
+    for obj in load_od().get("objects", []):
         for entry in obj.get("sub", [obj]):
             if entry.get("param") == param:
                 return float(entry["high"])

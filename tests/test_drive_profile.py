@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import canopen
+import yaml
 import pytest
 
 from conftest import drive_sim_missing_reason
@@ -84,3 +85,28 @@ def test_profile_doc_lists_every_object():
     for index, sub, name in profile_objects():
         key = f"0x{index:04X}" if sub is None else f"0x{index:04X}:{sub}"
         assert key in doc, f"docs/drive-profile.md does not list {key} ({name})"
+
+
+def test_od_yaml_is_parsed_once_per_version_and_a_missing_file_is_one_line(tmp_path):
+    # every command reads od.yaml for its parameter map and the drive's limits (eleven
+    # limits in a tune's preflight): one parse per process and version of the file
+    import os
+    import shutil
+
+    from fftune.host import odmap
+
+    copy = tmp_path / "od.yaml"
+    shutil.copy(odmap.OD_YAML, copy)
+    first = odmap.load_od(copy)
+    misses = odmap._parsed.cache_info().misses
+    assert odmap.load_od(copy) is first and odmap._parsed.cache_info().misses == misses
+    assert first == yaml.safe_load(open(odmap.OD_YAML, encoding="utf-8"))   # libyaml: the same
+    text = copy.read_text().replace("name: Controller", "name: Controller changed", 1)
+    copy.write_text(text)
+    st = os.stat(copy)
+    os.utime(copy, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    second = odmap.load_od(copy)
+    assert second is not first and odmap._parsed.cache_info().misses == misses + 1
+    assert "Controller changed" in [o["name"] for o in second["objects"]]
+    with pytest.raises(FftuneError, match=r"nope\.yaml: cannot read the object dictionary source"):
+        odmap.load_od(tmp_path / "nope.yaml")
