@@ -148,3 +148,69 @@ def test_model_error_is_named_beyond_the_floor(part_over_floor, named):
     est = estimate_task(stats, k_v_hold=0.003, hold_k_v=True, recent=recent)
     assert est.k_fc_sigma_model == pytest.approx(0.5 * gap, rel=1e-9)
     assert (NOTE_MODEL_ERROR in est.notes) is named
+
+
+def test_default_k_fc_step_has_an_absolute_floor_of_five_millivolts():
+    # max(max_step_rel K_fc, max_step_abs) = max(25 % x 10 mV, 5 mV) = 5 mV from K_fc 10 mV
+    d = Tracker(k_fc=0.010, k_v=0.0, k_a=0.006).after_task(_est(k_fc=0.030, sigma=1e-4))
+    assert d.action == "update" and d.k_fc == pytest.approx(0.015)
+    # and 25 % where that is the larger: 0.12 -> 0.15
+    d = Tracker(k_fc=0.12, k_v=0.0, k_a=0.006).after_task(_est(k_fc=0.30, sigma=1e-3))
+    assert d.k_fc == pytest.approx(0.15)
+
+
+def _stats_of(columns, u):
+    """TaskStats (one block, one repetition) of regressor columns p, n, v, a and input u."""
+    P, N, V, A = columns
+    design = np.array([[P @ P, N @ N, P @ V, P @ A, N @ V, N @ A, V @ V, V @ A, A @ A]])
+    data = np.array([[P @ u, N @ u, V @ u, A @ u, 0.0, u @ u]])
+    return TaskStats(repetitions=1, samples=P.size, design=design, data=data)
+
+
+@pytest.mark.parametrize("unique, identified", [(0.01, False), (0.04, True)])
+def test_default_k_v_needs_two_percent_of_v_unexplained(unique, identified):
+    # docs/track.md: K_v is estimated when at least 2 % of v_r's energy is not explained by
+    # p, n, a_r; v here is a combination of them plus an orthogonal part of the given share
+    rng = np.random.default_rng(7)
+    m = 4000
+    t = np.arange(m) / 1000.0
+    base = np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 0.4)
+    s = np.sign(base)
+    p, n = np.maximum(s, 0), np.minimum(s, 0)
+    a = np.gradient(base, 1e-3)
+    X = np.column_stack([p, n, a])
+    v0 = 1.7 * p + 0.9 * n + 0.002 * a
+    z = rng.standard_normal(m)
+    z -= X @ np.linalg.lstsq(X, z, rcond=None)[0]          # orthogonal to p, n, a
+    scale = math.sqrt(unique / (1 - unique) * (v0 @ v0) / (z @ z))
+    v = v0 + scale * z
+    got = 1 - np.sum((v - X @ np.linalg.lstsq(X, v, rcond=None)[0]) ** 2) / (v @ v)
+    assert 1 - got == pytest.approx(unique, rel=1e-6)       # the share, by its definition
+    u = 0.12 * p + 0.10 * n + 0.004 * v + 0.006 * a
+    est = estimate_task(_stats_of((p, n, v, a), u))
+    assert est.k_v_identified is identified
+
+
+def test_viscous_unresolved_takes_the_larger_of_the_last_eight_and_four():
+    # docs/track.md: the mean shift of the free coefficient over the last 8 tasks (and over
+    # the last 4, the larger) from its baseline, with its standard error in quadrature;
+    # reference computed here with the documented windows
+    from fftune.analysis.track import viscous_unresolved
+    early = [0.03, 0.02, 0.018, 0.016]
+    base = [0.0150, 0.0153, 0.0149, 0.0152, 0.0151]
+    for tail in ([0.0162, 0.0161, 0.0163, 0.0160, 0.0150, 0.0151, 0.0149, 0.0150, 0.0152],   # 8 wins
+                 [0.0150, 0.0151, 0.0150, 0.0149, 0.0152, 0.0171, 0.0170, 0.0173, 0.0169]):  # 4 wins
+        x = np.array(early + base + tail)
+        d = np.diff(x[4:])
+        scat = 1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0)
+        med = np.median(base)
+        ref = {k: math.hypot(np.mean(x[-k:]) - med, scat * math.sqrt(1 / k + 1 / 5)) for k in (8, 4)}
+        assert viscous_unresolved(list(x)) == pytest.approx(max(ref.values()), rel=1e-12)
+    # (the two cases differ in which window is the larger)
+
+
+def test_model_error_part_needs_three_gaps():
+    from fftune.analysis.track import model_error_sigma
+    assert model_error_sigma([0.004, 0.010]) == 0.0
+    assert model_error_sigma([0.004, 0.010, -0.002]) == pytest.approx(0.002)
+    assert model_error_sigma([np.nan, 0.004, 0.010, np.nan]) == 0.0
