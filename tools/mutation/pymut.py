@@ -60,7 +60,8 @@ MODULES = {
                                 "tests/test_fleet_outputs.py", "tests/test_fleet.py"]),
     # the tracker's estimate, its sigma parts and its update/rollback/stop rules (no
     # drive_sim: tests/test_track_host.py runs the host's loop, seconds a test)
-    "track": ("analysis/track.py", ["tests/test_pins_track_2.py", "tests/test_pins_tune_track.py",
+    "track": ("analysis/track.py", ["tests/test_pins_track_2.py", "tests/test_pins_track_3.py",
+                                    "tests/test_pins_tune_track.py",
                                     "tests/test_track.py", "tests/test_track_honest.py",
                                     "tests/test_track_model_error.py", "tests/test_track_split.py"]),
     # the tune's strategy: its sigma parts, stops and diagnoses (the drive_sim matrix of
