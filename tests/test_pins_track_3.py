@@ -214,3 +214,24 @@ def test_model_error_part_needs_three_gaps():
     assert model_error_sigma([0.004, 0.010]) == 0.0
     assert model_error_sigma([0.004, 0.010, -0.002]) == pytest.approx(0.002)
     assert model_error_sigma([np.nan, 0.004, 0.010, np.nan]) == 0.0
+
+
+def test_default_rollback_needs_an_error_above_one_milliradian():
+    # an error grown 3x after a +20 % update but under rollback_min_rms_rad (1 mrad, the
+    # default) is the plant's own variation, no rollback; above it, a rollback
+    tr = Tracker(k_fc=0.10, k_v=0.0, k_a=0.006)
+    tr.after_task(_est(k_fc=0.12, rms=3e-4))
+    assert tr.after_task(_est(k_fc=0.12, rms=9e-4)).action == "update"
+    tr = Tracker(k_fc=0.10, k_v=0.0, k_a=0.006)
+    tr.after_task(_est(k_fc=0.12, rms=4e-4))
+    assert tr.after_task(_est(k_fc=0.12, rms=1.2e-3)).action == "rollback"
+
+
+def test_viscous_change_needs_at_least_the_absolute_floor():
+    # K_v held at 0 and a quiet baseline: the threshold is VISC_SHIFT_MIN_ABS, 0.2 mV s/rad
+    base = [0.0150, 0.01500, 0.01501, 0.01500, 0.01500]
+    med = float(np.median(base))
+    settled = [0.1, 0.1003, 0.0999]
+    assert viscous_shift(_shift_series(base, [med + 1.5e-4, med + 1.6e-4]), 0.0, settled) == (0.0, False)
+    shift, seen = viscous_shift(_shift_series(base, [med + 2.5e-4, med + 2.6e-4]), 0.0, settled)
+    assert seen and shift == pytest.approx(2.55e-4)
