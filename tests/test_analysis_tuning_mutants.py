@@ -384,6 +384,7 @@ def test_ratio_minimiser_stops_when_the_bracket_is_two_tolerances(width_in_tol, 
         res = est["result"]
         assert res.converged and res.k_fc == x and res.sigma == pytest.approx(tol)
         assert np.isfinite(res.sigma_signed) and res.sigma_signed > 0   # pooled s noise
+        assert res.sigma_fit == 0.0       # one model only: no flatness / model part
         assert res.bracket == pytest.approx((x - w / 2, x + w / 2))
 
 
@@ -1080,4 +1081,7 @@ def test_viscous_from_harmonics_recovers_a_rigid_plant():
     U1, Y1 = 2 * U[0] / n, 2 * Y[0] / n
     assert viscous_feedforward_estimate(U1, Y1, w, fc) == pytest.approx(b, rel=2e-3)
     assert viscous_feedforward_estimate(U1, Y1, w, 10 * fc) == 0.0    # negative: none
+    # no motion or no frequency: nothing to read, 0 (not a made-up K_v)
+    assert viscous_feedforward_estimate(U1, 0.0, w, fc) == 0.0
+    assert viscous_feedforward_estimate(U1, Y1, 0.0, fc) == 0.0
     assert np.isnan(viscous_from_harmonics(U, np.zeros(7), w, n, c)[0])

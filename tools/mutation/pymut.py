@@ -46,6 +46,7 @@ MODULES = {
     "hosidf": ("analysis/hosidf.py", ["tests/test_pins_hosidf_2.py", "tests/test_analysis_hosidf_mutants.py",
                                       "tests/test_analysis_hosidf.py"]),
     "tuning": ("analysis/tuning.py", ["tests/test_pins_tune_2.py", "tests/test_pins_tune_track.py",
+                                      "tests/test_tune_honest.py",
                                       "tests/test_analysis_tuning_mutants.py",
                                       "tests/test_analysis_tuning.py"]),
     "multisine": ("analysis/multisine.py", ["tests/test_analysis_multisine.py"]),
