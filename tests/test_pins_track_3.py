@@ -235,3 +235,25 @@ def test_viscous_change_needs_at_least_the_absolute_floor():
     assert viscous_shift(_shift_series(base, [med + 1.5e-4, med + 1.6e-4]), 0.0, settled) == (0.0, False)
     shift, seen = viscous_shift(_shift_series(base, [med + 2.5e-4, med + 2.6e-4]), 0.0, settled)
     assert seen and shift == pytest.approx(2.55e-4)
+
+
+def test_a_singular_split_with_k_v_allowed_is_held_or_named_not_a_linalg_error():
+    # kv_unique_min = 0 (a caller's setting) lets K_v be tried on a task whose velocity
+    # regressor is empty (v_r 0 in every sample): the four-gain solve is singular. With the
+    # run's history the split is held (K_v at its trusted value, K_fc from the rest); without
+    # it the task is named collinear. Never numpy's LinAlgError.
+    from fftune.analysis.track import NOTE_KV_SPLIT_HELD, NotIdentifiable
+    m = 3000
+    t = np.arange(m) / 1000.0
+    base = np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 0.4)
+    s = np.sign(base)
+    p, n = np.maximum(s, 0), np.minimum(s, 0)
+    a = np.gradient(base, 1e-3)
+    u = 0.12 * p + 0.10 * n + 0.006 * a
+    stats = _stats_of((p, n, np.zeros(m), a), u)
+    est = estimate_task(stats, kv_unique_min=0.0, recent=[])
+    assert est.k_fc == pytest.approx(0.11, rel=1e-9) and NOTE_KV_SPLIT_HELD in est.notes
+    assert not est.k_v_identified and math.isnan(est.k_v_free)
+    with pytest.raises(NotIdentifiable) as info:
+        estimate_task(stats, kv_unique_min=0.0)
+    assert info.value.cause == "collinear"
