@@ -1042,6 +1042,9 @@ def test_root_at_slope_and_encoder_floor():
     y = q * np.round(0.5 * np.sin(2 * np.pi * 0.625 * t) / q) + 1e-4 * rng.standard_normal(t.size)
     assert encoder_step_estimate(y, 1e-4) == pytest.approx(q, rel=0.02)
     assert encoder_step_estimate(y, q / 3) is None       # noise hides (dithers) the steps
+    # no noise given: the steps of a clean quantised angle
+    clean = q * np.round(0.5 * np.sin(2 * np.pi * 0.625 * t) / q)
+    assert encoder_step_estimate(clean) == pytest.approx(q, rel=1e-9)
 
 
 def test_amplitude_combination_rules():
