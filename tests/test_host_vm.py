@@ -62,7 +62,7 @@ exit $status
 
 # One section of the guest boot all VM test modules share (tests/vmguest.py).
 VM_SECTIONS = {"tune": SECTION}
-# a guard against a hang, not a speed goal: quiet, the section takes about 40 s; at load 9
+# a guard against a hang, not a speed goal: quiet, the section takes about 66 s; at load 9
 # (make test's 4 workers, 4 busy processes beside) 294 s, where TCG gets a fifth of a core
 VM_SECTION_TIMEOUT_S = 900
 VM_FILES = {"tiny.yaml": yaml.safe_dump(TINY)}
