@@ -144,6 +144,9 @@ def test_drift_between_and_halved_frequency():
     assert tuning.drift_between(0.100, 0.104, 0.001, 0.0008) == (True, pytest.approx(0.004))
     assert tuning.drift_between(0.100, 0.1035, 0.001, 0.0008)[0] is False     # 3.5 mV < 3 x 1.28 mV
     assert tuning.drift_between(0.100, 0.1009, 0.0, 0.0, floor=0.001)[0] is False
+    # a repeat without a K_fc* (NaN: its search failed) is no evidence of a drift
+    changed, d = tuning.drift_between(0.100, float("nan"), 0.001, 0.0008)
+    assert changed is False and math.isnan(d)
     assert tuning.halved_frequency(4096, 4) == (4096, 2)
     assert tuning.halved_frequency(4096, 3) == (8192, 3)
     assert tuning.halved_frequency(8192, 1) is None
