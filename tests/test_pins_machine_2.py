@@ -307,3 +307,19 @@ def test_demo_machine_draws_figures_counts_the_bus_and_keeps_the_earlier_output(
     assert summary["time_budget_s"]["total"]["bus"] == bm["busy_s"]
     for name in ("a", "b"):
         assert (out / name / "figure7_tuning.png").stat().st_size > 1000
+
+
+def test_terminate_removes_half_written_figures_of_every_folder_even_after_a_missing_one(tmp_path):
+    """Ctrl-C: terminate() removes the figure process' half-written ``.tmp-*`` files in every
+    axis folder it drew into; a folder that has gone (removed by the user) does not end the
+    clean-up of the folders after it (the lead's surviving mutant: `break` for `continue`)."""
+    from fftune.host import machine as mc
+
+    pool = mc._FigurePool(lambda s: None, lambda s: None)
+    gone, kept = tmp_path / "gone", tmp_path / "kept"
+    kept.mkdir()
+    (kept / ".tmp-tune_hosidf.png").write_bytes(b"half")
+    (kept / "detect_bla.png").write_bytes(b"whole")
+    pool._dirs.extend([str(gone), str(kept)])
+    pool.terminate()
+    assert sorted(p.name for p in kept.iterdir()) == ["detect_bla.png"]
