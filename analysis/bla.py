@@ -705,8 +705,10 @@ def _false_alarm_count(n_lines, p_line, alpha=1e-3):
     if n_lines == 0:
         return None
     p = float(p_line)
-    if 0.0 < p < 1.0 and n_lines * p < 300:
+    if 0.0 < p < 1.0 and n_lines * p < 300 and alpha >= 1e-12:
         # the cdf term by term up to 1 - alpha, pmf(k + 1) = pmf(k) (n - k) / (k + 1) p / (1 - p)
+        # (1 - alpha in float64 carries alpha to 1e-4 of itself down to 1e-12; a smaller alpha
+        # takes the exact tail below)
         # (cumprod and cumsum: the same sequence of products and sums as a loop; the terms
         # past the mean + 12 sd + 40 are not reached for alpha >= 1e-30)
         r = p / (1.0 - p)
@@ -719,9 +721,7 @@ def _false_alarm_count(n_lines, p_line, alpha=1e-3):
         reached = np.flatnonzero(cdf >= 1.0 - alpha)
         if reached.size:
             return max(1, int(reached[0]) + 1)
-        if stop == n_lines:
-            return n_lines + 1
-        # (not reached: fall back to the exact tail)
+        # (not reached, a rounding of the sum: the exact tail below)
     sf = _binom_sf_counts(n_lines, p_line)
     ok = np.flatnonzero(sf <= alpha)
     return max(1, int(ok[0]) if ok.size else n_lines + 1)
