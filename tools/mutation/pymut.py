@@ -34,7 +34,8 @@ WORK = ROOT / "build" / "mutation" / "py"
 MODULES = {
     # the 150-seed Monte Carlo check of the known-reference variances (the slowest test by
     # far) is left out for time; the known-reference var_nl test covers the same lines
-    "bla": ("analysis/bla.py", ["tests/test_pins_bla_2.py", "tests/test_pins_bla_reference.py",
+    "bla": ("analysis/bla.py", ["tests/test_pins_bla_2.py", "tests/test_pins_bla_3.py",
+                                "tests/test_pins_bla_reference.py",
                                 "tests/test_analysis_bla_helpers.py",
                                 "tests/test_analysis_bla_mimo.py",
                                 "tests/test_analysis_bla_mutants.py", "tests/test_analysis_bla.py",
