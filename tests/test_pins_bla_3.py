@@ -139,3 +139,17 @@ def test_mimo_frequencies_default_to_cycles_per_sample():
     y = y + 1e-6 * rng.standard_normal(y.shape)
     res = bla.robust_bla_mimo(u, y)
     assert np.asarray(res.freq) == pytest.approx(bins / n, rel=1e-12)
+
+
+@pytest.mark.parametrize("top, detected", [(7.5, False), (8.5, True)])
+def test_a_line_counts_alone_only_beyond_eight_times_the_known_quantisation_part(top, detected):
+    # the reference holds a known (model) part, the quantisation error: the strongest line's
+    # probability is that of its excess over known_margin (8) times it, relative to the
+    # noise part; one line at 8.5 x known (noise 1 % of known) is a detection by itself,
+    # one at 7.5 x known is not tested (its count alone, 1 of 5, is not enough either)
+    known = np.full(5, 1.0)
+    reference = known + 0.01
+    level = np.array([0.5, 0.6, 0.4, 0.5, top])
+    out = bla._class_stats(level, reference, 10, "x_", known=known)
+    assert out["x_lines_over_noise_6db"] == 1 and out["x_lines_needed"] >= 2
+    assert out["x_detected"] is detected
