@@ -323,3 +323,39 @@ def test_terminate_removes_half_written_figures_of_every_folder_even_after_a_mis
     pool._dirs.extend([str(gone), str(kept)])
     pool.terminate()
     assert sorted(p.name for p in kept.iterdir()) == ["detect_bla.png"]
+
+
+@pytest.mark.parametrize("name, ok", [("", False), ("a" * 64, True), ("a" * 65, False), ("b-2_x", True)])
+def test_axis_names_are_1_to_64_letters_digits_dashes_underscores(tmp_path, name, ok):
+    # an axis name is a folder name: empty and longer than 64 refused, one line naming it
+    from fftune.analysis.errors import FftuneError
+    from fftune.host import machine as mc
+
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    f = _machine_file(tmp_path, [{"name": "a0", "node_id": 5}, {"name": name, "node_id": 7}], "m_n.yaml")
+    if ok:
+        assert [a["name"] for a in mc.load_machine(f)["axes"]] == ["a0", name]
+    else:
+        with pytest.raises(FftuneError, match=r"axes\[1\]\.name: expected a name of letters, digits, - and _"):
+            mc.load_machine(f)
+
+
+def test_a_broken_figure_process_is_the_axis_error_and_the_wait_ends(tmp_path):
+    """The figure process cannot take a job (it has gone): that axis' figures are its error,
+    said once, and wait() returns; the other work is not stopped by an exception."""
+    from fftune.host import machine as mc
+
+    errors_logged = []
+    pool = mc._FigurePool(lambda s: None, errors_logged.append)
+    pool._ex.shutdown(wait=True)                          # (as a dead process pool refuses jobs)
+    pool.submit("ax2", 9, str(tmp_path), "tune", {"some": "tune data"}, {"tune": {}})
+    figs, errors = pool.wait()
+    assert list(errors) == ["ax2"] and errors["ax2"].startswith("figures of tune: RuntimeError")
+    assert errors_logged == [f"fftune: error: axis 'ax2' (node 9): {errors['ax2']}"]
+
+
+def test_run_machine_draws_figures_unless_told_not_to():
+    import inspect
+
+    from fftune.host import machine as mc
+    assert inspect.signature(mc.run_machine).parameters["figures"].default is True
