@@ -139,6 +139,10 @@ def test_mimo_frequencies_default_to_cycles_per_sample():
     y = y + 1e-6 * rng.standard_normal(y.shape)
     res = bla.robust_bla_mimo(u, y)
     assert np.asarray(res.freq) == pytest.approx(bins / n, rel=1e-12)
+    # fs and the rest are keyword-only (as in robust_bla): a positional 2.0 is refused, not
+    # taken silently as the sampling frequency
+    with pytest.raises(TypeError):
+        bla.robust_bla_mimo(u, y, 2.0)
 
 
 @pytest.mark.parametrize("top, detected", [(7.5, False), (8.5, True)])
