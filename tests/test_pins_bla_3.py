@@ -143,6 +143,15 @@ def test_mimo_frequencies_default_to_cycles_per_sample():
     # taken silently as the sampling frequency
     with pytest.raises(TypeError):
         bla.robust_bla_mimo(u, y, 2.0)
+    # a late start (the first period empty) is refused, the check's own finding named
+    late_u = np.concatenate([np.zeros((blocks * nu, 1, n, nu)), u], axis=1)
+    late_y = np.concatenate([np.zeros((blocks * nu, 1, n, 2)), y], axis=1)
+    from fftune.analysis.checks import check_blocks
+    first = check_blocks(late_u[..., 0], name="input 0", fs=1.0, infer=False, mixed_levels="note").notes[0]
+    with pytest.raises(bla.InputError) as info:
+        bla.robust_bla_mimo(late_u, late_y)
+    assert str(info.value) == (f"MIMO BLA: {first}: every experiment must hold the same periods; "
+                               f"cut the records to the excited periods")
 
 
 @pytest.mark.parametrize("top, detected", [(7.5, False), (8.5, True)])
@@ -157,3 +166,25 @@ def test_a_line_counts_alone_only_beyond_eight_times_the_known_quantisation_part
     out = bla._class_stats(level, reference, 10, "x_", known=known)
     assert out["x_lines_over_noise_6db"] == 1 and out["x_lines_needed"] >= 2
     assert out["x_detected"] is detected
+
+
+def test_a_late_start_is_cut_from_the_reference_too():
+    # the closed loop of tests/test_analysis_bla.py with a late start (the first period of
+    # every record empty): the layout drops it from u, y and r alike, and the estimate still
+    # uses the known reference (the plant, not the closed loop)
+    from scipy import signal
+
+    from test_analysis_bla import A, B, multisine_table, periodic_filter
+    m, p, n, kp = 6, 6, 512, 4.0
+    _, _, r = multisine_table(m, n, p, 120, seed=9)
+    rng = np.random.default_rng(4)
+    v = 0.05 * rng.standard_normal(r.shape)
+    den = A + kp * np.concatenate([B, np.zeros(A.size - B.size)])
+    y = periodic_filter(r, kp * B, den) + periodic_filter(v, A, den)
+    u = periodic_filter(r - v, kp * A, den)
+    late = [np.concatenate([np.zeros((m, 1, n)), x], axis=1) for x in (u, y, r)]
+    res = robust_bla(*late, fs=1.0)
+    assert any("start" in note for note in res.notes), res.notes
+    assert res.known_reference
+    _, g_plant = signal.freqz(B, A, worN=2 * np.pi * res.bins / n)
+    assert np.median(np.abs(res.G - g_plant) / np.abs(g_plant)) < 0.02
