@@ -359,3 +359,24 @@ def test_run_machine_draws_figures_unless_told_not_to():
 
     from fftune.host import machine as mc
     assert inspect.signature(mc.run_machine).parameters["figures"].default is True
+
+
+def test_an_axis_config_file_is_read_and_its_errors_are_named_with_the_axis(tmp_path):
+    # an axis with a configuration of its own: its values are used (not the machine's), and
+    # a broken file is one line naming the axis' key and the file
+    from fftune.analysis.errors import FftuneError
+    from fftune.host import machine as mc
+
+    own = dict(SMALL)
+    own["tune"] = {**SMALL.get("tune", {}), "frequency_hz": 2.5}
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    (tmp_path / "own.yaml").write_text(yaml.safe_dump(own))
+    f = _machine_file(tmp_path, [{"name": "a", "node_id": 5}, {"name": "b", "node_id": 7, "config": "own.yaml"}],
+                      "m_c.yaml")
+    m = mc.load_machine(f)
+    assert [a["cfg"]["tune"]["frequency_hz"] for a in m["axes"]] == \
+        [mc.load_machine(f)["axes"][0]["cfg"]["tune"]["frequency_hz"], 2.5]
+    assert m["axes"][0]["cfg"]["tune"]["frequency_hz"] != 2.5
+    (tmp_path / "own.yaml").write_text("tune: [1, 2\n")
+    with pytest.raises(FftuneError, match=r"axes\[1\]\.config: .*own\.yaml"):
+        mc.load_machine(f)
