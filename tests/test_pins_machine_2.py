@@ -380,3 +380,21 @@ def test_an_axis_config_file_is_read_and_its_errors_are_named_with_the_axis(tmp_
     (tmp_path / "own.yaml").write_text("tune: [1, 2\n")
     with pytest.raises(FftuneError, match=r"axes\[1\]\.config: .*own\.yaml"):
         mc.load_machine(f)
+
+
+def test_an_axis_plant_file_that_is_not_a_plant_is_named_with_the_axis(tmp_path):
+    from fftune.analysis.errors import FftuneError
+    from fftune.host import machine as mc
+
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL))
+    (tmp_path / "bad_plant.yaml").write_text("plant: [1, 2]\n")
+    f = _machine_file(tmp_path, [{"name": "a", "node_id": 5, "plant": "bad_plant.yaml"}], "m_p.yaml")
+    with pytest.raises(FftuneError, match=r"axes\[0\]\.plant: .*bad_plant\.yaml"):
+        mc.load_machine(f)
+
+
+def test_run_machine_shows_no_progress_bars_unless_asked():
+    import inspect
+
+    from fftune.host import machine as mc
+    assert inspect.signature(mc.run_machine).parameters["progress"].default is False
