@@ -79,16 +79,21 @@ def test_wiener_system_odd_and_even_detection(kind):
     assert res.output_db.shape == res.bins.shape and res.odd_db.shape == res.odd_bins.shape
 
 
-def test_closed_loop_known_reference_gives_plant_not_closed_loop():
-    # plant G = B/A, controller C = kp (static), output noise v inside the loop
-    m, p, n, kp = 8, 6, 512, 4.0
-    designs, one, r = multisine_table(m, n, p, 120, seed=9)
+def closed_loop_records(m, p=6, n=512, kp=4.0):
+    """(u, y, r, den) of the plant G = B/A under C = kp (static) with output noise v inside
+    the loop: y = T r + S v, u = C S (r - v), S = A / den, T = kp B / den."""
+    _, _, r = multisine_table(m, n, p, 120, seed=9)
     rng = np.random.default_rng(4)
     v = 0.05 * rng.standard_normal(r.shape)
     den = A + kp * np.concatenate([B, np.zeros(A.size - B.size)])
-    # y = T r + S v,  u = C S (r - v), with S = A / den, T = kp B / den
     y = periodic_filter(r, kp * B, den) + periodic_filter(v, A, den)
     u = periodic_filter(r - v, kp * A, den)
+    return u, y, r, den
+
+
+def test_closed_loop_known_reference_gives_plant_not_closed_loop():
+    m, n, kp = 8, 512, 4.0
+    u, y, r, den = closed_loop_records(m, n=n, kp=kp)
     res = robust_bla(u, y, r, fs=1.0)
     _, g_plant = signal.freqz(B, A, worN=2 * np.pi * res.bins / n)
     _, g_closed = signal.freqz(kp * B, den, worN=2 * np.pi * res.bins / n)

@@ -174,14 +174,9 @@ def test_a_late_start_is_cut_from_the_reference_too():
     # uses the known reference (the plant, not the closed loop)
     from scipy import signal
 
-    from test_analysis_bla import A, B, multisine_table, periodic_filter
-    m, p, n, kp = 6, 6, 512, 4.0
-    _, _, r = multisine_table(m, n, p, 120, seed=9)
-    rng = np.random.default_rng(4)
-    v = 0.05 * rng.standard_normal(r.shape)
-    den = A + kp * np.concatenate([B, np.zeros(A.size - B.size)])
-    y = periodic_filter(r, kp * B, den) + periodic_filter(v, A, den)
-    u = periodic_filter(r - v, kp * A, den)
+    from test_analysis_bla import A, B, closed_loop_records
+    m, n = 6, 512
+    u, y, r, _ = closed_loop_records(m, n=n)
     late = [np.concatenate([np.zeros((m, 1, n)), x], axis=1) for x in (u, y, r)]
     res = robust_bla(*late, fs=1.0)
     assert any("start" in note for note in res.notes), res.notes

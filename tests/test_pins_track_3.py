@@ -167,17 +167,22 @@ def _stats_of(columns, u):
     return TaskStats(repetitions=1, samples=P.size, design=design, data=data)
 
 
+def _sign_regressors(m, fs=1000.0):
+    """p, n, a of a two-tone reference of m samples (the sign instruments and the
+    acceleration; no physical task, only regressors with every sign and a level of each)."""
+    t = np.arange(m) / fs
+    base = np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 0.4)
+    s = np.sign(base)
+    return np.maximum(s, 0), np.minimum(s, 0), np.gradient(base, 1.0 / fs)
+
+
 @pytest.mark.parametrize("unique, identified", [(0.01, False), (0.04, True)])
 def test_default_k_v_needs_two_percent_of_v_unexplained(unique, identified):
     # docs/track.md: K_v is estimated when at least 2 % of v_r's energy is not explained by
     # p, n, a_r; v here is a combination of them plus an orthogonal part of the given share
     rng = np.random.default_rng(7)
     m = 4000
-    t = np.arange(m) / 1000.0
-    base = np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 0.4)
-    s = np.sign(base)
-    p, n = np.maximum(s, 0), np.minimum(s, 0)
-    a = np.gradient(base, 1e-3)
+    p, n, a = _sign_regressors(m)
     X = np.column_stack([p, n, a])
     v0 = 1.7 * p + 0.9 * n + 0.002 * a
     z = rng.standard_normal(m)
@@ -244,11 +249,7 @@ def test_a_singular_split_with_k_v_allowed_is_held_or_named_not_a_linalg_error()
     # it the task is named collinear. Never numpy's LinAlgError.
     from fftune.analysis.track import NOTE_KV_SPLIT_HELD, NotIdentifiable
     m = 3000
-    t = np.arange(m) / 1000.0
-    base = np.sin(2 * np.pi * 1.3 * t) + 0.3 * np.sin(2 * np.pi * 3.1 * t + 0.4)
-    s = np.sign(base)
-    p, n = np.maximum(s, 0), np.minimum(s, 0)
-    a = np.gradient(base, 1e-3)
+    p, n, a = _sign_regressors(m)
     u = 0.12 * p + 0.10 * n + 0.006 * a
     stats = _stats_of((p, n, np.zeros(m), a), u)
     est = estimate_task(stats, kv_unique_min=0.0, recent=[])
