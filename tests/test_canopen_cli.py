@@ -6,7 +6,7 @@ import time
 import canopen
 import pytest
 
-from canopen_helpers import configure_sine_run, enable_402, wait_for
+from canopen_helpers import configure_sine_run, enable_402, sdo_response_timeout_s, wait_for
 from conftest import DRIVE_SIM_BIN, drive_sim_missing_reason, start_drive_sim, stop_drive_sim
 
 pytestmark = pytest.mark.skipif(drive_sim_missing_reason() is not None,
@@ -60,7 +60,7 @@ def test_realtime_mode_steps_at_the_controller_rate(tmp_path):
     try:
         net = sim.network()
         node = canopen.RemoteNode(1, sim.eds)
-        node.sdo.RESPONSE_TIMEOUT = 0.8
+        node.sdo.RESPONSE_TIMEOUT = sdo_response_timeout_s(sim)
         net.add_node(node)
         node.nmt.state = "OPERATIONAL"
         enable_402(node)
