@@ -80,11 +80,11 @@ def test_rpdo_length_error_is_reset_by_the_next_correct_rpdo(co_node):
     emcy = collect(net, 0x80 + node.id)
     node.nmt.state = "OPERATIONAL"
     net.send_message(0x200 + node.id, b"\x06")             # RPDO1 maps 16 bits
-    assert wait_for(lambda: len(emcy) == 1, 1.0)
+    assert wait_for(lambda: len(emcy) == 1, 5.0)
     assert emcy[0][:3] == b"\x10\x82\x11"
     assert node.sdo[0x1001].raw == 0x11
     net.send_message(0x200 + node.id, b"\x06\x00")
-    assert wait_for(lambda: len(emcy) == 2, 1.0), emcy
+    assert wait_for(lambda: len(emcy) == 2, 5.0), emcy
     assert emcy[1][:3] == b"\x00\x00\x00"
     assert node.sdo[0x1001].raw == 0
     assert node.sdo[0x6041].raw & 0x6F == 0x21             # the correct RPDO was applied

@@ -120,17 +120,19 @@ def test_host_heartbeat_loss_stops_a_run_safely(co_node):
     finally:
         hb.stop()
     t_lost = time.monotonic()
-    assert wait_for(lambda: node.sdo["Run control"]["State"].raw == 4, 2.0)
-    assert time.monotonic() - t_lost < 1.0
+    assert wait_for(lambda: node.sdo["Run control"]["State"].raw == 4, 5.0)
+    # 300 ms consumer time: stopped within 2 s (a wall-clock bound with room for
+    # a loaded CI machine; a wrong time unit or no stop at all fails it)
+    assert time.monotonic() - t_lost < 2.0
     assert node.sdo["Run control"]["Last stop reason"].raw == 2      # heartbeat lost
-    assert wait_for(lambda: any(e.code == 0x8130 for e in emcys), 1.0)
+    assert wait_for(lambda: any(e.code == 0x8130 for e in emcys), 5.0)
     assert node.sdo[0x1001].raw & 0x10                                # communication error
     # issue 21: 0x6007 = 2 (disable voltage, the default): the power stage went off,
     # statusword SWITCH ON DISABLED (before: OPERATION ENABLED, holding, with nobody there)
     assert node.sdo[0x6041].raw & 0x6F == 0x40
     # the host comes back: error reset EMCY and cleared error register
     net.send_message(0x700 + host_id, [5])
-    assert wait_for(lambda: any(e.code == 0x0000 for e in emcys), 1.0)
+    assert wait_for(lambda: any(e.code == 0x0000 for e in emcys), 5.0)
     assert node.sdo[0x1001].raw == 0
 
 

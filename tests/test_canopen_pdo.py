@@ -1,5 +1,6 @@
 """drive_sim's PDOs with python-canopen: TPDO reception (status, run progress), RPDOs, and a
 mapping changed by PdoMap.save()."""
+import statistics
 import struct
 import time
 
@@ -22,11 +23,14 @@ def test_tpdos_report_status_and_run_progress(co_node):
     node.nmt.state = "OPERATIONAL"                      # every TPDO once on entering
     assert node.tpdo[1].wait_for_reception(1.0) is not None
     assert node.tpdo[1]["Statusword"].raw & 0x4F == 0x40
-    t0 = time.monotonic()
-    assert node.tpdo[1].wait_for_reception(1.0) is not None   # event timer 100 ms
-    assert time.monotonic() - t0 < 0.3
+    # event timer 100 ms: the median of 6 intervals (one stall of a loaded machine moves it not)
+    stamps = []
+    for _ in range(7):
+        assert node.tpdo[1].wait_for_reception(1.0) is not None
+        stamps.append(time.monotonic())
+    assert 0.05 < statistics.median(b - a for a, b in zip(stamps, stamps[1:])) < 0.2
     enable_402(node)
-    assert wait_for(lambda: node.tpdo[1]["Statusword"].raw & 0x6F == 0x27, 1.0)
+    assert wait_for(lambda: node.tpdo[1]["Statusword"].raw & 0x6F == 0x27, 5.0)
     total = 20 * 8192
     configure_sine_run(node, period=8192, settle=10, record=10, signals=0x01)
     node.sdo["Run control"]["Command"].raw = 1
@@ -43,10 +47,10 @@ def test_rpdo_controlword_and_mode(co_node):
     node.nmt.state = "OPERATIONAL"
     node.rpdo[1]["Controlword"].raw = 0x06
     node.rpdo[1].transmit()
-    assert wait_for(lambda: node.tpdo[1]["Statusword"].raw & 0x6F == 0x21, 1.0)
+    assert wait_for(lambda: node.tpdo[1]["Statusword"].raw & 0x6F == 0x21, 5.0)
     node.rpdo[2]["Modes of operation"].raw = -1
     node.rpdo[2].transmit()
-    assert wait_for(lambda: node.tpdo[1]["Modes of operation display"].raw == -1, 1.0)
+    assert wait_for(lambda: node.tpdo[1]["Modes of operation display"].raw == -1, 5.0)
     node.rpdo[2]["Modes of operation"].raw = 5          # not supported: dropped
     node.rpdo[2].transmit()
     # the SDO read goes after the RPDO on the same connection: the drive has handled the
@@ -60,7 +64,7 @@ def test_short_rpdo_gives_emcy(co_node):
     emcys = []
     node.emcy.add_callback(emcys.append)
     net.send_message(0x200 + node.id, b"\x06")          # RPDO1 maps 2 bytes
-    assert wait_for(lambda: any(e.code == 0x8210 for e in emcys), 1.0)
+    assert wait_for(lambda: any(e.code == 0x8210 for e in emcys), 5.0)
 
 
 def test_remapped_tpdo_with_pdo_save(co_node):
