@@ -176,13 +176,61 @@ def start_drive_sim(plant_config=DEFAULT_PLANT, host="127.0.0.1", port=0, node_i
                       f"{' '.join(cmd)}")
 
 
+# The first line of a plant file fftune derived (base file + overrides): drive_sim's errors
+# about it name the user's file and the overrides instead (the derived text's own path is a
+# run's plant.yaml or, for `fftune sim`, a memory file /proc/self/fd/N nobody can open).
+_DERIVED_MARK = "# fftune: derived plant: "
+
+
 def _drive_sim_error(text):
-    """The message of drive_sim's last 'drive_sim: error: ...' line in ``text`` (or None)."""
+    """The message of drive_sim's last 'drive_sim: error: ...' line in ``text`` (or None),
+    a derived plant named by its origin (:func:`named_plant_error`)."""
     found = None
     for line in text.splitlines():
         if line.startswith("drive_sim: error: "):
             found = line[len("drive_sim: error: "):].strip()
-    return found
+    return None if found is None else named_plant_error(found)
+
+
+def named_plant_error(message):
+    """drive_sim's error ``message`` with a derived plant file's path (and its line number,
+    which counts lines of the derived text) replaced by the origin its first line records:
+    ``base.yaml (with <config>: key 'sim.overrides' applied): plant.j1 = ...: out of range``.
+    Other messages are returned unchanged."""
+    m = re.match(r"(?P<path>[^:]+?)(?::\d+)?: (?P<rest>.*)\Z", message, re.S)
+    if not m:
+        return message
+    try:
+        with open(m["path"], "r", encoding="utf-8", errors="replace") as fh:
+            first = fh.readline(4096)
+    except OSError:
+        return message
+    if not first.startswith(_DERIVED_MARK):
+        return message
+    return f"{first[len(_DERIVED_MARK):].strip()}: {m['rest']}"
+
+
+def check_drive_sim_command(cmd):
+    """Run drive_sim's ``cmd`` with ``--check`` (every plant file and FMU loaded and
+    range-checked, no bus opened): one FftuneError line naming the file (its origin, for a
+    derived plant) and the key, or None. For ``fftune sim``, whose drive_sim replaces the
+    process: its refusals then read as every other command's."""
+    fds = [int(m) for m in re.findall(r"/proc/self/fd/(\d+)", " ".join(cmd))]
+    for fd in fds:
+        os.lseek(fd, 0, os.SEEK_SET)
+    try:
+        done = subprocess.run([*cmd, "--check"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True, errors="replace", pass_fds=fds, timeout=60)
+    except subprocess.TimeoutExpired:
+        raise FftuneError(f"drive_sim --check did not finish within 60 s: {' '.join(cmd)}") from None
+    finally:
+        for fd in fds:
+            os.lseek(fd, 0, os.SEEK_SET)    # (drive_sim reads the memory file again after exec)
+    if done.returncode != 0:
+        said = _drive_sim_error(done.stderr)
+        raise FftuneError(f"drive_sim: {said}" if said else
+                          f"drive_sim --check exited with code {done.returncode}: "
+                          f"{' '.join(done.stderr.split())[-300:]}")
 
 
 def _drain(proc):
@@ -281,6 +329,7 @@ def _run(args):
         cmd = drive_sim_command(DEFAULT_PLANT, args.host, args.port, 1, extra=extra,
                                 interface=args.interface, channel=args.channel, bitrate=args.bitrate,
                                 realtime=args.realtime)
+        check_drive_sim_command(cmd)
         sys.stdout.flush()
         sys.stderr.flush()
         os.execv(exe, cmd)
@@ -304,6 +353,7 @@ def _run(args):
     cmd = drive_sim_command(plant, args.host, args.port, node_id,
                             interface=args.interface, channel=args.channel, bitrate=bitrate,
                             realtime=args.realtime)
+    check_drive_sim_command(cmd)
     sys.stdout.flush()
     sys.stderr.flush()
     # Become drive_sim: signals (Ctrl-C, kill) reach the simulator itself, no orphan.
@@ -346,7 +396,7 @@ def derived_plant_text(base_path, overrides, where="sim.overrides"):
                 raise FftuneError(f"{where}.{section}.{key}: no key '{key}' in section "
                                   f"'{section}' of {base_path}")
             plant[section][key] = value
-    lines = [f"# {os.path.basename(base_path)} with {where} applied (written by fftune demo)"]
+    lines = [f"{_DERIVED_MARK}{base_path} (with {where} applied)"]
     for section, values in plant.items():
         lines.append(f"{section}:")
         for key, value in values.items():

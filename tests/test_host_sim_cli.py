@@ -105,3 +105,115 @@ def test_start_drive_sim_with_bitrate_and_node_id(tmp_path):
     finally:
         sim.stop()
     assert "CAN bus model: " in open(tmp_path / "d.log").read()
+
+
+# --------------------------------------------------------------------------- plant refusals
+# drive_sim checks each plant value's range (firmware_sim/plant/plant_config.c, the one
+# table); every command that starts it says which file and key, as the user wrote them:
+# a plant fftune derived (a base file + sim.overrides / an axis' plant_overrides) is named
+# by that origin, never by the derived text's path (a run's plant.yaml, or /proc/self/fd/N
+# for `fftune sim`, which nobody can open).
+
+@pytest.fixture
+def no_exec(monkeypatch):
+    """`fftune sim` replaces its process with drive_sim once the plant passes: here that
+    would replace pytest, so it fails the test instead."""
+    def refuse(*args):
+        raise AssertionError(f"the plant passed drive_sim --check: would exec {args}")
+    monkeypatch.setattr(os, "execv", refuse)
+
+
+def _plant_with(tmp_path, old, new, name="plant.yaml"):
+    text = open(PLANT, encoding="utf-8").read()
+    assert old in text
+    path = tmp_path / name
+    path.write_text(text.replace(old, new, 1))
+    return str(path)
+
+
+def _config_with_overrides(tmp_path, overrides):
+    cfg = yaml.safe_load(open(os.path.join(REPO, "configs", "demo.yaml"), encoding="utf-8"))
+    cfg["sim"]["overrides"] = overrides
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return str(path)
+
+
+@needs_drive
+def test_sim_out_of_range_plant_names_the_users_file_and_line(tmp_path, capsys, no_exec):
+    plant = _plant_with(tmp_path, "  j2: 2.0e-4 ", "  j2: -3.0e-4 ")
+    line = 1 + open(plant).read().splitlines().index(next(
+        ln for ln in open(plant).read().splitlines() if ln.startswith("  j2:")))
+    cfg = _config_with_overrides(tmp_path, {})
+    assert main(["sim", "--plant", plant, "--config", cfg]) == 2
+    assert capsys.readouterr().err == (f"fftune: error: drive_sim: {plant}:{line}: plant.j2 = -3.0e-4: "
+                                       f"out of range [1e-12, 1e+06]\n")
+
+
+@needs_drive
+@pytest.mark.parametrize("bad_in", ["base", "overrides"])
+def test_sim_with_overrides_names_the_base_file_and_the_overrides(tmp_path, capsys, no_exec, bad_in):
+    """The value out of range in the base file or in sim.overrides: either way the error names
+    both, with the value drive_sim read (not /proc/self/fd/N and a line of the derived text)."""
+    plant = _plant_with(tmp_path, "  j2: 2.0e-4 ", "  j2: -3.0e-4 ") if bad_in == "base" else PLANT
+    overrides = {"plant": {"viscous": 3.0e-4}} if bad_in == "base" else {"plant": {"k": -2.0e7}}
+    cfg = _config_with_overrides(tmp_path, overrides)
+    assert main(["sim", "--plant", plant, "--config", cfg]) == 2
+    err = capsys.readouterr().err
+    key = "plant.j2 = -0.0003" if bad_in == "base" else "plant.k = -20000000.0"
+    assert err.startswith(f"fftune: error: drive_sim: {plant} (with {cfg}: key 'sim.overrides' "
+                          f"applied): {key}: out of range [")
+    assert err.count("\n") == 1 and "/proc/self/fd" not in err
+
+
+@needs_drive
+def test_sim_machine_names_the_axis_whose_plant_overrides_are_out_of_range(tmp_path, capsys, no_exec):
+    text = open(os.path.join(REPO, "configs", "machine_demo.yaml"), encoding="utf-8").read()
+    old = "j1: 0.8e-4, coulomb: 4.0e-3"
+    assert old in text
+    machine = tmp_path / "m.yaml"
+    machine.write_text(text.replace(old, "j1: 0.8e-4, coulomb: -4.0e-3", 1))
+    axes = yaml.safe_load(machine.read_text())["axes"]
+    name = next(a["name"] for a in axes if (a.get("plant_overrides") or {}).get("plant", {}).get("coulomb", 0) < 0)
+    assert main(["sim", "--machine", str(machine)]) == 2
+    err = capsys.readouterr().err
+    assert f"(with {machine}: axis '{name}' plant_overrides applied): plant.coulomb = -0.004: out of range" in err
+    assert err.startswith("fftune: error: drive_sim: ") and err.count("\n") == 1
+
+
+@needs_drive
+def test_demo_with_a_derived_plant_out_of_range_names_its_origin_and_writes_nothing(tmp_path, capsys):
+    cfg = _config_with_overrides(tmp_path, {"plant": {"c": -2.0e-4}})
+    out = tmp_path / "demo"
+    assert main(["demo", "--config", cfg, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    # (the plant as the configuration's sim.plant names it: configs/plant_twomass.yaml)
+    assert err.startswith("fftune: error: drive_sim: ") and err.count("\n") == 1
+    assert f"plant_twomass.yaml (with {cfg}: key 'sim.overrides' applied): plant.c = -0.0002: out of range [" in err
+    assert not out.exists()
+
+
+def test_named_plant_error_rewrites_only_a_derived_plants_path(tmp_path):
+    from fftune.host.sim import derived_plant, named_plant_error
+    derived = derived_plant(PLANT, {"plant": {"k": 0.7}}, str(tmp_path / "plant.yaml"), where="X: key 'y'")
+    assert named_plant_error(f"{derived}:19: plant.k = 0.7: out of range [1, 2]") == \
+        f"{PLANT} (with X: key 'y' applied): plant.k = 0.7: out of range [1, 2]"
+    assert named_plant_error(f"{derived}: cannot open: gone") == f"{PLANT} (with X: key 'y' applied): cannot open: gone"
+    # a user's own file, a file that is not there, a message with no path: unchanged
+    for message in (f"{PLANT}:19: plant.k = 0.7: out of range [1, 2]",
+                    f"{tmp_path / 'missing.yaml'}:3: plant.k = 1: out of range [1, 2]",
+                    "out of memory (recorder of 4 floats)"):
+        assert named_plant_error(message) == message
+
+
+@needs_drive
+def test_drive_sim_check_loads_every_axis_and_opens_no_bus(tmp_path):
+    from fftune.host.resources import drive_sim_path
+    good = subprocess.run([drive_sim_path(), "--check", "--axis", f"1:{PLANT}", "--axis", f"2:{PLANT}"],
+                          capture_output=True, text=True, timeout=30)
+    assert (good.returncode, good.stdout, good.stderr) == (0, "", "")
+    bad = _plant_with(tmp_path, "  k: 0.5 ", "  k: -0.5 ")
+    refused = subprocess.run([drive_sim_path(), "--check", "--axis", f"1:{PLANT}", "--axis", f"2:{bad}"],
+                             capture_output=True, text=True, timeout=30)
+    assert refused.returncode == 2 and refused.stdout == ""
+    assert refused.stderr.startswith(f"drive_sim: error: {bad}:") and "plant.k = -0.5: out of range" in refused.stderr

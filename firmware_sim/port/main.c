@@ -68,6 +68,7 @@ typedef struct {
     const char *config;
     bool realtime;
     bool quiet;
+    bool check; /* --check: load and check the configuration(s), then exit */
     int bitrate; /* 0: no bus model */
     int n_axes;  /* --axis options given (0: one axis from --node-id / --config) */
     axis_opt_t axis[DS_AXES_MAX];
@@ -136,7 +137,7 @@ static int usage_error(const char *msg, const char *arg)
 {
     fprintf(stderr, "drive_sim: error: %s%s%s\n", msg, arg ? ": " : "", arg ? arg : "");
     fprintf(stderr, "usage: drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N] "
-                    "[--node-id N] [--config FILE] [--axis ID:FILE ...] [--realtime] [--bitrate B] [--quiet]\n");
+                    "[--node-id N] [--config FILE] [--axis ID:FILE ...] [--realtime] [--bitrate B] [--quiet] [--check]\n");
     return 2;
 }
 
@@ -238,9 +239,11 @@ static int parse_args(opts_t *o, int argc, char **argv)
             o->realtime = true;
         } else if (strcmp(a, "--quiet") == 0) {
             o->quiet = true;
+        } else if (strcmp(a, "--check") == 0) {
+            o->check = true;
         } else if (strcmp(a, "--help") == 0 || strcmp(a, "-h") == 0) {
             printf("usage: drive_sim [--can socketcand:HOST:PORT | --can socketcan:IFNAME] [--port N] "
-                   "[--node-id N] [--config FILE] [--axis ID:FILE ...] [--realtime] [--bitrate B] [--quiet]\n"
+                   "[--node-id N] [--config FILE] [--axis ID:FILE ...] [--realtime] [--bitrate B] [--quiet] [--check]\n"
                    "  --can      bus (default socketcand:127.0.0.1:29536; --port 0 picks a free port)\n"
                    "  --node-id  CANopen node id 1..127 (default 1)\n"
                    "  --config   plant / controller configuration (configs/plant_*.yaml; default: built-in twomass)\n"
@@ -248,7 +251,9 @@ static int parse_args(opts_t *o, int argc, char **argv)
                    "             and plant configuration each (instead of --node-id / --config)\n"
                    "  --realtime step at the controller rate on absolute deadlines (default: free-run)\n"
                    "  --bitrate  model a classic CAN bus of B bit/s shared by all nodes (socketcand only;\n"
-                   "             default: frames pass at once)\n");
+                   "             default: frames pass at once)\n"
+                   "  --check    load and check every configuration (and FMU), then exit: 0, or 2 with\n"
+                   "             the error line; no bus is opened\n");
             exit(0);
         } else {
             return usage_error("unknown or incomplete option", a);
@@ -545,6 +550,12 @@ int main(int argc, char **argv)
                     ax->node_id, ax->cfg.fs_hz, app.ax[0].node_id, app.ax[0].cfg.fs_hz);
             return 2;
         }
+    }
+    if (app.o.check) {
+        for (int i = 0; i < app.n_axes; i++) {
+            fmup_close(app.ax[i].fmu);
+        }
+        return 0;
     }
     int bound = app.o.port;
     if (app.o.socketcan) {
