@@ -398,3 +398,30 @@ def test_run_machine_shows_no_progress_bars_unless_asked():
 
     from fftune.host import machine as mc
     assert inspect.signature(mc.run_machine).parameters["progress"].default is False
+
+
+@pytest.mark.parametrize("nid, shown", [(True, "True"), (False, "False"), (3.5, "3.5"), ("3", "'3'"), (0, "0")])
+def test_an_axis_node_id_is_an_integer_not_a_yaml_boolean(tmp_path, nid, shown):
+    """`node_id: true` is YAML's boolean (Python's 1): no node id, refused like 3.5 or 0."""
+    f = _raw_machine(tmp_path, axes=[{"name": "a", "node_id": nid}])
+    assert _error(f) == f"{f}: axes[0].node_id: expected 1 .. 127, got {shown}"
+
+
+def test_a_plant_override_section_that_is_no_mapping_is_named_cut_to_40(tmp_path):
+    section = "s" * 39 + "TUV"                                          # 42 characters
+    f = _raw_machine(tmp_path, axes=[{"name": "a", "node_id": 5, "plant_overrides": {section: 7}}])
+    assert _error(f).startswith(f"{f}: axes[0].plant_overrides.{'s' * 39}T: expected {{key: number}}, got ")
+
+
+def test_a_step_figures_time_is_the_drawing_time(tmp_path, monkeypatch):
+    """The figure process' log line `figures of STEP: N drawn in X s`: X is the drawing time."""
+    from fftune.host import machine as mc
+    from fftune.host import report
+
+    def slow_figures(out_dir, **data):
+        time.sleep(0.12)
+        return {"a": ("a.png", "A"), "b": ("b.png", "B")}
+    monkeypatch.setattr(report, "make_figures", slow_figures)
+    t0 = time.monotonic()
+    figs, seconds = mc._draw_step_figures(str(tmp_path), "detect", object(), {})
+    assert sorted(figs) == ["a", "b"] and 0.12 <= seconds <= time.monotonic() - t0
