@@ -70,7 +70,10 @@ MODULES = {
     # tests/test_tune_search.py is left out for time; its rows replay in test_tune_strategy)
     "tune_strategy": ("analysis/tune_strategy.py", ["tests/test_pins_tune_2.py",
                                                     "tests/test_tune_strategy.py",
-                                                    "tests/test_tune_honest.py"]),
+                                                    "tests/test_tune_honest.py",
+                                                    # every tune kind's results pinned (2 s)
+                                                    "tests/test_tune_snapshot.py",
+                                                    "tests/test_ffmodel.py"]),
     # the machine's summary, exit status and file checks without a bus first, then the
     # sessions on drive_sim (seconds each: a surviving mutant costs tens of seconds)
     "machine": ("host/machine.py", ["tests/test_pins_machine.py", "tests/test_pins_machine_2.py",
