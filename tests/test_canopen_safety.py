@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from canopen.sdo import SdoAbortedError
 
-from canopen_helpers import collect, enable_402, wait_for
+from canopen_helpers import HostHeartbeat, collect, enable_402, wait_for
 
 FLT_MAX = float(np.finfo(np.float32).max)
 
@@ -119,25 +119,26 @@ def test_producer_heartbeat_write_leaves_the_host_watchdog_armed(co_node):
     net, node = co_node
     emcy = collect(net, 0x80 + node.id)
     host_id = 0x7F
-    # 1 s consumer: the SDO writes between the two heartbeats below take more than 300 ms
-    # in the qemu guest on a loaded machine (the drive then disabled itself, 0x6007 = 2,
-    # and refused the run)
+    # 1 s consumer, fed by a heartbeat thread while the run is set up (hand-sent heartbeats
+    # between the SDO writes were more than 1 s apart in the qemu guest at load 15: the
+    # drive then disabled itself, 0x6007 = 2, and refused the run)
     node.sdo[0x1016][1].raw = (host_id << 16) | 1000
-    net.send_message(0x700 + host_id, b"\x05")
-    node.nmt.state = "OPERATIONAL"
-    node.sdo[0x6060].raw = -1
-    enable_402(node)
-    ex = node.sdo["Excitation"]
-    ex["Kind"].raw = 1
-    ex["Amplitude"].raw = 0.01
-    ex["Period length N"].raw = 8192
-    ex["Sine cycles per period"].raw = 1
-    ex["Settle periods"].raw = 1000
-    ex["Record periods"].raw = 1
-    node.sdo["Recorder"]["Signal selection"].raw = 0x01
-    net.send_message(0x700 + host_id, b"\x05")
-    node.sdo["Run control"]["Command"].raw = 1
-    net.send_message(0x700 + host_id, b"\x05")
+    hb = HostHeartbeat(net, host_id)
+    try:
+        node.nmt.state = "OPERATIONAL"
+        node.sdo[0x6060].raw = -1
+        enable_402(node)
+        ex = node.sdo["Excitation"]
+        ex["Kind"].raw = 1
+        ex["Amplitude"].raw = 0.01
+        ex["Period length N"].raw = 8192
+        ex["Sine cycles per period"].raw = 1
+        ex["Settle periods"].raw = 1000
+        ex["Record periods"].raw = 1
+        node.sdo["Recorder"]["Signal selection"].raw = 0x01
+        node.sdo["Run control"]["Command"].raw = 1
+    finally:
+        hb.stop()
     node.sdo[0x1017].raw = 100                                  # the write under test
     # no more host heartbeats: within 1 s (+ scheduling slack) the run must stop
     assert wait_for(lambda: node.sdo["Run control"]["State"].raw == 4, 5.0)

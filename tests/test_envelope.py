@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 import yaml
 
+from canopen_helpers import HOST_LOST_BOUND_S, HOST_LOST_CONSUMER_S
 from fftune.analysis.errors import FftuneError, InputError
 from fftune.host.cli import main
 from host_fixtures import EDS, REPO, drive_sim_missing_reason
@@ -289,8 +290,7 @@ def test_sdo_bursts_are_bounded_by_the_heartbeat():
 # SIGKILL of the host in every accepted configuration: every axis leaves OPERATION ENABLED
 # within its consumer time
 # ---------------------------------------------------------------------------------------
-CONSUMER_S = 0.4            # the host's 100 ms heartbeat, watched with 4x by each drive
-BOUND_S = CONSUMER_S + 0.1  # + the statusword TPDO's inhibit time and the bus (issue 21's bound)
+CONSUMER_S, BOUND_S = HOST_LOST_CONSUMER_S, HOST_LOST_BOUND_S   # (canopen_helpers: why)
 
 
 class BusWatch:

@@ -34,6 +34,7 @@ import time
 import pytest
 import yaml
 
+from canopen_helpers import HOST_LOST_BOUND_S, HOST_LOST_CONSUMER_S
 from fftune.host.drive import BusOptions, DriveClient, quiet_can_loggers
 from test_reliability_support import EDS, REPO, needs_drive, start_drive
 
@@ -44,8 +45,7 @@ STATUS_POWER_MASK = 0x006F
 READY_TO_SWITCH_ON = 0x0021
 SWITCH_ON_DISABLED = 0x0040
 OPERATION_ENABLED = 0x0027
-CONSUMER_S = 0.4           # the host's 100 ms heartbeat, watched with 4x by the drive
-BOUND_S = CONSUMER_S + 0.1  # issue 21: the statusword shows the drive's reaction within this
+CONSUMER_S, BOUND_S = HOST_LOST_CONSUMER_S, HOST_LOST_BOUND_S   # (canopen_helpers: why)
 SMALL_RUN = dict(exc_kind=1, exc_inject=0, exc_amplitude=0.05, exc_period=256, exc_sine_cycles=3,
                  exc_settle_periods=1, exc_record_periods=2)
 
