@@ -29,7 +29,8 @@ TOO_SLOW_FOR_TCG = {
         "counts heartbeats in a 1.05 s sleep bracketed by two SDO writes; in the guest the "
         "callback stamps had 0.10-0.17 s gaps and 8 arrived (test wants 9..12)",
     "tests/test_canopen_pdo.py::test_tpdos_report_status_and_run_progress":
-        "asserts the next TPDO within 0.3 s of python's clock; measured 0.40 s in the guest",
+        "asserts the 100 ms TPDO event timer as python's clock sees it (median of 6 intervals "
+        "0.05-0.2 s); one next TPDO took 0.40 s in the guest",
 }
 
 _deselected = []
