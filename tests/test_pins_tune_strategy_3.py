@@ -55,7 +55,7 @@ class _Plant:
         y = a * self.gain(a) * np.sin(w * t - lag)
         for k, phi in ODD:
             y = y + self.h_scale * 4 / (k * math.pi) * (self.fc - kfc) * np.sin(k * (w * t - lag) + phi)
-        rng = np.random.default_rng([7, int(round(kfc * 1e7)), int(round(kv * 1e7)), int(round(a * 1e4))])
+        rng = np.random.default_rng([7, int(round(kfc * 1e7)), int(round(a * 1e4))])     # (the same at any K_v)
         y = y + 1e-7 * rng.standard_normal(y.size)
         target = self.spread(req)
         if target:
@@ -185,3 +185,215 @@ def test_spread_the_same_in_rad_at_both_amplitudes_is_noise():
     n_lo, n_hi = _spread_rad(_zero_record(plant, 0.25), 4096), _spread_rad(_zero_record(plant, 0.5), 4096)
     assert n_lo < n_hi <= 2 * n_lo
     assert t["search"]["cause"] == "noise" and t["search"]["stop_reason"].startswith(f"the angle noise ({n_hi:.2g}")
+
+
+# ---- the auto amplitude: a spread that grows with it, stick-slip up to the ceiling -----------------
+
+def _choose(plant, start, max_rad, h_scale):
+    cfg = bench_tune.tune_config({})
+    cfg["detect"]["encoder_step_rad"] = 1e-9
+    probe = ts._TuneProbe(ts._Context(cfg, FS, "raw", 2.0, {}))
+    plant.h_scale = h_scale
+    asked = []
+    gen = ts.choose_amplitude(probe, start, max_rad)
+    try:
+        req = next(gen)
+        while True:
+            asked.append(req.amplitude_rad)
+            req = gen.send(plant(req))
+    except StopIteration as stop:
+        return asked, stop.value
+
+
+def _odd_ratio_at_zero(fc, h_scale, amplitude, gain):
+    """rms of the relay's odd harmonics h_scale 4 fc / (k pi), k = 3, 5, 7, over the fundamental."""
+    return h_scale * 4 * fc / math.pi * math.sqrt(np.mean([1 / k ** 2 for k, _ in ODD])) / (amplitude * gain)
+
+
+def test_auto_amplitude_stops_when_the_spread_grows_with_it_naming_both_shares():
+    # 0.05 rad: |H_1| 0.45 (4x); 0.2 rad: ratio 0.1 (2.5x); 0.5 rad: the spread 3.2 % of it,
+    # 16 mrad against 0.6 mrad at 0.2 rad: not noise
+    shares = {0.05: 0.010, 0.2: 0.003, 0.5: 0.032}
+    plant = _Plant(gain=lambda a: 0.45 if a < 0.1 else 0.9,
+                   spread=lambda r: shares[round(r.amplitude_rad, 6)] * r.amplitude_rad)
+    h_scale = 0.1 * 0.2 * 0.9 / _odd_ratio_at_zero(0.1157, 1.0, 1.0, 1.0)
+    asked, (a, block, p, stop) = _choose(plant, 0.05, 2.0, h_scale)
+    assert asked == [0.05, pytest.approx(0.2), pytest.approx(0.5)]
+    assert block["probes"][1]["ratio_at_zero"] == pytest.approx(0.1, rel=1e-3)
+    measured = {}
+    for key, rec in plant.records.items():
+        amp = float(re.search(r"-a([\d.]+)$", key).group(1))
+        measured[amp] = _spread_rad(rec, 4096) / amp
+    assert measured == {k: pytest.approx(v, rel=1e-3) for k, v in shares.items()}
+    assert stop["cause"] == "unsettled" and a == pytest.approx(0.5)
+    assert stop["text"].startswith(
+        f"the motor angle differs between the recorded periods by {100 * measured[0.5]:.2g} % of the amplitude "
+        f"at 0.5 rad and {100 * measured[0.2]:.2g} % at 0.2 rad: not measurement noise (it grows with the "
+        "amplitude)")
+    assert block["reason"] == f"stopped: {stop['text']}"
+
+
+def test_auto_amplitude_in_stick_slip_ends_at_its_ceiling_after_one_probe_there():
+    # |H_1| 0.45 at every amplitude: 4x each time, 0.05 -> 0.2 -> 0.8 rad (the ceiling): the
+    # probe there is the last, and the reason names its |H_1| and ratio
+    plant = _Plant(gain=lambda a: 0.45, spread=lambda r: 1e-3 * r.amplitude_rad)
+    h_scale = 0.6
+    asked, (a, block, p, stop) = _choose(plant, 0.05, 0.8, h_scale)
+    assert asked == [0.05, pytest.approx(0.2), pytest.approx(0.8)]
+    assert stop is None and a == pytest.approx(0.8) and len(block["probes"]) == 3
+    ratios = [q["ratio_at_zero"] for q in block["probes"]]
+    assert ratios == [pytest.approx(_odd_ratio_at_zero(0.1157, h_scale, x, 0.45), rel=1e-3) for x in (0.05, 0.2, 0.8)]
+    assert min(ratios) > ts.AUTO_AMPLITUDE_MAX_RATIO
+    assert block["reason"] == (
+        f"stick-slip at every amplitude up to tune.amplitude_max_rad = 0.8 rad (|H_1| = "
+        f"{block['probes'][2]['h1']:.3g}, ratio at K_fc = 0 {ratios[2]}); the search runs there and may rely on "
+        "the ratio minimiser: raise tune.amplitude_max_rad if the set-up allows")
+    assert f"{block['probes'][2]['h1']:.3g}" == "0.45"
+
+
+# ---- the paper's sweep: the zero crossing next to the ratio minimum ------------------------------
+
+def test_sweep_optimum_interpolates_the_crossing_next_to_the_minimum():
+    k = np.array([0.0, 0.05, 0.1, 0.15, 0.2, 0.3])
+    # the crossing after the minimum (between 0.1 and 0.15)
+    s = np.array([0.5, 0.3, 0.07, -0.13, -0.3, -0.6])
+    k_opt, note = ts.sweep_optimum(k, np.abs(s) + 0.01, s)
+    assert k_opt == pytest.approx(0.1 + 0.05 * 0.07 / (0.07 + 0.13), rel=1e-12)
+    assert note == "zero crossing of the signed objective next to the ratio minimum"
+    # the crossing before it (between 0.05 and 0.1): 0.2 -> -0.05
+    s = np.array([0.4, 0.2, -0.05, -0.21, -0.3, -0.6])
+    assert ts.sweep_optimum(k, np.abs(s) + 0.01, s)[0] == pytest.approx(0.05 + 0.05 * 0.2 / 0.25, rel=1e-12)
+    # the smallest ratio at K_fc = 0 itself: the crossing after it
+    s = np.array([0.01, -0.3, -0.5, -0.6, -0.7, -0.8])
+    assert ts.sweep_optimum(k, np.abs(s), s)[0] == pytest.approx(0.05 * 0.01 / 0.31, rel=1e-12)
+    # no sign change there: the grid minimum
+    s = np.array([0.5, 0.3, 0.07, 0.03, 0.2, 0.4])
+    assert ts.sweep_optimum(k, np.abs(s), s) == (
+        0.15, "grid minimum of the ratio (no sign change of the signed objective there)")
+
+
+@pytest.mark.parametrize("where", ["last", "first above zero"])
+def test_sweep_optimum_at_an_end_of_the_grid_is_unknown(where):
+    if where == "last":
+        k = np.array([0.0, 0.1, 0.2, 0.27])
+        s = np.array([0.5, 0.3, 0.1, 0.02])
+    else:
+        k = np.array([0.06, 0.1, 0.2, 0.27])
+        s = np.array([-0.02, -0.3, -0.5, -0.6])
+    k_opt, note = ts.sweep_optimum(k, np.abs(s), s)
+    at = k[-1] if where == "last" else k[0]
+    assert math.isnan(k_opt)
+    assert note == (f"the ratio is smallest at the end of the sweep (K_fc = {at:.4g}): the optimum may lie "
+                    "outside; widen tune.sweep.k_fc_max")
+
+
+# ---- the unconverged search's diagnosis --------------------------------------------------------
+
+def test_a_search_without_a_moving_experiment_keeps_its_own_cause():
+    pts = {0.0: dict(_point(0.0, _periods(0.9, [0.03, 0.031], [0.0, 0.0, 0.0]), 0.5), ratio=math.inf)}
+    for cause, expected in (("noise", "noise"), ("no motion", "no motion"), (None, "not verified")):
+        got = _run(ts._diagnose_search(_Probe(0.5, {}), SimpleNamespace(cause=cause), pts, 0.0))
+        assert got == (expected, None)
+
+
+def test_a_wide_smoothed_sign_is_named_with_its_share_of_the_peak_velocity():
+    f, a = 0.625, 0.5
+    v_peak = 2 * math.pi * f * a
+    width = 0.443 * v_peak                     # 44.3 % of the sine's peak velocity
+    phases = np.array([0.3, -1.1, 2.0])
+    pts = {}
+    for k, s_k in ((0.0, [0.03, 0.031, 0.029]), (0.11, [0.001, 0.0012, 0.0009]), (0.2, [-0.02, -0.021, -0.019])):
+        pts[k] = _point(k, _periods(0.97 * np.exp(-1j * 0.03), s_k, phases), a)
+        pts[k]["lag_deg"], pts[k]["fc_smooth"] = math.degrees(0.03), width
+    probe = _Probe(a, {}, frequency_hz=f)
+    cause, text = _run(ts._diagnose_search(probe, SimpleNamespace(cause="not verified"), pts, 0.0))
+    # the offset bound: the relay's odd harmonics against those of the saturated sign (quadrature)
+    rho = width / v_peak
+    c = [_sat_cos_coefficient(rho, k) / (4 / (k * math.pi) * (-1) ** ((k - 1) // 2)) for k in (3, 5, 7)]
+    bias = abs(sum(math.copysign(1, ck) / k for ck, k in zip(c, (3, 5, 7)))
+               / sum(abs(ck) / k for ck, k in zip(c, (3, 5, 7))) - 1)
+    assert bias > ts.MAX_SIGMA_RE_K_FC
+    assert cause == "smoothed sign" and probe.asked == []
+    assert text.startswith(f"the drive smooths the feed-forward's sign over fc_smooth = {width:g} rad/s, "
+                           f"{100 * width / v_peak:.2g} % of the sine's peak velocity: its odd harmonics are not "
+                           "the friction's relay (offset bound ")
+    assert f"{100 * width / v_peak:.2g}" == "44"
+    bound = float(re.search(r"offset bound ([0-9.]+) %", text).group(1))
+    assert bound == pytest.approx(100 * bias, rel=5e-3)     # (3 digits; the quadrature 1e-3)
+
+
+# ---- the budget: the search's noise against one experiment's brings the repeat -------------------
+
+@pytest.mark.parametrize("times, repeated", [(9.5, False), (10.5, True)])
+def test_search_noise_ten_times_the_second_amplitudes_brings_the_repeat(times, repeated):
+    # K_fc* at the second amplitude agrees (within twice the noise and 5 %), the search's noise
+    # is above 1 % of K_fc*: the first experiment is repeated when that noise is more than
+    # REPEAT_NOISE_RATIO = 10 times the second amplitude's (the search's points disagree)
+    a1, a2 = 0.5, 0.25
+    k1, slope = 0.1187, -8.0
+    phases = np.array([0.3, -1.1, 2.0])
+    h1_star, h1_two = 0.97 * np.exp(-1j * 0.015), 0.95 * np.exp(-1j * 0.021)
+    s_two = np.array([0.002, 0.010, -0.004, 0.006])
+    slope2 = slope * a1 * abs(h1_star) / (a2 * abs(h1_two))
+    sigma2 = s_two.std(ddof=1) / 2 / abs(slope2) * _t95(3)
+    sig1 = times * sigma2
+    assert sig1 > 0.01 * k1
+    p0 = _point(0.0, _periods(0.9, [0.030, 0.031, 0.029], phases), a1)
+    p_star = _point(k1, _periods(h1_star, [1e-4, -2e-4, 3e-4], phases), a1, noise=2e-4)
+    first = _point(0.3, _periods(0.93, [-0.020, -0.021, -0.019], phases), a1)
+    probe = _Probe(a1, {"amplitude2": _point(k1, _periods(h1_two, s_two, phases), a2), "repeat": first})
+    cfg = {"tune": {"frequency_hz": 1.25, "amplitude_max_rad": 0.5}, "detect": {"encoder_step_rad": 1e-9},
+           "limits": {}}
+    outcome = tuning.KfcSearchResult(k_fc=k1, sigma=sig1, converged=True, reason="", n_experiments=5,
+                                     bracket=(0.1, 0.14), extended_to=None, regime="signed root",
+                                     sigma_signed=1e-3, slope=slope, phases=phases, sigma_fit=0.0)
+    out = _run(ts._budget(ts._Context(cfg, 2560.0, "raw", 5.0, {}), probe, outcome,
+                          {0.0: p0, k1: p_star, 0.3: first}, {"alternative_rad": a2}))
+    assert out["cause"] is None, out["cause"]
+    assert out["k_fc_at_amplitude"]["sigma_noise"][1] == pytest.approx(sigma2, rel=1e-6)
+    k2 = out["k_fc_at_amplitude"]["k_fc"][1]
+    assert abs(k2 - k1) < min(2 * math.hypot(sig1, sigma2), 0.05 * k1)
+    assert [x[0] for x in probe.asked] == ["amplitude2"] + (["repeat"] if repeated else [])
+    assert (out["repeat"] is not None) is repeated
+    if repeated:
+        assert out["repeat"]["changed"] is False and out["repeat"]["k_fc"] == pytest.approx(0.3)
+
+
+# ---- the protocol: the drive's facts by name ----------------------------------------------------
+
+def test_search_tune_takes_the_drives_facts_by_name_only():
+    cfg = bench_tune.tune_config({"amplitude_rad": 0.5})
+    # (fs_hz and k_fc_limit_v are both floats: by position they could be swapped unnoticed)
+    with pytest.raises(TypeError):
+        ts.SearchTune(cfg, 2560.0, 2.0)
+    first = ts.SearchTune(cfg=cfg, fs_hz=2560.0, k_fc_limit_v=2.0).ask()
+    assert first.gains == {"kfc": 0.0, "kv": 0.0} and first.amplitude_rad == 0.5
+
+
+# ---- K_v at K_fc*: the minimiser's point only when it beats K_v = 0 -----------------------------
+
+@pytest.mark.parametrize("slope, expected", [(2.0, "zero"), (0.0, "minimiser")])
+def test_k_v_star_is_zero_when_every_k_v_raises_the_rms_error(slope, expected):
+    # the rms error grows with K_v (slope 2 per V s/rad): Brent's interior point is worse than
+    # the K_fc* run at K_v = 0, which is reported (K_v* = 0, its rms error); a K_v that leaves
+    # the error unchanged (the same record at every K_v) keeps the minimiser's point: K_v = 0
+    # replaces it only when strictly better
+    plant = _Plant(spread=lambda r: 1e-4, error_gain=lambda kv: 1.0 + slope * kv)
+    t = _tune(plant, {"amplitude_rad": 0.5, "viscous": {"enabled": True, "k_v_max": 1.0, "max_experiments": 6}})
+    assert t["search"]["converged"], t["search"]["stop_reason"]
+    v = t["viscous"]
+    evals = v["evaluations"]
+    assert len(evals) == v["experiments"] >= 3 and all(e["k_v"] > 0 for e in evals)
+    k_star = t["k_fc_star"]
+    ver = [r for key, r in plant.records.items() if key.startswith("tune-verify-") and "-kv0" in key
+           and key.endswith("-kv0")]
+    assert len(ver) == 1                       # K_fc* with K_v = 0, measured for the comparison
+    rms0 = math.sqrt(np.mean(ver[0].signals["error"] ** 2))
+    if expected == "zero":
+        assert v["k_v_star"] == 0.0 and v["rms_error_rad"] == pytest.approx(rms0, rel=1e-12)
+        assert min(e["rms_error_rad"] for e in evals) > rms0
+    else:
+        assert v["k_v_star"] > 0 and pytest.approx(v["k_v_star"], rel=1e-6) in [e["k_v"] for e in evals]
+        assert v["rms_error_rad"] == rms0
+    assert t["rms_error_rad"]["k_fc_star_k_v_star"] == v["rms_error_rad"]
+    assert abs(k_star - 0.1157) < 1e-4
