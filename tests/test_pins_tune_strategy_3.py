@@ -397,3 +397,63 @@ def test_k_v_star_is_zero_when_every_k_v_raises_the_rms_error(slope, expected):
         assert v["rms_error_rad"] == rms0
     assert t["rms_error_rad"]["k_fc_star_k_v_star"] == v["rms_error_rad"]
     assert abs(k_star - 0.1157) < 1e-4
+
+
+# ---- the model tune: the drive's statistics read as the lines of the raw samples ------------------
+
+def test_model_tune_statistics_give_the_lines_and_noise_of_the_raw_samples():
+    # one identification experiment recorded twice, as samples and as the drive's line
+    # statistics (computed from the same samples): the lines k = 1 .. 8 are 2 / N of the DFT,
+    # the mean the DC line; their period-to-period variances scale as (2 / N)^2, the DC line's
+    # (unknown to the drive) is the fundamental's over 4. The deviation between the periods
+    # is an impulse (equal at every DFT bin: the DC line's variance is exactly that stand-in)
+    # plus a second-harmonic part (so the lines' variances differ)
+    cfg = bench_tune.tune_config({"method": "model", "terms": ["coulomb", "asymmetry"], "periods": 4})
+    n, P, u_max = 4096, 4, 4.0
+    raw, stats = (ts.ModelTune(cfg, fs_hz=FS, capture=cap) for cap in ("raw", "stats"))
+    req = stats.ask()
+    assert req == raw.ask() and req.periods == P and req.period_samples == n and req.cycles == 1
+    w = 2 * np.pi * req.frequency_hz
+    t = np.arange(P * n) / FS
+    a = req.amplitude_rad
+    y = 0.03 + 0.97 * a * np.sin(w * t - 0.05) + 0.004 * np.sin(3 * w * t + 0.2) + 0.002 * np.sin(2 * w * t)
+    u = (0.12 * np.sign(np.cos(w * t - 0.05)) + 0.02 + 0.31 * np.sin(w * t + 0.3)
+         - 0.05 * np.sin(3 * w * t - 0.2))
+    c_imp, e_two = [0.3, -0.1, 0.25, -0.45], [0.002, -0.001, 0.0, 0.003]
+    for p in range(P):
+        u[p * n + 123] += c_imp[p]
+        u[p * n:(p + 1) * n] += e_two[p] * np.cos(2 * w * t[:n])
+    err = 0.01 * np.sin(w * t + 1.0)
+    sig = {"plant_input": u, "motor_angle": y, "error": err}
+    rec_stats = SimpleNamespace(stats=fstats.harmonic_stats(sig, n=n, cycles=1, harmonics=8, power=list(sig)),
+                                signals={}, parameters={})
+    rec_raw = SimpleNamespace(stats=None, signals=dict(sig, reference=a * np.sin(w * t)), parameters={})
+    stats.tell(req, ts.Measurement(rec_stats, u_max_v=u_max))
+    raw.tell(req, ts.Measurement(rec_raw, u_max_v=u_max))
+    got, from_raw = stats.tuner.experiments[0].estimate, raw.tuner.experiments[0].estimate
+    assert got is not None and from_raw is not None          # (no saturation: rms(u) / u_max 0.06)
+    # the raw samples' lines: X_0 the period mean, X_k = 2 / N DFT at k, explicit sums
+    nn = np.arange(n)
+    U = np.array([[np.mean(u[p * n:(p + 1) * n])] + [2 / n * np.sum(u[p * n:(p + 1) * n] * np.exp(-2j * np.pi * k * nn / n))
+                                                      for k in range(1, 9)] for p in range(P)])
+    Y = np.array([[np.mean(y[p * n:(p + 1) * n])] + [2 / n * np.sum(y[p * n:(p + 1) * n] * np.exp(-2j * np.pi * k * nn / n))
+                                                      for k in range(1, 9)] for p in range(P)])
+    var = np.sum(np.abs(U - U.mean(axis=0)) ** 2, axis=0) / (P - 1)
+    assert var[0] == pytest.approx(var[1] / 4, rel=1e-9) and var[2] > 1.2 * var[1]
+    expected = ffmodel.estimate_terms(U.mean(axis=0), Y.mean(axis=0), omega_rad_s=w, terms=["coulomb", "asymmetry"],
+                                      n_fit=cfg["tune"]["model"]["n_fit"], line_var=var, n_periods=P)
+    for name in ("kfc", "kfa", "inertia", "kv"):
+        assert got["values"][name] == pytest.approx(expected["values"][name], rel=1e-7, abs=1e-12)
+        assert got["values"][name] == pytest.approx(from_raw["values"][name], rel=1e-7, abs=1e-12)
+        assert got["noise"][name] == pytest.approx(expected["noise"][name], rel=1e-7)
+    assert got["values"]["kfc"] == pytest.approx(0.12, rel=0.05) and got["values"]["kfa"] == pytest.approx(
+        0.02 + np.mean(c_imp) / n, rel=0.05)
+    # the statistics' saturation check: rms(u) / u_max (0.95: at least (0.95^2 - 0.64) / 0.36 of
+    # the samples within 20 % of u_max)
+    near = ts.ModelTune(cfg, fs_hz=FS, capture="stats")
+    rms_u = math.sqrt(np.mean(u ** 2))
+    near.tell(near.ask(), ts.Measurement(rec_stats, u_max_v=rms_u / 0.95))
+    assert near.ask() is None and near.tuner.experiments[0].estimate is None
+    model = near.result()[0]["model"]
+    assert model["cause"] == "saturation" and f"in {100 * (0.95 ** 2 - 0.64) / 0.36:.0f} % of the samples" in \
+        model["stop_reason"]
