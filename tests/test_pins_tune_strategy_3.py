@@ -353,6 +353,8 @@ def test_search_noise_ten_times_the_second_amplitudes_brings_the_repeat(times, r
     assert out["k_fc_at_amplitude"]["sigma_noise"][1] == pytest.approx(sigma2, rel=1e-6)
     k2 = out["k_fc_at_amplitude"]["k_fc"][1]
     assert abs(k2 - k1) < min(2 * math.hypot(sig1, sigma2), 0.05 * k1)
+    # the second amplitude is a new experiment (not a repeat: its capture is keyed as such)
+    assert probe.asked[0] == ("amplitude2", k1, 0.0, a2, False)
     assert [x[0] for x in probe.asked] == ["amplitude2"] + (["repeat"] if repeated else [])
     assert (out["repeat"] is not None) is repeated
     if repeated:
@@ -457,3 +459,17 @@ def test_model_tune_statistics_give_the_lines_and_noise_of_the_raw_samples():
     model = near.result()[0]["model"]
     assert model["cause"] == "saturation" and f"in {100 * (0.95 ** 2 - 0.64) / 0.36:.0f} % of the samples" in \
         model["stop_reason"]
+
+
+def test_paper_sweep_runs_from_zero_and_finds_the_plants_level():
+    # tune.sweep.points 5 up to 0.3 V: K_fc = 0, 0.075 .. 0.3 V; the plant's odd harmonics are
+    # linear in Fc - K_fc, so the interpolated zero crossing is Fc itself
+    plant = _Plant(fc=0.1157, spread=lambda r: 1e-4)
+    t = _tune(plant, {"amplitude_rad": 0.5, "sweep": {"k_fc_max": 0.3, "points": 5}})
+    sw = t["sweep"]
+    assert sw["k_fc"] == [pytest.approx(x, rel=1e-7) for x in (0.0, 0.075, 0.15, 0.225, 0.3)]
+    assert sw["experiments"] == 5 and sw["k_fc"][0] == 0.0
+    assert sw["optimum_k_fc"] == pytest.approx(0.1157, rel=1e-4)
+    assert sw["optimum_note"] == "zero crossing of the signed objective next to the ratio minimum"
+    assert t["search"]["relative_to_sweep_optimum"] == pytest.approx(t["k_fc_star"] / sw["optimum_k_fc"] - 1)
+
