@@ -482,3 +482,142 @@ def test_paper_sweep_runs_from_zero_and_finds_the_plants_level():
     assert sw["optimum_note"] == "zero crossing of the signed objective next to the ratio minimum"
     assert t["search"]["relative_to_sweep_optimum"] == pytest.approx(t["k_fc_star"] / sw["optimum_k_fc"] - 1)
 
+
+
+# ---- the plan's key errors: harmonics above fs/2, more than the drive's statistics hold ----------
+
+def test_tune_harmonics_above_half_the_sample_rate_and_beyond_the_statistics_are_named():
+    fs, n = 2560.0, 4096
+    # 292 cycles: harmonic 7 at bin 2044 < N/2; 293 cycles: bin 2051, above fs/2
+    ts.check_plan(bench_tune.tune_config({"frequency_hz": 292 * fs / n}), fs, "raw")
+    f = 293 * fs / n
+    with pytest.raises(ts.FftuneError) as err:
+        ts.check_plan(bench_tune.tune_config({"frequency_hz": f}), fs, "raw")
+    assert str(err.value) == (f"bench_tune: key 'tune.harmonics': harmonic 7 of {f:g} Hz is above fs/2 = 1280 Hz")
+    K = fstats.STAT_K_MAX
+    for capture in ("raw", "stats", "both"):
+        ts.check_plan(bench_tune.tune_config({"harmonics": K}), fs, capture)
+    ts.check_plan(bench_tune.tune_config({"harmonics": K + 1}), fs, "raw")
+    for capture in ("stats", "both"):
+        with pytest.raises(ts.FftuneError) as err:
+            ts.check_plan(bench_tune.tune_config({"harmonics": K + 1}), fs, capture)
+        assert str(err.value) == (
+            f"bench_tune: key 'tune.harmonics': {K + 1} harmonics with tune.capture {capture}: the drive's "
+            f"statistics hold at most {K} (set tune.capture: raw or tune.harmonics <= {K})")
+
+
+def test_model_tune_lines_up_to_eight_below_half_the_sample_rate():
+    fs, n = 2560.0, 4096
+    c = {"period_samples": n, "frequency_hz": 227 * fs / n}
+    assert ts.check_model_lines(c, fs, "m.yaml") == 227          # line 8 at bin 1816, 9 x 227 < 2048
+    c["frequency_hz"] = 228 * fs / n
+    with pytest.raises(ts.FftuneError) as err:
+        ts.check_model_lines(c, fs, "m.yaml")
+    assert str(err.value) == (f"m.yaml: key 'tune.frequency_hz': harmonic 8 of {c['frequency_hz']:g} Hz is above "
+                              "fs/2 (tune.method: model reads k = 0 .. 8)")
+
+
+def test_model_plan_with_a_numeric_identification_amplitude():
+    c = {"model": {"amplitude_rad": 0.7, "verify_amplitude_rad": None}, "terms": ["coulomb", "position"],
+         "amplitude_rad": 0.2, "amplitude_max_rad": 3.0}
+    plan = ts.model_plan(c)
+    # 0.7 rad as set (not pi for the position term), doubled to 2.8 <= 3; the smaller 0.2 verifies
+    assert plan["amplitude"] == 0.7 and plan["verify"] == 0.2
+    assert plan["checked"] == [("tune.model.amplitude_rad", 0.7), ("tune.amplitude_max_rad", pytest.approx(2.8)),
+                               ("tune.amplitude_rad", 0.2)]
+
+
+# ---- the budget's refusals: each names what it could not tell ------------------------------------
+
+PHASES = np.array([0.3, -1.1, 2.0])
+
+
+class _ByAmplitude(_Probe):
+    """The stand-in probe answering by the asked amplitude."""
+
+    def measure(self, tag, kfc, kv=0.0, amplitude=None, repeat=False):
+        self.asked.append((tag, kfc, kv, amplitude, repeat))
+        return self.points[amplitude]
+        yield
+
+
+def _budget(probe, cfg_over=None, p_star_over=None, outcome_over=None):
+    """``_budget`` after a converged search at 0.5 rad (K_fc* 0.1187 V, slope -8 / V), the auto
+    choice's alternative 0.25 rad; (its dict, the point at K_fc*)."""
+    a1, k1 = 0.5, 0.1187
+    p_star = _point(k1, _periods(0.97 * np.exp(-1j * 0.015), [1e-4, -2e-4, 3e-4], PHASES), a1, noise=2e-4)
+    p_star.update(p_star_over or {})
+    cfg = {"tune": {"frequency_hz": 1.25, "amplitude_max_rad": 0.5}, "detect": {"encoder_step_rad": 1e-9},
+           "limits": {}}
+    for key, value in (cfg_over or {}).items():
+        cfg[key].update(value)
+    outcome = dict(k_fc=k1, sigma=1e-3, converged=True, reason="", n_experiments=5, bracket=(0.1, 0.14),
+                   extended_to=None, regime="signed root", sigma_signed=1e-3, slope=-8.0, phases=PHASES,
+                   sigma_fit=0.0)
+    outcome.update(outcome_over or {})
+    out = _run(ts._budget(ts._Context(cfg, 2560.0, "raw", 5.0, {}), probe, tuning.KfcSearchResult(**outcome),
+                          {k1: p_star}, {"alternative_rad": 0.25}))
+    return out, p_star
+
+
+def _second(amplitude=0.25, h1=None):
+    """An experiment at the second amplitude; with ``h1`` its check failed (saturation when it
+    moves: 30 % of the samples at u_max, else no motion)."""
+    p = _point(0.1187, _periods(0.95 * np.exp(-1j * 0.02), [0.0015, 0.0027, 0.0018], PHASES), amplitude)
+    if h1 is not None:
+        p["check"] = tuning.check_experiment(h1, saturated_fraction=0.3 if h1 > 0.2 else 0.0)
+    return p
+
+
+def test_budget_without_a_usable_second_amplitude_names_each_try():
+    # the alternative 0.25 rad saturates, then 2 A = 1 rad (allowed up to 1 rad) does not move
+    probe = _ByAmplitude(0.5, {0.25: _second(0.25, h1=0.95), 1.0: _second(1.0, h1=0.1)})
+    out, _ = _budget(probe, cfg_over={"tune": {"amplitude_max_rad": 1.0}})
+    assert [(x[0], x[3]) for x in probe.asked] == [("amplitude2", 0.25), ("amplitude2", 1.0)]
+    assert out["cause_key"] == "saturation"
+    assert out["cause"] == ("cannot tell the amplitude dependence of K_fc*: no second amplitude gave a usable "
+                            "experiment (0.25 rad: saturation; 1 rad: no motion)")
+    # (1 rad above tune.amplitude_max_rad: only the alternative is tried)
+    probe = _ByAmplitude(0.5, {0.25: _second(0.25, h1=0.1)})
+    out, _ = _budget(probe)
+    assert [x[3] for x in probe.asked] == [0.25] and out["cause_key"] == "no motion"
+    assert out["cause"].endswith("(0.25 rad: no motion)")
+
+
+def test_budget_without_an_encoder_step_asks_for_it():
+    # the drive's statistics (no samples) and no detect.encoder_step_rad: the encoder part is unknown
+    probe = _ByAmplitude(0.5, {0.25: _second()})
+    out, _ = _budget(probe, cfg_over={"detect": {"encoder_step_rad": None}},
+                     p_star_over={"record": SimpleNamespace(signals={})})
+    assert out["cause_key"] == "encoder" and "parts" not in out
+    assert out["cause"] == (
+        "cannot tell the encoder part of the uncertainty: the encoder step is unknown: no samples (tune.capture "
+        "stats) and detect.encoder_step_rad unset; set detect.encoder_step_rad (2 pi / counts per revolution, "
+        "from the encoder's data sheet) or use tune.capture: both")
+    # with it set, the same budget completes with its encoder part
+    out, _ = _budget(_ByAmplitude(0.5, {0.25: _second()}), p_star_over={"record": SimpleNamespace(signals={})})
+    assert out["cause"] is None and out["encoder_step_source"] == "detect.encoder_step_rad"
+
+
+def test_budget_in_stick_slip_cannot_read_a_second_amplitude():
+    # the ratio minimiser's result, its bracket's ends with s of one sign: no slope to read along
+    a, b = 0.08, 0.16
+    pa = _point(a, _periods(0.9, [0.021, 0.019, 0.020], PHASES), 0.5)
+    pb = _point(b, _periods(0.93, [0.012, 0.010, 0.0115], PHASES), 0.5)
+    probe = _Probe(0.5, {})
+    phases, slope = ts._phases_and_slope(probe, SimpleNamespace(phases=None, slope=math.nan, bracket=(a, b)),
+                                         {a: pa, b: pb})
+    assert phases is None and math.isnan(slope)
+    cfg = {"tune": {"frequency_hz": 1.25, "amplitude_max_rad": 0.5}, "detect": {"encoder_step_rad": 1e-9},
+           "limits": {}}
+    outcome = tuning.KfcSearchResult(k_fc=0.1234, sigma=math.nan, converged=True, reason="", n_experiments=6,
+                                     bracket=(a, b), extended_to=None, regime="ratio minimiser",
+                                     sigma_signed=math.nan, slope=math.nan, phases=None)
+    out = _run(ts._budget(ts._Context(cfg, 2560.0, "raw", 5.0, {}), probe, outcome, {a: pa, b: pb}, None))
+    assert probe.asked == [] and out["cause_key"] == "stick-slip"
+    assert out["cause"] == ("cannot tell the uncertainty: the signed objective has no sign change around K_fc = "
+                            "0.1234 V (the odd phases rotate), so K_fc* at a second amplitude cannot be read; "
+                            "raise the amplitude (out of stick-slip)")
+    # a bracket end not measured: no phases either
+    assert ts._phases_and_slope(probe, SimpleNamespace(phases=None, slope=math.nan, bracket=(a, 0.2)),
+                                {a: pa, b: pb})[0] is None
