@@ -621,3 +621,135 @@ def test_budget_in_stick_slip_cannot_read_a_second_amplitude():
     # a bracket end not measured: no phases either
     assert ts._phases_and_slope(probe, SimpleNamespace(phases=None, slope=math.nan, bracket=(a, 0.2)),
                                 {a: pa, b: pb})[0] is None
+
+
+def test_budget_lag_step_whose_experiment_fails_ends_with_its_check():
+    # the motor lags 3 deg at K_fc*, K_v from the fundamentals: Im(U_1 / Y_1) / w - 4 K_fc / (pi |Y_1| w)
+    a1, k1, w = 0.5, 0.1187, 2 * math.pi * 1.25
+    h1 = 0.97 * np.exp(-1j * math.radians(3.0))
+    u_over_y = 0.4 + 1.0j
+    kv = 1.0 / w - 4 * k1 / (math.pi * abs(h1) * a1 * w)
+    lag_point = _second(0.5, h1=0.95)                        # 30 % of the samples at u_max
+    probe = _Probe(a1, {"lag": lag_point})
+    out, _ = _budget(probe, p_star_over={"H": np.concatenate([[h1], np.zeros(6)]), "u_over_y": u_over_y})
+    assert probe.asked == [("lag", k1, pytest.approx(kv, rel=1e-12), a1, False)]
+    assert out["cause_key"] == "saturation"
+    assert out["cause"] == f"saturation: {lag_point['check']['text']}"
+
+
+# ---- the unconverged search: a plant that changed, named with its figures ------------------------
+
+def _search_pts(h1=0.97 * np.exp(-1j * 0.03)):
+    pts = {}
+    for k, s_k in ((0.0, [0.03, 0.031, 0.029]), (0.11, [0.001, 0.0012, 0.0009]),
+                   (0.2, [-0.020, -0.0212, -0.0191])):
+        pts[k] = _point(k, _periods(h1, s_k, PHASES), 0.5)
+        pts[k]["lag_deg"] = float(-np.degrees(np.angle(h1)))
+    return pts
+
+
+@pytest.mark.parametrize("shift, changed", [(0.004, True), (0.0012, False)])
+def test_unconverged_search_repeats_its_first_experiment_and_names_the_change(shift, changed):
+    pts = _search_pts()
+    top_s = np.array([-0.020, -0.0212, -0.0191])
+    rep = _point(0.2, _periods(0.97 * np.exp(-1j * 0.03), top_s + shift, PHASES), 0.5)
+    probe = _Probe(0.5, {"repeat": rep})
+    cause, text = _run(ts._diagnose_search(probe, SimpleNamespace(cause="not verified"), pts, 0.0))
+    assert probe.asked == [("repeat", 0.2, 0.0, 0.5, True)]
+    se = top_s.std(ddof=1) / math.sqrt(3)
+    noise = math.hypot(se, se)
+    assert bool(shift > 3 * noise + 0.01 * abs(top_s.mean())) is changed
+    if not changed:
+        assert (cause, text) == ("not verified", None)
+        return
+    assert cause == "non-stationary"
+    assert text == (
+        f"the plant changed during the tune: the search's first experiment (K_fc = 0.2 V) repeated at the end "
+        f"reads s = {top_s.mean() + shift:.3g} instead of {top_s.mean():.3g} (noise {noise:.2g}): the friction "
+        "drifts between the experiments (warming up, wear, a load change), which no search can follow; tune "
+        "again in a steady state, or follow the drift with fftune track")
+
+
+def test_repeat_of_the_first_experiment_needs_both_ends_and_a_usable_repeat():
+    pts = _search_pts()
+    # no K_fc = 0 experiment to take the phases from: nothing repeated
+    probe = _Probe(0.5, {"repeat": pts[0.2]})
+    no_zero = {k: p for k, p in pts.items() if k != 0.0}
+    assert _run(ts._repeat_first(probe, no_zero)) is None and probe.asked == []
+    # the repeat's check fails: no comparison
+    probe = _Probe(0.5, {"repeat": _failed_copy(pts[0.2])})
+    assert _run(ts._repeat_first(probe, pts)) is None and [x[0] for x in probe.asked] == ["repeat"]
+
+
+def _failed_copy(p):
+    return dict(p, check=tuning.check_experiment(0.1), ratio=math.inf)
+
+
+# ---- the spread's and the loop gain's texts ------------------------------------------------------
+
+def test_spread_text_from_samples_and_from_line_variances():
+    n = 512
+    probe = SimpleNamespace(n=n)
+    rng = np.random.default_rng(11)
+    white = rng.normal(0, 1e-3, (3, n))
+    rec = SimpleNamespace(signals={"motor_angle": white.reshape(-1)}, stats=None)
+    assert ts._spread_text(probe, {"record": rec, "kfc": 0.1}) is None
+    ring = white + np.outer([1.0, -0.4, -0.6], 0.01 * np.sin(2 * np.pi * 21 * np.arange(n) / n))
+    rec = SimpleNamespace(signals={"motor_angle": ring.reshape(-1)}, stats=None)
+    share = _top_share(rec, n)
+    assert share > 0.5
+    text = ts._spread_text(probe, {"record": rec, "kfc": 0.1234})
+    assert text == (f"the motor angle differs between the recorded periods at K_fc = 0.1234 V by motion, not "
+                    f"measurement noise (its spectrum is not flat: {100 * share:.0f} % of its power in 1 % of the "
+                    "frequencies): a loop that has not settled or does not repeat (near its resonance?); raise "
+                    "tune.settle_periods or lower tune.frequency_hz")
+    # the drive's statistics: the lines' variances, flat or one line 14.7 times their median
+    flat = np.array([1.0, 1.3, 0.8, 1.1, 0.9, 1.2, 1.0]) * 1e-6
+    st = SimpleNamespace(var={"motor_angle": flat})
+    rec = SimpleNamespace(signals={}, stats=st)
+    assert ts._spread_text(probe, {"record": rec, "kfc": 0.1}) is None
+    st.var["motor_angle"] = np.array([1.0, 1.3, 0.8, 1.1, 0.9, 14.7, 1.0]) * 1e-6     # median 1.0e-6
+    text = ts._spread_text(probe, {"record": rec, "kfc": 0.1})
+    assert "(the period-to-period variance of the harmonic lines is not flat: its largest 14.7 times its " \
+           "median)" in text
+    # neither samples nor statistics of the angle: nothing to tell
+    assert ts._spread_text(probe, {"record": SimpleNamespace(signals={}, stats=None), "kfc": 0.1}) is None
+
+
+def test_line_variances_and_spread_need_enough_of_them():
+    assert ts.line_variance_is_white([1.0, 50.0]) is True                  # two lines: no median to judge
+    assert ts.line_variance_is_white([1.0, np.nan, 50.0, np.inf]) is True  # (the finite ones)
+    assert ts.line_variance_is_white([1.0, 1.0, 50.0]) is False
+    assert ts.line_variance_is_white([1.0, 1.0, 50.0], ratio=60.0) is True
+    assert math.isnan(ts.spread_concentration(np.ones((1, 64))))           # one period: no spread
+
+
+def test_loop_gain_text_outside_the_band_at_the_point_nearest_k():
+    pts = _search_pts(0.7 * np.exp(-1j * 0.1))
+    pts[0.11] = dict(pts[0.11], H=np.concatenate([[0.9 * np.exp(-1j * 0.1)], pts[0.11]["H"][1:]]))
+    probe = _Probe(0.5, {}, frequency_hz=1.875)
+    # nearest 0.118: 0.11, |H_1| 0.9 inside 0.8 .. 1.25; nearest 0.19: 0.2, 0.7 outside
+    assert ts._loop_gain_text(probe, pts, 0.118) is None
+    text = ts._loop_gain_text(probe, pts, 0.19)
+    assert text.startswith(f"the loop cannot follow the 1.875 Hz sine: the motor moves 0.7 times the reference at "
+                           f"K_fc = 0.2 V (outside 0.8 .. 1.25; lag {math.degrees(0.1):.3g} deg)")
+    assert ts._loop_gain_text(probe, pts, math.nan) is None
+    assert ts._loop_gain_text(probe, {k: dict(p, ratio=math.inf) for k, p in pts.items()}, 0.19) is None
+
+
+# ---- the protocol after the tune ------------------------------------------------------------------
+
+def test_a_finished_tune_refuses_more_measurements_and_counts_its_experiments():
+    plant = _Plant(spread=lambda r: 1e-4)
+    cfg = bench_tune.tune_config({"amplitude_rad": 0.5})
+    cfg["detect"]["encoder_step_rad"] = 1e-9
+    strategy = ts.SearchTune(cfg, fs_hz=FS, k_fc_limit_v=2.0, max_halvings=0)
+    assert not strategy.done and strategy.experiments == 0
+    results, _ = ts.replay(strategy, plant)
+    assert strategy.done and strategy.ask() is None
+    assert strategy.experiments == len(strategy.requests) == len(plant.records) == results["search"]["experiments"]
+    with pytest.raises(ValueError, match=r"^tune strategy: finished, nothing was asked; read result\(\)$"):
+        strategy.tell(strategy.requests[-1], None)
+    model = ts.ModelTune(bench_tune.tune_config({"method": "model"}), fs_hz=FS)
+    with pytest.raises(ValueError, match=r"^tune strategy: finished, nothing was asked; read result\(\)$"):
+        model.tell(None, None)
