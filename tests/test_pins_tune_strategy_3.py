@@ -33,13 +33,13 @@ ODD = ((3, 0.4), (5, -0.9), (7, 1.7))       # (order, phase) of the plant's odd 
 
 
 class _Plant:
-    """A closed loop that follows the sine with gain ``gain(A)`` and lag ``lag_deg(kv)``, plus
+    """A closed loop that follows the sine with gain ``gain(A)`` and lag ``lag_deg(request)``, plus
     odd harmonics of ``h_scale`` (Fc - K_fc) rad (the relay's 4 / (k pi) pattern) and, per
     experiment, a period-to-period deviation of rms ``spread(request)`` rad (white, or with
     ``ring`` the share of one non-harmonic line) with the harmonic lines cut out of it, so the
     HOSIDFs stay exact. ``records``: the record of each request key."""
 
-    def __init__(self, fc=0.1157, gain=lambda a: 0.98, lag_deg=lambda kv: 0.6, spread=lambda req: 0.0,
+    def __init__(self, fc=0.1157, gain=lambda a: 0.98, lag_deg=lambda req: 0.6, spread=lambda req: 0.0,
                  ring=0.0, h_scale=0.02, error_gain=lambda kv: 1.0):
         self.fc, self.gain, self.lag_deg, self.spread, self.ring = fc, gain, lag_deg, spread, ring
         self.h_scale, self.error_gain = h_scale, error_gain
@@ -51,7 +51,7 @@ class _Plant:
         t = np.arange(P * n) / FS
         a, kfc, kv = req.amplitude_rad, req.gains["kfc"], req.gains["kv"]
         ref = a * np.sin(w * t)
-        lag = math.radians(self.lag_deg(kv))
+        lag = math.radians(self.lag_deg(req))
         y = a * self.gain(a) * np.sin(w * t - lag)
         for k, phi in ODD:
             y = y + self.h_scale * 4 / (k * math.pi) * (self.fc - kfc) * np.sin(k * (w * t - lag) + phi)
@@ -196,9 +196,9 @@ def test_spread_the_same_in_rad_at_both_amplitudes_is_noise():
 
 # ---- the auto amplitude: a spread that grows with it, stick-slip up to the ceiling -----------------
 
-def _choose(plant, start, max_rad, h_scale):
+def _choose(plant, start, max_rad, h_scale, q=1e-9):
     cfg = bench_tune.tune_config({})
-    cfg["detect"]["encoder_step_rad"] = 1e-9
+    cfg["detect"]["encoder_step_rad"] = q
     probe = ts._TuneProbe(ts._Context(cfg, FS, "raw", 2.0, {}))
     plant.h_scale = h_scale
     asked = []
@@ -753,3 +753,106 @@ def test_a_finished_tune_refuses_more_measurements_and_counts_its_experiments():
     model = ts.ModelTune(bench_tune.tune_config({"method": "model"}), fs_hz=FS)
     with pytest.raises(ValueError, match=r"^tune strategy: finished, nothing was asked; read result\(\)$"):
         model.tell(None, None)
+
+
+# ---- the auto amplitude's verdicts and the loop's own stops, with their figures ------------------
+
+def test_auto_amplitude_reason_names_its_figures_the_encoder_step_and_a_near_alternative():
+    # 0.5 rad: |H_1| 0.98, the ratio 0.03 (clear of 0.05), the spread 0.3 %, the step 0.4 %: taken
+    plant = _Plant(spread=lambda r: 0.003 * r.amplitude_rad)
+    h_scale = 0.03 * 0.5 * 0.98 / _odd_ratio_at_zero(0.1157, 1.0, 1.0, 1.0)
+    asked, (a, block, p, stop) = _choose(plant, 0.5, 4.0, h_scale, q=0.002)
+    assert asked == [0.5] and stop is None and block["alternative_rad"] is None
+    noise = _spread_rad(_zero_record(plant, 0.5), 4096) / 0.5
+    ratio = block["probes"][0]["ratio_at_zero"]
+    assert ratio == pytest.approx(0.03, rel=1e-3)
+    assert block["reason"] == (
+        f"at K_fc = 0 the motor follows the sine (|H_1| = 0.98 >= 0.5), the odd-harmonic ratio {ratio:.3g} is <= "
+        f"0.05 (out of stick-slip) and the angle noise is {100 * noise:.2g} % of the amplitude (<= 2 %); the "
+        "encoder step is 0.4 % of it (<= 1 %, else the amplitude is raised: the quantisation offset falls with it)")
+    assert block["probes"][0]["encoder_step_re_amplitude"] == pytest.approx(0.004)
+    # the ratio 0.045: within 25 % of its limit, taken with the alternative the next step
+    # gives, max(2, 0.045 / 0.04) x 0.5 rad = 1 rad
+    plant = _Plant(spread=lambda r: 0.003 * r.amplitude_rad)
+    asked, (a, block, p, stop) = _choose(plant, 0.5, 4.0, 0.045 / 0.03 * h_scale, q=0.002)
+    assert asked == [0.5] and block["probes"][0]["verdict"] == "near" and block["alternative_rad"] == 1.0
+    assert block["reason"].endswith("; near a limit (within 25 % or 2 standard errors): another noise seed may "
+                                    "choose 1 rad, measured as the second amplitude")
+    # the step 1.2 % of the amplitude at tune.amplitude_max_rad: taken there, named as above 1 %
+    plant = _Plant(spread=lambda r: 0.003 * r.amplitude_rad)
+    asked, (a, block, p, stop) = _choose(plant, 0.5, 0.5, h_scale, q=0.006)
+    assert asked == [0.5] and stop is None
+    assert block["reason"].endswith("; the encoder step is 1.2 % of it, above 1 %, at tune.amplitude_max_rad")
+
+
+@pytest.mark.parametrize("h1_top, linear", [(0.37, True), (0.38, False)])
+def test_a_motor_that_follows_the_same_share_at_two_amplitudes_is_the_loops_lag(h1_top, linear):
+    # |H_1| 0.25 at 0.5 rad, then 0.37 at 2 rad (x 1.48) with small odd harmonics and no sample
+    # at u_max: no friction holds it (a held motor breaks free), the loop's own dynamics; x 1.52
+    # is more than LINEAR_H1_FACTOR 1.5: the motor is breaking free, the probes go on
+    plant = _Plant(gain=lambda a: 0.25 if a < 1.0 else h1_top if a < 4.0 else 0.98,
+                   spread=lambda r: 0.001 * r.amplitude_rad)
+    h_scale = 0.02 * 2.0 * h1_top / _odd_ratio_at_zero(0.1157, 1.0, 1.0, 1.0)      # ratio 0.02 at 2 rad
+    asked, (a, block, p, stop) = _choose(plant, 0.5, 8.0, h_scale)
+    assert asked[:2] == [0.5, 2.0]
+    if not linear:
+        assert asked == [0.5, 2.0, 8.0] and stop is None and a == 8.0          # (free at 8 rad)
+        return
+    assert asked == [0.5, 2.0] and stop["cause"] == "loop lag" and block["probes"][-1]["cause"] == "loop lag"
+    assert stop["text"] == (
+        f"the loop cannot follow the 0.625 Hz sine: the motor moves {h1_top:.3g} times the reference at 2 rad and "
+        "0.25 times at 0.5 rad, with no sample at u_max: the same share at both, so no friction holds it (a held "
+        "motor breaks free as the amplitude grows) but the loop's own dynamics at this frequency (a load "
+        "anti-resonance near it); lower tune.frequency_hz or change the loop gains")
+
+
+def test_resonance_without_feed_forward_names_the_motion_and_the_samples_at_u_max():
+    probe = _Probe(0.5, {}, frequency_hz=3.75)
+
+    def zero(h1, sat, kfc=0.0, kv=0.0):
+        p = _point(kfc, _periods(h1, [0.01, 0.011, 0.009], PHASES), 0.5, kv=kv)
+        p["check"] = tuning.check_experiment(abs(h1), saturated_fraction=sat)
+        return p
+
+    ck = ts._resonance_check(probe, zero(5.8 * np.exp(-1j * 0.4), 0.57))
+    assert ck["cause"] == "loop lag" and ck["saturated_fraction"] == 0.57
+    assert ck["text"] == (
+        "the loop cannot follow the 3.75 Hz sine: without feed-forward the motor moves 5.8 times the reference "
+        "at 0.5 rad (more than 1.4; the friction only holds it back): the loop is near its resonance at this "
+        "frequency, its output at u_max in 57 % of the samples; lower tune.frequency_hz or change the loop gains")
+    # the samples at u_max named only above SATURATION_MAX_FRACTION (2 %)
+    assert "u_max" not in ts._resonance_check(probe, zero(1.5, 0.02))["text"]
+    assert "its output at u_max in 2 % of" in ts._resonance_check(probe, zero(1.5, 0.0201))["text"]
+    # 1.4 times itself, or any feed-forward in the loop: no resonance verdict
+    assert ts._resonance_check(probe, zero(1.4, 0.0)) is None
+    assert ts._resonance_check(probe, zero(1.5, 0.0, kfc=0.05)) is None
+    assert ts._resonance_check(probe, zero(1.5, 0.0, kv=0.01)) is None
+
+
+def test_a_loop_that_lags_is_tuned_at_a_frequency_where_the_scaled_lag_is_within_the_limit():
+    # the loop lags 30 deg at 2.5 Hz, in proportion to the frequency: refused there (no K_v
+    # removes it), 1.25 and 0.625 Hz skipped (15 and 7.5 deg expected), tuned at 0.3125 Hz
+    plant = _Plant(lag_deg=lambda r: 30.0 * r.frequency_hz / 2.5, spread=lambda r: 1e-4)
+    cfg = bench_tune.tune_config({"amplitude_rad": 0.5, "frequency_hz": 2.5})
+    cfg["detect"]["encoder_step_rad"] = 1e-9
+    logged = []
+    strategy = ts.SearchTune(cfg, fs_hz=FS, k_fc_limit_v=2.0, max_halvings=3, log=logged.append)
+    t, _ = ts.replay(strategy, plant)
+    ch = t["frequency_changes"]
+    assert [(c["from_hz"], c["to_hz"], c["period_samples"]) for c in ch] == [
+        (2.5, 1.25, 4096), (1.25, 0.625, 4096), (0.625, 0.3125, 8192)]
+    assert ch[0]["reason"].startswith("the loop cannot follow the 2.5 Hz sine closely enough: the motor lags the "
+                                      "reference by 30 deg at K_fc*")
+    assert ch[1]["reason"] == ("skipped: the lag at 1.25 Hz would still be about 15 deg (the lag scaled with the "
+                               "frequency from 2.5 Hz; more than 7 deg)")
+    assert ch[2]["reason"].startswith("skipped: the lag at 0.625 Hz would still be about 7.5 deg")
+    assert logged == ["tune: the loop cannot follow 2.5 Hz; again at 0.3125 Hz"]
+    s = t["search"]
+    assert t["frequency_hz"] == 0.3125 and s["converged"] and s["loop_lag_deg"] == pytest.approx(3.75, rel=1e-3)
+    at_first = sum(1 for key in plant.records if "-f" not in key)
+    assert s["experiments_at_other_frequencies"] == at_first
+    assert s["experiments"] == len(plant.records) == len(strategy.requests)
+    # without halvings: refused at 2.5 Hz with the loop's lag, no estimate
+    strategy = ts.SearchTune(cfg, fs_hz=FS, k_fc_limit_v=2.0, max_halvings=0)
+    t0, _ = ts.replay(strategy, _Plant(lag_deg=lambda r: 30.0 * r.frequency_hz / 2.5, spread=lambda r: 1e-4))
+    assert t0["search"]["cause"] == "loop lag" and "frequency_changes" not in t0 and t0["k_fc_best_measured"] is None
