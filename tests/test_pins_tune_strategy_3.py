@@ -856,3 +856,80 @@ def test_a_loop_that_lags_is_tuned_at_a_frequency_where_the_scaled_lag_is_within
     strategy = ts.SearchTune(cfg, fs_hz=FS, k_fc_limit_v=2.0, max_halvings=0)
     t0, _ = ts.replay(strategy, _Plant(lag_deg=lambda r: 30.0 * r.frequency_hz / 2.5, spread=lambda r: 1e-4))
     assert t0["search"]["cause"] == "loop lag" and "frequency_changes" not in t0 and t0["k_fc_best_measured"] is None
+
+
+# ---- a budget too large, a plant that drifts inside the experiments ------------------------------
+
+def test_an_amplitude_dependent_level_is_refused_with_its_budget_and_largest_part():
+    # Fc(A) = 0.1 + 0.02 / A: 0.14 V at 0.5 rad, 0.12 V at 2 A = 1 rad; extrapolated to 1/A -> 0:
+    # 0.14 + 2 (0.12 - 0.14) = 0.10 V, the step from the nearer amplitude (1 rad) 0.02 V the part:
+    # 20 % of K_fc*, more than MAX_SIGMA_RE_K_FC 10 %
+    class ByAmplitude(_Plant):
+        def __call__(self, req):
+            self.fc = 0.1 + 0.02 / req.amplitude_rad
+            return _Plant.__call__(self, req)
+
+    t = _tune(ByAmplitude(spread=lambda r: 1e-4), {"amplitude_rad": 0.5})
+    s = t["search"]
+    assert not s["converged"] and s["cause"] == "amplitude dependence"
+    assert s["budget"]["k_fc_at_amplitude"]["amplitude_rad"] == [0.5, 1.0]
+    assert s["budget"]["k_fc_at_amplitude"]["k_fc"] == [pytest.approx(0.14, rel=1e-4), pytest.approx(0.12, rel=1e-4)]
+    parts, total, k = s["sigma_parts_v"], s["sigma_total_v"], s["k_fc_star"]
+    assert k == pytest.approx(0.10, rel=1e-3) and parts["amplitude"] == pytest.approx(0.02, rel=1e-3)
+    assert total == pytest.approx(math.sqrt(sum(v ** 2 for v in parts.values())), rel=1e-12)
+    assert max(parts, key=parts.get) == "amplitude"
+    assert s["stop_reason"].startswith(
+        f"cannot tell K_fc* better than +-{100 * total / k:.3g} % (sigma_total {total:.3g} V at K_fc = {k:.4g} V, "
+        f"more than 10 %); the largest part is 'amplitude' ({parts['amplitude']:.3g} V): K_fc* depends on the sine "
+        "amplitude (stick-slip, Stribeck, a loop that does not repeat): raise tune.amplitude_rad")
+    assert f"{100 * total / k:.3g}" == "20"
+    # an estimate, but not K_fc*
+    assert t["k_fc_star"] is None and t["k_fc_best_measured"] == k
+    assert t["k_fc_best_measured_note"] == "an estimate whose uncertainty is too large (tune.search.sigma_total_v)"
+
+
+class _Drifting(_Plant):
+    """Fc falls by ``rate`` of its start value per recorded (and settling) period of the tune."""
+
+    def __init__(self, rate, **kw):
+        super().__init__(**kw)
+        self.rate, self.clock, self.fc0 = rate, 0, self.fc
+
+    def __call__(self, req):
+        n, P = req.period_samples, req.periods
+        t0 = self.clock + req.settle_periods
+        self.clock += req.settle_periods + P
+        y = []
+        for p in range(P):
+            self.fc = self.fc0 * (1 + self.rate * (t0 + p))
+            m = _Plant.__call__(self, req)
+            y.append(m.record.signals["motor_angle"].reshape(P, n)[p])
+        m.record.signals["motor_angle"] = np.concatenate(y)
+        m.record.signals["error"] = m.record.signals["reference"] - m.record.signals["motor_angle"]
+        return m
+
+
+def test_a_level_that_drifts_inside_every_experiment_brings_the_repeat_and_is_named():
+    # -0.3 % of Fc per period: within each experiment s moves the same way, through the
+    # search's slope about -0.3 % Fc / K_fc* per period; the first experiment repeated reads
+    # another s: non-stationary, not a K_fc*
+    plant = _Drifting(-0.003, spread=lambda r: 1e-4)
+    t = _tune(plant, {"amplitude_rad": 0.5})
+    s = t["search"]
+    drift = s["period_drift"]
+    rate = drift["rate_re_k_fc_per_period"]
+    assert drift["repeated"] and drift["repeat"]["changed"]
+    # the change of s per period is the stationary plant's slope times the change of Fc; read
+    # through the (drift-flattened) slope of this search, relative to its K_fc*
+    true_slope = _tune(_Plant(spread=lambda r: 1e-4), {"amplitude_rad": 0.5})["search"]["signed_objective_slope_per_v"]
+    expected = -0.003 * plant.fc0 * true_slope / s["signed_objective_slope_per_v"] / s["k_fc_star"]
+    assert rate == pytest.approx(expected, rel=0.15) and rate < -ts.DRIFT_MIN_REL
+    assert not s["converged"] and s["cause"] == "non-stationary" and t["k_fc_best_measured"] is None
+    rep = drift["repeat"]
+    assert s["stop_reason"] == (
+        f"the plant changed during the tune: the search's first experiment (K_fc = {rep['k_fc']:.4g} V) repeated "
+        f"at the end reads s = {rep['s_now']:.3g} instead of {rep['s_then']:.3g} (noise {rep['noise']:.2g}): the "
+        "friction drifts between the experiments (warming up, wear, a load change), which no search can follow; "
+        "tune again in a steady state, or follow the drift with fftune track; within every experiment the "
+        f"objective moved the same way ({100 * rate:+.2g} % of K_fc* per recorded period)")
+    assert f"{100 * rate:+.2g}".startswith("-0.")
