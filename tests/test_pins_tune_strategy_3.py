@@ -933,3 +933,80 @@ def test_a_level_that_drifts_inside_every_experiment_brings_the_repeat_and_is_na
         "tune again in a steady state, or follow the drift with fftune track; within every experiment the "
         f"objective moved the same way ({100 * rate:+.2g} % of K_fc* per recorded period)")
     assert f"{100 * rate:+.2g}".startswith("-0.")
+
+
+# ---- the results of a converged tune: each figure against the plant ------------------------------
+
+def test_converged_tune_results_against_the_synthetic_plant():
+    plant = _Plant(spread=lambda r: 2e-4 * (1 + r.gains["kfc"]), h_scale=0.05)
+    t = _tune(plant, {"amplitude_rad": 0.5})
+    s = t["search"]
+    assert s["converged"] and t["k_fc_star"] == pytest.approx(0.1157, rel=1e-4)
+    assert s["amplitude_probes"] == 0 and t["amplitude"] == {"chosen_rad": 0.5, "reason": "tune.amplitude_rad"}
+    # every experiment of the search: its K_fc, |H_1| 0.98, lag 0.6 deg, the ratio of its odd harmonics
+    ev = s["evaluations"]
+    assert [e["k_fc"] for e in ev] == sorted(e["k_fc"] for e in ev) and ev[0]["k_fc"] == 0.0
+    for e in ev:
+        assert e["h1"] == pytest.approx(0.98, rel=1e-5) and e["lag_deg"] == pytest.approx(0.6, abs=1e-4)
+        r = _odd_ratio_at_zero(0.1157 - e["k_fc"], 0.05, 0.5, 0.98)
+        assert e["ratio"] == pytest.approx(abs(r), rel=1e-3, abs=1e-6) and e["cause"] is None
+    r0 = _odd_ratio_at_zero(0.1157, 0.05, 0.5, 0.98)
+    assert t["ratio_at_zero"] == pytest.approx(r0, rel=1e-4)
+    # the verification experiment: the measured point nearest K_fc*, its ratio and the improvement
+    k_ver = min((e["k_fc"] for e in ev), key=lambda k: abs(k - t["k_fc_star"]))
+    assert s["verification_k_fc"] == pytest.approx(k_ver, rel=1e-7)          # (the K_fc asked; float32 run)
+    r_ver = next(e["ratio"] for e in ev if e["k_fc"] == k_ver)
+    assert t["ratio_at_k_fc_star"] == r_ver and t["ratio_improvement"] == pytest.approx(t["ratio_at_zero"] / r_ver)
+    # the rms tracking errors: at K_fc = 0, at the verification, the smallest over the search
+    rms = {float(re.search(r"-kfc([0-9.e-]+)-kv", key).group(1)): math.sqrt(np.mean(rec.signals["error"] ** 2))
+           for key, rec in plant.records.items()}
+    assert t["rms_error_rad"]["k_fc_0"] == pytest.approx(rms[0.0], rel=1e-12)
+    assert t["rms_error_rad"]["k_fc_star"] == pytest.approx(rms[min(rms, key=lambda k: abs(k - k_ver))], rel=1e-12)
+    k_min = min(rms, key=rms.get)
+    assert t["rms_error_rad"]["sweep_min"] == pytest.approx(rms[k_min], rel=1e-12)
+    assert t["rms_error_rad"]["sweep_min_at_k_fc"] == pytest.approx(k_min, rel=1e-6)
+    assert s["experiments"] == len(plant.records) and s["k_fc_search_v"] == pytest.approx(0.1157, rel=1e-4)
+
+
+@pytest.mark.parametrize("lag_deg, lag_after_deg, kv_search", [(3.0, 0.5, 0.0), (-3.0, 0.5, 0.01), (3.0, 4.0, 0.0),
+                                                               (1.2, None, 0.0)])
+def test_budget_viscous_step_notes(lag_deg, lag_after_deg, kv_search):
+    # the motor lags (or leads) |lag| deg at K_fc*; K_v from the fundamentals; one experiment with
+    # it in the loop (its root 1.1 % away: no second): corrected when its lag is smaller, else
+    # not applied and the shift is the part; within 1.5 deg no step at all
+    a1, k1, w, slope = 0.5, 0.1187, 2 * math.pi * 1.25, -8.0
+    h1 = 0.97 * np.exp(-1j * math.radians(lag_deg))
+    u_over_y = 0.4 + 1.0j
+    kv = 1.0 / w - 4 * k1 / (math.pi * 0.97 * a1 * w)
+    s_lag = np.array([0.0010, 0.0012, 0.0009])
+    points = {"amplitude2": _second()}
+    if lag_after_deg is not None:
+        points["lag"] = _point(k1, _periods(0.98 * np.exp(-1j * math.radians(lag_after_deg)), s_lag, PHASES), a1,
+                               kv=kv)
+    probe = _Probe(a1, points)
+    probe.kv_search = kv_search
+    out, _ = _budget(probe, p_star_over={"H": np.concatenate([[h1], np.zeros(6)]), "u_over_y": u_over_y})
+    assert out["cause"] is None, out["cause"]
+    visc = out["viscous"]
+    prefix = (f"the viscous feed-forward K_v = {kv_search:.4g} V s/rad (read from the K_fc = 0 experiment) was in "
+              "the loop during the search; " if kv_search else "")
+    if lag_after_deg is None:
+        assert [x[0] for x in probe.asked] == ["amplitude2"] and out["parts"]["viscous"] == 0.0
+        assert visc["note"] == (f"lag {lag_deg:.3g} deg at K_fc* (|lag| <= 1.5 deg, or no better K_v estimate): no "
+                                "further correction")
+        return
+    k_new = float(np.float32(k1)) - s_lag.mean() / slope
+    assert probe.asked[0] == ("lag", k1, pytest.approx(kv, rel=1e-12), a1, False)
+    assert abs(k_new - k1) < 0.02 * k1 and len(visc["steps"]) == 1
+    if abs(lag_after_deg) < abs(lag_deg):
+        assert visc["applied"] and out["parts"]["viscous"] == pytest.approx(abs(k_new - k1) / 2, rel=1e-9)
+        assert out["k_fc_at_amplitude"]["k_fc"][0] == pytest.approx(k_new, rel=1e-12)
+        assert visc["note"] == prefix + (
+            f"the motor {'lagged' if lag_deg > 0 else 'led'} the reference by {abs(lag_deg):.3g} deg at K_fc*: K_fc* "
+            f"read again with K_v = {kv:.4g} V s/rad in the loop (corrected)")
+        assert out["k_v_in_search"] == pytest.approx(kv)
+    else:
+        assert not visc["applied"] and out["parts"]["viscous"] == pytest.approx(abs(k_new - k1), rel=1e-9)
+        assert out["k_fc_at_amplitude"]["k_fc"][0] == k1 and out["k_v_in_search"] == kv_search
+        assert visc["note"] == prefix + ("the new K_v estimate did not reduce the lag: not applied; the shift it "
+                                         "gave is a part of the budget")
