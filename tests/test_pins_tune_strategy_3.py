@@ -1010,3 +1010,260 @@ def test_budget_viscous_step_notes(lag_deg, lag_after_deg, kv_search):
         assert out["k_fc_at_amplitude"]["k_fc"][0] == k1 and out["k_v_in_search"] == kv_search
         assert visc["note"] == prefix + ("the new K_v estimate did not reduce the lag: not applied; the shift it "
                                          "gave is a part of the budget")
+
+
+# ---- the measurement of one experiment, the auto amplitude's rules, K_v into the search ------------
+
+def test_measurement_reads_the_runs_parameters_before_the_configuration():
+    ctl = {"u_max": 2.0, "fc_smooth": 0.3, "kp": 1.0}
+    m = ts.measurement_from_record(SimpleNamespace(parameters={"u_max": 1.5, "fc_smooth": None}), ctl)
+    assert (m.u_max_v, m.fc_smooth) == (1.5, 0.3)
+    m = ts.measurement_from_record(SimpleNamespace(), ctl)            # (a record without parameters)
+    assert (m.u_max_v, m.fc_smooth) == (2.0, 0.3)
+    m = ts.measurement_from_record(SimpleNamespace(parameters={"fc_smooth": 0.0}))
+    assert (m.u_max_v, m.fc_smooth) == (None, 0.0)
+
+
+def test_saturation_fraction_at_an_output_limit_below_one_volt():
+    u = np.array([0.1, -0.8, 0.79, 0.8 * (1 - 1e-7), -0.3, 0.81, 0.0, -0.2])
+    assert ts.saturation_fraction(u, 0.8) == 3 / 8                   # |u| >= u_max (float32 tolerance)
+    assert ts.saturation_fraction(u, 0.0) is None and ts.saturation_fraction(u, None) is None
+
+
+def _probe(capture, periods=3, harmonics=7):
+    cfg = bench_tune.tune_config({"amplitude_rad": 0.5, "periods": periods, "harmonics": harmonics,
+                                  "capture": capture})
+    return ts._TuneProbe(ts._Context(cfg, FS, capture, 2.0, {}))
+
+
+def test_statistics_capture_measures_what_the_raw_samples_give():
+    # one record, told as samples and as the drive's line statistics of the same samples: the
+    # HOSIDFs, the plant input's and the angle's lines, U_1 / Y_1 and the rms error agree; the
+    # saturation is the samples' share, or from the statistics the bound (rho^2 - 0.64) / 0.36
+    n, P, u_max = 4096, 3, 1.0
+    w = 2 * np.pi * 0.625
+    t = np.arange(P * n) / FS
+    rng = np.random.default_rng(4)
+    ref = 0.5 * np.sin(w * t)
+    y = 0.48 * np.sin(w * t - 0.05) + 0.003 * np.sin(3 * w * t + 0.7) + 1e-4 * rng.standard_normal(t.size)
+    u = np.clip(1.6 * np.sin(w * t + 0.4) + 0.1 * np.sign(np.cos(w * t - 0.05)), -u_max, u_max)
+    sig = {"reference": ref, "motor_angle": y, "plant_input": u, "error": ref - y}
+    got = {}
+    for capture in ("raw", "stats"):
+        probe = _probe(capture)
+        if capture == "raw":
+            rec = SimpleNamespace(stats=None, signals=sig, parameters={})
+        else:
+            st = fstats.harmonic_stats({k: sig[k] for k in ("reference", "motor_angle", "plant_input")}, n=n,
+                                       cycles=1, harmonics=7)
+            st.power_mean.update({k: float(np.mean(sig[k])) for k in ("error", "plant_input")})
+            st.power_msq.update({k: float(np.mean(sig[k] ** 2)) for k in ("error", "plant_input")})
+            rec = SimpleNamespace(stats=st, signals={}, parameters={})
+        gen = probe.measure("search", 0.0)
+        next(gen)
+        try:
+            gen.send(ts.Measurement(rec, u_max_v=u_max))
+        except StopIteration as stop:
+            got[capture] = stop.value
+    raw, st = got["raw"], got["stats"]
+    mean_u, mean_y = u.reshape(P, n).mean(axis=0), y.reshape(P, n).mean(axis=0)
+    U1 = np.sum(mean_u * np.exp(-2j * np.pi * np.arange(n) / n))
+    Y1 = np.sum(mean_y * np.exp(-2j * np.pi * np.arange(n) / n))
+    for p in (raw, st):
+        assert p["H"] == pytest.approx(raw["H"], rel=1e-9, abs=1e-12)
+        assert p["lines"][0][0] == pytest.approx(U1, rel=1e-9) and p["lines"][1][0] == pytest.approx(Y1, rel=1e-9)
+        assert p["u_over_y"] == pytest.approx(U1 / Y1, rel=1e-9)
+        assert p["rms_error"] == pytest.approx(math.sqrt(np.mean((ref - y) ** 2)), rel=1e-12)
+    assert raw["check"]["saturated_fraction"] == pytest.approx(np.mean(np.abs(u) >= u_max * (1 - 1e-6)))
+    rho = math.sqrt(np.mean(u ** 2)) / u_max
+    assert rho ** 2 > 0.64
+    assert st["check"]["saturated_fraction"] == pytest.approx((rho ** 2 - 0.64) / 0.36, rel=1e-12)
+    assert st["check"]["saturation_basis"].startswith("lower bound from rms(u) / u_max")
+
+
+def _rigid_lines(b, n=4096, c=2, fs=2560.0):
+    f = c * fs / n
+    w = 2 * np.pi * f
+    t = np.arange(n) / fs
+    y = 0.45 * np.sin(w * t + 0.3) + 0.004 * np.sin(3 * w * t - 0.6)
+    yd = 0.45 * w * np.cos(w * t + 0.3) + 0.012 * w * np.cos(3 * w * t - 0.6)
+    ydd = -0.45 * w ** 2 * np.sin(w * t + 0.3) - 0.036 * w ** 2 * np.sin(3 * w * t - 0.6)
+    u = 1.7e-3 * ydd + b * yd + 0.1157 * np.sign(0.45 * w * np.cos(w * t + 0.3))
+    at = c * np.arange(1, 8)
+    return f, w, np.fft.fft(u)[at], np.fft.fft(y)[at]
+
+
+def test_viscous_estimate_and_its_share_of_the_fundamental():
+    f, w, U, Y = _rigid_lines(0.04)
+    probe = _Probe(0.5, {}, frequency_hz=f)
+    probe.n, probe.cycles = 4096, 2
+    p = _point(0.0, _periods(0.9, [0.03, 0.031], PHASES), 0.5)
+    p.update(lines=(U, Y), check=tuning.check_experiment(0.9))
+    kv, share = ts._viscous_estimate(probe, p)
+    assert kv == pytest.approx(0.04, rel=2e-3)
+    assert share == pytest.approx(kv * w * abs(Y[0]) / abs(U[0]), rel=1e-12) and 0 < share < 1
+    # no viscous friction to read (negative), a failed check, no motion, no lines: (0, 0)
+    _, _, Un, Yn = _rigid_lines(-0.02)
+    assert ts._viscous_estimate(probe, dict(p, lines=(Un, Yn))) == (0.0, 0.0)
+    failed = tuning.check_experiment(0.9, saturated_fraction=0.3)
+    assert ts._viscous_estimate(probe, dict(p, check=failed)) == (0.0, 0.0)
+    assert ts._viscous_estimate(probe, dict(p, ratio=math.inf)) == (0.0, 0.0)
+    assert ts._viscous_estimate(probe, dict(p, lines=None)) == (0.0, 0.0)
+
+
+def test_amplitude_verdict_h1_band_is_a_fifth_of_the_margin():
+    v = ts.amplitude_verdict
+    # |H_1| 0.53: 6 % above 0.5, outside the 5 % band: pass; 0.52 inside: near; 0.47 below it: fail
+    assert v(0.53, 0.02, 0.001, 0.001) == "pass"
+    assert v(0.52, 0.02, 0.001, 0.001) == "near"
+    assert v(0.47, 0.02, 0.001, 0.001) == "fail"
+    assert v(0.53, 0.02, 0.001, 0.001, margin=0.4) == "near"     # (a fifth of 0.4: 8 %)
+
+
+def test_auto_amplitude_probes_four_times_by_default():
+    # stuck at every amplitude (|H_1| 0.3, ratio > 0.05): 4x each time; after the fourth probe the
+    # next amplitude is taken unprobed (the search runs there)
+    plant = _Plant(gain=lambda a: 0.3, spread=lambda r: 1e-3 * r.amplitude_rad)
+    asked, (a, block, p, stop) = _choose(plant, 0.01, 100.0, 0.5)
+    assert asked == [0.01, pytest.approx(0.04), pytest.approx(0.16), pytest.approx(0.64)]
+    assert stop is None and a == pytest.approx(2.56) and block["chosen_rad"] == pytest.approx(2.56)
+    assert len(block["probes"]) == 4 and all(q["verdict"] == "fail" for q in block["probes"])
+
+
+def test_auto_amplitude_resonance_marks_the_probe_that_found_it():
+    plant = _Plant(gain=lambda a: 0.45 if a < 0.1 else 1.6, spread=lambda r: 1e-3 * r.amplitude_rad)
+    asked, (a, block, p, stop) = _choose(plant, 0.05, 2.0, 0.5)
+    assert asked == [0.05, pytest.approx(0.2)] and stop["cause"] == "loop lag"
+    assert [q["cause"] for q in block["probes"]] == [None, "loop lag"]
+    assert stop["text"].startswith("the loop cannot follow the 0.625 Hz sine: without feed-forward the motor "
+                                   "moves 1.6 times the reference at 0.2 rad")
+
+
+@pytest.mark.parametrize("growth, unsettled", [(2.1, True), (1.9, False)])
+def test_auto_amplitude_spread_that_doubles_is_unsettled_already_at_the_second_probe(growth, unsettled):
+    # 0.1 rad: ratio 0.1 (x 2.5), spread 4 mrad; 0.25 rad: the spread `growth` times that, above 2 %
+    # of the amplitude at both sizes: unsettled when it more than doubled (in rad)
+    spreads = {0.1: 0.004, 0.25: 0.004 * growth, 0.5: 0.001}
+    plant = _Plant(gain=lambda a: 0.9, spread=lambda r: spreads[round(r.amplitude_rad, 6)])
+    h_scale = 0.1 * 0.1 * 0.9 / _odd_ratio_at_zero(0.1157, 1.0, 1.0, 1.0)
+    asked, (a, block, p, stop) = _choose(plant, 0.1, 2.0, h_scale)
+    assert asked[:2] == [0.1, pytest.approx(0.25)]
+    n1 = _spread_rad(_zero_record(plant, 0.1), 4096)
+    n2 = _spread_rad(_zero_record(plant, 0.25), 4096)
+    assert n2 / n1 == pytest.approx(growth, rel=1e-3) and n2 / 0.25 > 0.02
+    if unsettled:
+        assert len(asked) == 2 and stop["cause"] == "unsettled"
+        assert stop["text"].startswith(f"the motor angle differs between the recorded periods by "
+                                       f"{100 * n2 / 0.25:.2g} % of the amplitude at 0.25 rad and "
+                                       f"{100 * n1 / 0.1:.2g} % at 0.1 rad")
+    else:
+        assert asked == [0.1, pytest.approx(0.25), pytest.approx(0.5)] and stop is None
+
+
+@pytest.mark.parametrize("h1_top, linear", [(0.26, True), (0.25, False)])
+def test_a_motor_that_moves_less_at_the_larger_amplitude_within_the_factor_is_the_loops(h1_top, linear):
+    # |H_1| 0.38 at 0.5 rad, h1_top at 2 rad: 0.26 / 0.38 = 0.684 >= 1 / 1.5, the same share
+    # within LINEAR_H1_FACTOR (the loop's); 0.25 / 0.38 = 0.658 below it: the probes go on
+    plant = _Plant(gain=lambda a: 0.38 if a < 1.0 else h1_top if a < 4.0 else 0.98,
+                   spread=lambda r: 0.001 * r.amplitude_rad)
+    h_scale = 0.02 * 2.0 * h1_top / _odd_ratio_at_zero(0.1157, 1.0, 1.0, 1.0)
+    asked, (a, block, p, stop) = _choose(plant, 0.5, 8.0, h_scale)
+    if linear:
+        assert asked == [0.5, 2.0] and stop["cause"] == "loop lag" and "0.26 times the reference at 2 rad and " \
+            "0.38 times at 0.5 rad" in stop["text"]
+    else:
+        assert asked == [0.5, 2.0, 8.0] and stop is None
+
+
+def test_encoder_step_raises_a_passing_probe_and_names_it():
+    # 0.1 rad fails by its ratio (x 5); 0.5 rad would pass but the step 12 mrad is 2.4 % of it:
+    # failed there, raised to 1.05 q / 1 % = 1.26 rad (more than the ratio's 2x), where it passes
+    plant = _Plant(gain=lambda a: 0.9, spread=lambda r: 1e-3 * r.amplitude_rad)
+    h_scale = 0.2 * 0.1 * 0.9 / _odd_ratio_at_zero(0.1157, 1.0, 1.0, 1.0)
+    asked, (a, block, p, stop) = _choose(plant, 0.1, 4.0, h_scale, q=0.012)
+    assert asked == [0.1, pytest.approx(0.5), pytest.approx(1.26)] and a == pytest.approx(1.26) and stop is None
+    first, second, third = block["probes"]
+    assert first["verdict"] == "fail" and "encoder_note" not in first
+    assert second["verdict"] == "fail" and second["encoder_note"] == (
+        "encoder step 0.012 rad (detect.encoder_step_rad) is 2.4 % of the amplitude (> 1 %)")
+    assert third["verdict"] == "pass" and third["encoder_step_re_amplitude"] == pytest.approx(0.012 / 1.26)
+
+
+def test_near_probe_at_the_ceiling_has_no_alternative_and_names_its_noise():
+    # the ratio 0.045 is near its limit, but 0.5 rad is tune.amplitude_max_rad: nothing larger
+    plant = _Plant(spread=lambda r: 0.01 * r.amplitude_rad)
+    h_scale = 0.045 * 0.5 * 0.98 / _odd_ratio_at_zero(0.1157, 1.0, 1.0, 1.0)
+    asked, (a, block, p, stop) = _choose(plant, 0.5, 0.5, h_scale)
+    assert asked == [0.5] and block["probes"][0]["verdict"] == "near" and block["alternative_rad"] is None
+    assert "near a limit" not in block["reason"]
+    assert "the angle noise is 1 % of the amplitude (<= 2 %)" in block["reason"]        # 1.00 %
+
+
+def test_sweep_zero_exactly_at_a_grid_point_is_the_crossing():
+    k = np.array([0.0, 0.05, 0.1, 0.15])
+    s = np.array([0.5, 0.2, 0.0, -0.3])
+    assert ts.sweep_optimum(k, np.abs(s) + 0.01, s) == (
+        0.1, "zero crossing of the signed objective next to the ratio minimum")
+
+
+def test_sine_on_the_grid_within_a_relative_tolerance_of_its_cycles():
+    # 293 cycles in 4096 samples at 2560 Hz: the frequency typed with 10 digits (relative 1e-10)
+    # is that sine; 1e-8 off is not
+    f = 293 * 2560.0 / 4096
+    assert ts.cycles_on_grid(2560.0, 4096, f * (1 + 1e-10), "k") == 293
+    with pytest.raises(ts.FftuneError, match="not on the DFT grid"):
+        ts.cycles_on_grid(2560.0, 4096, f * (1 + 1e-8), "k")
+
+
+class _WithInput(_Plant):
+    """The synthetic loop with its plant input: a rigid body J y'' + b y' plus the sliding
+    relay F sgn(velocity's fundamental), in V."""
+
+    def __init__(self, b, J=1e-3, F=0.1, **kw):
+        super().__init__(**kw)
+        self.b, self.J, self.F = b, J, F
+
+    def __call__(self, req):
+        self.requests = getattr(self, "requests", []) + [req]
+        m = _Plant.__call__(self, req)
+        n, P = req.period_samples, req.periods
+        w = 2 * np.pi * req.frequency_hz
+        t = np.arange(P * n) / FS
+        a, kfc = req.amplitude_rad, req.gains["kfc"]
+        lag = math.radians(self.lag_deg(req))
+        comps = [(1, a * self.gain(a), 0.0)] + [(k, self.h_scale * 4 / (k * math.pi) * (self.fc - kfc), phi)
+                                               for k, phi in ((3, 0.4), (5, -0.9), (7, 1.7))]
+        yd = sum(c * k * w * np.cos(k * (w * t - lag) + phi) for k, c, phi in comps)
+        ydd = sum(-c * (k * w) ** 2 * np.sin(k * (w * t - lag) + phi) for k, c, phi in comps)
+        m.record.signals["plant_input"] = self.J * ydd + self.b * yd + self.F * np.sign(np.cos(w * t - lag))
+        return m
+
+
+@pytest.mark.parametrize("b, in_search", [(0.015, False), (0.03, True)])
+def test_viscous_feed_forward_enters_the_search_from_a_quarter_of_the_fundamental(b, in_search):
+    # K_v read at K_fc = 0 goes into the search's experiments when its share of the plant input's
+    # fundamental, K_v w |Y_1| / |U_1|, is at least KV_MIN_SHARE 0.25
+    plant = _WithInput(b, spread=lambda r: 1e-4)
+    t = _tune(plant, {"amplitude_rad": 0.5})
+    rec = _zero_record(plant, 0.5)
+    n = 4096
+    e = np.exp(-2j * np.pi * np.arange(n) / n)
+    U1 = np.sum(rec.signals["plant_input"].reshape(-1, n).mean(axis=0) * e)
+    Y1 = np.sum(rec.signals["motor_angle"].reshape(-1, n).mean(axis=0) * e)
+    share = b * 2 * np.pi * 0.625 * abs(Y1) / abs(U1)
+    assert bool(share >= 0.25) is in_search and abs(share - 0.25) > 0.03, share
+    s = t["search"]
+    assert s["converged"] and t["k_fc_star"] == pytest.approx(0.1157, rel=1e-3)
+    kv_asked = [r.gains["kv"] for r in plant.requests if r.tag == "search" and r.gains["kfc"] > 0]
+    assert len(kv_asked) >= 2 and kv_asked == [pytest.approx(b, rel=1e-3) if in_search else 0.0] * len(kv_asked)
+    assert s["k_v_in_search"] == (pytest.approx(b, rel=1e-3) if in_search else 0.0)
+
+
+def test_the_default_two_halvings_reach_a_quarter_of_the_frequency():
+    # 20 deg at 2.5 Hz: 10 deg expected at 1.25 Hz (skipped), 5 deg at 0.625 Hz: tuned there
+    plant = _Plant(lag_deg=lambda r: 20.0 * r.frequency_hz / 2.5, spread=lambda r: 1e-4)
+    cfg = bench_tune.tune_config({"amplitude_rad": 0.5, "frequency_hz": 2.5})
+    cfg["detect"]["encoder_step_rad"] = 1e-9
+    t, _ = ts.replay(ts.SearchTune(cfg, fs_hz=FS, k_fc_limit_v=2.0), plant)
+    assert [(c["from_hz"], c["to_hz"]) for c in t["frequency_changes"]] == [(2.5, 1.25), (1.25, 0.625)]
+    assert t["frequency_hz"] == 0.625 and t["search"]["converged"]
