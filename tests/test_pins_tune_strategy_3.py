@@ -1285,7 +1285,7 @@ class _Sequence(_Probe):
         yield
 
 
-@pytest.mark.parametrize("s_second, expected", [(0.024, "series"), (-0.01, "step")])
+@pytest.mark.parametrize("s_second, expected", [(0.024, "series"), (-0.01, "step"), (0.05, "inf")])
 def test_budget_second_lag_step_bounds_what_is_left(s_second, expected):
     # the first K_v step moves K_fc* by 4.2 % (s 0.04 along the slope -8 / V): a second one at the
     # new root; the same way with the ratio q of the steps: the series' rest q / (1 - q) bounds what
@@ -1311,8 +1311,11 @@ def test_budget_second_lag_step_bounds_what_is_left(s_second, expected):
     elif expected == "step":
         assert step1 * step2 < 0 and part == pytest.approx(abs(step2), rel=1e-6)
     else:
+        # (the budget used to skip the infinite part: a diverging correction passed as converged)
         assert q >= 1 and math.isinf(part) and math.isinf(out["sigma_total"])
-    assert [st["root"] for st in out["viscous"]["steps"]] == [pytest.approx(k_b, rel=1e-9), pytest.approx(k_c, rel=1e-9)]
+        assert not out["sigma_total"] <= ts.MAX_SIGMA_RE_K_FC * abs(out["k_fc"])       # refused
+    roots = [st["root"] for st in out["viscous"]["steps"]]
+    assert roots == [pytest.approx(k_b, rel=1e-9), pytest.approx(k_c, rel=1e-9)]
 
 
 @pytest.mark.parametrize("away, repeated", [(0.055, True), (0.045, False)])
