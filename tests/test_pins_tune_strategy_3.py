@@ -970,7 +970,8 @@ def test_converged_tune_results_against_the_synthetic_plant():
 
 
 @pytest.mark.parametrize("lag_deg, lag_after_deg, kv_search", [(3.0, 0.5, 0.0), (-3.0, 0.5, 0.01), (3.0, 4.0, 0.0),
-                                                               (1.2, None, 0.0), (3.0, None, "0.95 kv")])
+                                                               (1.2, None, 0.0), (3.0, None, "0.95 kv"),
+                                                               (3.0, None, "no estimate")])
 def test_budget_viscous_step_notes(lag_deg, lag_after_deg, kv_search):
     # the motor lags (or leads) |lag| deg at K_fc*; K_v from the fundamentals; one experiment with
     # it in the loop (its root 1.1 % away: no second): corrected when its lag is smaller, else
@@ -983,6 +984,8 @@ def test_budget_viscous_step_notes(lag_deg, lag_after_deg, kv_search):
     s_lag = np.array([0.0010, 0.0012, 0.0009])
     if kv_search == "0.95 kv":                  # the search's K_v within 10 % of the estimate: no step
         kv_search = 0.95 * kv
+    if kv_search == "no estimate":              # no K_v read at K_fc*: no step (the search's is kept)
+        kv_search, u_over_y = 0.01, None
     points = {"amplitude2": _second()}
     if lag_after_deg is not None:
         points["lag"] = _point(k1, _periods(0.98 * np.exp(-1j * math.radians(lag_after_deg)), s_lag, PHASES), a1,
@@ -1180,18 +1183,21 @@ def test_a_motor_that_moves_less_at_the_larger_amplitude_within_the_factor_is_th
         assert asked == [0.5, 2.0, 8.0] and stop is None
 
 
-def test_encoder_step_raises_a_passing_probe_and_names_it():
-    # 0.1 rad fails by its ratio (x 5); 0.5 rad would pass but the step 12 mrad is 2.4 % of it:
-    # failed there, raised to 1.05 q / 1 % = 1.26 rad (more than the ratio's 2x), where it passes
+@pytest.mark.parametrize("q, shown", [(0.0122, "2.4"), (0.0123, "2.5")])
+def test_encoder_step_raises_a_passing_probe_and_names_it(q, shown):
+    # 0.1 rad fails by its ratio (x 5); 0.5 rad would pass but the step (12.2, 12.3 mrad) is 2.44
+    # (2.46) % of it: failed there, raised to 1.05 q / 1 % (more than the ratio's 2x), where it passes
     plant = _Plant(gain=lambda a: 0.9, spread=lambda r: 1e-3 * r.amplitude_rad)
     h_scale = 0.2 * 0.1 * 0.9 / _odd_ratio_at_zero(0.1157, 1.0, 1.0, 1.0)
-    asked, (a, block, p, stop) = _choose(plant, 0.1, 4.0, h_scale, q=0.012)
-    assert asked == [0.1, pytest.approx(0.5), pytest.approx(1.26)] and a == pytest.approx(1.26) and stop is None
+    asked, (a, block, p, stop) = _choose(plant, 0.1, 4.0, h_scale, q=q)
+    raised = 1.05 * q / 0.01
+    assert asked == [0.1, pytest.approx(0.5), pytest.approx(raised)] and a == pytest.approx(raised) and stop is None
     first, second, third = block["probes"]
     assert first["verdict"] == "fail" and "encoder_note" not in first
+    assert f"{100 * q / 0.5:.2g}" == shown
     assert second["verdict"] == "fail" and second["encoder_note"] == (
-        "encoder step 0.012 rad (detect.encoder_step_rad) is 2.4 % of the amplitude (> 1 %)")
-    assert third["verdict"] == "pass" and third["encoder_step_re_amplitude"] == pytest.approx(0.012 / 1.26)
+        f"encoder step {q:.3g} rad (detect.encoder_step_rad) is {shown} % of the amplitude (> 1 %)")
+    assert third["verdict"] == "pass" and third["encoder_step_re_amplitude"] == pytest.approx(q / raised)
 
 
 def test_near_probe_at_the_ceiling_has_no_alternative_and_names_its_noise():
@@ -1285,7 +1291,7 @@ class _Sequence(_Probe):
         yield
 
 
-@pytest.mark.parametrize("s_second, expected", [(0.024, "series"), (-0.01, "step"), (0.05, "inf")])
+@pytest.mark.parametrize("s_second, expected", [(0.024, "series"), (-0.032, "step"), (0.05, "inf")])
 def test_budget_second_lag_step_bounds_what_is_left(s_second, expected):
     # the first K_v step moves K_fc* by 4.2 % (s 0.04 along the slope -8 / V): a second one at the
     # new root; the same way with the ratio q of the steps: the series' rest q / (1 - q) bounds what
@@ -1366,3 +1372,79 @@ def test_unconverged_search_far_from_the_sine_names_its_h1_range():
     assert cause == "loop lag"
     assert text.startswith("the loop cannot follow the 1.25 Hz sine: the motor moves 0.65 times the reference at "
                            "K_fc = 0.11 V (the smallest ratio; |H_1| 0.7 .. 0.6 over the search)")
+
+
+@pytest.mark.parametrize("s_first, steps", [(0.0288, 2), (0.021, 1)])
+def test_budget_lag_step_is_repeated_only_beyond_twice_its_noise(s_first, steps):
+    # the first K_v step 3.6 mV (s 0.0288 along -8 / V; 3 % of K_fc*) with its s noisy (se 11.5e-3):
+    # above 2 se / |slope| = 2.9 mV, a second experiment; 2.6 mV (s 0.021), within it, not
+    a1, k1, w, slope = 0.5, 0.1187, 2 * math.pi * 1.25, -8.0
+    h1 = 0.97 * np.exp(-1j * math.radians(3.0))
+    kv = 1.0 / w - 4 * k1 / (math.pi * 0.97 * a1 * w)
+    s_lag = np.array([s_first - 0.02, s_first, s_first + 0.02])
+    se = s_lag.std(ddof=1) / math.sqrt(3)
+    step = s_first / abs(slope)
+    assert (step > 2 * se / abs(slope)) == (steps == 2) and step > 0.02 * k1
+    lag = [_point(k1, _periods(0.98 * np.exp(-1j * 0.01), s_lag, PHASES), a1, kv=kv) for _ in range(2)]
+    probe = _Sequence(a1, {"lag": lag, "amplitude2": [_second()]})
+    out, _ = _budget(probe, p_star_over={"H": np.concatenate([[h1], np.zeros(6)]), "u_over_y": 0.4 + 1.0j})
+    assert [x[0] for x in probe.asked] == ["lag"] * steps + ["amplitude2"]
+
+
+def test_phases_from_the_bracket_when_the_search_gave_no_falling_slope():
+    # phases given, but the slope not finite or not negative: the bracket's ends decide
+    a, b = 0.08, 0.16
+    pa = _point(a, _periods(0.9, [0.021, 0.019, 0.020], PHASES), 0.5)
+    pb = _point(b, _periods(0.93, [-0.012, -0.010, -0.0115], PHASES), 0.5)
+    for slope in (math.nan, 0.3):
+        outcome = SimpleNamespace(phases=np.array([1.0, 1.0, 1.0]), slope=slope, bracket=(a, b))
+        phases, got = ts._phases_and_slope(_Probe(0.5, {}), outcome, {a: pa, b: pb})
+        assert np.angle(np.exp(1j * (phases - PHASES))) == pytest.approx(np.zeros(3), abs=1e-9)
+        assert got == pytest.approx((-0.0335 / 3 - 0.060 / 3) / (b - a), rel=1e-9)
+    outcome = SimpleNamespace(phases=np.array([1.0, 1.0, 1.0]), slope=-2.0, bracket=(a, b))
+    phases, got = ts._phases_and_slope(_Probe(0.5, {}), outcome, {a: pa, b: pb})
+    assert list(phases) == [1.0, 1.0, 1.0] and got == -2.0
+
+
+@pytest.mark.parametrize("share, motion", [(0.5, False), (math.nextafter(0.5, 1.0), True)])
+def test_spread_text_from_samples_at_half_the_power_in_a_few_lines(monkeypatch, share, motion):
+    monkeypatch.setattr(ts, "spread_concentration", lambda y, top=0.01: share)
+    rec = SimpleNamespace(signals={"motor_angle": np.zeros(3 * 64)}, stats=None)
+    text = ts._spread_text(SimpleNamespace(n=64), {"record": rec, "kfc": 0.1})
+    assert (text is not None) is motion
+    if motion:
+        assert "(its spectrum is not flat: 50 % of its power in 1 % of the frequencies)" in text
+
+
+def test_period_drift_reads_every_usable_experiment_either_way():
+    slope, k = -2.0, 0.1
+    up = [[0.01, 0.0106], [-0.002, -0.0014, -0.0008], [0.003, 0.0036], [-0.05, -0.0494]]
+    drifting, rate = ts.period_drift(up, slope, k)
+    assert drifting and rate == pytest.approx(3e-3)                       # upward: +0.3 % per period
+    # one experiment the other way: no drift, even with the mean rate (+0.23 %) above DRIFT_MIN_REL
+    mixed, rate = ts.period_drift(up + [[0.04, 0.0399]], slope, k)
+    assert mixed is False and rate == pytest.approx((4 * 6e-4 - 1e-4) / 5 / 2 / 0.1)
+    # an experiment of one period or with a NaN period says nothing: left out (3 left: too few)
+    assert ts.period_drift(up[:3] + [[0.02], [0.01, np.nan]], slope, k) == (False, pytest.approx(np.nan, nan_ok=True))
+    assert ts.period_drift(up + [[0.02], [0.01, np.nan]], slope, k) == (True, pytest.approx(3e-3))
+    # no slope or no K_fc*: no rate
+    for sl, kk in ((0.0, k), (math.nan, k), (slope, 0.0)):
+        drifting, rate = ts.period_drift(up, sl, kk)
+        assert drifting is False and math.isnan(rate)
+
+
+def test_lag_sides_take_the_points_clear_of_their_noise_without_k_v():
+    # s at K_fc = 0 positive (under-compensated): below the root the points with s > 0, above
+    # those with s < 0, each beyond 2 standard errors; a point within them, or with another
+    # K_v, sides with neither
+    def pt(k, s_mean, lag, kv=0.0, spread=1e-4):
+        p = _point(k, _periods(0.95, [s_mean - spread, s_mean, s_mean + spread], PHASES), 0.5, kv=kv)
+        p["lag_deg"] = lag
+        return p
+
+    by_k = {0.0: pt(0.0, 0.03, 20.0), 0.05: pt(0.05, 0.012, 15.0), 0.1: pt(0.1, 0.0002, 12.0, spread=3e-4),
+            0.15: pt(0.15, -0.01, 9.0), 0.2: pt(0.2, -0.02, 7.0), 0.12: pt(0.12, 0.004, 11.0, kv=0.05)}
+    assert ts._lag_sides(_Probe(0.5, {}), by_k) == ([20.0, 15.0], [9.0, 7.0])
+    # K_fc = 0 not clear of its noise: no sides
+    by_k[0.0] = pt(0.0, 0.0003, 20.0, spread=5e-4)
+    assert ts._lag_sides(_Probe(0.5, {}), by_k) == ([], [])
