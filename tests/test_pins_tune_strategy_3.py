@@ -256,7 +256,8 @@ def test_auto_amplitude_stops_when_the_spread_grows_with_it_naming_both_shares(s
 def test_auto_amplitude_in_stick_slip_ends_at_its_ceiling_after_one_probe_there():
     # |H_1| 0.3, 0.38, 0.45 (below 0.5): 4x each time, 0.05 -> 0.2 -> 0.8 rad (the ceiling): the
     # probe there is the last, and the reason names its |H_1| and ratio
-    plant = _Plant(gain=lambda a: 0.3 if a < 0.1 else 0.38 if a < 0.5 else 0.45, spread=lambda r: 1e-3 * r.amplitude_rad)
+    plant = _Plant(gain=lambda a: 0.3 if a < 0.1 else 0.38 if a < 0.5 else 0.45,
+                   spread=lambda r: 1e-3 * r.amplitude_rad)
     h_scale = 0.6
     asked, (a, block, p, stop) = _choose(plant, 0.05, 0.8, h_scale)
     assert asked == [0.05, pytest.approx(0.2), pytest.approx(0.8)]
