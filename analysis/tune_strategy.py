@@ -852,6 +852,11 @@ def _budget(ctx, probe, outcome, by_k, amp_block):
         "flatness": float(outcome.sigma_fit), "viscous": visc_part,
         "loop_lag": _tuning.loop_lag_part(lag_res, k_est),
         "smoothed_sign": smooth_rel * abs(k_est) if width > 0 else 0.0})
+    if not math.isfinite(visc_part):
+        # two K_v steps the same way, the second no smaller: the correction does not converge
+        # and no part bounds what is left (uncertainty_budget skips a part that is not finite;
+        # kept, it refuses the result with the viscous part the largest)
+        total, parts = math.inf, dict(parts, viscous=math.inf)
     out.update({
         "k_fc": float(k_est), "sigma_total": total, "parts": parts,
         "k_fc_at_amplitude": {"amplitude_rad": [_f(a1), _f(a2)], "k_fc": [_f(k), _f(k2)],
