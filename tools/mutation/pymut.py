@@ -71,6 +71,7 @@ MODULES = {
     "tune_strategy": ("analysis/tune_strategy.py", ["tests/test_pins_tune_2.py",
                                                     "tests/test_tune_strategy.py",
                                                     "tests/test_tune_honest.py",
+                                                    "tests/test_pins_tune_strategy_3.py",
                                                     # every tune kind's results pinned (2 s)
                                                     "tests/test_tune_snapshot.py",
                                                     "tests/test_ffmodel.py"]),
