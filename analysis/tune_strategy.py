@@ -385,7 +385,9 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
     block : dict
         The choice, its reason, the alternative and the probes (for results.yaml).
     p0 : dict
-        The probe at the chosen amplitude (the search's K_fc = 0 experiment).
+        The probe at the chosen amplitude (the search's K_fc = 0 experiment); when the
+        probes ran out below ``max_rad``, the last probe (the chosen amplitude, the next
+        step, was not probed: the reason says so).
     stop : dict or None
         The check (:func:`fftune.analysis.tuning.check_experiment`) that ended the choice.
     """
@@ -472,10 +474,17 @@ def choose_amplitude(probe, start_rad, max_rad, max_probes=4):
         if a >= max_rad:
             break
         a = nxt
+    last = f"(|H_1| = {probes[-1]['h1']:.3g}, ratio at K_fc = 0 {probes[-1]['ratio_at_zero']})"
+    if probes[-1]["amplitude_rad"] < max_rad:
+        # the probes ran out below the ceiling: the search runs at the next step, which no
+        # probe measured (its own K_fc = 0 experiment is the first it makes there)
+        return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes, "reason": (
+            f"stick-slip at all {len(probes)} probed amplitudes up to {probes[-1]['amplitude_rad']:g} rad "
+            f"{last}, below tune.amplitude_max_rad = {max_rad:g} rad: the search runs at the "
+            f"next step, {a:g} rad, not probed, and may rely on the ratio minimiser")}, p, None
     return a, {"chosen_rad": _f(a), "alternative_rad": None, "probes": probes, "reason": (
         f"stick-slip at every amplitude up to tune.amplitude_max_rad = {max_rad:g} rad "
-        f"(|H_1| = {probes[-1]['h1']:.3g}, ratio at K_fc = 0 {probes[-1]['ratio_at_zero']}); "
-        "the search runs there and may rely on the ratio minimiser: raise "
+        f"{last}; the search runs there and may rely on the ratio minimiser: raise "
         "tune.amplitude_max_rad if the set-up allows")}, p, None
 
 

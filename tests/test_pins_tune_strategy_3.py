@@ -1155,6 +1155,12 @@ def test_auto_amplitude_probes_four_times_by_default():
     assert asked == [0.01, pytest.approx(0.04), pytest.approx(0.16), pytest.approx(0.64)]
     assert stop is None and a == pytest.approx(2.56) and block["chosen_rad"] == pytest.approx(2.56)
     assert len(block["probes"]) == 4 and all(q["verdict"] == "fail" for q in block["probes"])
+    # the reason says the ceiling was not reached and the chosen amplitude was not probed
+    # (it said "stick-slip at every amplitude up to tune.amplitude_max_rad = 100 rad")
+    assert p["H"] is not None and block["reason"] == (
+        f"stick-slip at all 4 probed amplitudes up to 0.64 rad (|H_1| = {block['probes'][3]['h1']:.3g}, "
+        f"ratio at K_fc = 0 {block['probes'][3]['ratio_at_zero']}), below tune.amplitude_max_rad = 100 rad: "
+        "the search runs at the next step, 2.56 rad, not probed, and may rely on the ratio minimiser")
 
 
 def test_auto_amplitude_resonance_marks_the_probe_that_found_it():
