@@ -898,6 +898,13 @@ def _loop_lag_text(f_hz, lag_deg, kv):
             "lower tune.frequency_hz (the lag falls with it) or raise the loop gains")
 
 
+def _percent(share):
+    """``share`` as a percentage for a person: two significant digits below 100 % ("44 %",
+    "0.53 %"), whole percent above ("120 %", not "1.2e+02 %")."""
+    pct = 100.0 * share
+    return f"{pct:.2g} %" if abs(pct) < 99.5 else f"{pct:.0f} %"
+
+
 def _diagnose_search(probe, outcome, by_k, kv):
     """The real cause of a search that did not converge (not stopped by a check): the
     loop's lag, the drive's smoothed sign, a plant that changed (the first experiment
@@ -924,7 +931,7 @@ def _diagnose_search(probe, outcome, by_k, kv):
     if bias > MAX_SIGMA_RE_K_FC:
         return "smoothed sign", (
             f"the drive smooths the feed-forward's sign over fc_smooth = {width:g} rad/s, "
-            f"{100 * width / (omega * probe.amplitude):.2g} % of the sine's peak velocity: its odd "
+            f"{_percent(width / (omega * probe.amplitude))} of the sine's peak velocity: its odd "
             f"harmonics are not the friction's relay (offset bound {100 * min(bias, 9.99):.3g} %), so "
             "the criterion cannot find the Coulomb level; set fc_smooth to 0 for the tune or raise "
             "the amplitude")

@@ -1543,7 +1543,9 @@ def test_a_smoothing_wider_than_the_peak_velocity_is_bounded_at_999_percent():
         pts[k]["lag_deg"], pts[k]["fc_smooth"] = math.degrees(0.03), 1.2 * v_peak
     cause, text = _run(ts._diagnose_search(_Probe(a, {}, frequency_hz=f), SimpleNamespace(cause="x"), pts, 0.0))
     assert cause == "smoothed sign" and math.isinf(tuning.smoothed_sign_bias(1.2 * v_peak, v_peak))
-    assert f"{120.0:.2g} % of the sine's peak velocity" in text and "(offset bound 999 %)" in text
+    # (a person reads "120 %", not "1.2e+02 %")
+    assert "sign over fc_smooth = 2.35619 rad/s, 120 % of the sine's peak velocity" in text
+    assert "(offset bound 999 %)" in text
 
 
 def test_period_drift_of_a_search_without_phases_is_none():
@@ -1560,3 +1562,9 @@ def test_requests_number_from_zero_and_the_model_tune_takes_its_facts_by_name():
     with pytest.raises(TypeError):
         ts.ModelTune(cfg, 2560.0)
     assert ts.ModelTune(cfg=cfg, fs_hz=2560.0).ask().tag == "identify"
+
+
+@pytest.mark.parametrize("share, text", [(0.00532, "0.53 %"), (0.443, "44 %"), (0.994, "99 %"),
+                                         (0.996, "100 %"), (1.2, "120 %"), (12.34, "1234 %")])
+def test_a_percentage_for_a_person_has_no_exponent(share, text):
+    assert ts._percent(share) == text
