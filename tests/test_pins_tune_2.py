@@ -359,20 +359,26 @@ def test_auto_amplitude_raised_past_the_encoder_limit_with_a_margin():
     assert block["probes"][0]["verdict"] == "fail" and "encoder step" in block["probes"][0]["encoder_note"]
 
 
-def test_budget_with_the_lag_correction_step():
-    # the motor lags 2.9 deg at K_fc* and the plant's harmonics read K_v = 0.04 V s/rad:
-    # one experiment with K_v in the loop (its root along the slope moves K_fc* by less
-    # than 2 %: no second), half that step the viscous part, its noise added
-    fs, n, c = 2560.0, 4096, 2
+def _rigid_lines(b, n=4096, c=2, fs=2560.0):
+    """A rigid motor (1.7e-3 V s^2/rad) with viscous ``b`` V s/rad and the relay 0.1157 V on a
+    sine with a third harmonic: (f, w, U, Y) at the lines c, 2c, .. 7c of one period."""
     f = c * fs / n
     w = 2 * np.pi * f
     t = np.arange(n) / fs
     y = 0.45 * np.sin(w * t + 0.3) + 0.004 * np.sin(3 * w * t - 0.6)
     yd = 0.45 * w * np.cos(w * t + 0.3) + 0.012 * w * np.cos(3 * w * t - 0.6)
     ydd = -0.45 * w ** 2 * np.sin(w * t + 0.3) - 0.036 * w ** 2 * np.sin(3 * w * t - 0.6)
-    u = 1.7e-3 * ydd + 0.04 * yd + 0.1157 * np.sign(0.45 * w * np.cos(w * t + 0.3))
-    lines_at = c * np.arange(1, 8)
-    U, Y = np.fft.fft(u)[lines_at], np.fft.fft(y)[lines_at]
+    u = 1.7e-3 * ydd + b * yd + 0.1157 * np.sign(0.45 * w * np.cos(w * t + 0.3))
+    at = c * np.arange(1, 8)
+    return f, w, np.fft.fft(u)[at], np.fft.fft(y)[at]
+
+
+def test_budget_with_the_lag_correction_step():
+    # the motor lags 2.9 deg at K_fc* and the plant's harmonics read K_v = 0.04 V s/rad:
+    # one experiment with K_v in the loop (its root along the slope moves K_fc* by less
+    # than 2 %: no second), half that step the viscous part, its noise added
+    fs, n, c = 2560.0, 4096, 2
+    f, w, U, Y = _rigid_lines(0.04, n, c, fs)
     kv = tuning.viscous_from_harmonics(U, Y, w, n, c)[0]
     assert kv == pytest.approx(0.04, rel=2e-3)
     a1, a2 = 0.5, 0.25

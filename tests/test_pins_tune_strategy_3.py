@@ -25,7 +25,7 @@ from fftune.analysis import tuning
 sys.path.insert(0, os.path.dirname(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "bench"))
 import bench_tune  # noqa: E402
-from test_pins_tune_2 import _Probe, _periods, _point, _run, _t95  # noqa: E402
+from test_pins_tune_2 import _Probe, _periods, _point, _rigid_lines, _run, _t95  # noqa: E402
 from test_tune_honest import _sat_cos_coefficient  # noqa: E402
 
 FS = 2560.0
@@ -1106,18 +1106,6 @@ def test_statistics_capture_measures_what_the_raw_samples_give():
     assert rho ** 2 > 0.64
     assert st["check"]["saturated_fraction"] == pytest.approx((rho ** 2 - 0.64) / 0.36, rel=1e-12)
     assert st["check"]["saturation_basis"].startswith("lower bound from rms(u) / u_max")
-
-
-def _rigid_lines(b, n=4096, c=2, fs=2560.0):
-    f = c * fs / n
-    w = 2 * np.pi * f
-    t = np.arange(n) / fs
-    y = 0.45 * np.sin(w * t + 0.3) + 0.004 * np.sin(3 * w * t - 0.6)
-    yd = 0.45 * w * np.cos(w * t + 0.3) + 0.012 * w * np.cos(3 * w * t - 0.6)
-    ydd = -0.45 * w ** 2 * np.sin(w * t + 0.3) - 0.036 * w ** 2 * np.sin(3 * w * t - 0.6)
-    u = 1.7e-3 * ydd + b * yd + 0.1157 * np.sign(0.45 * w * np.cos(w * t + 0.3))
-    at = c * np.arange(1, 8)
-    return f, w, np.fft.fft(u)[at], np.fft.fft(y)[at]
 
 
 def test_viscous_estimate_and_its_share_of_the_fundamental():
